@@ -1,0 +1,27 @@
+"""Shared test settings: the real Aria sample files and determinism."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+import torch
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+#: Real Project Aria files (see ../shared/data/NOTICE.md); override with EGOBENCH_SHARED_DATA.
+SHARED_DATA = Path(os.environ.get("EGOBENCH_SHARED_DATA", REPO_ROOT.parent / "shared" / "data"))
+
+
+@pytest.fixture
+def shared_data() -> Path:
+    """The folder with aria_mps_sample/ and adt_sample/, or skip the test with the reason."""
+    if not SHARED_DATA.is_dir():
+        pytest.skip(f"real Aria sample data not found at {SHARED_DATA} (set EGOBENCH_SHARED_DATA)")
+    return SHARED_DATA
+
+
+@pytest.fixture(autouse=True)
+def _deterministic_torch():
+    torch.manual_seed(0)
+    yield
