@@ -1,0 +1,190 @@
+"""`egobench bench raster|train`: micro-benchmarks printed as JSON.
+
+``raster``: forward+backward time of `egobench.render.render` (median of repeats after warm-up)
+on random but realistic scenes, and the cost of a rolling-shutter render (K pose samples)
+relative to a global-shutter render of the same image.
+``train``: delegated to ``egobench.train.benchmark(args)`` (the trainer's engineer owns it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+from dataclasses import asdict, dataclass
+
+import torch
+
+from egobench.camera.pinhole import Pinhole
+from egobench.render.types import Gaussians
+
+
+@dataclass
+class SceneSpec:
+    """A random scene in front of an identity camera (stated in the benchmark's JSON)."""
+
+    width: int  # image width = height, pixels
+    num_gaussians: int  # number of Gaussians
+    focal_px: float  # focal length, pixels (~ 80 deg field of view)
+    depth_range_m: tuple[float, float]  # centres uniform in depth over this range, metres
+    margin: float  # centres uniform over the image plus this fraction beyond each border
+    sigma_px_median: float  # median screen-space standard deviation of the scales, pixels
+    sigma_log_std: float  # log-normal spread of the per-axis scales
+    opacity_logit_mean: float  # opacity logits ~ N(mean, 1)
+    seed: int
+
+
+def bench_camera(spec: SceneSpec) -> Pinhole:
+    w = spec.width
+    return Pinhole(fx=spec.focal_px, fy=spec.focal_px, cx=(w - 1) / 2, cy=(w - 1) / 2, width=w, height=w)
+
+
+def bench_scene(spec: SceneSpec, device: str = "cpu", dtype: torch.dtype = torch.float32) -> Gaussians:
+    """Gaussians spread through the frustum; screen sizes of a few pixels."""
+    g = torch.Generator().manual_seed(spec.seed)
+    n, w = spec.num_gaussians, spec.width
+    z0, z1 = spec.depth_range_m
+    z = z0 + (z1 - z0) * torch.rand(n, generator=g)
+    u = (torch.rand(n, generator=g) * (1 + 2 * spec.margin) - spec.margin) * w
+    v = (torch.rand(n, generator=g) * (1 + 2 * spec.margin) - spec.margin) * w
+    c = (w - 1) / 2
+    means = torch.stack([(u - c) / spec.focal_px * z, (v - c) / spec.focal_px * z, z], -1)
+    s_px = spec.sigma_px_median * torch.exp(spec.sigma_log_std * torch.randn(n, 3, generator=g))
+    scales = s_px * z[:, None] / spec.focal_px
+    out = Gaussians(
+        means=means, quats=torch.randn(n, 4, generator=g), log_scales=scales.log(),
+        opacity_logits=spec.opacity_logit_mean + torch.randn(n, generator=g), colors=torch.rand(n, 3, generator=g),
+    )
+    return Gaussians(**{k: t.to(device=device, dtype=dtype) for k, t in out.tensors().items()})
+
+
+def rolling_shutter_poses(K: int, readout_s: float, deg_per_s: float, device: str = "cpu") -> torch.Tensor:
+    """[K, 4, 4] camera-to-world poses of K samples spread over the readout (yaw at deg_per_s)."""
+    t = (torch.arange(K, dtype=torch.float64) + 0.5) / K * readout_s - readout_s / 2
+    ang = torch.deg2rad(torch.tensor(deg_per_s, dtype=torch.float64)) * t
+    T = torch.eye(4, dtype=torch.float64).repeat(K, 1, 1)
+    T[:, 0, 0], T[:, 0, 2], T[:, 2, 0], T[:, 2, 2] = ang.cos(), ang.sin(), -ang.sin(), ang.cos()
+    return T.to(device=device, dtype=torch.float32)
+
+
+def row_index_image(K: int, H: int, W: int, device: str = "cpu") -> torch.Tensor:
+    """[H, W] pose-sample index round(R * (K - 1)) with R = row / (H - 1) (the authors' rule)."""
+    r = torch.arange(H, dtype=torch.float64) / max(H - 1, 1)
+    return torch.round(r * (K - 1)).long()[:, None].expand(H, W).contiguous().to(device)
+
+
+def _sync(device: str) -> None:
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+
+
+def time_fwd_bwd(fn, device: str, repeats: int, warmup: int = 2) -> dict:
+    """Median / min wall time (ms) of fn() (which runs forward and backward)."""
+    for _ in range(warmup):
+        fn()
+    times, cpu = [], []
+    for _ in range(repeats):
+        _sync(device)
+        t0, c0 = time.perf_counter(), time.process_time()
+        fn()
+        _sync(device)
+        times.append((time.perf_counter() - t0) * 1e3)
+        cpu.append((time.process_time() - c0) * 1e3)
+    return {"median_ms": round(statistics.median(times), 2), "min_ms": round(min(times), 2),
+            "cpu_median_ms": round(statistics.median(cpu), 2), "repeats": repeats}
+
+
+def _step(g: Gaussians, cam: Pinhole, T: torch.Tensor, weights: torch.Tensor, **kw):
+    from egobench.render import render
+
+    params = {k: v.detach().requires_grad_(True) for k, v in g.tensors().items()}
+
+    def fn():
+        out = render(Gaussians(**params), cam, T, **kw)
+        loss = (out.rgb * weights).sum() + 0.01 * out.depth.sum()
+        loss.backward()
+        return out
+
+    return fn
+
+
+#: (image width = height, number of Gaussians) of the timed cases
+RASTER_CASES = ((64, 2000), (128, 20000))
+
+
+def bench_raster(device: str = "cpu", repeats: int = 7, backend: str = "auto", tile_size: int = 4,
+                 cases: tuple[tuple[int, int], ...] = RASTER_CASES) -> dict:
+    """The rasterizer benchmark record (see module docstring); the rolling-shutter comparison
+    uses the last case's scene."""
+    from egobench.render import render
+
+    result: dict = {
+        "benchmark": "raster", "torch": torch.__version__, "threads": torch.get_num_threads(), "device": device,
+        "backend": backend, "tile_size": tile_size, "cases": [],
+        "note": "wall time of forward+backward, median of repeats after 2 warm-up runs (cpu_median_ms: "
+                "process CPU time, all threads); noisy on a shared machine",
+    }
+    T = torch.eye(4, device=device)
+    for width, n in cases:
+        spec = SceneSpec(width=width, num_gaussians=n, focal_px=0.6 * width, depth_range_m=(2.0, 8.0), margin=0.1,
+                         sigma_px_median=0.8, sigma_log_std=0.3, opacity_logit_mean=0.0, seed=0)
+        cam = bench_camera(spec)
+        g = bench_scene(spec, device)
+        w = torch.randn(1, width, width, 3, generator=torch.Generator().manual_seed(1)).to(device)
+        with torch.no_grad():
+            probe = render(g, cam, T, backend=backend, tile_size=tile_size)
+        r = probe.radii[probe.radii > 0].float()
+        case = {"image": f"{width}x{width}", "scene": asdict(spec),
+                "visible_gaussians": int(r.numel()), "mean_screen_radius_px": round(float(r.mean()), 2),
+                "mean_alpha": round(float(probe.alpha.mean()), 3)}
+        case.update(time_fwd_bwd(_step(g, cam, T, w, backend=backend, tile_size=tile_size), device, repeats))
+        result["cases"].append(case)
+
+    # rolling shutter: K = 8 samples over a 16 ms readout at 300 deg/s, on the last scene
+    K, readout_s, speed = 8, 0.016, 300.0
+    Ts = rolling_shutter_poses(K, readout_s, speed, device)
+    idx = row_index_image(K, cam.height, cam.width, device)
+    gs = time_fwd_bwd(_step(g, cam, Ts[K // 2], w, backend=backend, tile_size=tile_size), device, repeats)
+    rs = time_fwd_bwd(_step(g, cam, Ts, w, backend=backend, tile_size=tile_size, pixel_pose_index=idx), device, repeats)
+    ref = time_fwd_bwd(_step(g, cam, Ts, w[:1].expand(K, -1, -1, -1), backend=backend, tile_size=tile_size),
+                       device, max(1, repeats // 2), warmup=1)
+    result["rolling_shutter"] = {
+        "image": f"{cam.width}x{cam.height}", "pose_samples": K, "readout_s": readout_s, "yaw_deg_per_s": speed,
+        "global_shutter_ms": gs["median_ms"], "rolling_shutter_ms": rs["median_ms"],
+        "ratio": round(rs["median_ms"] / gs["median_ms"], 3),
+        "cpu_ratio": round(rs["cpu_median_ms"] / max(gs["cpu_median_ms"], 1e-9), 3),
+        "render_K_images_ms": ref["median_ms"],
+    }
+    return result
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("what", choices=["raster", "train"], help="which benchmark")
+    parser.add_argument("--device", default="cpu", help="cpu or cuda")
+    parser.add_argument("--repeats", type=int, default=7, help="timed repeats (median reported)")
+    parser.add_argument("--backend", default="auto", choices=["auto", "torch", "gsplat"], help="rasterizer backend")
+    parser.add_argument("--tile-size", type=int, default=4,
+                        help="tile size in pixels (4: fastest for the torch backend on CPU; gsplat's default is 16)")
+    parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    if args.device.startswith("cuda") and not torch.cuda.is_available():
+        raise ValueError("--device cuda: CUDA is not available on this machine")
+    if args.repeats < 1:
+        raise ValueError(f"--repeats: expected a positive integer, got {args.repeats}")
+    if args.what == "raster":
+        print(json.dumps(bench_raster(args.device, args.repeats, args.backend, args.tile_size), indent=2))
+        return 0
+    try:
+        from egobench import train
+    except ImportError:
+        train = None
+    if train is None or not hasattr(train, "benchmark"):
+        print("egobench bench train: not available yet (egobench.train.benchmark is missing)", file=sys.stderr)
+        return 1
+    return int(train.benchmark(args) or 0)

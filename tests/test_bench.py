@@ -1,0 +1,54 @@
+"""Tests of the benchmark helpers and the `egobench bench` verb (tiny sizes)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+
+import pytest
+import torch
+
+from egobench import bench
+
+
+def test_row_index_image_bands():
+    idx = bench.row_index_image(8, 64, 5)
+    assert idx.shape == (64, 5) and idx.dtype == torch.long
+    assert int(idx[0, 0]) == 0 and int(idx[-1, 0]) == 7
+    assert bool((idx.diff(dim=0) >= 0).all())  # rows in readout order: contiguous bands
+    assert set(idx[:, 0].tolist()) == set(range(8))
+
+
+def test_rolling_shutter_poses_span_the_readout():
+    T = bench.rolling_shutter_poses(8, 0.016, 300.0)
+    yaw = torch.atan2(T[:, 0, 2], T[:, 0, 0])
+    span = math.degrees(float(yaw[-1] - yaw[0]))
+    assert span == pytest.approx(300.0 * 0.016 * 7 / 8, rel=1e-5)
+    assert torch.allclose(T[:, :3, :3] @ T[:, :3, :3].transpose(1, 2), torch.eye(3).expand(8, 3, 3), atol=1e-6)
+
+
+def test_bench_scene_has_few_pixel_radii():
+    spec = bench.SceneSpec(width=64, num_gaussians=500, focal_px=38.4, depth_range_m=(2.0, 8.0), margin=0.1,
+                           sigma_px_median=0.8, sigma_log_std=0.3, opacity_logit_mean=0.0, seed=0)
+    from egobench.render import render
+
+    out = render(bench.bench_scene(spec), bench.bench_camera(spec), torch.eye(4), backend="torch")
+    r = out.radii[out.radii > 0].float()
+    assert r.numel() > 400 and 2.0 < float(r.mean()) < 6.0
+
+
+def test_bench_raster_record_small():
+    rec = bench.bench_raster("cpu", repeats=1, backend="torch", tile_size=8, cases=((16, 60),))
+    json.dumps(rec, allow_nan=False)
+    assert rec["torch"] == torch.__version__ and rec["device"] == "cpu"
+    case = rec["cases"][0]
+    assert case["image"] == "16x16" and case["median_ms"] > 0 and case["scene"]["num_gaussians"] == 60
+    rs = rec["rolling_shutter"]
+    assert rs["pose_samples"] == 8 and rs["ratio"] > 0
+
+
+def test_bench_cli_rejects_bad_repeats():
+    args = argparse.Namespace(what="raster", device="cpu", repeats=0, backend="torch", tile_size=8, threads=0)
+    with pytest.raises(ValueError, match="--repeats"):
+        bench.run(args)
