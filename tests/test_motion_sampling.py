@@ -1,0 +1,185 @@
+"""Motion sampling: sample counts against analytic pixel motion, bracket times, R(u) index rule."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from egobench.camera.pinhole import Pinhole
+from egobench.data.recording import Frame, Recording, SparseDepth
+from egobench.motion_sampling import (
+    MOTION_WINDOW_S, estimate_motion, exposure_pose_samples, frame_twist_camera, n_pose_samples,
+    pixel_pose_index, pose_samples, sample_times_ns, velocity_poses,
+)
+
+F_PX = 100.0
+T_C = 10_000_000_000  # centre-row time of the test frame, ns
+
+
+class RotY:
+    """Device rotating about its y axis at omega rad/s (angle 0 at T_C), at the origin."""
+
+    def __init__(self, omega: float, v_x: float = 0.0) -> None:
+        self.omega, self.v_x = omega, v_x
+
+    def pose(self, t_ns) -> torch.Tensor:
+        t = torch.as_tensor(t_ns).reshape(-1)
+        assert not t.dtype.is_floating_point, "the Trajectory API takes integer ns"
+        a = (t.to(torch.float64) - T_C) * 1e-9 * self.omega
+        T = torch.eye(4, dtype=torch.float64).repeat(len(t), 1, 1)
+        T[:, 0, 0], T[:, 0, 2], T[:, 2, 0], T[:, 2, 2] = a.cos(), a.sin(), -a.sin(), a.cos()
+        T[:, 0, 3] = (t.to(torch.float64) - T_C) * 1e-9 * self.v_x
+        return T
+
+    def velocity(self, t_ns):
+        from egobench.geometry import TrajectoryVelocity
+
+        n = torch.as_tensor(t_ns).reshape(-1).shape[0]
+        return TrajectoryVelocity(
+            linear_world=torch.tensor([[self.v_x, 0.0, 0.0]], dtype=torch.float64).repeat(n, 1),
+            angular_device=torch.tensor([[0.0, self.omega, 0.0]], dtype=torch.float64).repeat(n, 1),
+        )
+
+
+def make_recording(omega: float, uv: np.ndarray, z: np.ndarray, readout_s: float = 5e-3, size: int = 64,
+                   v_x: float = 0.0) -> Recording:
+    cam = Pinhole(fx=F_PX, fy=F_PX, cx=(size - 1) / 2, cy=(size - 1) / 2, width=size, height=size)
+    exposure_s = 2e-3
+    read_start = T_C - int(readout_s * 1e9 / 2) - int(exposure_s * 1e9 / 2)
+    traj = RotY(omega, v_x)
+    frame = Frame(
+        index=0, image_path=Path("none.png"), timestamp_ns=T_C, read_start_ns=read_start,
+        read_end_ns=read_start + int(readout_s * 1e9), exposure_s=exposure_s, gain=1.0,
+        T_world_camera=traj.pose(torch.tensor([T_C]))[0], T_device_camera=torch.eye(4, dtype=torch.float64),
+        sparse_depth=SparseDepth(uv=uv, z=z, inv_dist_std=np.zeros(len(z)), dist_std=np.zeros(len(z))),
+    )
+    ratio = (torch.arange(size, dtype=torch.float32) / (size - 1))[:, None].expand(size, size).contiguous()
+    return Recording(
+        root=Path("."), name="t", calibration="online", camera=cam, camera_model="linear", frames=[frame],
+        vignette=torch.ones(size, size), mask=torch.ones(size, size, dtype=torch.bool), row_time_ratio=ratio,
+        trajectory=traj, points_world=torch.zeros(1, 3),
+    )
+
+
+def centre_points(n: int = 20, size: int = 64) -> tuple[np.ndarray, np.ndarray]:
+    """Points on the optical axis (u = cx, v = cy) at various depths: pure yaw moves them by f tan(angle)."""
+    c = (size - 1) / 2
+    return np.full((n, 2), c), np.linspace(1.0, 5.0, n)
+
+
+def test_static_frame_needs_one_sample():
+    uv, z = centre_points()
+    rec = make_recording(0.0, uv, z)
+    assert n_pose_samples(rec, rec.frames[0]) == 1
+    assert n_pose_samples(rec, rec.frames[0], rule="paper") == 1
+
+
+@pytest.mark.parametrize("omega", [7.0, 12.0, 40.0])
+def test_code_rule_matches_analytic_count(omega):
+    uv, z = centre_points()
+    rec = make_recording(omega, uv, z)
+    est = estimate_motion(rec, rec.frames[0])
+    # A point on the axis at angle 0 sits at u = cx; at +-1 ms it is at cx -+ f tan(omega * 1 ms).
+    d_2ms = 2 * F_PX * math.tan(omega * MOTION_WINDOW_S / 2)
+    assert est.median_motion_px == pytest.approx(d_2ms, rel=1e-6)
+    expected = int(min(max(5e-3 / MOTION_WINDOW_S * d_2ms, 1), 8))
+    assert est.n_samples == expected
+    assert expected > 1  # the cases are chosen to need more than one sample
+
+
+def test_paper_rule_matches_analytic_count():
+    omega = 1.2  # rad/s; readout 5 ms -> 6 mrad over the readout, 0.6 px
+    uv, z = centre_points()
+    for readout, omega in [(5e-3, 1.2), (5e-3, 3.5), (16e-3, 3.0)]:
+        rec = make_recording(omega, uv, z, readout_s=readout)
+        got = n_pose_samples(rec, rec.frames[0], rule="paper")
+        # Brackets over [-R/2, R/2]; displacement in bracket i is f (tan a1 - tan a0); the worst is an outer one.
+        expected = 8
+        for n in range(1, 9):
+            edges = (-readout / 2 + np.arange(n + 1) * readout / n) * omega
+            worst = np.max(F_PX * np.diff(np.tan(edges)))
+            if worst < 1.0:
+                expected = n
+                break
+        assert got == expected, (readout, omega)
+
+
+def test_pixel_scale_reduces_count():
+    uv, z = centre_points()
+    rec = make_recording(40.0, uv, z)
+    full = estimate_motion(rec, rec.frames[0])
+    half = estimate_motion(rec, rec.frames[0], pixel_scale=0.5)
+    assert half.median_motion_px == pytest.approx(full.median_motion_px / 2)
+
+
+def test_points_leaving_the_image_are_ignored():
+    uv, z = centre_points()
+    uv2 = np.concatenate([uv, [[200.0, 10.0]]])  # outside the image: never counted
+    rec = make_recording(12.0, uv2, np.concatenate([z, [2.0]]))
+    assert estimate_motion(rec, rec.frames[0]).n_points == len(z)
+
+
+def test_missing_sparse_depth_is_a_clear_error():
+    uv, z = centre_points()
+    rec = make_recording(12.0, uv, z)
+    rec.frames[0].sparse_depth = None
+    with pytest.raises(ValueError, match="sparse depth"):
+        n_pose_samples(rec, rec.frames[0])
+
+
+def test_bracket_centres_and_pose_samples():
+    uv, z = centre_points()
+    readout = 5e-3
+    rec = make_recording(12.0, uv, z, readout_s=readout)
+    f = rec.frames[0]
+    n = 4
+    times = sample_times_ns(f, n)[0]
+    R = f.read_end_ns - f.read_start_ns
+    expected = T_C - R / 2 + (np.arange(n) + 0.5) * R / n
+    np.testing.assert_allclose(times.numpy(), expected)
+    poses, ppi = pose_samples(rec, f, n)
+    assert poses.shape == (n, 4, 4) and poses.dtype == torch.float64
+    ref = rec.trajectory.pose(torch.round(torch.as_tensor(expected)).long())
+    torch.testing.assert_close(poses, ref)
+    # Per-pixel index = round(R(u) (n - 1)) with R(u) = v / (H - 1) here.
+    H = rec.camera.height
+    v = np.arange(H) / (H - 1)
+    np.testing.assert_array_equal(ppi[:, 0].numpy(), np.round(v * (n - 1)).astype(np.int64))
+    assert ppi.dtype == torch.int64 and ppi.min() == 0 and ppi.max() == n - 1
+
+
+def test_pixel_pose_index_with_nonlinear_ratio():
+    r = torch.tensor([[0.0, 0.1, 0.49], [0.51, 0.9, 1.0]])
+    np.testing.assert_array_equal(pixel_pose_index(r, 3).numpy(), [[0, 0, 1], [1, 2, 2]])
+    assert int(pixel_pose_index(r, 1).max()) == 0
+
+
+def test_exposure_samples_split_the_exposure():
+    uv, z = centre_points()
+    rec = make_recording(12.0, uv, z)
+    f = rec.frames[0]
+    t = sample_times_ns(f, 2, n_exposure_samples=4)
+    assert t.shape == (4, 2)
+    E = f.exposure_s * 1e9
+    np.testing.assert_allclose((t[:, 0] - t[0, 0]).numpy(), np.arange(4) * E / 4)
+    np.testing.assert_allclose(t.mean(0).numpy(), sample_times_ns(f, 2)[0].numpy())
+    assert exposure_pose_samples(rec, f, 2, 4).shape == (4, 2, 4, 4)
+
+
+def test_velocity_model_matches_constant_rotation():
+    uv, z = centre_points()
+    omega, v_x = 12.0, 0.5
+    rec = make_recording(omega, uv, z, v_x=v_x)
+    f = rec.frames[0]
+    twist = frame_twist_camera(rec, f)
+    torch.testing.assert_close(twist, torch.tensor([v_x, 0, 0, 0, omega, 0], dtype=torch.float64))
+    dt = torch.tensor([-2e-3, 0.0, 3e-3], dtype=torch.float64)
+    T = velocity_poses(f.T_world_camera, twist, dt)
+    # Rotation part is exact for constant yaw; translation moves along world x at v_x.
+    ref = rec.trajectory.pose(torch.round(T_C + dt * 1e9).long())
+    torch.testing.assert_close(T[:, :3, :3], ref[:, :3, :3])
+    torch.testing.assert_close(T[:, :3, 3], ref[:, :3, 3], atol=1e-9, rtol=0)  # world x = v_x dt at the origin

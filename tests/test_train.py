@@ -1,0 +1,270 @@
+"""Trainer: determinism, resume, convergence on a known scene, densification rules, guards, bad input."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from egobench.optim import Densifier, DensifySchedule, make_adam
+from egobench.train import (
+    PAPER_ITERATIONS, TrainConfig, TrainingDiverged, parse_overrides, toy_recording, train,
+)
+
+SMALL = dict(max_gaussians=1500, refine_every_frac=5 / 40 * 1.0)
+
+
+@pytest.fixture(scope="module")
+def toy(tmp_path_factory):
+    """17 frames of a textured plane, 32x32, camera translating and yawing (2 held out... 3: 0, 8, 16)."""
+    return toy_recording(tmp_path_factory.mktemp("toy"), size=32, n_frames=17, angular_speed_rad_s=1.0,
+                         n_points=1200, frame_interval_s=0.05)
+
+
+def _params(run_dir):
+    return torch.load(run_dir / "checkpoint.pt", weights_only=False)["params"]
+
+
+# ----------------------------------------------------------------------------- config
+def test_schedule_scales_with_iterations():
+    cfg = TrainConfig()
+    assert (cfg.refine_start_iter, cfg.refine_stop_iter, cfg.refine_every, cfg.reset_every) == (500, 15_000, 100, 3_000)
+    assert cfg.motion_warmup_iter == 7_500 and cfg.normal_start_iter == 7_000 and cfg.dist_start_iter == 3_000
+    short = cfg.scaled_to(3_000)
+    assert (short.refine_start_iter, short.refine_stop_iter, short.refine_every, short.reset_every) == (50, 1_500, 10, 300)
+    assert short.motion_warmup_iter == 750 and short.iterations == 3_000
+    assert cfg.hash("ours") != short.hash("ours") and cfg.hash("ours") != cfg.hash("splatfacto")
+
+
+def test_overrides_and_errors():
+    cfg = parse_overrides(TrainConfig(), ["lr_means=1e-3", "max_side=48", "opacity_reset=intended",
+                                          "background=1,1,1"])
+    assert cfg.lr_means == 1e-3 and cfg.max_side == 48 and cfg.opacity_reset == "intended"
+    assert cfg.background == (1.0, 1.0, 1.0)
+    with pytest.raises(ValueError, match="unknown TrainConfig field"):
+        parse_overrides(TrainConfig(), ["nope=1"])
+    with pytest.raises(ValueError, match="max_side=abc: expected a value of type int"):
+        parse_overrides(TrainConfig(), ["max_side=abc"])
+    with pytest.raises(ValueError, match="TrainConfig.iterations"):
+        TrainConfig(iterations=0)
+
+
+# ----------------------------------------------------------------------------- densification
+def _dict_params(scales, opacities, n_extra_cols=3):
+    N = len(scales)
+    p = {
+        "means": torch.nn.Parameter(torch.arange(N * 3, dtype=torch.float32).reshape(N, 3)),
+        "scales": torch.nn.Parameter(torch.log(torch.tensor(scales, dtype=torch.float32))[:, None].repeat(1, 3)),
+        "quats": torch.nn.Parameter(torch.tensor([[1.0, 0, 0, 0]]).repeat(N, 1)),
+        "opacities": torch.nn.Parameter(torch.logit(torch.tensor(opacities, dtype=torch.float32))),
+        "colors": torch.nn.Parameter(torch.rand(N, 3, generator=torch.Generator().manual_seed(N))),
+    }
+    opts = {k: make_adam(v, 0.0) for k, v in p.items()}  # lr 0: Adam state without moving the values
+    for v in p.values():  # give Adam some state, which must follow the Gaussians
+        v.grad = torch.ones_like(v)
+    for o in opts.values():
+        o.step()
+        o.zero_grad()
+    return p, opts
+
+
+def _schedule(**kw):
+    base = dict(grow_grad2d=2e-4, grow_scale3d=0.01, prune_opa=0.005, prune_scale3d=0.1, refine_start_iter=0,
+                refine_stop_iter=1000, refine_every=1, reset_every=100, opacity_reset="gsplat", max_gaussians=0)
+    base.update(kw)
+    return DensifySchedule(**base)
+
+
+def _accumulate(d, params, grads_px, width=100, height=100, step=1):
+    means2d = torch.zeros(1, len(grads_px), 2, requires_grad=True)
+    means2d.grad = torch.tensor(grads_px, dtype=torch.float32)[None, :, None].repeat(1, 1, 2) / math.sqrt(2)
+    d.accumulate(params, step, means2d, torch.full((1, len(grads_px)), 5), width, height)
+
+
+def test_densification_duplicates_splits_and_prunes_as_gsplat():
+    # G0 small + high grad -> duplicate; G1 large + high grad -> split; G2 faint -> pruned; G3 kept.
+    scales, opac = [0.005, 0.05, 0.02, 0.02], [0.5, 0.5, 0.001, 0.5]
+    params, opts = _dict_params(scales, opac)
+    d = Densifier(_schedule(), scene_scale=1.0)
+    hi, lo = 1e-5, 1e-6  # px; normalised by W/2 = 50: 5e-4 > 2e-4 > 5e-5
+    _accumulate(d, params, [hi, hi, lo, lo])
+    torch.manual_seed(0)
+    counts = d.refine(params, opts, step=1)
+    assert counts == {"duplicated": 1, "split": 1, "pruned": 1, "capped": 0}
+    s = torch.exp(params["scales"][:, 0]).detach()
+    assert len(s) == 5
+    np.testing.assert_allclose(sorted(s.tolist()), sorted([0.005, 0.005, 0.02, 0.05 / 1.6, 0.05 / 1.6]), rtol=1e-5)
+    assert float(torch.sigmoid(params["opacities"].detach()).min()) > 0.005
+    # The duplicate is an exact copy; split children sit within a few sigma of the parent (means[1] = [3, 4, 5]).
+    m = params["means"].detach()
+    small = torch.nonzero((s - 0.005).abs() < 1e-6).flatten()
+    assert torch.equal(m[small[0]], m[small[1]])
+    kids = torch.nonzero((s - 0.05 / 1.6).abs() < 1e-6).flatten()
+    assert float((m[kids] - torch.tensor([3.0, 4.0, 5.0])).norm(dim=-1).max()) < 0.05 * 6
+    # New Gaussians have zero Adam moments; the kept ones keep theirs; statistics were reset.
+    st = opts["means"].state[params["means"]]["exp_avg"]
+    assert st.shape == (5, 3) and float(st[0].abs().sum()) > 0 and float(st[-1].abs().sum()) == 0
+    assert float(d.state["grad2d"].abs().sum()) == 0 and len(d.state["grad2d"]) == 5
+
+
+def test_no_refinement_outside_the_window_and_huge_pruned_after_reset():
+    params, opts = _dict_params([0.02, 0.5], [0.5, 0.5])
+    d = Densifier(_schedule(refine_start_iter=10, reset_every=20), scene_scale=1.0)
+    _accumulate(d, params, [1e-5, 1e-6], step=5)
+    assert d.refine(params, opts, step=5)["split"] == 0 and len(params["means"]) == 2  # step <= refine_start
+    _accumulate(d, params, [1e-6, 1e-6], step=21)
+    counts = d.refine(params, opts, step=21)
+    # Statistics persist between refinements: G0's mean (5e-4 + 5e-5) / 2 > 2e-4 -> split (0.02 > 0.01);
+    # step > reset_every: G1's max scale 0.5 > 0.1 * scene_scale -> pruned although its opacity is fine.
+    assert counts == {"duplicated": 0, "split": 1, "pruned": 1, "capped": 0}
+    np.testing.assert_allclose(torch.exp(params["scales"][:, 0]).tolist(), [0.02 / 1.6] * 2, rtol=1e-5)
+    d2 = Densifier(_schedule(refine_stop_iter=3), scene_scale=1.0)
+    params2, opts2 = _dict_params([0.005], [0.5])
+    _accumulate(d2, params2, [1e-3], step=3)
+    assert d2.state["grad2d"] is None  # no statistics from refine_stop on
+    assert d2.refine(params2, opts2, step=3)["duplicated"] == 0
+
+
+def test_opacity_reset_modes_and_cap():
+    params, opts = _dict_params([0.02] * 4, [0.9, 0.2, 0.6, 0.05])
+    d = Densifier(_schedule(reset_every=10), scene_scale=1.0)
+    _accumulate(d, params, [1e-6] * 4, step=10)
+    d.refine(params, opts, step=10)
+    assert float(torch.sigmoid(params["opacities"].detach()).max()) == pytest.approx(0.9, rel=1e-5)  # gsplat 1.5.3: never
+    d = Densifier(_schedule(reset_every=10, opacity_reset="intended"), scene_scale=1.0)
+    _accumulate(d, params, [1e-6] * 4, step=10)
+    d.refine(params, opts, step=10)
+    assert float(torch.sigmoid(params["opacities"].detach()).max()) == pytest.approx(0.01, rel=1e-4)
+    # Budget: 4 Gaussians, cap 5, all four want to grow -> only the largest-gradient one does.
+    params, opts = _dict_params([0.005, 0.005, 0.05, 0.05], [0.9, 0.2, 0.6, 0.5])
+    d = Densifier(_schedule(max_gaussians=5), scene_scale=1.0)
+    _accumulate(d, params, [1e-5, 3e-5, 2e-5, 1.5e-5])
+    assert d.refine(params, opts, step=1) == {"duplicated": 1, "split": 0, "pruned": 0, "capped": 3}
+    assert len(params["means"]) == 5
+    assert torch.equal(params["means"][1], params["means"][4])  # G1 (largest gradient) was duplicated
+
+
+def test_growth_equals_gsplat_without_a_cap():
+    """Our budgeted growth is gsplat's `_grow_gs` when the budget does not bind (random case)."""
+    gen = torch.Generator().manual_seed(3)
+    scales = (torch.rand(50, generator=gen) * 0.03).tolist()
+    opac = (torch.rand(50, generator=gen) * 0.9 + 0.05).tolist()
+    grads = (torch.rand(50, generator=gen) * 1e-5).tolist()
+    results = []
+    for use_gsplat in (False, True):
+        params, opts = _dict_params(scales, opac)
+        d = Densifier(_schedule(), scene_scale=1.0)
+        _accumulate(d, params, grads)
+        torch.manual_seed(7)
+        if use_gsplat:
+            d.strategy._grow_gs(params, opts, d.state, 1)
+        else:
+            d.grow(params, opts, 1)
+        results.append({k: v.detach().clone() for k, v in params.items()})
+    for k in results[0]:
+        assert torch.equal(results[0][k], results[1][k]), k
+    assert len(results[0]["means"]) > 50
+
+
+# ----------------------------------------------------------------------------- training
+def test_deterministic_and_resume_equals_uninterrupted(toy, tmp_path):
+    cfg = TrainConfig(iterations=40, max_gaussians=1500, refine_start_frac=0.1, refine_every_frac=0.1,
+                      motion_warmup_frac=0.5, checkpoint_every=10)
+    a = train(toy, "ours", cfg, tmp_path / "a", progress=False)
+    b = train(toy, "ours", cfg, tmp_path / "b", progress=False)
+    pa, pb = _params(tmp_path / "a"), _params(tmp_path / "b")
+    for k in pa:
+        assert torch.equal(pa[k], pb[k]), k
+    assert a.num_gaussians != 1200  # densification happened, and identically
+    # Interrupted at 25 (a checkpoint at 20 exists in between, then the stop writes 25), resumed to 40.
+    part = train(toy, "ours", cfg, tmp_path / "c", progress=False, stop_after=25)
+    assert part.iterations == 25 and not part.record["complete"]
+    c = train(toy, "ours", cfg, tmp_path / "c", progress=False, resume=True)
+    assert c.iterations == 40 and c.record["complete"]
+    pc = _params(tmp_path / "c")
+    for k in pa:
+        assert torch.equal(pa[k], pc[k]), k
+    other = train(toy, "ours", dataclasses.replace(cfg, seed=1), tmp_path / "d", progress=False)
+    assert not torch.equal(_params(tmp_path / "d")["means"][:100], pa["means"][:100]) or other.num_gaussians != a.num_gaussians
+    with pytest.raises(ValueError, match="different training config"):
+        train(toy, "ours", dataclasses.replace(cfg, lr_colors=0.1), tmp_path / "c", progress=False, resume=True)
+
+
+def test_fits_a_known_scene(toy, tmp_path):
+    """200 iterations from noisy points: training-image PSNR rises well above the initial one."""
+    from egobench.evaluate import evaluate
+
+    cfg = TrainConfig(iterations=200, lr_colors=1e-2, max_gaussians=3000, refine_every_frac=0.1)
+    res = train(toy, "no_motion_sampling", cfg, tmp_path / "fit", progress=False)
+    rec0 = train(toy, "no_motion_sampling", dataclasses.replace(cfg, iterations=1), tmp_path / "init", progress=False)
+    e = evaluate(toy, tmp_path / "fit", save_renders=False)
+    e0 = evaluate(toy, tmp_path / "init", save_renders=False)
+    assert res.final_loss < 0.05
+    assert e["metrics"]["psnr"] > 24.0, e["metrics"]
+    assert e["metrics"]["psnr"] > e0["metrics"]["psnr"] + 8.0
+    tj = res.record
+    assert tj["train"]["iters_per_s"] > 0 and 0 < tj["train"]["raster_time_share"] < 1
+    assert rec0.iterations == 1
+
+
+def test_nan_guard_names_iteration_and_quantity(toy, tmp_path, monkeypatch):
+    import egobench.render as R
+
+    real = R.render
+    calls = {"n": 0}
+
+    def poisoned(*args, **kwargs):
+        out = real(*args, **kwargs)
+        calls["n"] += 1
+        if calls["n"] == 4:
+            out.rgb = out.rgb * float("nan")
+        return out
+
+    monkeypatch.setattr(R, "render", poisoned)
+    with pytest.raises(TrainingDiverged, match="iteration 3: rendered rgb is not finite"):
+        train(toy, "no_motion_sampling", TrainConfig(iterations=10), tmp_path / "nan", progress=False)
+
+
+def test_other_methods_run(toy, tmp_path):
+    """on_the_move (velocity shift, exposure samples, pose/velocity optimisation) and 2DGS train."""
+    cfg = TrainConfig(iterations=6, motion_warmup_frac=0.0, lr_pose=1e-2, refine_start_frac=1.0)
+    from egobench.data.recording import Recording
+
+    factory = dataclasses.replace(toy, calibration="factory")
+    r = train(factory, "on_the_move", cfg, tmp_path / "otm", progress=False)
+    ck = torch.load(tmp_path / "otm" / "checkpoint.pt", weights_only=False)
+    assert float(ck["extra"]["pose_delta"].abs().sum()) > 0 and ck["extra"]["twist"].shape == (len(toy.train_frames), 6)
+    assert math.isfinite(r.final_loss)
+    r2 = train(toy, "ours_2dgs", dataclasses.replace(cfg, normal_start_frac=0.0, dist_start_frac=0.0),
+               tmp_path / "2dgs", progress=False)
+    assert math.isfinite(r2.final_loss)
+    with pytest.raises(ValueError, match="needs the 'online' calibration"):
+        train(factory, "ours", cfg, tmp_path / "x", progress=False)
+    assert isinstance(factory, Recording)
+
+
+# ----------------------------------------------------------------------------- bad input
+def test_bad_inputs_are_named_before_training(toy, tmp_path):
+    cfg = TrainConfig(iterations=2)
+    no_depth = dataclasses.replace(toy, frames=[dataclasses.replace(f, sparse_depth=None) for f in toy.frames])
+    with pytest.raises(ValueError, match=r"no sparse depth; method 'ours'"):
+        train(no_depth, "ours", cfg, tmp_path / "a", progress=False)
+    train(no_depth, "no_motion_sampling", cfg, tmp_path / "b", progress=False)  # centre-row: not needed
+    bad_gain = dataclasses.replace(toy, frames=[dataclasses.replace(f, gain=float("nan")) for f in toy.frames])
+    with pytest.raises(ValueError, match=r"frame 0 has gain=nan; method 'ours' models exposure and gain"):
+        train(bad_gain, "ours", cfg, tmp_path / "c", progress=False)
+    splat = dataclasses.replace(bad_gain, calibration="factory")
+    train(splat, "splatfacto", cfg, tmp_path / "d", progress=False)  # no formation: not needed
+    wrong_cam = dataclasses.replace(toy, camera=dataclasses.replace(toy.camera, width=40))
+    with pytest.raises(ValueError, match="mask has shape .* the calibration says"):
+        train(wrong_cam, "ours", cfg, tmp_path / "e", progress=False)
+    wrong_img = dataclasses.replace(toy, camera=dataclasses.replace(toy.camera, width=40, height=40),
+                                    mask=torch.ones(40, 40, dtype=torch.bool), vignette=torch.ones(40, 40),
+                                    row_time_ratio=torch.zeros(40, 40))
+    with pytest.raises(ValueError, match="the calibration says 40x40"):
+        train(wrong_img, "ours", cfg, tmp_path / "f", progress=False)
+    with pytest.raises(ValueError, match="unknown method"):
+        train(toy, "nope", cfg, tmp_path / "g", progress=False)
