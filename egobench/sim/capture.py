@@ -78,12 +78,16 @@ def camera_poses(trajectory, T_device_camera: Tensor, t_ns) -> Tensor:
     return trajectory.pose(t_ns) @ T_device_camera
 
 
-def cast_chunked(scene, origins: Tensor, dirs: Tensor, want: tuple[str, ...] = ("radiance",)) -> dict[str, Tensor]:
-    """Scene.cast in chunks of CAST_CHUNK rays; origins/dirs [N, 3] float32 (dirs unit)."""
+def cast_chunked(scene, origins: Tensor, dirs: Tensor, want: tuple[str, ...] = ("radiance",),
+                 pixel_angle_rad: float | None = None) -> dict[str, Tensor]:
+    """Scene.cast in chunks of CAST_CHUNK rays; origins/dirs [N, 3] float32 (dirs unit).
+
+    ``pixel_angle_rad`` (about 1 / focal_px) lets textures average over each pixel's footprint,
+    as a real pixel integrates over its area (without it, one ray per pixel aliases)."""
     outs: dict[str, list[Tensor]] = {k: [] for k in want}
     n = origins.shape[0]
     for s in range(0, n, CAST_CHUNK):
-        hit = scene.cast(origins[s:s + CAST_CHUNK], dirs[s:s + CAST_CHUNK])
+        hit = scene.cast(origins[s:s + CAST_CHUNK], dirs[s:s + CAST_CHUNK], pixel_angle_rad=pixel_angle_rad)
         for k in want:
             outs[k].append(getattr(hit, k))
     if n == 0:
@@ -152,6 +156,7 @@ def capture_irradiance(scene, trajectory, raw: RawCamera, read_start_ns: int, ex
     o = T[..., :3, 3].to(torch.float32)  # [H, S, 3]
     rays = raw.rays_cam.to(torch.float32)  # [H, W, 3]
     valid = raw.valid
+    pixel_angle = 1.0 / float(raw.calibration.camera().f)  # radians one raw pixel subtends at the centre
     out = torch.zeros(H, W, 3, dtype=torch.float32)
     rows_per_chunk = max(1, CAST_CHUNK // max(1, W * n_samples))
     for r0 in range(0, H, rows_per_chunk):
@@ -162,7 +167,8 @@ def capture_irradiance(scene, trajectory, raw: RawCamera, read_start_ns: int, ex
         d = torch.einsum("hsij,hwj->hswi", R[r0:r1], rays[r0:r1])  # [h, S, W, 3]
         orig = o[r0:r1, :, None, :].expand_as(d)
         m = vmask[:, None, :].expand(d.shape[:3])
-        rad = cast_chunked(scene, orig[m].contiguous(), d[m].contiguous())["radiance"].to(torch.float32)
+        rad = cast_chunked(scene, orig[m].contiguous(), d[m].contiguous(),
+                           pixel_angle_rad=pixel_angle)["radiance"].to(torch.float32)
         full = torch.zeros(d.shape[:3] + (3,), dtype=torch.float32)
         full[m] = rad
         out[r0:r1] = full.mean(dim=1)

@@ -1,0 +1,218 @@
+"""`diagnose_residuals`: test every candidate cause, rank, name, extend the model, measure the gain.
+
+Protocol (docs/diagnosis.md):
+1. Frames whose index % holdout_every != 0 are the fitting frames; the rest are held out.
+2. Round k: every cause of the library is fitted on the current residual of the fitting frames;
+   raw p-values are Holm-adjusted over the testable causes. A cause is significant when its
+   adjusted p < alpha AND its effect (RMS change of the display prediction) >= effect_floor
+   (8-bit images hold ~10^5 pixels, so a tiny but real mismatch is always "significant"; the
+   floor states what is worth modelling). Score = effect_rms x min(1, -log10(p_adj) / 10).
+3. The top significant mean-affecting cause is named, its estimate applied to every frame
+   (held-out frames: per-frame parameters come from their even-checkerboard pixels), and the
+   held-out PSNR gain is measured on the odd-checkerboard pixels of the held-out frames.
+4. Repeat until nothing mean-affecting is significant (at most max_causes); noise is named
+   only then, because any unmodelled mean effect inflates the residual variance.
+Nothing named in round 1 -> "no significant discrepancy".
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from egobench.diagnose.estimators import CAUSES, CauseResult, Noise, ResidualData
+from egobench.diagnose.signatures import LEVEL, DiagnosisContext, checkerboard, erode, holm, psnr
+
+NO_DISCREPANCY = "no significant discrepancy"
+
+
+@dataclass
+class DiagnosisConfig:
+    """Settings of one diagnosis."""
+
+    alpha: float = 0.01  # family-wise significance level (Holm over the library, per round)
+    effect_floor: float = 0.5 * LEVEL  # smallest RMS display change (0..1) worth naming: half an 8-bit level
+    noise_factor_floor: float = 0.15  # |noise_std_factor - 1| below which noise is not named
+    max_causes: int = 3  # causes named one after another (peeling)
+    causes: tuple[str, ...] = tuple(CAUSES)  # the library to test (effect names)
+    border_px: int = 2  # image border excluded from fits and scores (warps sample outside there)
+
+    def validate(self) -> "DiagnosisConfig":
+        if not (0 < self.alpha < 1):
+            raise ValueError(f"DiagnosisConfig.alpha: expected a level in (0, 1), got {self.alpha}")
+        if not (self.effect_floor >= 0):
+            raise ValueError(f"DiagnosisConfig.effect_floor: expected >= 0, got {self.effect_floor}")
+        if int(self.max_causes) < 1:
+            raise ValueError(f"DiagnosisConfig.max_causes: expected an integer >= 1, got {self.max_causes}")
+        unknown = [c for c in self.causes if c not in CAUSES]
+        if unknown:
+            raise ValueError(f"DiagnosisConfig.causes: unknown {unknown}; expected names from {list(CAUSES)}")
+        return self
+
+
+@dataclass
+class NamedCause:
+    """A cause named by the diagnosis, its estimate and what modelling it gains on held-out frames."""
+
+    name: str
+    round: int  # 1-based peeling round
+    p_adjusted: float
+    effect_rms: float  # display units (0..1)
+    params: dict
+    psnr_gain_db: float  # held-out PSNR(extended) - PSNR(before this cause)
+    nll_gain_nats_per_px: float | None = None  # noise only: held-out Gaussian NLL improvement
+
+
+@dataclass
+class Diagnosis:
+    """Result of `diagnose_residuals`."""
+
+    verdict: str  # name of the top cause, or NO_DISCREPANCY
+    named: list[NamedCause]  # in the order they were peeled off
+    rounds: list[list[CauseResult]]  # every cause's test in every round (round 1 = the ranking)
+    baseline_psnr_db: float  # held-out PSNR of the model as given
+    extended_psnr_db: float  # held-out PSNR with every named cause modelled
+    held_out_frames: list[int]  # frame indices used for the gain
+    runtime_s: float
+    config: DiagnosisConfig
+    extended_prediction: np.ndarray | None = None  # [F, H, W, 3] display (not serialised)
+    unmodelled_fraction: float = 0.0  # share of photometric cells trimmed as off-model content (round 1)
+    unmodelled_map: np.ndarray | None = None  # [f_fit, hb, wb] bool trimmed cells (round 1; not serialised)
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def psnr_gain_db(self) -> float:
+        return self.extended_psnr_db - self.baseline_psnr_db
+
+    @property
+    def ranking(self) -> list[CauseResult]:
+        """Round-1 results, best first (significant ones by score, then the rest by p-value)."""
+        r = self.rounds[0] if self.rounds else []
+        return sorted(r, key=lambda c: (not c.significant, -c.score, c.p_adjusted))
+
+    def to_dict(self) -> dict:
+        def clean(x):
+            if isinstance(x, float):
+                return x if math.isfinite(x) else None
+            if isinstance(x, dict):
+                return {str(k): clean(v) for k, v in x.items()}
+            if isinstance(x, (list, tuple)):
+                return [clean(v) for v in x]
+            if isinstance(x, (np.floating, np.integer)):
+                return clean(x.item())
+            if isinstance(x, np.ndarray):
+                return clean(x.tolist())
+            return x
+
+        return clean({
+            "schema": "egobench.diagnosis/1",
+            "verdict": self.verdict,
+            "named": [n.__dict__ for n in self.named],
+            "ranking": [c.to_dict() for c in self.ranking],
+            "rounds": [[c.to_dict() for c in rnd] for rnd in self.rounds],
+            "baseline_psnr_db": self.baseline_psnr_db,
+            "extended_psnr_db": self.extended_psnr_db,
+            "psnr_gain_db": self.psnr_gain_db,
+            "held_out_frames": self.held_out_frames,
+            "runtime_s": self.runtime_s,
+            "unmodelled_fraction": self.unmodelled_fraction,
+            "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.config.__dict__.items()},
+            "meta": self.meta,
+        })
+
+
+def _check_stack(name: str, x: np.ndarray) -> np.ndarray:
+    x = np.asarray(x)
+    if x.ndim != 4 or x.shape[-1] != 3:
+        raise ValueError(f"{name}: expected display images of shape [F, H, W, 3], got {list(x.shape)}")
+    if not np.all(np.isfinite(x)):
+        raise ValueError(f"{name}: contains NaN or inf")
+    return x.astype(np.float64)
+
+
+def diagnose_residuals(
+    measured: np.ndarray,  # [F, H, W, 3] display values in [0, 1] (the captured frames)
+    predicted: np.ndarray,  # [F, H, W, 3] the model's prediction of the same frames
+    context: DiagnosisContext,
+    config: DiagnosisConfig | None = None,
+) -> Diagnosis:
+    """Test the library of causes on the residual measured - predicted; see the module docstring."""
+    t0 = time.perf_counter()
+    cfg = (config or DiagnosisConfig()).validate()
+    measured = _check_stack("measured", measured)
+    predicted = _check_stack("predicted", predicted)
+    if measured.shape != predicted.shape:
+        raise ValueError(f"predicted: shape {list(predicted.shape)} differs from measured {list(measured.shape)}")
+    F, H, W, _ = measured.shape
+    ctx = context.validate(F, H, W)
+    held = ctx.held_out
+    fit_idx = np.flatnonzero(~held)
+    eval_idx = np.flatnonzero(held)
+    if fit_idx.size < 3:
+        raise ValueError(f"measured: need at least 3 fitting (not held-out) frames, got {fit_idx.size} of {F}")
+    fit_pixels = None
+    if eval_idx.size == 0:  # nothing held out: fit on even, score on odd checkerboard pixels of every frame
+        eval_idx = np.arange(F)
+        fit_pixels = checkerboard(H, W, 0)
+    valid_eval = erode(ctx.valid, cfg.border_px)
+    eval_mask = valid_eval & checkerboard(H, W, 1)
+    fit_mask = checkerboard(H, W, 0)
+
+    def score(pred: np.ndarray) -> float:
+        return psnr(pred[eval_idx], measured[eval_idx], eval_mask)
+
+    current = predicted.copy()
+    baseline = score(current)
+    named: list[NamedCause] = []
+    rounds: list[list[CauseResult]] = []
+    unmodelled_fraction, unmodelled_map = 0.0, None
+    noise_cause: Noise = CAUSES["noise"]  # type: ignore[assignment]
+    for rnd in range(1, int(cfg.max_causes) + 1):
+        data = ResidualData(measured[fit_idx], current[fit_idx], ctx, fit_idx, border_px=cfg.border_px,
+                            pixel_mask=fit_pixels)
+        results = [CAUSES[name].fit(data) for name in cfg.causes if name not in {n.name for n in named}]
+        if rnd == 1 and data._photometric is not None and data._photometric.testable:
+            pf = data._photometric
+            unmodelled_fraction = float(pf.trimmed.mean()) if pf.n_cells else 0.0
+            unmodelled_map = getattr(pf, "trimmed_map", None)
+        testable = [r for r in results if r.testable]
+        for r, p_adj in zip(testable, holm([r.p_value for r in testable]) if testable else []):
+            r.p_adjusted = p_adj
+            r.effect_floor = cfg.effect_floor
+            r.significant = p_adj < cfg.alpha and r.effect_rms >= cfg.effect_floor
+            if r.name == "noise" and "noise_std_factor" in r.params:
+                r.significant &= abs(r.params["noise_std_factor"] - 1.0) > cfg.noise_factor_floor
+            r.score = r.effect_rms * min(1.0, -math.log10(max(p_adj, 1e-300)) / 10.0) if r.significant else 0.0
+        rounds.append(results)
+        mean_sig = [r for r in testable if r.significant and CAUSES[r.name].mean_affecting]
+        if mean_sig:
+            top = max(mean_sig, key=lambda r: r.score)
+            new = CAUSES[top.name].apply(current, top, ctx, np.arange(F), measured=measured, fit_mask=fit_mask)
+            gain = score(new) - score(current)
+            named.append(NamedCause(top.name, rnd, top.p_adjusted, top.effect_rms, top.params, gain))
+            current = new
+            continue
+        noise = next((r for r in testable if r.name == "noise" and r.significant), None)
+        if noise is not None:
+            pe, me = current[eval_idx], measured[eval_idx]
+            mask = np.broadcast_to(eval_mask[None, :, :, None], pe.shape)
+            var0 = noise_cause.variance(pe, None, ctx, eval_idx)[mask] * noise.internal.get("transfer", 1.0)
+            var1 = noise_cause.variance(pe, noise, ctx, eval_idx)[mask]
+            r2 = ((me - pe)[mask]) ** 2
+            nll0 = float(np.mean(0.5 * (np.log(2 * math.pi * var0) + r2 / var0)))
+            nll1 = float(np.mean(0.5 * (np.log(2 * math.pi * var1) + r2 / var1)))
+            named.append(NamedCause("noise", rnd, noise.p_adjusted, noise.effect_rms, noise.params, 0.0, nll0 - nll1))
+        break
+    return Diagnosis(
+        verdict=named[0].name if named else NO_DISCREPANCY,
+        named=named, rounds=rounds, baseline_psnr_db=baseline, extended_psnr_db=score(current),
+        held_out_frames=[int(ctx.frame_index[i]) for i in eval_idx], runtime_s=time.perf_counter() - t0,
+        config=cfg, extended_prediction=current, unmodelled_fraction=unmodelled_fraction,
+        unmodelled_map=unmodelled_map,
+        meta={"held_out_scored_on": "odd-checkerboard pixels of held-out frames" if held.any() else
+              "odd-checkerboard pixels of all frames (no held-out frame)",
+              "frame_index": [int(i) for i in ctx.frame_index], **ctx.meta},
+    )

@@ -1,0 +1,808 @@
+"""The library of candidate causes: one class per effect of `egobench.effects.EFFECTS`.
+
+Each cause tests its physical signature in the residual between measured and predicted images
+(`fit` -> `CauseResult`: statistic, p-value, effect size, parameter estimate, plot data) and
+extends the prediction with its estimated parameter (`apply`).
+
+Photometric causes (vignette, response, white balance, exposure metadata) share one weighted
+regression of block-level log ratios log(sum measured_linear / sum predicted_linear) on
+frame dummies, channel dummies, a radial polynomial and log intensity; each is the partial F-test
+of its own regressors (type-III), so they are tested jointly and do not masquerade as each
+other. Blocks (4 x 4 px) are the units, which absorbs pixel-scale correlation.
+
+Geometric causes (readout, time offset, exposure blur, distortion) regress the pixel residual on
+their first-order signature (-grad(prediction) . displacement) frame by frame and test the
+per-frame slopes across frames (frames are the units: robust to spatially correlated model
+error). Their parameters are then refined by Gauss-Newton on the warped prediction, which is
+also how `apply` re-renders the prediction under the corrected model (bilinear warp of the
+predicted image by the corrected displacement field; documented in docs/diagnosis.md).
+
+Noise compares the high-passed residual variance in flat regions with the assumed
+Poisson-Gaussian model; it does not change the mean prediction (its gain is a held-out
+log-likelihood gain, not PSNR).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from egobench.diagnose.signatures import (
+    LEVEL, DiagnosisContext, block_sum, box3, decode, directional_second_derivative, distortion_profile,
+    encode, encode_slope, erode, frame_t_test, gradients, partial_f_test, radial_coordinates, warp,
+    weighted_lstsq,
+)
+
+#: Display range used for fits: darker pixels are dominated by noise/quantisation in log
+#: space, brighter ones may be clipped.
+DISPLAY_MIN, DISPLAY_MAX = 0.04, 0.95
+#: Block size (pixels) of the photometric regression cells.
+BLOCK_PX = 4
+
+
+@dataclass
+class CauseResult:
+    """One candidate cause tested on one residual."""
+
+    name: str  # effect name (egobench.effects.EFFECTS key)
+    kind: str  # "photometric" | "geometric" | "noise"
+    testable: bool  # False when the context lacks what the signature needs (reason says what)
+    reason: str = ""  # why untestable, or notes on the estimate
+    statistic: float = 0.0  # value of the test statistic
+    statistic_kind: str = ""  # e.g. "F(2, 4000)", "t(13)"
+    p_value: float = 1.0  # raw p-value
+    p_adjusted: float = 1.0  # Holm-adjusted over the library (filled by the engine)
+    effect_rms: float = 0.0  # RMS change of the display prediction (0..1 units) when the cause is applied; noise: RMS std change
+    effect_floor: float = 0.0  # practical-significance floor on effect_rms
+    params: dict = field(default_factory=dict)  # estimated parameter(s), JSON-ready, named with units
+    significant: bool = False  # p_adjusted < alpha and effect_rms >= effect_floor
+    score: float = 0.0  # ranking key: effect size x saturating significance
+    plot: dict = field(default_factory=dict)  # signature plot data (lists), see report.py
+    internal: dict = field(default_factory=dict)  # arrays needed by apply (not serialised)
+
+    def to_dict(self) -> dict:
+        return {k: v for k, v in self.__dict__.items() if k not in ("internal", "plot")}
+
+
+class ResidualData:
+    """Measured and predicted stacks of some frames, with the derived quantities the causes share."""
+
+    def __init__(self, measured: np.ndarray, predicted: np.ndarray, ctx: DiagnosisContext, frames: np.ndarray,
+                 border_px: int = 2, pixel_mask: np.ndarray | None = None) -> None:
+        self.ctx = ctx
+        self.frames = np.asarray(frames, dtype=np.int64)  # [f] positions in the context arrays
+        self.m = np.asarray(measured, dtype=np.float64)  # [f, H, W, 3]
+        self.p = np.asarray(predicted, dtype=np.float64)  # [f, H, W, 3]
+        self.r = self.m - self.p
+        g = ctx.gamma_assumed
+        self.m_lin = decode(self.m, g)
+        self.p_lin = decode(self.p, g)
+        H, W = self.m.shape[1:3]
+        self.valid = erode(ctx.valid, border_px)  # [H, W]
+        self.usable_all = ((self.p > DISPLAY_MIN) & (self.p < DISPLAY_MAX) & (self.m < 0.985) & (self.m > 0.005)
+                           & self.valid[None, :, :, None])  # ignoring pixel_mask (noise neighbourhoods)
+        self.pixel_fraction = 1.0 if pixel_mask is None else float(np.mean(pixel_mask))
+        if pixel_mask is not None:  # statistics on these pixels only (e.g. even checkerboard; odd ones score the gain)
+            self.valid = self.valid & pixel_mask
+        in_range = (self.p > DISPLAY_MIN) & (self.p < DISPLAY_MAX) & (self.m < 0.985) & (self.m > 0.005)
+        self.usable = in_range & self.valid[None, :, :, None]  # [f, H, W, 3]
+        self._grad = None
+        self._photometric = None
+
+    @property
+    def grad(self) -> tuple[np.ndarray, np.ndarray]:
+        if self._grad is None:
+            self._grad = gradients(self.p)
+        return self._grad
+
+    @property
+    def velocity(self) -> np.ndarray | None:  # [f, H, W, 2]
+        v = self.ctx.pixel_velocity_px_s
+        return None if v is None else v[self.frames].astype(np.float64)
+
+    def photometric(self) -> "PhotometricFit":
+        if self._photometric is None:
+            self._photometric = PhotometricFit(self)
+        return self._photometric
+
+
+# ============================================================================ photometric
+class PhotometricFit:
+    """Weighted regression of block log ratios (see module docstring). Cells with robust |z| > 5 are trimmed."""
+
+    def __init__(self, data: ResidualData, block: int = BLOCK_PX) -> None:
+        ctx = data.ctx
+        f_count = data.m.shape[0]
+        H, W = data.m.shape[1:3]
+        mask = data.usable.astype(np.float64)  # [f, H, W, 3]
+        n = block_sum(mask, block)  # [f, hb, wb, 3]
+        sm = block_sum(data.m_lin * mask, block)
+        sp = block_sum(data.p_lin * mask, block)
+        var_lin = ctx.noise_var_linear(data.p_lin, data.frames) + (LEVEL / encode_slope(data.p_lin, ctx.gamma_assumed)) ** 2 / 12.0
+        sv = block_sum(var_lin * mask, block)
+        _, _, r_norm = radial_coordinates(H, W, ctx.principal_point)
+        r2 = block_sum(np.broadcast_to((r_norm**2)[None, :, :, None], mask.shape) * mask, block)
+        r4 = block_sum(np.broadcast_to((r_norm**4)[None, :, :, None], mask.shape) * mask, block)
+        ok = (n >= 0.75 * block * block * data.pixel_fraction) & (sp > 0) & (sm > 0)
+        var_y = sv / np.maximum(sp, 1e-12) ** 2 + 1e-8
+        y = np.log(np.maximum(sm, 1e-12) / np.maximum(sp, 1e-12)) + 0.5 * var_y  # second-order bias correction
+        log_p = np.log(np.maximum(sp, 1e-12) / np.maximum(n, 1))
+        fidx = np.broadcast_to(np.arange(f_count)[:, None, None, None], ok.shape)
+        cidx = np.broadcast_to(np.arange(3)[None, None, None, :], ok.shape)
+        self.cell_ok = ok  # [f, hb, wb, 3]
+        sel = ok.ravel()
+        self.n_cells = int(sel.sum())
+        self.y = y.ravel()[sel]
+        self.w = 1.0 / var_y.ravel()[sel]
+        self.fidx = fidx.ravel()[sel]
+        self.cidx = cidx.ravel()[sel]
+        self.r2 = (r2 / np.maximum(n, 1)).ravel()[sel]
+        self.r4 = (r4 / np.maximum(n, 1)).ravel()[sel]
+        self.log_p = log_p.ravel()[sel]
+        self.log_p0 = float(np.average(self.log_p, weights=self.w)) if self.n_cells else 0.0
+        self.n_frames = f_count
+        self.trimmed = np.zeros(self.n_cells, dtype=bool)
+        self.testable = self.n_cells > f_count + 8
+        if not self.testable:
+            return
+        self._fit()
+        # Trim cells far off the model (unmodelled content such as a person absent from a simulation).
+        res = (self.y - self.X @ self.coef) * np.sqrt(self.w)
+        scale = 1.4826 * np.median(np.abs(res - np.median(res))) + 1e-12
+        self.trimmed = np.abs(res) > 5.0 * scale
+        if self.trimmed.any() and (~self.trimmed).sum() > f_count + 8:
+            self._fit()
+        trimmed_map = np.zeros(ok.size, dtype=bool)
+        trimmed_map[np.flatnonzero(sel)[self.trimmed]] = True
+        self.trimmed_map = trimmed_map.reshape(ok.shape).any(axis=-1)  # [f, hb, wb]
+
+    # column blocks of the design matrix
+    def _design(self) -> dict[str, np.ndarray]:
+        frame = np.zeros((self.n_cells, self.n_frames))
+        frame[np.arange(self.n_cells), self.fidx] = 1.0
+        wb = np.stack([(self.cidx == 0).astype(float), (self.cidx == 2).astype(float)], axis=1)
+        vig = np.stack([self.r2, self.r4], axis=1)
+        resp = (self.log_p - self.log_p0)[:, None]
+        return {"frame": frame, "white_balance": wb, "vignette": vig, "response": resp}
+
+    def _fit(self) -> None:
+        keep = ~self.trimmed
+        blocks = self._design()
+        self.blocks = blocks
+        self.X = np.concatenate(list(blocks.values()), axis=1)
+        self.names = list(blocks)
+        self.slices = {}
+        start = 0
+        for name, b in blocks.items():
+            self.slices[name] = slice(start, start + b.shape[1])
+            start += b.shape[1]
+        self.coef, self.rss = weighted_lstsq(self.X[keep], self.y[keep], self.w[keep])
+        self.dof = int(keep.sum()) - self.X.shape[1]
+        self.keep = keep
+
+    def test(self, block: str) -> tuple[float, float, int]:
+        """Partial F-test of one regressor block -> (F, p, q)."""
+        keep = self.keep
+        cols = [b for name, b in self.blocks.items() if name != block]
+        if block == "frame":  # H0: one common scale for every frame (an intercept)
+            cols = [np.ones((self.n_cells, 1))] + cols
+            q = self.n_frames - 1
+        else:
+            q = self.blocks[block].shape[1]
+        Xr = np.concatenate(cols, axis=1)
+        _, rss_r = weighted_lstsq(Xr[keep], self.y[keep], self.w[keep])
+        f, p = partial_f_test(self.rss, rss_r, q, self.dof)
+        return f, p, q
+
+    def coefs(self, block: str) -> np.ndarray:
+        return self.coef[self.slices[block]]
+
+    @property
+    def log_global(self) -> float:
+        """Median per-frame log scale: an overall gain (a nuisance every photometric extension carries)."""
+        return float(np.median(self.coefs("frame")))
+
+    def own_global(self, block: str) -> float:
+        """Log gain that best accompanies this block alone (weighted mean of y minus its term, kept cells)."""
+        term = self.blocks[block] @ self.coefs(block)
+        if block == "frame":
+            term = term - self.log_global
+        k = self.keep
+        return float(np.average((self.y - term)[k], weights=self.w[k]))
+
+    def partial_residual(self, block: str) -> np.ndarray:
+        """y minus every other block's contribution (cells) -> [n_cells]."""
+        return self.y - self.X @ self.coef + self.blocks[block] @ self.coefs(block)
+
+
+def _photometric_apply(predicted: np.ndarray, log_factor: np.ndarray, gamma: float, power: float = 0.0,
+                       log_p0: float = 0.0) -> np.ndarray:
+    """Display [f, H, W, 3] -> display with linear * exp(log_factor + power * (log linear - log_p0)), clipped."""
+    lin = decode(predicted, gamma)
+    log_lin = np.log(np.clip(lin, 1e-6, None))
+    out = lin * np.exp(log_factor + power * (log_lin - log_p0))
+    return np.clip(encode(out, gamma), 0.0, 1.0)
+
+
+def _own_term(result: "CauseResult") -> "CauseResult":
+    """The result without the shared global gain, so that effect_rms measures the cause's own term."""
+    internal = dict(result.internal)
+    internal["log_global"] = 0.0
+    return CauseResult(result.name, result.kind, result.testable, internal=internal)
+
+
+class Cause:
+    """Base class of a candidate cause."""
+
+    name = ""
+    kind = "photometric"
+    mean_affecting = True
+
+    def fit(self, data: ResidualData) -> CauseResult:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def apply(self, predicted: np.ndarray, result: CauseResult, ctx: DiagnosisContext, frames: np.ndarray,
+              measured: np.ndarray | None = None, fit_mask: np.ndarray | None = None) -> np.ndarray:
+        """Extend the prediction predicted [f, H, W, 3] (frames: positions in ctx) with the estimate."""
+        raise NotImplementedError  # pragma: no cover
+
+    def _untestable(self, reason: str) -> CauseResult:
+        return CauseResult(self.name, self.kind, testable=False, reason=reason)
+
+    @staticmethod
+    def _effect(data: ResidualData, new_pred: np.ndarray, extra_mask: np.ndarray | None = None) -> float:
+        m = data.usable if extra_mask is None else data.usable & extra_mask
+        if not m.any():
+            return 0.0
+        return float(np.sqrt(np.mean((new_pred - data.p)[m] ** 2)))
+
+
+def _binned(x: np.ndarray, y: np.ndarray, w: np.ndarray, bins: int = 12) -> dict:
+    """Weighted means of y in quantile bins of x (for signature plots)."""
+    if x.size == 0:
+        return {"x": [], "y": []}
+    edges = np.unique(np.quantile(x, np.linspace(0, 1, bins + 1)))
+    idx = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, max(len(edges) - 2, 0))
+    sw = np.bincount(idx, weights=w, minlength=len(edges) - 1)
+    xm = np.bincount(idx, weights=w * x, minlength=len(edges) - 1) / np.maximum(sw, 1e-300)
+    ym = np.bincount(idx, weights=w * y, minlength=len(edges) - 1) / np.maximum(sw, 1e-300)
+    keep = sw > 0
+    return {"x": xm[keep].tolist(), "y": ym[keep].tolist()}
+
+
+class Vignette(Cause):
+    """Unmodelled lens shading: radial, multiplicative, the same in every frame."""
+
+    name = "vignette"
+
+    def fit(self, data: ResidualData) -> CauseResult:
+        fit = data.photometric()
+        if not fit.testable:
+            return self._untestable("too few usable photometric cells")
+        f, p, q = fit.test("vignette")
+        a = fit.coefs("vignette")
+        corner = 1.0 - math.exp(float(a[0] + a[1]))
+        res = CauseResult(self.name, self.kind, True, statistic=f, statistic_kind=f"F({q}, {fit.dof})", p_value=p,
+                          params={"corner_attenuation": corner, "log_shading_r2_r4": a.tolist(),
+                                  "global_gain": math.exp(fit.log_global), "note": "global_gain: median frame gain of the joint fit"},
+                          internal={"a": a, "log_global": fit.own_global("vignette")})
+        res.effect_rms = self._effect(data, self.apply(data.p, _own_term(res), data.ctx, data.frames))
+        pr = fit.partial_residual("vignette")
+        k = fit.keep
+        rr = np.sqrt(fit.r2[k])
+        res.plot = {"binned": _binned(rr, pr[k] - fit.log_global, fit.w[k]),
+                    "curve_r": np.linspace(0, 1, 21).tolist(),
+                    "curve": (a[0] * np.linspace(0, 1, 21) ** 2 + a[1] * np.linspace(0, 1, 21) ** 4).tolist(),
+                    "xlabel": "radius / corner radius", "ylabel": "log(measured / predicted), linear"}
+        return res
+
+    def apply(self, predicted, result, ctx, frames, measured=None, fit_mask=None):
+        H, W = predicted.shape[1:3]
+        _, _, r = radial_coordinates(H, W, ctx.principal_point)
+        a = result.internal["a"]
+        log_v = a[0] * r**2 + a[1] * r**4
+        return _photometric_apply(predicted, result.internal["log_global"] + log_v[None, :, :, None], ctx.gamma_assumed)
+
+
+class ResponseGamma(Cause):
+    """Camera response wrong: log measured-linear is a power of log predicted-linear."""
+
+    name = "response"
+
+    def fit(self, data: ResidualData) -> CauseResult:
+        fit = data.photometric()
+        if not fit.testable:
+            return self._untestable("too few usable photometric cells")
+        f, p, q = fit.test("response")
+        c = float(fit.coefs("response")[0])
+        gamma_true = data.ctx.gamma_assumed / (1.0 + c) if 1.0 + c > 0.05 else float("inf")
+        res = CauseResult(self.name, self.kind, True, statistic=f, statistic_kind=f"F({q}, {fit.dof})", p_value=p,
+                          params={"gamma": gamma_true, "gamma_assumed": data.ctx.gamma_assumed,
+                                  "log_log_slope_minus_1": c, "global_gain": math.exp(fit.log_global), "note": "global_gain: median frame gain of the joint fit"},
+                          internal={"c": c, "log_p0": fit.log_p0, "log_global": fit.own_global("response")})
+        if not math.isfinite(gamma_true):
+            res.params["gamma"] = None
+            res.reason = "log-log slope <= 0.05: not a gamma curve"
+        res.effect_rms = self._effect(data, self.apply(data.p, _own_term(res), data.ctx, data.frames))
+        k = fit.keep
+        res.plot = {"binned": _binned(fit.log_p[k], fit.partial_residual("response")[k] - fit.log_global, fit.w[k]),
+                    "slope": c, "x0": fit.log_p0,
+                    "xlabel": "log predicted linear intensity", "ylabel": "log(measured / predicted), linear"}
+        return res
+
+    def apply(self, predicted, result, ctx, frames, measured=None, fit_mask=None):
+        i = result.internal
+        return _photometric_apply(predicted, np.full((1, 1, 1, 1), i["log_global"]), ctx.gamma_assumed,
+                                  power=i["c"], log_p0=i["log_p0"])
+
+
+class WhiteBalance(Cause):
+    """Per-channel gains: a constant colour cast (tested relative to green)."""
+
+    name = "white_balance"
+
+    def fit(self, data: ResidualData) -> CauseResult:
+        fit = data.photometric()
+        if not fit.testable:
+            return self._untestable("too few usable photometric cells")
+        f, p, q = fit.test("white_balance")
+        g = fit.coefs("white_balance")
+        rel = np.exp([g[0], 0.0, g[1]])
+        res = CauseResult(self.name, self.kind, True, statistic=f, statistic_kind=f"F({q}, {fit.dof})", p_value=p,
+                          params={"channel_gains_relative_to_green": rel.tolist(),
+                                  "channel_gains": (rel * math.exp(fit.log_global)).tolist(),
+                                  "global_gain": math.exp(fit.log_global), "note": "global_gain: median frame gain of the joint fit"},
+                          internal={"log_gain": np.log(rel), "log_global": fit.own_global("white_balance")})
+        res.effect_rms = self._effect(data, self.apply(data.p, _own_term(res), data.ctx, data.frames))
+        k = fit.keep
+        pr = fit.partial_residual("white_balance")[k] - fit.log_global
+        means = [float(np.average(pr[fit.cidx[k] == c], weights=fit.w[k][fit.cidx[k] == c])) if np.any(fit.cidx[k] == c) else 0.0
+                 for c in range(3)]
+        res.plot = {"channel_log_ratio": means, "xlabel": "channel", "ylabel": "log(measured / predicted) - global"}
+        return res
+
+    def apply(self, predicted, result, ctx, frames, measured=None, fit_mask=None):
+        log = result.internal["log_gain"] + result.internal["log_global"]
+        return _photometric_apply(predicted, log[None, None, None, :], ctx.gamma_assumed)
+
+
+class ExposureMetadata(Cause):
+    """Per-frame exposure/gain metadata error: a global per-frame scale."""
+
+    name = "exposure_metadata"
+
+    def fit(self, data: ResidualData) -> CauseResult:
+        fit = data.photometric()
+        if not fit.testable:
+            return self._untestable("too few usable photometric cells")
+        f, p, q = fit.test("frame")
+        beta = fit.coefs("frame")
+        dev = beta - fit.log_global
+        spread = 1.4826 * float(np.median(np.abs(dev))) + 1e-12
+        flagged = np.flatnonzero((np.abs(dev) > max(4.0 * spread, 0.03)))
+        scale = np.exp(dev)
+        errors = (1.0 / scale[flagged] - 1.0).tolist()  # recorded = true x (1 + e): measured / predicted = 1 / (1 + e)
+        res = CauseResult(self.name, self.kind, True, statistic=f, statistic_kind=f"F({q}, {fit.dof})", p_value=p,
+                          params={"frame_scale": {int(data.ctx.frame_index[fr]): float(s) for fr, s in zip(data.frames, scale)},
+                                  "flagged_frames": [int(data.ctx.frame_index[data.frames[i]]) for i in flagged],
+                                  "exposure_relative_error": errors,
+                                  "median_exposure_relative_error": float(np.median(errors)) if errors else 0.0,
+                                  "global_gain": math.exp(fit.log_global), "note": "global_gain: median frame gain of the joint fit"},
+                          internal={"log_scale": dict(zip(data.frames.tolist(), dev.tolist())),
+                                    "log_global": fit.own_global("frame")})
+        res.effect_rms = self._effect(data, self.apply(data.p, _own_term(res), data.ctx, data.frames))
+        res.plot = {"frame": [int(data.ctx.frame_index[fr]) for fr in data.frames], "scale": scale.tolist(),
+                    "flagged": res.params["flagged_frames"], "xlabel": "frame", "ylabel": "measured / predicted (linear)"}
+        return res
+
+    def apply(self, predicted, result, ctx, frames, measured=None, fit_mask=None):
+        i = result.internal
+        logs = np.zeros(len(frames))
+        for j, fr in enumerate(np.asarray(frames).tolist()):  # loop over frames, not pixels
+            if fr in i["log_scale"]:
+                logs[j] = i["log_scale"][fr]
+            elif measured is not None:  # a frame not fitted (held out): its own scale from the fit pixels
+                lin_m = decode(measured[j], ctx.gamma_assumed)
+                lin_p = decode(predicted[j], ctx.gamma_assumed) * math.exp(i["log_global"])
+                m = (predicted[j] > DISPLAY_MIN) & (predicted[j] < DISPLAY_MAX) & (measured[j] < 0.985)
+                if fit_mask is not None:
+                    m &= np.broadcast_to(fit_mask[..., None], m.shape)
+                m &= np.broadcast_to(ctx.valid[..., None], m.shape)
+                if m.any():
+                    logs[j] = math.log(max(lin_m[m].sum(), 1e-12) / max(lin_p[m].sum(), 1e-12))
+        return _photometric_apply(predicted, (i["log_global"] + logs)[:, None, None, None], ctx.gamma_assumed)
+
+
+# ============================================================================ geometric
+class _Geometric(Cause):
+    """Shared machinery: per-frame first-order slopes, frame-level test, Gauss-Newton refinement."""
+
+    kind = "geometric"
+    needs_velocity = True
+    n_params = 1
+    one_sided = False
+
+    def displacement(self, theta: np.ndarray, ctx: DiagnosisContext, frames: np.ndarray, shape) -> list[tuple[float, np.ndarray]]:
+        """[(weight, displacement [f, H, W, 2])]: the prediction is the weighted sum of warps."""
+        raise NotImplementedError  # pragma: no cover
+
+    def regressors(self, data: ResidualData) -> list[np.ndarray]:
+        """First-order signature regressors, each [f, H, W, 3] (residual ~ sum theta_k x_k)."""
+        raise NotImplementedError  # pragma: no cover
+
+    def warp_prediction(self, predicted, theta, ctx, frames) -> tuple[np.ndarray, np.ndarray]:
+        parts = self.displacement(np.asarray(theta, dtype=np.float64), ctx, frames, predicted.shape)
+        inside = np.ones(predicted.shape[:3], dtype=bool)
+        if len(parts) == 1:
+            out, inside = warp(predicted, parts[0][1])
+            return out.astype(np.float64), inside
+        # several instants (exposure integral): average irradiance, i.e. in linear space
+        lin = decode(predicted, ctx.gamma_assumed)
+        acc = np.zeros_like(lin)
+        for weight, disp in parts:
+            w_img, ins = warp(lin, disp)
+            acc += weight * w_img
+            inside &= ins
+        return encode(np.clip(acc, 0.0, None), ctx.gamma_assumed), inside
+
+    def apply(self, predicted, result, ctx, frames, measured=None, fit_mask=None):
+        out, _ = self.warp_prediction(predicted, result.internal["theta"], ctx, frames)
+        return np.clip(out, 0.0, 1.0)
+
+    def fit(self, data: ResidualData) -> CauseResult:
+        if self.needs_velocity and data.velocity is None:
+            return self._untestable("no per-pixel image velocity in the context")
+        xs = self.regressors(data)
+        mask = data.usable
+        k = len(xs)
+        f_count = data.m.shape[0]
+        est = np.zeros((f_count, k))
+        info = np.zeros((f_count, k))
+        for f in range(f_count):  # one small k x k solve per frame
+            m = mask[f]
+            if m.sum() < 20:
+                continue
+            # nuisance columns: a constant and the prediction itself (partials out global and
+            # multiplicative intensity mismatch, e.g. shading, which correlates with curvature)
+            pf = data.p[f][m]
+            X = np.stack([x[f][m] for x in xs] + [np.ones_like(pf), pf - pf.mean()], axis=1)
+            y = data.r[f][m]
+            XtX = X.T @ X
+            if np.linalg.cond(XtX) > 1e12:
+                continue
+            coef = np.linalg.solve(XtX, X.T @ y)
+            resid_var = float(np.mean((y - X @ coef) ** 2)) + 1e-12
+            cov = np.linalg.inv(XtX) * resid_var
+            est[f] = coef[:k]
+            info[f] = 1.0 / np.maximum(np.diag(cov)[:k], 1e-300)
+        j = self.tested_index
+        test = frame_t_test(est[:, j], info[:, j], one_sided=self.one_sided)
+        theta0 = self.initial_theta(est, info)
+        theta = self.refine(data, theta0)
+        res = CauseResult(self.name, self.kind, True, statistic=test.t, statistic_kind=f"t({test.df})",
+                          p_value=test.p_value, internal={"theta": theta, "theta_first_order": theta0})
+        new_pred, inside = self.warp_prediction(data.p, theta, data.ctx, data.frames)
+        res.effect_rms = self._effect(data, np.clip(new_pred, 0, 1), inside[..., None])
+        res.params = self.describe(theta, data.ctx)
+        res.params["first_order_estimate"] = self.describe(theta0, data.ctx)
+        res.plot = self.plot_data(data, est, info, theta)
+        return res
+
+    tested_index = 0
+
+    def initial_theta(self, est: np.ndarray, info: np.ndarray) -> np.ndarray:
+        w = info / np.maximum(info.sum(axis=0, keepdims=True), 1e-300)
+        return np.sum(w * est, axis=0)
+
+    def step_sizes(self, ctx: DiagnosisContext) -> np.ndarray:
+        raise NotImplementedError  # pragma: no cover
+
+    def refine(self, data: ResidualData, theta: np.ndarray, iterations: int = 3) -> np.ndarray:
+        """Gauss-Newton on the warped prediction (numeric Jacobian), pooled over the frames."""
+        theta = np.asarray(theta, dtype=np.float64).copy()
+        eps = self.step_sizes(data.ctx)
+        for _ in range(iterations):
+            base, inside = self.warp_prediction(data.p, theta, data.ctx, data.frames)
+            cols = []
+            for i in range(len(theta)):
+                d = np.zeros_like(theta)
+                d[i] = eps[i]
+                plus, ins_p = self.warp_prediction(data.p, theta + d, data.ctx, data.frames)
+                minus, ins_m = self.warp_prediction(data.p, theta - d, data.ctx, data.frames)
+                inside &= ins_p & ins_m
+                cols.append((plus - minus) / (2 * eps[i]))
+            m = data.usable & inside[..., None]
+            if m.sum() < 20:
+                break
+            J = np.stack([c[m] for c in cols], axis=1)
+            r = (data.m - base)[m]
+            JtJ = J.T @ J
+            if np.linalg.cond(JtJ) > 1e12:
+                break
+            delta = np.linalg.solve(JtJ, J.T @ r)
+            theta = self.constrain(theta + delta)
+            if np.all(np.abs(delta) < 0.01 * eps):
+                break
+        return theta
+
+    def constrain(self, theta: np.ndarray) -> np.ndarray:
+        return theta
+
+    def describe(self, theta: np.ndarray, ctx: DiagnosisContext) -> dict:
+        raise NotImplementedError  # pragma: no cover
+
+    def plot_data(self, data, est, info, theta) -> dict:
+        speed = np.linalg.norm(data.velocity, axis=-1).mean(axis=(1, 2)) if data.velocity is not None else np.zeros(len(est))
+        return {"frame": [int(data.ctx.frame_index[f]) for f in data.frames], "speed_px_s": speed.tolist(),
+                "per_frame": est[:, self.tested_index].tolist(), "pooled": float(theta[self.tested_index])}
+
+
+def _velocity_term(data: ResidualData) -> np.ndarray:
+    """-grad(prediction) . velocity: [f, H, W, 3] (residual per second of time shift)."""
+    gx, gy = data.grad
+    v = data.velocity
+    return -(gx * v[..., 0:1] + gy * v[..., 1:2])
+
+
+class TimeOffset(_Geometric):
+    """Camera time offset: a shift along the image motion, uniform over rows. theta = [dt_s]."""
+
+    name = "time_offset"
+
+    def regressors(self, data):
+        return [_velocity_term(data)]
+
+    def displacement(self, theta, ctx, frames, shape):
+        return [(1.0, ctx.pixel_velocity_px_s[frames].astype(np.float64) * theta[0])]
+
+    def step_sizes(self, ctx):
+        return np.array([2e-4])
+
+    def describe(self, theta, ctx):
+        return {"time_offset_error_s": float(theta[0]),
+                "sign": "positive: the camera exposed later (device clock) than the model assumes"}
+
+
+class Readout(_Geometric):
+    """Rolling-shutter readout wrong: the time shift grows linearly with row time R(u).
+
+    theta = [a_s, b_s]: time shift a + b (R(u) - 1/2); b is the readout error (tested), a the
+    shift of the centre row (0 when the centre-row timestamp is right, b/2 when read start is).
+    """
+
+    name = "readout"
+    n_params = 2
+    tested_index = 1
+
+    def regressors(self, data):
+        x = _velocity_term(data)
+        return [x, x * (data.ctx.row_time_ratio - 0.5)[None, :, :, None]]
+
+    def displacement(self, theta, ctx, frames, shape):
+        dt = theta[0] + theta[1] * (ctx.row_time_ratio - 0.5)
+        return [(1.0, ctx.pixel_velocity_px_s[frames].astype(np.float64) * dt[None, :, :, None])]
+
+    def step_sizes(self, ctx):
+        return np.array([2e-4, 4e-4])
+
+    def describe(self, theta, ctx):
+        rel = float(theta[1] / ctx.readout_s) if ctx.readout_s > 0 else None
+        return {"readout_error_s": float(theta[1]), "readout_relative_error": rel,
+                "readout_s_estimated": float(ctx.readout_s + theta[1]), "centre_row_shift_s": float(theta[0])}
+
+    def plot_data(self, data, est, info, theta):
+        out = super().plot_data(data, est, info, theta)
+        # time shift per row band: regress the residual on the velocity term within bands of R(u)
+        x = _velocity_term(data)
+        R = np.broadcast_to(data.ctx.row_time_ratio[None, :, :, None], x.shape)
+        m = data.usable
+        edges = np.linspace(0, 1, 9)
+        band = np.clip(np.searchsorted(edges, R[m], side="right") - 1, 0, 7)
+        xm, rm = x[m], data.r[m]
+        num = np.bincount(band, weights=xm * rm, minlength=8)
+        den = np.bincount(band, weights=xm * xm, minlength=8)
+        out["row_time_ratio"] = ((edges[:-1] + edges[1:]) / 2).tolist()
+        out["time_shift_s"] = (num / np.maximum(den, 1e-300)).tolist()
+        out["fit_a_b"] = [float(theta[0]), float(theta[1])]
+        return out
+
+
+class ExposureBlur(_Geometric):
+    """Motion blur over the exposure: average of the prediction along the motion. theta = [T_s]."""
+
+    name = "exposure_blur"
+    one_sided = True
+    n_sub = 9  # sub-samples over the exposure when re-rendering by warps
+
+    def regressors(self, data):
+        # residual ~ (T^2 / 24) v^T H v for a box exposure centred on the model time
+        return [directional_second_derivative(data.p, data.velocity)]
+
+    def initial_theta(self, est, info):
+        beta = super().initial_theta(est, info)[0]
+        return np.array([math.sqrt(24.0 * beta) if beta > 0 else 1e-3])
+
+    def displacement(self, theta, ctx, frames, shape):
+        v = ctx.pixel_velocity_px_s[frames].astype(np.float64)
+        taus = (np.arange(self.n_sub) + 0.5) / self.n_sub - 0.5
+        return [(1.0 / self.n_sub, v * (tau * theta[0])) for tau in taus]
+
+    def step_sizes(self, ctx):
+        return np.array([5e-4])
+
+    def constrain(self, theta):
+        return np.abs(theta)
+
+    def describe(self, theta, ctx):
+        return {"exposure_s": float(abs(theta[0])), "recorded_exposure_s_median": float(np.median(ctx.exposure_s))}
+
+    def fit(self, data):
+        res = super().fit(data)
+        if res.testable:
+            beta = res.internal["theta_first_order"][0]
+            res.params["first_order_estimate"] = {"exposure_s": float(beta)}
+        return res
+
+
+class Distortion(_Geometric):
+    """Lens distortion wrong: a static radial displacement, k0 error of the rectifying calibration. theta = [dk0]."""
+
+    name = "distortion"
+    needs_velocity = False
+
+    def _profile(self, ctx, H, W):
+        radius, direction, _ = radial_coordinates(H, W, ctx.principal_point)
+        g = distortion_profile(radius, ctx.focal_px, ctx.lens_radial_k)
+        return g[..., None] * direction  # [H, W, 2] displacement per unit dk0
+
+    def regressors(self, data):
+        H, W = data.p.shape[1:3]
+        d = self._profile(data.ctx, H, W)
+        gx, gy = data.grad
+        return [-(gx * d[None, :, :, 0:1] + gy * d[None, :, :, 1:2])]
+
+    def displacement(self, theta, ctx, frames, shape):
+        d = self._profile(ctx, shape[1], shape[2])
+        return [(1.0, np.broadcast_to(d[None] * theta[0], (shape[0], shape[1], shape[2], 2)))]
+
+    def step_sizes(self, ctx):
+        return np.array([1e-3])
+
+    def describe(self, theta, ctx):
+        return {"k0_error": float(theta[0])}
+
+    def plot_data(self, data, est, info, theta):
+        out = super().plot_data(data, est, info, theta)
+        H, W = data.p.shape[1:3]
+        radius, _, _ = radial_coordinates(H, W, data.ctx.principal_point)
+        x = self.regressors(data)[0]
+        rr = np.broadcast_to(radius[None, :, :, None], x.shape)
+        g = np.broadcast_to(distortion_profile(radius, data.ctx.focal_px, data.ctx.lens_radial_k)[None, :, :, None], x.shape)
+        m = data.usable & (g > 1e-6)
+        # displacement per radial band: slope of residual on the unit-displacement regressor, times the profile
+        edges = np.quantile(rr[m], np.linspace(0, 1, 9))
+        band = np.clip(np.searchsorted(edges, rr[m], side="right") - 1, 0, 7)
+        xm, rm = x[m], data.r[m]
+        num = np.bincount(band, weights=xm * rm, minlength=8)
+        den = np.bincount(band, weights=xm * xm, minlength=8)
+        gm = np.bincount(band, weights=g[m], minlength=8) / np.maximum(np.bincount(band, minlength=8), 1)
+        out["radius_px"] = ((edges[:-1] + edges[1:]) / 2).tolist()
+        out["displacement_px"] = (num / np.maximum(den, 1e-300) * gm).tolist()
+        out["fit_displacement_px"] = (theta[0] * gm).tolist()
+        return out
+
+
+# ============================================================================ noise
+class Noise(Cause):
+    """Noise model wrong: high-passed residual variance in flat regions versus the assumed model.
+
+    Parameter: noise_std_factor f (measured variance = f^2 x assumed, both shot and read parts);
+    with an assumed noiseless model, the affine fit var_linear = shot x signal + read instead.
+    """
+
+    name = "noise"
+    kind = "noise"
+    mean_affecting = False
+
+    def fit(self, data: ResidualData) -> CauseResult:
+        ctx = data.ctx
+        gx, gy = data.grad
+        gmag = np.hypot(gx, gy)
+        # flat pixels whose whole 3x3 neighbourhood is usable
+        full = (box3(data.usable_all.astype(np.float64)) > 0.999) & data.usable
+        flat_thr = np.quantile(gmag[data.usable], 0.5) if data.usable.any() else 0.0
+        m = full & (gmag <= flat_thr)
+        if m.sum() < 200:
+            return self._untestable("too few flat usable pixels")
+        hp = (data.r - box3(data.r))[m]
+        obs = hp**2 * 9.0 / 8.0  # E = pixel variance for locally constant variance
+        slope2 = encode_slope(data.p_lin, ctx.gamma_assumed)[m] ** 2
+        q_var = ctx.quantisation_level**2 / 12.0
+        frames_px = np.broadcast_to(np.arange(data.m.shape[0])[:, None, None, None], m.shape)[m]
+        signal = data.p_lin[m]
+        model_lin = ctx.noise_var_linear(data.p_lin, data.frames)[m]
+        res = CauseResult(self.name, self.kind, True)
+        if ctx.noise_reference is not None and ctx.noise_shot is not None:
+            # empirical reference: the assumed noise drawn through the same pipeline, same pixels
+            ref = ctx.noise_reference[data.frames]
+            ref_obs = (ref - box3(ref))[m] ** 2 * 9.0 / 8.0
+            num = np.bincount(frames_px, weights=obs, minlength=data.m.shape[0])
+            den = np.bincount(frames_px, weights=ref_obs, minlength=data.m.shape[0])
+            cnt = np.bincount(frames_px, minlength=data.m.shape[0])
+            okf = (cnt > 50) & (den > 0)
+            test = frame_t_test(np.log(np.clip(num[okf] / den[okf], 1e-3, None)), cnt[okf].astype(float))
+            f2 = float(np.clip(obs.sum() / max(ref_obs.sum(), 1e-300), 1e-4, None))
+            transfer = float(ref_obs.sum() / max(np.sum(slope2 * model_lin + q_var), 1e-300))
+            res.statistic, res.statistic_kind, res.p_value = test.t, f"t({test.df})", test.p_value
+            res.params = {"noise_std_factor": math.sqrt(f2), "pipeline_variance_transfer": transfer}
+            res.internal = {"var_factor": f2, "transfer": transfer}
+            std_now = np.sqrt(ref_obs.mean() * np.ones_like(obs))
+            std_new = std_now * math.sqrt(f2)
+        elif ctx.noise_shot is not None and np.any(model_lin > 0):
+            expected = slope2 * model_lin + q_var
+            # per-frame variance ratio (frames are the units), tested against 1 on the log scale
+            num = np.bincount(frames_px, weights=obs - q_var, minlength=data.m.shape[0])
+            den = np.bincount(frames_px, weights=slope2 * model_lin, minlength=data.m.shape[0])
+            cnt = np.bincount(frames_px, minlength=data.m.shape[0])
+            okf = (cnt > 50) & (den > 0)
+            ratio = np.clip(num[okf] / den[okf], 1e-3, None)
+            test = frame_t_test(np.log(ratio), cnt[okf].astype(float))
+            f2 = float(np.clip(np.sum(obs - q_var) / np.sum(slope2 * model_lin), 1e-4, None))
+            res.statistic, res.statistic_kind, res.p_value = test.t, f"t({test.df})", test.p_value
+            res.params = {"noise_std_factor": math.sqrt(f2)}
+            res.internal = {"var_factor": f2}
+            std_now = np.sqrt(expected)
+            std_new = np.sqrt(slope2 * model_lin * f2 + q_var)
+        else:
+            # assumed noiseless: fit var_linear = a signal + b; test the mean ratio to quantisation-only
+            A = np.stack([slope2 * signal, slope2], axis=1)
+            coef, *_ = np.linalg.lstsq(A, obs - q_var, rcond=None)
+            coef = np.clip(coef, 0.0, None)
+            num = np.bincount(frames_px, weights=obs, minlength=data.m.shape[0])
+            cnt = np.bincount(frames_px, minlength=data.m.shape[0])
+            okf = cnt > 50
+            test = frame_t_test(np.log(np.clip(num[okf] / cnt[okf] / q_var, 1e-3, None)), cnt[okf].astype(float))
+            res.statistic, res.statistic_kind, res.p_value = test.t, f"t({test.df})", test.p_value
+            gain = float(np.median(ctx.gain))
+            a, b = float(coef[0]), float(coef[1])
+            full_well = gain / a if a > 0 else None
+            res.params = {"shot_var_per_signal": a, "read_var": b, "full_well_e_at_gain_1": full_well,
+                          "read_noise_e": (math.sqrt(b) * full_well / gain) if (full_well and b > 0) else 0.0,
+                          "median_gain": gain}
+            res.internal = {"shot": a, "read": b}
+            std_now = np.sqrt(np.full_like(obs, q_var))
+            std_new = np.sqrt(slope2 * (a * signal + b) + q_var)
+        res.effect_rms = float(np.sqrt(np.mean((std_new - std_now) ** 2)))
+        bins = _binned(signal, obs, np.ones_like(obs), bins=10)
+        bins_exp = _binned(signal, std_now**2, np.ones_like(obs), bins=10)
+        bins_new = _binned(signal, std_new**2, np.ones_like(obs), bins=10)
+        res.plot = {"signal": bins["x"], "observed_var": bins["y"], "assumed_var": bins_exp["y"],
+                    "fitted_var": bins_new["y"], "xlabel": "predicted linear signal",
+                    "ylabel": "residual variance (display units^2)"}
+        return res
+
+    def variance(self, predicted: np.ndarray, result: CauseResult | None, ctx: DiagnosisContext,
+                 frames: np.ndarray) -> np.ndarray:
+        """Per-pixel display-domain variance [f, H, W, 3] under the assumed (result None) or fitted noise."""
+        lin = decode(predicted, ctx.gamma_assumed)
+        slope2 = encode_slope(lin, ctx.gamma_assumed) ** 2
+        q = ctx.quantisation_level**2 / 12.0
+        if result is None:
+            return slope2 * ctx.noise_var_linear(lin, frames) + q
+        if "transfer" in result.internal:
+            return (slope2 * ctx.noise_var_linear(lin, frames) + q) * result.internal["transfer"] * result.internal["var_factor"]
+        if "var_factor" in result.internal:
+            return slope2 * ctx.noise_var_linear(lin, frames) * result.internal["var_factor"] + q
+        return slope2 * (result.internal["shot"] * np.clip(lin, 0, None) + result.internal["read"]) + q
+
+    def apply(self, predicted, result, ctx, frames, measured=None, fit_mask=None):
+        return predicted  # the mean prediction is unchanged
+
+
+#: The library, in the order of egobench.effects.EFFECTS.
+CAUSES: dict[str, Cause] = {c.name: c for c in (
+    Readout(), TimeOffset(), ExposureBlur(), Vignette(), ResponseGamma(), WhiteBalance(), ExposureMetadata(),
+    Noise(), Distortion(),
+)}

@@ -1,0 +1,171 @@
+"""The diagnosis outputs: diagnosis.json (schema egobench.diagnosis/1), report.md and figures
+(residual maps before/after the extension, one signature plot per candidate cause)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from egobench.diagnose.core import NO_DISCREPANCY, Diagnosis
+from egobench.diagnose.estimators import CauseResult
+from egobench.io_utils import atomic_path, write_json
+
+LEVELS = 255.0
+
+
+def _fmt(x, digits: int = 4) -> str:
+    if x is None:
+        return "-"
+    if isinstance(x, float):
+        if not math.isfinite(x):
+            return "-"
+        return f"{x:.{digits}g}"
+    if isinstance(x, (list, tuple)):
+        return "[" + ", ".join(_fmt(v, 3) for v in x[:6]) + (", ..." if len(x) > 6 else "") + "]"
+    return str(x)
+
+
+def _summary(params: dict) -> str:
+    skip = {"first_order_estimate", "frame_scale", "sign", "log_shading_r2_r4"}
+    return "; ".join(f"{k}={_fmt(v)}" for k, v in params.items() if k not in skip)
+
+
+def _savefig(fig, path: Path) -> None:
+    import matplotlib.pyplot as plt
+
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
+    plt.close(fig)
+
+
+def residual_maps(path: Path, measured: np.ndarray, predicted: np.ndarray, extended: np.ndarray | None,
+                  frames: list[int], labels: list[int]) -> None:
+    """Measured, predicted, residual before and after the extension, for a few frames."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cols = 4 if extended is not None else 3
+    fig, axes = plt.subplots(len(frames), cols, figsize=(2.6 * cols, 2.6 * len(frames)), squeeze=False)
+    for row, (f, lab) in enumerate(zip(frames, labels)):
+        res0 = (measured[f] - predicted[f]).mean(-1)
+        panels = [(measured[f], f"measured #{lab}"), (predicted[f], "predicted"), (res0, "residual")]
+        if extended is not None:
+            panels.append(((measured[f] - extended[f]).mean(-1), "residual, extended"))
+        for ax, (img, title) in zip(axes[row], panels):
+            if img.ndim == 3:
+                ax.imshow(np.clip(img, 0, 1))
+            else:
+                ax.imshow(img, cmap="RdBu_r", vmin=-0.08, vmax=0.08)
+            ax.set_title(title, fontsize=8)
+            ax.axis("off")
+    _savefig(fig, path)
+
+
+def signature_plot(path: Path, result: CauseResult) -> None:
+    """The cause's signature: what its statistic looks at, with the fitted model."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    p = result.plot
+    fig, ax = plt.subplots(figsize=(4.2, 3.0))
+    title = f"{result.name}: p_adj={result.p_adjusted:.2g}, effect={result.effect_rms * LEVELS:.2f} levels"
+    if not result.testable:
+        ax.text(0.5, 0.5, f"not testable:\n{result.reason}", ha="center", va="center", fontsize=8)
+        ax.axis("off")
+    elif result.name == "vignette":
+        ax.plot(p["binned"]["x"], p["binned"]["y"], "o", label="data (binned)")
+        ax.plot(p["curve_r"], p["curve"], "-", label="fit")
+        ax.set_xlabel(p["xlabel"]), ax.set_ylabel(p["ylabel"]), ax.legend(fontsize=7)
+    elif result.name == "response":
+        x = np.asarray(p["binned"]["x"])
+        ax.plot(x, p["binned"]["y"], "o", label="data (binned)")
+        ax.plot(x, p["slope"] * (x - p["x0"]), "-", label="fit")
+        ax.set_xlabel(p["xlabel"]), ax.set_ylabel(p["ylabel"]), ax.legend(fontsize=7)
+    elif result.name == "white_balance":
+        ax.bar(["R", "G", "B"], p["channel_log_ratio"], color=["tab:red", "tab:green", "tab:blue"])
+        ax.set_ylabel(p["ylabel"])
+    elif result.name == "exposure_metadata":
+        ax.plot(p["frame"], p["scale"], "o-")
+        flagged = [i for i, f in enumerate(p["frame"]) if f in set(p["flagged"])]
+        ax.plot([p["frame"][i] for i in flagged], [p["scale"][i] for i in flagged], "rs", label="flagged")
+        ax.set_xlabel(p["xlabel"]), ax.set_ylabel(p["ylabel"]), ax.legend(fontsize=7)
+    elif result.name == "noise":
+        ax.loglog(p["signal"], p["observed_var"], "o", label="observed")
+        ax.loglog(p["signal"], p["assumed_var"], "-", label="assumed")
+        ax.loglog(p["signal"], p["fitted_var"], "--", label="fitted")
+        ax.set_xlabel(p["xlabel"]), ax.set_ylabel(p["ylabel"]), ax.legend(fontsize=7)
+    elif result.name == "readout" and "row_time_ratio" in p:
+        r = np.asarray(p["row_time_ratio"])
+        ax.plot(r, np.asarray(p["time_shift_s"]) * 1e3, "o", label="per row band")
+        a, b = p["fit_a_b"]
+        ax.plot(r, (a + b * (r - 0.5)) * 1e3, "-", label="fit a + b (R - 1/2)")
+        ax.set_xlabel("row time ratio R(u)"), ax.set_ylabel("time shift (ms)"), ax.legend(fontsize=7)
+    elif result.name == "distortion" and "radius_px" in p:
+        ax.plot(p["radius_px"], p["displacement_px"], "o", label="per radial band")
+        ax.plot(p["radius_px"], p["fit_displacement_px"], "-", label="fit")
+        ax.set_xlabel("radius (px)"), ax.set_ylabel("radial displacement (px)"), ax.legend(fontsize=7)
+    else:  # time offset, blur: per-frame estimates against image speed
+        ax.plot(p.get("speed_px_s", []), p.get("per_frame", []), "o", label="per frame")
+        ax.axhline(p.get("pooled", 0.0), color="k", lw=1, label="pooled")
+        ax.set_xlabel("mean image speed (px/s)"), ax.set_ylabel("per-frame estimate"), ax.legend(fontsize=7)
+    ax.set_title(title, fontsize=8)
+    _savefig(fig, path)
+
+
+def markdown(d: Diagnosis, title: str) -> str:
+    lines = [f"# {title}", ""]
+    lines.append(f"**Verdict: {d.verdict}**" + ("" if d.verdict == NO_DISCREPANCY else
+                                                  f" (p_adj {d.named[0].p_adjusted:.2g})"))
+    lines += ["", f"- held-out frames {d.held_out_frames}: PSNR {d.baseline_psnr_db:.2f} dB -> "
+              f"{d.extended_psnr_db:.2f} dB (gain {d.psnr_gain_db:+.2f} dB, odd-checkerboard pixels)",
+              f"- runtime {d.runtime_s:.1f} s; alpha {d.config.alpha} (Holm over {len(d.rounds[0]) if d.rounds else 0} causes); "
+              f"effect floor {d.config.effect_floor * LEVELS:.2f} levels",
+              f"- photometric cells trimmed as off-model content (round 1): {100 * d.unmodelled_fraction:.1f} %", ""]
+    if d.named:
+        lines += ["## Named causes (peeled in order)", "", "| round | cause | p_adj | effect (levels) | estimate | held-out gain |",
+                  "|---|---|---|---|---|---|"]
+        for n in d.named:
+            gain = f"{n.psnr_gain_db:+.2f} dB" if n.nll_gain_nats_per_px is None else f"NLL {n.nll_gain_nats_per_px:+.3f} nats/px"
+            lines.append(f"| {n.round} | {n.name} | {n.p_adjusted:.2g} | {n.effect_rms * LEVELS:.2f} | {_summary(n.params)} | {gain} |")
+        lines.append("")
+    lines += ["## Ranking (round 1)", "", "| cause | statistic | p | p_adj (Holm) | effect (levels) | significant | estimate |",
+              "|---|---|---|---|---|---|---|"]
+    for r in d.ranking:
+        if not r.testable:
+            lines.append(f"| {r.name} | - | - | - | - | untestable: {r.reason} | - |")
+            continue
+        lines.append(f"| {r.name} | {r.statistic_kind}={r.statistic:.3g} | {r.p_value:.2g} | {r.p_adjusted:.2g} | "
+                     f"{r.effect_rms * LEVELS:.2f} | {'yes' if r.significant else 'no'} | {_summary(r.params)} |")
+    lines += ["", "Figures: `figures/residual_maps.png`, `figures/signature_<cause>.png`.", ""]
+    return "\n".join(lines)
+
+
+def write_report(out_dir: str | Path, d: Diagnosis, measured: np.ndarray, predicted: np.ndarray,
+                 title: str = "Residual diagnosis", extra: dict | None = None) -> dict:
+    """Write diagnosis.json, report.md and figures/ into out_dir; return the JSON record."""
+    out = Path(out_dir)
+    (out / "figures").mkdir(parents=True, exist_ok=True)
+    record = d.to_dict()
+    if extra:
+        record["extra"] = extra
+    write_json(out / "diagnosis.json", record)
+    text = markdown(d, title)
+    if extra:
+        import json
+
+        text += "\n## Extra\n\n```json\n" + json.dumps(extra, indent=1, default=str)[:6000] + "\n```\n"
+    with atomic_path(out / "report.md") as tmp:
+        tmp.write_text(text)
+    index = {int(i): k for k, i in enumerate(np.asarray(d.meta.get("frame_index", range(measured.shape[0]))))}
+    held = [index[f] for f in d.held_out_frames if f in index][:3] or [0]
+    residual_maps(out / "figures" / "residual_maps.png", measured, predicted, d.extended_prediction, held,
+                  [d.held_out_frames[i] if i < len(d.held_out_frames) else h for i, h in enumerate(held)])
+    for r in (d.rounds[0] if d.rounds else []):
+        signature_plot(out / "figures" / f"signature_{r.name}.png", r)
+    return record

@@ -1,0 +1,241 @@
+"""Where the prediction comes from: (a) the simulator's world re-cast under the model's assumptions
+("simulation vs measurement", fast and exactly controlled), or (b) a trained run's renders.
+
+Both return a `Sources` bundle: measured [F, H, W, 3], predicted [F, H, W, 3] (display values)
+and the `DiagnosisContext` (per-frame exposure and gain, R(u), valid mask, image velocity from
+depth and the trajectory, assumed gamma and noise, rectifying lens coefficients).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from egobench.diagnose.signatures import DiagnosisContext
+from egobench.io_utils import read_json
+
+#: Time step of the finite-difference image velocity, ns (1 ms).
+VELOCITY_DT_NS = 1_000_000
+
+
+@dataclass
+class Sources:
+    """Measured and predicted frames of one recording plus the context of the diagnosis."""
+
+    measured: np.ndarray  # [F, H, W, 3] display in [0, 1]
+    predicted: np.ndarray  # [F, H, W, 3] display in [0, 1]
+    context: DiagnosisContext
+    description: str  # where the prediction comes from
+
+
+def pixel_velocity(recording, frame, depth_m: np.ndarray, t_offset_s: float = 0.0) -> np.ndarray:
+    """Image velocity [H, W, 2] px/s of the static scene at each pixel's model row time.
+
+    depth_m [H, W]: z-depth in the rectified camera at that time (0 = unknown -> velocity 0).
+    Each pixel's 3-D point is back-projected with the pose at its row time and re-projected with
+    the poses 1 ms earlier and later (central difference on the 1 kHz trajectory).
+    """
+    cam = recording.camera
+    H, W = depth_m.shape
+    R = recording.row_time_ratio.to(torch.float64)
+    readout_ns = frame.read_end_ns - frame.read_start_ns
+    t_pix = (frame.read_start_ns + torch.round(R * readout_ns + frame.exposure_s * 0.5e9 + t_offset_s * 1e9)).to(torch.int64)
+    traj = recording.trajectory
+    lo, hi = traj.start_ns + VELOCITY_DT_NS, traj.end_ns - VELOCITY_DT_NS
+    t_pix = t_pix.clamp(lo, hi).reshape(-1)
+    T_dc = frame.T_device_camera.to(torch.float64)
+    rays = cam.unproject(cam.pixel_grid(dtype=torch.float64)).reshape(-1, 3)
+    depth = torch.from_numpy(np.asarray(depth_m, dtype=np.float64)).reshape(-1)
+    ok = depth > 0
+    T0 = traj.pose(t_pix) @ T_dc
+    X = (T0[:, :3, :3] @ (rays * depth[:, None])[..., None])[..., 0] + T0[:, :3, 3]
+    uv = []
+    for sign in (-1, 1):
+        T = traj.pose(t_pix + sign * VELOCITY_DT_NS) @ T_dc
+        Xc = (T[:, :3, :3].transpose(1, 2) @ (X - T[:, :3, 3])[..., None])[..., 0]
+        p, _ = cam.project(Xc)
+        uv.append(p)
+    v = (uv[1] - uv[0]) / (2 * VELOCITY_DT_NS * 1e-9)
+    v[~ok] = 0.0
+    return v.reshape(H, W, 2).numpy().astype(np.float32)
+
+
+def _context(recording, frames, velocity, gamma: float, noise, lens_k, meta) -> DiagnosisContext:
+    H, W = recording.camera.height, recording.camera.width
+    gain = np.array([f.gain for f in frames], dtype=np.float64)
+    readout = float(np.median([(f.read_end_ns - f.read_start_ns) * 1e-9 for f in frames]))
+    return DiagnosisContext(
+        frame_index=np.array([f.index for f in frames]), exposure_s=np.array([f.exposure_s for f in frames]),
+        gain=gain, valid=recording.mask.numpy().astype(bool).reshape(H, W),
+        row_time_ratio=recording.row_time_ratio.numpy().astype(np.float64),
+        principal_point=(recording.camera.cx, recording.camera.cy), focal_px=float(recording.camera.fx),
+        readout_s=readout, pixel_velocity_px_s=velocity, gamma_assumed=gamma,
+        noise_shot=None if noise is None else gain / noise.full_well_e,
+        noise_read=None if noise is None else (gain * noise.read_noise_e / noise.full_well_e) ** 2,
+        lens_radial_k=lens_k, meta=meta,
+    )
+
+
+def _select(frames, max_frames: int | None):
+    if max_frames is None or len(frames) <= max_frames:
+        return list(frames)
+    return list(frames[:max_frames])
+
+
+def ground_truth_source(recording_dir: str | Path, max_frames: int | None = None, gamma: float = 2.2,
+                        progress: bool = True) -> Sources:
+    """Prediction = the simulator's world re-cast with the recording's own metadata and calibration.
+
+    Each frame is re-rendered exactly as egobench.sim.capture renders it, but with what the model
+    assumes: the true camera with the hidden effects removed (the stated k0 and time offset; the
+    VIBA-size calibration noise is left out so that only the hidden effect differs), the stated
+    readout, one instant per row at mid-exposure (no blur), the recorded exposure and
+    gain, the calibrated device lens shading, gamma ``gamma``, white balance 1, no noise; the
+    formation is applied in the raw image and the display image rectified with the same rig as
+    the measured one (rectifying display values, as the capture does, avoids a Jensen bias). Any hidden
+    effect therefore appears in measured - predicted and nothing else does.
+    """
+    from tqdm import tqdm
+
+    from egobench.data import load_recording
+    from egobench.data.mps import read_online_calibration
+    from egobench.formation import FormationConfig, FormationModel
+    from egobench.sim.capture import RawCamera, _rig, capture_irradiance, device_trajectory  # noqa: F401
+    from egobench.sim.calibration import make_calibrations
+    from egobench.sim.config import SimConfig
+    from egobench.sim.devices import get_device
+    from egobench.sim.world import make_scene
+
+    root = Path(recording_dir)
+    info = read_json(root / "recording.json")
+    truth = read_json(root / "ground_truth" / "truth.json")
+    if "sim_config" not in info:
+        raise ValueError(f"{root / 'recording.json'}: field 'sim_config' missing (not a simulated recording?)")
+    config = SimConfig.from_dict(info["sim_config"])
+    dev = get_device(config.device_name)
+    rec = load_recording(root, calibration="online")
+    frames = _select(rec.frames, max_frames)
+    cals = make_calibrations(config)
+    cal_online = cals.online
+    calib_lines = read_online_calibration(root / "mps" / "online_calibration.jsonl")
+    stated = calib_lines[0].camera(dev.label)
+    if not np.allclose(stated.params, cal_online.params):
+        raise ValueError(f"{root}: the online calibration on disk differs from the simulator's (was the recording edited?)")
+    # The model's camera: the true one minus the hidden effects (VIBA-size calibration noise is left
+    # out: with point-sampled, aliased textures even 0.01 deg moves edge pixels by many levels).
+    params = np.asarray(cals.true.params, dtype=np.float64).copy()
+    params[3] -= config.distortion_k0_delta
+    cal_model = replace(cals.true, params=params)
+    hidden_offset_ns = int(round(config.time_offset_s * 1e9))
+    readout_stated_s = config.stated_readout_s()
+    truth_frames = {int(t["index"]): t for t in truth.get("frames", [])}
+    raw = RawCamera.build(cal_model)
+    rect, _pin = _rig(cal_online, config.rectified_size, dev)  # the measured images' rectification
+    scene = make_scene(config.kind, config.seed)
+    traj = rec.trajectory
+    formation = FormationModel(FormationConfig.paper_trainer(gamma=gamma))
+    vignette = rec.vignette.to(torch.float32)
+    from egobench.formation import radial_vignette
+
+    # the calibrated lens shading in the raw image (what vignette.png is rectified from)
+    raw_vignette = radial_vignette((cal_model.height, cal_model.width), 1.0 - dev.vignette_corner,
+                                   dev.vignette_power, centre=(float(cal_model.params[1]), float(cal_model.params[2])))
+    from egobench.formation import PoissonGaussianNoise
+
+    noise = PoissonGaussianNoise(dev.noise.full_well_e, dev.noise.read_noise_e) if config.noise else None
+    simulator = FormationModel(FormationConfig.ground_truth(gamma=gamma))
+    generator = torch.Generator().manual_seed(int(config.seed) * 7 + 3)
+    measured, predicted, velocity, noise_ref = [], [], [], []
+    iterator = tqdm(frames, desc="re-cast prediction", unit="frame") if progress else frames
+    for f in iterator:
+        read_start_model = int(truth_frames[f.index]["read_start_true_ns"]) - hidden_offset_ns
+        irr = capture_irradiance(scene, traj, raw, read_start_model, f.exposure_s, readout_stated_s, 1)
+        lin = irr * float(f.exposure_s * f.gain * dev.sensitivity)
+        display_raw = formation.predict(lin, scale_k=1.0, vignette=raw_vignette, scene_gamma=False)
+        display_raw = display_raw * raw.valid[..., None].to(display_raw.dtype)
+        pred_rect = rect.warp(display_raw).to(torch.float32)
+        predicted.append(pred_rect.numpy())  # rectified like the captured image
+        if noise is not None:  # the assumed noise through the same pipeline (8-bit raw, rectify, 8-bit)
+            noisy = simulator.simulate(irr, exposure_s=f.exposure_s, gain=f.gain, sensitivity=dev.sensitivity,
+                                       vignette=raw_vignette, white_balance=(1.0, 1.0, 1.0), noise=noise,
+                                       generator=generator)
+            noisy = noisy * raw.valid[..., None].to(noisy.dtype)
+            noisy_rect = torch.round(rect.warp(noisy).clamp(0, 1) * 255.0) / 255.0
+            noise_ref.append((noisy_rect - pred_rect).numpy())
+        measured.append(rec.load_image(f).numpy())
+        depth_file = root / "ground_truth" / "depth" / f"{f.index:05d}.npy"
+        depth = np.load(depth_file).astype(np.float64) if depth_file.is_file() else np.zeros(vignette.shape)
+        velocity.append(pixel_velocity(rec, f, depth))
+    lens_k = tuple(float(x) for x in cal_online.params[3:9])
+    meta = {"recording": str(root), "source": "ground_truth re-cast (simulator world, model's assumptions)",
+            "hidden_effects": truth.get("hidden_effects", {})}
+    ctx = _context(rec, frames, np.stack(velocity), gamma, noise, lens_k, meta)
+    ctx.noise_reference = np.stack(noise_ref) if noise_ref else None
+    return Sources(np.stack(measured), np.stack(predicted), ctx, meta["source"])
+
+
+def run_source(recording_dir: str | Path, run_dir: str | Path, max_frames: int | None = None,
+               progress: bool = True) -> Sources:
+    """Prediction = a trained run's renders of every frame (its own formation model and poses)."""
+    from tqdm import tqdm
+
+    from egobench.data import load_recording
+    from egobench.evaluate import load_checkpoint
+    from egobench.methods import get_method
+    from egobench.train import (
+        TrainConfig, exposure_normaliser, formation_model, frame_poses, gaussians_from_params, predict_image,
+        render_frame, resize_map, sample_counts,
+    )
+    from egobench.camera.pinhole import Pinhole
+    from egobench.sim.devices import get_device
+
+    run_dir = Path(run_dir)
+    ck = load_checkpoint(run_dir)
+    spec = get_method(ck["method"])
+    cfg = dict(ck["config"])
+    cfg["background"] = tuple(cfg["background"])
+    config = TrainConfig(**cfg)
+    rec = load_recording(recording_dir, calibration=spec.calibration)
+    c = ck["camera"]
+    cam = Pinhole(fx=c["fx"], fy=c["fy"], cx=c["cx"], cy=c["cy"], width=c["w"], height=c["h"])
+    if (cam.width, cam.height) != (rec.camera.width, rec.camera.height):
+        raise ValueError(f"{run_dir}: trained at {cam.width}x{cam.height}, the recording is "
+                         f"{rec.camera.width}x{rec.camera.height}; diagnose needs full-resolution renders")
+    frames = _select(rec.frames, max_frames)
+    vignette = resize_map(rec.vignette.float(), cam)
+    rtr = resize_map(rec.row_time_ratio.float(), cam)
+    k_all = exposure_normaliser(rec) if spec.formation else torch.ones(len(rec.frames))
+    pos = {f.index: i for i, f in enumerate(rec.frames)}
+    g = gaussians_from_params({k: v.detach() for k, v in ck["params"].items()})
+    formation = formation_model(spec)
+    counts = sample_counts(rec, frames, spec, config, 1.0)
+    measured, predicted, velocity = [], [], []
+    iterator = tqdm(list(zip(frames, counts)), desc="render run", unit="frame") if progress else zip(frames, counts)
+    with torch.no_grad():
+        for f, n in iterator:
+            poses, ppi = frame_poses(rec, f, spec, n, rtr)
+            outs = render_frame(g, cam, poses, ppi, spec, config)
+            rgb = torch.stack([o.rgb[0] for o in outs]).mean(0).cpu()
+            predicted.append(predict_image(rgb, spec, k_all[pos[f.index]], vignette, formation).numpy())
+            measured.append(rec.load_image(f).numpy())
+            depth = outs[0].depth[0, ..., 0].cpu().numpy().astype(np.float64)
+            alpha = outs[0].alpha[0, ..., 0].cpu().numpy()
+            velocity.append(pixel_velocity(rec, f, np.where(alpha > 0.5, depth, 0.0)))
+    meta_rec = rec.meta or {}
+    noise = None
+    device = meta_rec.get("device")
+    if device:
+        try:
+            from egobench.formation import PoissonGaussianNoise
+
+            dev = get_device(device)
+            noise = PoissonGaussianNoise(dev.noise.full_well_e, dev.noise.read_noise_e)
+        except ValueError:
+            noise = None
+    meta = {"recording": str(recording_dir), "run": str(run_dir), "method": spec.name,
+            "source": f"renders of trained run ({spec.name})"}
+    ctx = _context(rec, frames, np.stack(velocity), float(getattr(spec, "response_gamma", 2.2)), noise, None, meta)
+    return Sources(np.stack(measured), np.stack(predicted), ctx, meta["source"])

@@ -1,0 +1,172 @@
+"""Residual diagnosis: hidden-effect cases must be named, estimated and improved; a null case must not alarm."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from egobench.diagnose.core import NO_DISCREPANCY, DiagnosisConfig, diagnose_residuals
+from egobench.diagnose.signatures import (
+    distortion_profile, frame_t_test, holm, partial_f_test, warp, weighted_lstsq,
+)
+from egobench.diagnose.synthetic import make_case
+from egobench.effects import EFFECTS
+
+FAST = {"speed_px_s": (250.0, 600.0)}  # "exposure 4-10 ms under fast motion"
+
+
+def _param_error(effect: str, value, params: dict, affected: list[int]) -> tuple[float, float]:
+    """(error, tolerance) of the estimated parameter against the hidden value."""
+    if effect == "readout":
+        return abs(params["readout_relative_error"] - value), 0.08  # relative readout error, absolute
+    if effect == "time_offset":
+        return abs(params["time_offset_error_s"] - value), 0.25e-3  # seconds
+    if effect == "exposure_blur":
+        return abs(params["exposure_s"] / value - 1.0), 0.25  # relative
+    if effect == "vignette":
+        return abs(params["corner_attenuation"] - value), 0.05  # fraction at the corner
+    if effect == "response":
+        return abs(params["gamma"] - value), 0.1
+    if effect == "white_balance":
+        true_rel = np.asarray(value) / value[1]
+        return float(np.max(np.abs(np.asarray(params["channel_gains_relative_to_green"]) / true_rel - 1))), 0.05
+    if effect == "exposure_metadata":
+        assert sorted(params["flagged_frames"]) == sorted(f for f in affected if f % 8 != 0)
+        return abs(params["median_exposure_relative_error"] - value), 0.03
+    if effect == "noise":
+        return abs(params["noise_std_factor"] / value - 1.0), 0.10
+    if effect == "distortion":
+        return abs(params["k0_error"] / value - 1.0), 0.25
+    raise AssertionError(effect)
+
+
+MID_RANGE = {
+    "readout": 0.4, "time_offset": -3e-3, "exposure_blur": 7e-3, "vignette": 0.35, "response": 2.6,
+    "white_balance": (1.15, 1.0, 0.87), "exposure_metadata": 0.2, "noise": 1.6, "distortion": 0.006,
+}
+
+
+@pytest.mark.parametrize("effect", list(EFFECTS))
+def test_hidden_effect_mid_range_is_named_estimated_and_improved(effect):
+    value = MID_RANGE[effect]
+    assert EFFECTS[effect].in_range(value)
+    case = make_case(effect, value, seed=3, **(FAST if effect == "exposure_blur" else {}))
+    d = diagnose_residuals(case.measured, case.predicted, case.context)
+    assert d.verdict == effect, [(r.name, r.p_adjusted, r.effect_rms) for r in d.ranking[:3]]
+    err, tol = _param_error(effect, value, d.named[0].params, case.affected_frames)
+    assert err <= tol, (d.named[0].params, value)
+    if effect == "noise":
+        assert d.named[0].nll_gain_nats_per_px > 0
+    else:
+        assert d.named[0].psnr_gain_db > 0
+
+
+@pytest.mark.parametrize("effect", ["readout", "time_offset", "vignette", "response", "white_balance",
+                                    "exposure_metadata"])
+def test_hidden_effect_seeded_draw(effect):
+    """Magnitudes drawn (seeded) from the plausible range of egobench.effects."""
+    case = make_case(effect, None, seed=11)
+    assert EFFECTS[effect].in_range(case.value)
+    d = diagnose_residuals(case.measured, case.predicted, case.context)
+    assert d.verdict == effect
+    err, tol = _param_error(effect, case.value, d.named[0].params, case.affected_frames)
+    assert err <= tol
+    assert d.named[0].psnr_gain_db > 0
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_null_case_has_no_false_alarm(seed):
+    case = make_case(None, seed=seed)
+    d = diagnose_residuals(case.measured, case.predicted, case.context)
+    assert d.verdict == NO_DISCREPANCY, [(r.name, r.p_adjusted, r.effect_rms) for r in d.ranking[:3]]
+    assert d.named == [] and d.psnr_gain_db == 0.0
+    json_record = d.to_dict()
+    assert json_record["verdict"] == NO_DISCREPANCY and len(json_record["ranking"]) == len(EFFECTS)
+
+
+def test_readout_is_not_mistaken_for_time_offset_and_vice_versa():
+    d = diagnose_residuals(*_mp(make_case("time_offset", 2e-3, seed=5)))
+    ranks = {r.name: r for r in d.ranking}
+    assert d.verdict == "time_offset" and not ranks["readout"].significant
+    d = diagnose_residuals(*_mp(make_case("readout", -0.3, seed=5)))
+    assert d.verdict == "readout"
+
+
+def _mp(case):
+    return case.measured, case.predicted, case.context
+
+
+# ----------------------------------------------------------------------------- statistics
+def test_frame_t_test_is_calibrated_under_the_null():
+    rng = np.random.default_rng(0)
+    p = np.array([frame_t_test(rng.normal(0, 1, 14), np.ones(14)).p_value for _ in range(2000)])
+    assert abs(np.mean(p < 0.05) - 0.05) < 0.015
+    assert frame_t_test(rng.normal(1.0, 0.1, 14), np.ones(14)).p_value < 1e-10
+
+
+def test_partial_f_test_matches_an_independent_anova():
+    from scipy import stats
+
+    rng = np.random.default_rng(1)
+    groups = [rng.normal(mu, 1.0, 30) for mu in (0.0, 0.3, 0.6)]
+    y = np.concatenate(groups)
+    X_full = np.kron(np.eye(3), np.ones((30, 1)))
+    _, rss_f = weighted_lstsq(X_full, y, np.ones(90))
+    _, rss_r = weighted_lstsq(np.ones((90, 1)), y, np.ones(90))
+    f, p = partial_f_test(rss_f, rss_r, 2, 87)
+    ref = stats.f_oneway(*groups)
+    assert f == pytest.approx(ref.statistic, rel=1e-9) and p == pytest.approx(ref.pvalue, rel=1e-9)
+
+
+def test_holm_adjustment():
+    assert holm([0.01, 0.04, 0.03]) == pytest.approx([0.03, 0.06, 0.06])
+
+
+def test_warp_shifts_a_band_limited_image_by_the_displacement():
+    H = W = 32
+    v, u = np.meshgrid(np.arange(H), np.arange(W), indexing="ij")
+    img = (0.5 + 0.3 * np.sin(2 * np.pi * u / 9.0) * np.cos(2 * np.pi * v / 11.0))[None, ..., None]
+    disp = np.zeros((1, H, W, 2))
+    disp[..., 0], disp[..., 1] = 0.37, -0.61
+    out, inside = warp(img.astype(np.float32), disp)
+    expected = 0.5 + 0.3 * np.sin(2 * np.pi * (u - 0.37) / 9.0) * np.cos(2 * np.pi * (v + 0.61) / 11.0)
+    core = inside[0] & (u > 3) & (u < W - 4) & (v > 3) & (v < H - 4)
+    assert np.max(np.abs(out[0, ..., 0] - expected)[core]) < 4e-3  # Lanczos-4 interpolation error, about 1 % of the amplitude
+
+
+def test_distortion_profile_matches_a_k0_perturbation_by_finite_differences():
+    """A rectified pixel at angle theta shows the ray theta_t solving r(theta_t; k0 + d) = r(theta; k0)."""
+    k = (0.4153, -0.4666, 0.0394, 1.305, -1.768, 0.6526)
+    f = 100.0
+    radius = np.array([10.0, 40.0, 80.0])
+    theta = np.arctan(radius / f)
+
+    def r(th, k0):
+        kk = (k0,) + k[1:]
+        return th + sum(kp * th ** (2 * i + 3) for i, kp in enumerate(kk))
+
+    d = 1e-4
+    target = r(theta, k[0])
+    th_t = theta.copy()
+    for _ in range(50):  # Newton on r(th_t; k0 + d) = target
+        deriv = (r(th_t + 1e-7, k[0] + d) - r(th_t - 1e-7, k[0] + d)) / 2e-7
+        th_t -= (r(th_t, k[0] + d) - target) / deriv
+    displacement = f * (np.tan(theta) - np.tan(th_t))  # content moves outward by this (px)
+    assert distortion_profile(radius, f, k) * d == pytest.approx(displacement, rel=2e-3)
+
+
+def test_bad_input_names_the_argument():
+    case = make_case(None, seed=0, n_frames=9)
+    with pytest.raises(ValueError, match="predicted"):
+        diagnose_residuals(case.measured, case.predicted[:, :-1], case.context)
+    bad = case.predicted.copy()
+    bad[0, 0, 0, 0] = np.nan
+    with pytest.raises(ValueError, match="predicted: contains NaN"):
+        diagnose_residuals(case.measured, bad, case.context)
+    with pytest.raises(ValueError, match="alpha"):
+        diagnose_residuals(case.measured, case.predicted, case.context, DiagnosisConfig(alpha=2.0))
+    case.context.row_time_ratio = case.context.row_time_ratio[:-1]
+    with pytest.raises(ValueError, match="row_time_ratio"):
+        diagnose_residuals(case.measured, case.predicted, case.context)
