@@ -6,7 +6,8 @@ Protocol (docs/diagnosis.md):
    raw p-values are Holm-adjusted over the testable causes. A cause is significant when its
    adjusted p < alpha AND its effect (RMS change of the display prediction) >= effect_floor
    (8-bit images hold ~10^5 pixels, so a tiny but real mismatch is always "significant"; the
-   floor states what is worth modelling). Score = effect_rms x min(1, -log10(p_adj) / 10).
+   floor states what is worth modelling). Score = effect_rms x min(1, -log10(p_adj) / 10); a cause
+   that contains another (readout contains time offset) outranks it when both are significant.
 3. The top significant mean-affecting cause is named, its estimate applied to every frame
    (held-out frames: per-frame parameters come from their even-checkerboard pixels), and the
    held-out PSNR gain is measured on the odd-checkerboard pixels of the held-out frames.
@@ -186,6 +187,15 @@ def diagnose_residuals(
             if r.name == "noise" and "noise_std_factor" in r.params:
                 r.significant &= abs(r.params["noise_std_factor"] - 1.0) > cfg.noise_factor_floor
             r.score = r.effect_rms * min(1.0, -math.log10(max(p_adj, 1e-300)) / 10.0) if r.significant else 0.0
+        # Nested causes: when a cause's own extra term is significant GIVEN the cause it contains
+        # (readout's row slope b given the shift a of a time offset) and both are significant, the
+        # contained cause cannot explain the residual, so the general one outranks it.
+        by_name = {r.name: r for r in testable}
+        for r in testable:
+            for inner in CAUSES[r.name].nests:
+                o = by_name.get(inner)
+                if r.significant and o is not None and o.significant and o.score >= r.score:
+                    r.score = o.score * (1.0 + 1e-9) + 1e-12
         rounds.append(results)
         mean_sig = [r for r in testable if r.significant and CAUSES[r.name].mean_affecting]
         if mean_sig:

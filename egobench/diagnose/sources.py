@@ -132,7 +132,8 @@ def ground_truth_source(recording_dir: str | Path, max_frames: int | None = None
     hidden_offset_ns = int(round(config.time_offset_s * 1e9))
     readout_stated_s = config.stated_readout_s()
     truth_frames = {int(t["index"]): t for t in truth.get("frames", [])}
-    raw = RawCamera.build(cal_model)
+    # the measured frames' pixel-area integration (recordings from before `pixel_samples` existed: 1)
+    raw = RawCamera.build(cal_model, int(info["sim_config"].get("pixel_samples", 1)))
     rect, _pin = _rig(cal_online, config.rectified_size, dev)  # the measured images' rectification
     scene = make_scene(config.kind, config.seed)
     traj = rec.trajectory

@@ -48,6 +48,7 @@ class SimConfig:
     temporal_samples: int | None = None  # exposure samples S per row; None = adaptive (see max_sample_step_px)
     max_sample_step_px: float = 0.15  # adaptive S: image motion between two temporal samples stays below this
     max_temporal_samples: int = 32  # upper bound of the adaptive S
+    pixel_samples: int = 4  # sub-pixel positions each raw pixel integrates (k x k stratified grid, a perfect square; 4 = 2x2, 1 = point sampling); paired with temporal samples when S >= P (no extra cost), else S x P rays (egobench.sim.capture.sample_schedule)
     jpeg: bool = False  # JPEG-compress the raw frames like Aria's recordings
     jpeg_quality: int = 95  # JPEG quality when jpeg is on
     n_semidense_points: int = 10000  # semi-dense SLAM points sampled before the MPS filter (~45 % pass it)
@@ -152,6 +153,10 @@ class SimConfig:
                                                   or self.temporal_samples < 1):
             bad("temporal_samples", "an integer >= 1 or None (adaptive)")
         finite("max_sample_step_px", 0, strict_lo=True)
+        ps = self.pixel_samples
+        if (isinstance(ps, bool) or not isinstance(ps, int) or ps < 1 or ps > 64
+                or int(round(math.sqrt(ps))) ** 2 != ps):
+            bad("pixel_samples", "a perfect square in [1, 64] (1 = point sampling, 4 = 2x2, 9 = 3x3, ...)")
         if not isinstance(self.jpeg_quality, int) or not 1 <= self.jpeg_quality <= 100:
             bad("jpeg_quality", "an integer in [1, 100]")
         finite("readout_s", 0, allow_none=True)
