@@ -1,0 +1,59 @@
+# egobench workflow: simulate -> train (scene x method x seed) -> evaluate -> tables -> plots,
+# plus diagnose. Every rule calls one `egobench <verb>`; the science lives in the package.
+#
+#   snakemake --cores 2                                # the embedded default suite
+#   snakemake --cores 2 --configfile config/ci.yaml    # the CI smoke suite
+#   snakemake --profile profiles/slurm --configfile config/paper.yaml
+import os
+import re
+import sys
+
+from snakemake.exceptions import WorkflowError
+from snakemake.utils import min_version, validate
+
+min_version("9.0")
+
+sys.path.insert(0, workflow.basedir)  # egobench importable without `pip install`
+from egobench import workflow_config as wc
+
+
+# The default suite, unless --configfile names another (then it alone is used, not merged).
+if not workflow.overwrite_configfiles:
+
+    configfile: os.path.join(workflow.basedir, "config", "config.yaml")
+
+
+# Clear errors naming the key, before any job runs; then the schema's defaults are filled.
+try:
+    wc.check_config(config)
+except wc.ConfigError as exc:
+    raise WorkflowError(str(exc))
+validate(config, "workflows/schemas/config.schema.yaml")
+
+SUITE = wc.Suite(config)
+R = SUITE.root
+EGOBENCH = wc.egobench_command(config["egobench_command"], workflow.basedir)
+
+
+wildcard_constraints:
+    scene="|".join(re.escape(s) for s in sorted(SUITE.scenes)),
+    method="|".join(re.escape(m) for m in SUITE.methods()),
+    seed=r"\d+",
+
+
+include: "workflows/common.smk"
+include: "workflows/simulate.smk"
+include: "workflows/train.smk"
+include: "workflows/evaluate.smk"
+include: "workflows/tables.smk"
+include: "workflows/plots.smk"
+include: "workflows/diagnose.smk"
+
+
+report: "workflows/report/workflow.rst"
+
+
+rule all:
+    input:
+        all_outputs(),
+    default_target: True

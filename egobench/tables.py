@@ -1,0 +1,643 @@
+"""Paper-shaped tables from run records (``eval.json``, schema ``egobench.run/1``).
+
+Everything here is computed from the records' contents, never from their paths. Outputs (CSV and
+booktabs LaTeX, written atomically):
+
+- ``results.csv``: one row per record (the combined results),
+- ``table1_outdoor``, ``table1_indoor`` (+ ``table1.tex`` holding both blocks), ``table2``,
+  ``table3``: methods as rows, scenes as columns, best in bold, the paper's numbers in an adjacent
+  block (same columns, matched through the record's ``paper_scene``),
+- ``table4``: dataset statistics, ours beside the paper's,
+- ``gains``: mean PSNR change of each ablation/baseline relative to its reference (``ours``;
+  ``ours_2dgs`` for the 2D-GS ablation), ours (mean and std over seeds) versus the paper's.
+
+``egobench tables --records R1.json R2.json ... --out-dir DIR``
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Sequence
+
+import numpy as np
+import pandas as pd
+
+from egobench import paper_numbers as pn
+from egobench.io_utils import atomic_path, read_json
+
+RUN_SCHEMA = "egobench.run/1"
+#: Metrics a record may carry (None = not measured).
+METRICS = (pn.PSNR, pn.SSIM, pn.LPIPS, pn.DEPTH, pn.NORMAL)
+#: Reference method of each compared method in the gains table (default: ``ours``).
+GAIN_REFERENCE = {"2dgs_no_motion_sampling": "ours_2dgs"}
+#: Table of each group in egobench.methods' row labels ("aria", "dtc", "quest3").
+LABEL_TABLE = {"table1_outdoor": "aria", "table1_indoor": "aria", "table2": "dtc", "table3": "quest3"}
+#: Table groups: name -> (scene kind, paper table).
+GROUPS = {
+    "table1_outdoor": ("outdoor", pn.TABLE1_OUTDOOR),
+    "table1_indoor": ("indoor", pn.TABLE1_INDOOR),
+    "table2": ("object", pn.TABLE2),
+    "table3": ("quest3", pn.TABLE3),
+}
+#: Keys of ``recording_stats`` read for Table 4 and the head-speed plot.
+NUM_FRAMES_KEY = "num_frames"
+HEAD_SPEED_KEY = "head_angular_speed_deg_s_p50"  # median head angular speed of the recording, deg/s
+#: Every file `write_tables` produces, relative to the output folder (the workflow's outputs).
+OUTPUT_FILES = (
+    "results.csv",
+    "table1_outdoor.csv",
+    "table1_outdoor.tex",
+    "table1_indoor.csv",
+    "table1_indoor.tex",
+    "table1.tex",
+    "table2.csv",
+    "table2.tex",
+    "table3.csv",
+    "table3.tex",
+    "table4.csv",
+    "table4.tex",
+    "gains.csv",
+    "gains.tex",
+)
+OURS_BLOCK = "egobench"
+PAPER_BLOCK = "paper"
+
+
+def method_label(method: str, group: str | None = None) -> str:
+    """The paper's row label of a method (egobench/methods.py), or its key if unregistered."""
+    try:
+        from egobench.methods import get_method
+
+        spec = get_method(method)
+    except (ImportError, ValueError):
+        return method
+    return spec.label_for(LABEL_TABLE[group]) if group in LABEL_TABLE else spec.label
+
+
+# --------------------------------------------------------------------------------------------
+# Records
+
+
+@dataclass(frozen=True)
+class RunRecord:
+    """The fields of one run record that tables and plots use."""
+
+    path: Path  # where the record was read from (for error messages and locating renders only)
+    scene: str  # our scene name, e.g. "outdoor_0"
+    scene_kind: str  # outdoor | indoor | object | quest3 ("unknown" when the record has none)
+    paper_scene: str | None  # the paper's scene column this scene stands for
+    method: str  # method key (egobench/methods.py)
+    seed: int
+    metrics: dict[str, float | None]  # psnr, ssim, lpips, depth_si_l1, normal_l1
+    train: dict[str, Any] = field(default_factory=dict)  # iterations, time_s, iters_per_s, ...
+    recording_stats: dict[str, Any] = field(default_factory=dict)  # num_frames, head speed, ...
+    raw: dict[str, Any] = field(default_factory=dict, repr=False)  # the whole record
+
+    @property
+    def run_dir(self) -> Path:
+        return self.path.parent
+
+    @property
+    def head_speed_deg_s(self) -> float | None:
+        """Median head angular speed of the recording (deg/s), if the record carries it."""
+        value = self.recording_stats.get(HEAD_SPEED_KEY)
+        if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value):
+            return float(value)
+        return None
+
+
+def _require(rec: dict, key: str, kind: type | tuple, path: Path) -> Any:
+    if key not in rec:
+        raise ValueError(f"{path}: run record lacks field {key!r} (schema {RUN_SCHEMA})")
+    value = rec[key]
+    if not isinstance(value, kind) or isinstance(value, bool) and kind is not bool:
+        raise ValueError(f"{path}: field {key!r} is {value!r}; expected {getattr(kind, '__name__', kind)}")
+    return value
+
+
+def parse_record(rec: dict, path: str | Path = "<record>") -> RunRecord:
+    """Validate one record (a parsed eval.json) and return its table fields."""
+    path = Path(path)
+    if not isinstance(rec, dict):
+        raise ValueError(f"{path}: a run record is a JSON object, got {type(rec).__name__}")
+    schema = rec.get("schema")
+    if schema != RUN_SCHEMA:
+        raise ValueError(f"{path}: field 'schema' is {schema!r}; expected {RUN_SCHEMA!r}")
+    scene = _require(rec, "scene", str, path)
+    scene_kind = rec.get("scene_kind") or "unknown"  # real recordings may have none: in results.csv only
+    if not isinstance(scene_kind, str):
+        raise ValueError(f"{path}: field 'scene_kind' is {scene_kind!r}; expected a string or null")
+    method = _require(rec, "method", str, path)
+    seed = _require(rec, "seed", int, path)
+    paper_scene = rec.get("paper_scene")
+    if paper_scene is not None and not isinstance(paper_scene, str):
+        raise ValueError(f"{path}: field 'paper_scene' is {paper_scene!r}; expected a string or null")
+    metrics_in = _require(rec, "metrics", dict, path)
+    metrics: dict[str, float | None] = {}
+    for key in METRICS:
+        value = metrics_in.get(key)
+        if value is None:
+            metrics[key] = None
+            continue
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise ValueError(f"{path}: field 'metrics.{key}' is {value!r}; expected a finite number or null")
+        metrics[key] = float(value)
+    if metrics[pn.PSNR] is None:
+        raise ValueError(f"{path}: field 'metrics.psnr' is null; every run record must carry a PSNR")
+    train = rec.get("train") or {}
+    stats = rec.get("recording_stats") or {}
+    if not isinstance(train, dict) or not isinstance(stats, dict):
+        raise ValueError(f"{path}: fields 'train' and 'recording_stats' must be JSON objects")
+    return RunRecord(path, scene, scene_kind, paper_scene, method, seed, metrics, train, stats, rec)
+
+
+def find_record_files(paths: Iterable[str | Path]) -> list[Path]:
+    """Expand folders to the eval.json files below them (sorted); files are kept as given."""
+    out: list[Path] = []
+    for p in map(Path, paths):
+        if p.is_dir():
+            out.extend(sorted(p.rglob("eval.json")))
+        elif p.is_file():
+            out.append(p)
+        else:
+            raise FileNotFoundError(f"{p}: run record (eval.json) or folder not found")
+    return out
+
+
+def load_records(paths: Iterable[str | Path]) -> list[RunRecord]:
+    """Read and validate run records; duplicates of (scene, method, seed) are an error."""
+    records = [parse_record(read_json(p), p) for p in find_record_files(paths)]
+    seen: dict[tuple[str, str, int], Path] = {}
+    for r in records:
+        key = (r.scene, r.method, r.seed)
+        if key in seen:
+            raise ValueError(f"{r.path}: duplicate run record for scene {r.scene!r}, method {r.method!r}, "
+                             f"seed {r.seed} (also in {seen[key]})")
+        seen[key] = r.path
+    return records
+
+
+def records_frame(records: Sequence[RunRecord]) -> pd.DataFrame:
+    """The combined results: one row per record."""
+    rows = []
+    for r in records:
+        row: dict[str, Any] = {
+            "scene": r.scene,
+            "scene_kind": r.scene_kind,
+            "paper_scene": r.paper_scene,
+            "device": r.raw.get("device"),
+            "method": r.method,
+            "seed": r.seed,
+            "calibration": r.raw.get("calibration"),
+        }
+        row.update({k: r.metrics[k] for k in METRICS})
+        for k in ("iterations", "time_s", "iters_per_s", "raster_time_share", "num_gaussians"):
+            row[f"train_{k}"] = r.train.get(k)
+        row["num_frames"] = r.recording_stats.get(NUM_FRAMES_KEY)
+        row["head_speed_deg_s_p50"] = r.head_speed_deg_s
+        row["config_hash"] = r.raw.get("config_hash")
+        row["git_commit"] = r.raw.get("git_commit")
+        row["record"] = str(r.path)
+        rows.append(row)
+    columns = list(rows[0]) if rows else ["scene", "scene_kind", "paper_scene", "method", "seed", *METRICS]
+    return pd.DataFrame(rows, columns=columns)
+
+
+# --------------------------------------------------------------------------------------------
+# Paper-shaped tables
+
+
+@dataclass
+class Cell:
+    """One table entry: mean over seeds, its sample std (None for one seed) and the seed count."""
+
+    mean: float | None = None
+    std: float | None = None
+    n: int = 0
+    bold: bool = False
+
+
+@dataclass
+class Block:
+    """A set of rows: ours or the paper's. rows[method] = one Cell per table column."""
+
+    name: str  # OURS_BLOCK or PAPER_BLOCK
+    title: str  # shown as a row spanning the table
+    row_groups: list[list[str]]  # method keys, groups separated by a rule
+    rows: dict[str, list[Cell]]
+
+
+@dataclass
+class ShapedTable:
+    """A table shaped like one of the paper's: column groups (scenes) x metrics, blocks of rows."""
+
+    name: str  # file stem, e.g. "table1_outdoor"
+    caption: str
+    label: str  # LaTeX label of the table we write
+    groups: list[str]  # column group headers (scenes)
+    metrics: list[str]  # metrics per group
+    blocks: list[Block]
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def columns(self) -> list[tuple[str, str]]:
+        return [(g, m) for g in self.groups for m in self.metrics]
+
+
+def _stats(values: Sequence[float]) -> Cell:
+    vals = [v for v in values if v is not None and not (isinstance(v, float) and math.isnan(v))]
+    if not vals:
+        return Cell()
+    arr = np.asarray(vals, dtype=np.float64)
+    return Cell(float(arr.mean()), float(arr.std(ddof=1)) if arr.size > 1 else None, int(arr.size))
+
+
+def _round(value: float, metric: str) -> float:
+    return round(value, pn.METRIC_DECIMALS[metric])
+
+
+def mark_best(block: Block, n_columns: int, metrics_per_column: Sequence[str], per_group: bool) -> None:
+    """Bold the best entry of each column (ties at printed precision are all bold)."""
+    groups = block.row_groups if per_group else [[m for g in block.row_groups for m in g]]
+    for rows in groups:
+        for j in range(n_columns):
+            metric = metrics_per_column[j]
+            cells = [block.rows[m][j] for m in rows if m in block.rows and block.rows[m][j].mean is not None]
+            if len(cells) < 2:
+                continue
+            vals = [_round(c.mean, metric) for c in cells]
+            best = max(vals) if pn.HIGHER_IS_BETTER[metric] else min(vals)
+            for c, v in zip(cells, vals):
+                c.bold = v == best
+
+
+def _row_groups(paper: pn.PaperTable, present: Iterable[str]) -> list[list[str]]:
+    groups = [list(g) for g in paper.row_groups]
+    extra = sorted(set(present) - set(paper.methods))
+    if extra:
+        groups.append(extra)
+    return groups
+
+
+def _scene_columns(records: Sequence[RunRecord], paper: pn.PaperTable) -> list[tuple[str, str | None]]:
+    """(our scene, paper scene) pairs in the paper's column order, then unmatched scenes by name."""
+    scenes: dict[str, str | None] = {}
+    for r in records:
+        scenes.setdefault(r.scene, r.paper_scene)
+    order = {c: i for i, c in enumerate(paper.columns)}
+
+    def key(item):
+        ps = (item[1] or "").lower()
+        return (order.get(ps, len(order)), item[0])
+
+    return sorted(scenes.items(), key=key)
+
+
+def _scene_label(scene: str, paper_scene: str | None) -> str:
+    return f"{scene} ({paper_scene})" if paper_scene else scene
+
+
+def build_per_scene_table(records: Sequence[RunRecord], group: str) -> ShapedTable:
+    """Table 1 block (outdoor or indoor): scenes as columns, PSNR/SSIM, methods as rows."""
+    kind, paper = GROUPS[group]
+    recs = [r for r in records if r.scene_kind == kind]
+    metrics = list(paper.metrics)
+    notes = []
+    scene_cols = _scene_columns(recs, paper)
+    if not scene_cols:  # no runs: show the paper's columns alone
+        notes.append(f"no egobench runs of scene kind {kind!r}")
+        scene_cols = [("", c) for c in paper.columns]
+    groups = [_scene_label(s, ps) if s else ps for s, ps in scene_cols]
+    methods = sorted({r.method for r in recs})
+    ours_rows: dict[str, list[Cell]] = {}
+    for m in methods:
+        cells = []
+        for s, _ in scene_cols:
+            sel = [r for r in recs if r.method == m and r.scene == s]
+            cells.extend(_stats([r.metrics[k] for r in sel]) for k in metrics)
+        ours_rows[m] = cells
+    paper_rows: dict[str, list[Cell]] = {}
+    for m in paper.methods:
+        cells = []
+        for _, ps in scene_cols:
+            for k in metrics:
+                v = paper.value(m, ps, k) if ps else None
+                cells.append(Cell(v, None, 1 if v is not None else 0))
+        paper_rows[m] = cells
+    unmatched = sorted({s for s, ps in scene_cols if s and (not ps or ps.lower() not in paper.columns)})
+    if unmatched:
+        notes.append("no paper column for: " + ", ".join(unmatched))
+    return _assemble(group, paper, groups, metrics, ours_rows, paper_rows, notes, per_group=False)
+
+
+def build_aggregate_table(records: Sequence[RunRecord], group: str) -> ShapedTable:
+    """Tables 2 and 3: one column (mean over our scenes of that kind) beside the paper's."""
+    kind, paper = GROUPS[group]
+    recs = [r for r in records if r.scene_kind == kind]
+    metrics = list(paper.metrics)
+    scenes = sorted({r.scene for r in recs})
+    notes = [f"egobench: mean over {len(scenes)} scene(s) of kind {kind!r}: {', '.join(scenes) or 'none'}; "
+             "std over seeds of the scene mean"]
+    ours_rows: dict[str, list[Cell]] = {}
+    for m in sorted({r.method for r in recs}):
+        cells = []
+        for k in metrics:
+            per_seed = _per_seed_scene_mean([r for r in recs if r.method == m], k)
+            cells.append(_stats(list(per_seed.values())))
+        ours_rows[m] = cells
+    paper_rows = {m: [Cell(paper.value(m, paper.columns[0], k), None, 1) for k in metrics] for m in paper.methods}
+    label = f"{kind} ({len(scenes)} scene{'s' if len(scenes) != 1 else ''}) / {paper.columns[0]}"
+    return _assemble(group, paper, [label], metrics, ours_rows, paper_rows, notes, per_group=group == "table2")
+
+
+def _per_seed_scene_mean(recs: Sequence[RunRecord], metric: str) -> dict[int, float]:
+    """seed -> mean over scenes of the metric (scenes without a value are skipped)."""
+    out: dict[int, float] = {}
+    for seed in sorted({r.seed for r in recs}):
+        vals = [r.metrics[metric] for r in recs if r.seed == seed and r.metrics[metric] is not None]
+        if vals:
+            out[seed] = float(np.mean(vals))
+    return out
+
+
+def _assemble(group, paper, groups, metrics, ours_rows, paper_rows, notes, per_group) -> ShapedTable:
+    ours = Block(OURS_BLOCK, "egobench (this run; mean $\\pm$ std over seeds)", _row_groups(paper, ours_rows), ours_rows)
+    ours.row_groups = [[m for m in g if m in ours_rows] for g in ours.row_groups]
+    ours.row_groups = [g for g in ours.row_groups if g]
+    theirs = Block(PAPER_BLOCK, f"paper (Lv et al. 2025, \\texttt{{{latex_escape(paper.label)}}})", [list(g) for g in paper.row_groups], paper_rows)
+    metric_per_col = [m for _ in groups for m in metrics]
+    for b in (ours, theirs):
+        mark_best(b, len(metric_per_col), metric_per_col, per_group)
+    return ShapedTable(group, paper.caption, f"tab:egobench_{group}", groups, metrics, [ours, theirs], notes)
+
+
+# --------------------------------------------------------------------------------------------
+# Gains and Table 4
+
+
+def gains_frame(records: Sequence[RunRecord]) -> pd.DataFrame:
+    """Mean PSNR change of each method relative to its reference, ours versus the paper's.
+
+    Only methods run on scenes of the table's kind are listed. Ours: for every seed, the mean over scenes (run with that seed by both methods) of
+    PSNR(method) - PSNR(reference); then the mean and sample std of that over seeds. Paper:
+    the mean difference over the paper columns our scenes stand for (``paper_matched``) and over
+    all of the paper table's columns (``paper_all``).
+    """
+    rows = []
+    for group, (kind, paper) in GROUPS.items():
+        recs = [r for r in records if r.scene_kind == kind]
+        run_methods = {r.method for r in recs}
+        methods = [m for m in paper.methods if m in run_methods] + sorted(run_methods - set(paper.methods))
+        for m in methods:
+            ref = GAIN_REFERENCE.get(m, "ours")
+            if m == ref or m == "ours":
+                continue
+            by = {(r.scene, r.seed): r.metrics[pn.PSNR] for r in recs if r.method == m}
+            ref_by = {(r.scene, r.seed): r.metrics[pn.PSNR] for r in recs if r.method == ref}
+            pairs = sorted(set(by) & set(ref_by))
+            per_seed: dict[int, list[float]] = {}
+            for scene, seed in pairs:
+                per_seed.setdefault(seed, []).append(by[(scene, seed)] - ref_by[(scene, seed)])
+            seed_means = [float(np.mean(v)) for _, v in sorted(per_seed.items())]
+            cell = _stats(seed_means)
+            matched = sorted({(r.paper_scene or "").lower() for r in recs} & set(paper.columns))
+            if kind in ("object", "quest3") and recs:
+                matched = list(paper.columns)
+
+            def paper_delta(cols):
+                d = [paper.value(m, c, pn.PSNR) - paper.value(ref, c, pn.PSNR) for c in cols
+                     if paper.value(m, c, pn.PSNR) is not None and paper.value(ref, c, pn.PSNR) is not None]
+                return round(float(np.mean(d)), 6) if d else None
+
+            rows.append({
+                "group": group,
+                "method": m,
+                "reference": ref,
+                "n_scenes": len({s for s, _ in pairs}),
+                "n_seeds": cell.n,
+                "delta_psnr_mean": cell.mean,
+                "delta_psnr_std": cell.std,
+                "paper_delta_psnr_matched": paper_delta(matched),
+                "paper_delta_psnr_all": paper_delta(paper.columns),
+            })
+    return pd.DataFrame(rows)
+
+
+def table4_frame(records: Sequence[RunRecord]) -> pd.DataFrame:
+    """Dataset statistics: our scenes (frames, kind, head speed) beside the paper's Table 4."""
+    rows = []
+    for scene in sorted({r.scene for r in records}):
+        rs = [r for r in records if r.scene == scene]
+        r0 = rs[0]
+        frames = next((r.recording_stats.get(NUM_FRAMES_KEY) for r in rs if r.recording_stats.get(NUM_FRAMES_KEY)), None)
+        speed = next((r.head_speed_deg_s for r in rs if r.head_speed_deg_s is not None), None)
+        paper = pn.TABLE4.get((r0.paper_scene or "").lower())
+        rows.append({
+            "scene": scene,
+            "scene_kind": r0.scene_kind,
+            "paper_scene": r0.paper_scene,
+            "frames": frames,
+            "head_speed_deg_s_p50": speed,
+            "paper_frames": paper.frames if paper else None,
+            "paper_scenario": paper.scenario if paper else None,
+        })
+    return pd.DataFrame(rows, columns=["scene", "scene_kind", "paper_scene", "frames", "head_speed_deg_s_p50",
+                                       "paper_frames", "paper_scenario"])
+
+
+# --------------------------------------------------------------------------------------------
+# Rendering: CSV and LaTeX
+
+
+def shaped_to_frame(table: ShapedTable) -> pd.DataFrame:
+    """CSV form: one row per (block, method); columns '<scene> <METRIC>' and '<scene> <METRIC> std'."""
+    rows = []
+    for block in table.blocks:
+        for m in (m for g in block.row_groups for m in g):
+            if m not in block.rows:
+                continue
+            row: dict[str, Any] = {"block": block.name, "method": m, "label": method_label(m, table.name)}
+            for (g, k), cell in zip(table.columns, block.rows[m]):
+                name = f"{g} {pn.METRIC_LABELS[k]}"
+                row[name] = cell.mean
+                row[f"{name} std"] = cell.std
+                row[f"{name} best"] = cell.bold
+            rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def latex_escape(text: str) -> str:
+    for a, b in (("\\", r"\textbackslash{}"), ("&", r"\&"), ("%", r"\%"), ("_", r"\_"), ("#", r"\#"), ("$", r"\$")):
+        text = text.replace(a, b)
+    return text
+
+
+def _fmt(cell: Cell, metric: str) -> str:
+    if cell.mean is None:
+        return "--"
+    d = pn.METRIC_DECIMALS[metric]
+    s = f"{cell.mean:.{d}f}"
+    if cell.bold:
+        s = f"\\textbf{{{s}}}"
+    if cell.std is not None:
+        s += f"\\,{{\\scriptsize$\\pm${cell.std:.{d}f}}}"
+    return s
+
+
+def shaped_to_latex(tables: Sequence[ShapedTable], caption: str, label: str) -> str:
+    """One booktabs table holding one or more shaped tables stacked (as Table 1 stacks two)."""
+    n_cols = max(len(t.columns) for t in tables)
+    lines = [
+        "% generated by egobench tables: do not edit",
+        "\\begin{table*}[t]",
+        "\\centering",
+        "\\small",
+        f"\\caption{{{latex_escape(caption)}}}",
+        "\\begin{tabular}{l" + "c" * n_cols + "}",
+        "\\toprule",
+    ]
+    for i, t in enumerate(tables):
+        if i:
+            lines.append("\\midrule\\midrule")
+        k = len(t.metrics)
+        head = " & ".join(f"\\multicolumn{{{k}}}{{c}}{{{latex_escape(g)}}}" for g in t.groups)
+        lines.append(f"\\textbf{{{latex_escape(t.caption)}}} & {head} \\\\")
+        lines.append(" & " + " & ".join(pn.METRIC_LABELS[m] for _, m in t.columns) + " \\\\")
+        for block in t.blocks:
+            lines.append("\\midrule")
+            lines.append(f"\\multicolumn{{{n_cols + 1}}}{{l}}{{\\textit{{{block.title}}}}} \\\\")
+            for gi, g in enumerate(block.row_groups):
+                if gi:
+                    lines.append("\\midrule")
+                for m in g:
+                    if m not in block.rows:
+                        continue
+                    cells = " & ".join(_fmt(c, k) for c, (_, k) in zip(block.rows[m], t.columns))
+                    lines.append(f"{latex_escape(method_label(m, t.name))} & {cells} \\\\")
+        for note in t.notes:
+            lines.append(f"\\multicolumn{{{n_cols + 1}}}{{l}}{{\\scriptsize {latex_escape(note)}}} \\\\")
+    lines += ["\\bottomrule", "\\end{tabular}", f"\\label{{{label}}}", "\\end{table*}", ""]
+    return "\n".join(lines)
+
+
+def _num(value: Any, decimals: int, signed: bool = False) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "--"
+    return f"{value:+.{decimals}f}" if signed else f"{value:.{decimals}f}"
+
+
+def gains_to_latex(df: pd.DataFrame) -> str:
+    lines = [
+        "% generated by egobench tables: do not edit",
+        "\\begin{table}[t]",
+        "\\centering",
+        "\\small",
+        "\\caption{Mean PSNR change (dB) relative to the reference method: egobench (mean $\\pm$ std over "
+        "seeds) versus the paper (same scenes / all of the table's scenes).}",
+        "\\begin{tabular}{llcccc}",
+        "\\toprule",
+        "table & method (vs.\\ reference) & seeds & egobench $\\Delta$PSNR & paper (matched) & paper (all) \\\\",
+        "\\midrule",
+    ]
+    prev = None
+    for _, r in df.iterrows():
+        if prev is not None and r["group"] != prev:
+            lines.append("\\midrule")
+        prev = r["group"]
+        ours = _num(r["delta_psnr_mean"], 2, True)
+        if r["delta_psnr_std"] is not None and not pd.isna(r["delta_psnr_std"]):
+            ours += f"\\,{{\\scriptsize$\\pm${r['delta_psnr_std']:.2f}}}"
+        method = latex_escape(method_label(r["method"], r["group"]))
+        ref = latex_escape(method_label(r["reference"], r["group"]))
+        lines.append(
+            f"{latex_escape(r['group'])} & {method} (vs.\\ {ref}) & {int(r['n_seeds'])} & {ours} & "
+            f"{_num(r['paper_delta_psnr_matched'], 2, True)} & {_num(r['paper_delta_psnr_all'], 2, True)} \\\\"
+        )
+    lines += ["\\bottomrule", "\\end{tabular}", "\\label{tab:egobench_gains}", "\\end{table}", ""]
+    return "\n".join(lines)
+
+
+def table4_to_latex(df: pd.DataFrame) -> str:
+    lines = [
+        "% generated by egobench tables: do not edit",
+        "\\begin{table}[t]",
+        "\\centering",
+        "\\small",
+        "\\caption{Dataset statistics: egobench recordings beside the paper's Aria scenes (Table 4).}",
+        "\\begin{tabular}{lllrrrl}",
+        "\\toprule",
+        "scene & kind & paper scene & \\#frames & head speed p50 (deg/s) & paper \\#frames & paper scenario \\\\",
+        "\\midrule",
+    ]
+    for _, r in df.iterrows():
+        frames = "--" if r["frames"] is None or pd.isna(r["frames"]) else str(int(r["frames"]))
+        pframes = "--" if r["paper_frames"] is None or pd.isna(r["paper_frames"]) else str(int(r["paper_frames"]))
+        lines.append(" & ".join([
+            latex_escape(str(r["scene"])), latex_escape(str(r["scene_kind"])),
+            latex_escape(str(r["paper_scene"] or "--")), frames, _num(r["head_speed_deg_s_p50"], 1),
+            pframes, latex_escape(str(r["paper_scenario"] or "--")),
+        ]) + " \\\\")
+    lines += ["\\bottomrule", "\\end{tabular}", "\\label{tab:egobench_dataset}", "\\end{table}", ""]
+    return "\n".join(lines)
+
+
+def _write_text(path: Path, text: str) -> Path:
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
+    return path
+
+
+def _write_csv(path: Path, df: pd.DataFrame) -> Path:
+    with atomic_path(path) as tmp:
+        df.to_csv(tmp, index=False)
+    return path
+
+
+def build_tables(records: Sequence[RunRecord]) -> dict[str, ShapedTable]:
+    """The four paper-shaped tables (Table 1 as two blocks)."""
+    return {
+        "table1_outdoor": build_per_scene_table(records, "table1_outdoor"),
+        "table1_indoor": build_per_scene_table(records, "table1_indoor"),
+        "table2": build_aggregate_table(records, "table2"),
+        "table3": build_aggregate_table(records, "table3"),
+    }
+
+
+def write_tables(records: Sequence[RunRecord], out_dir: str | Path) -> list[Path]:
+    """Write every file in OUTPUT_FILES into out_dir (atomically); return their paths."""
+    out = Path(out_dir)
+    written = [_write_csv(out / "results.csv", records_frame(records))]
+    tables = build_tables(records)
+    for name, t in tables.items():
+        written.append(_write_csv(out / f"{name}.csv", shaped_to_frame(t)))
+        written.append(_write_text(out / f"{name}.tex", shaped_to_latex([t], t.caption, t.label)))
+    written.append(_write_text(out / "table1.tex", shaped_to_latex(
+        [tables["table1_outdoor"], tables["table1_indoor"]],
+        "Aria scene dataset (Table 1): egobench beside the paper", "tab:egobench_table1")))
+    t4 = table4_frame(records)
+    written += [_write_csv(out / "table4.csv", t4), _write_text(out / "table4.tex", table4_to_latex(t4))]
+    g = gains_frame(records)
+    written += [_write_csv(out / "gains.csv", g), _write_text(out / "gains.tex", gains_to_latex(g))]
+    return written
+
+
+# --------------------------------------------------------------------------------------------
+# CLI
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--records", nargs="+", required=True, metavar="EVAL_JSON",
+                        help="run records (eval.json) or folders searched for eval.json")
+    parser.add_argument("--out-dir", required=True, help="folder for the CSV and LaTeX tables")
+
+
+def run(args: argparse.Namespace) -> int:
+    records = load_records(args.records)
+    if not records:
+        raise ValueError("--records: no eval.json run records found")
+    written = write_tables(records, args.out_dir)
+    print(f"egobench tables: {len(records)} records -> {len(written)} files in {args.out_dir}")
+    return 0

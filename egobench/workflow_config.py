@@ -1,0 +1,305 @@
+"""Workflow configuration -> job lists and verb arguments (used by the Snakefile; unit-testable).
+
+The Snakefile stays thin: it validates the config with `check_config` (clear errors naming the
+key, before any job runs), fills the schema defaults with ``snakemake.utils.validate`` and asks a
+`Suite` for the paths, job lists and command-line arguments of every rule. No science here.
+"""
+
+from __future__ import annotations
+
+import shlex
+import shutil
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping
+
+import yaml
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+SCHEMA_PATH = REPO_ROOT / "workflows" / "schemas" / "config.schema.yaml"
+#: SimConfig fields the workflow sets itself (from the scene entry), not through `sim:`.
+WORKFLOW_SIM_FIELDS = ("kind", "seed", "name")
+
+
+class ConfigError(ValueError):
+    """A workflow configuration that does not match the schema or refers to unknown things."""
+
+
+def load_schema(path: str | Path = SCHEMA_PATH) -> dict:
+    with open(path) as f:
+        return yaml.safe_load(f)
+
+
+def _key_path(path) -> str:
+    out = "config"
+    for p in path:
+        out += f"[{p}]" if isinstance(p, int) else f".{p}"
+    return out
+
+
+def _schema_messages(config: Mapping, schema: Mapping) -> list[str]:
+    from jsonschema import Draft202012Validator
+
+    messages = []
+    validator = Draft202012Validator(schema)
+    for err in sorted(validator.iter_errors(config), key=lambda e: list(map(str, e.absolute_path))):
+        where = _key_path(err.absolute_path)
+        if err.validator == "additionalProperties" and isinstance(err.instance, dict):
+            allowed = sorted(err.schema.get("properties", {}))
+            unknown = sorted(set(err.instance) - set(allowed))
+            for key in unknown:
+                messages.append(f"{_key_path([*err.absolute_path, key])}: unknown key {key!r}; "
+                                f"allowed keys here: {', '.join(allowed) or '(none)'}")
+        elif err.validator == "enum":
+            messages.append(f"{where}: {err.instance!r} is not allowed; expected one of "
+                            f"{', '.join(map(str, err.validator_value))}")
+        elif err.validator == "required":
+            messages.append(f"{where}: {err.message}")
+        else:
+            messages.append(f"{where}: {err.message}")
+    return messages
+
+
+def check_config(config: Mapping, schema: Mapping | None = None, check_sim: bool = True) -> None:
+    """Raise ConfigError listing every problem (each naming its key) or return None."""
+    schema = load_schema() if schema is None else schema
+    messages = _schema_messages(config, schema)
+    if messages:
+        raise ConfigError("invalid workflow config:\n  " + "\n  ".join(messages))
+    names = [s["name"] for s in config["scenes"]]
+    dupes = sorted({n for n in names if names.count(n) > 1})
+    if dupes:
+        messages.append(f"config.scenes: scene names must be unique; repeated: {', '.join(dupes)}")
+    for i, scene in enumerate(config["scenes"]):
+        for src in ((config.get("defaults") or {}).get("sim") or {}, scene.get("sim") or {}):
+            for key in WORKFLOW_SIM_FIELDS:
+                if key in src:
+                    messages.append(f"config.scenes[{i}].sim.{key}: set by the workflow from the scene entry "
+                                    "(kind, sim_seed, name); remove it from sim")
+    diag = config.get("diagnose") or {}
+    for i, name in enumerate(diag.get("scenes") or []):
+        if name not in names:
+            messages.append(f"config.diagnose.scenes[{i}]: {name!r} is not a scene of this suite "
+                            f"({', '.join(names)})")
+    by_name = {s["name"]: s for s in config["scenes"]}
+    if diag.get("source", "run") == "run":
+        for name in diag.get("scenes") or []:
+            for m in diag.get("methods") or ["ours"]:
+                if name in by_name and m not in by_name[name]["methods"]:
+                    messages.append(f"config.diagnose.methods: {m!r} is not run on scene {name!r}; diagnose.source "
+                                    "'run' needs the trained run (add it to the scene's methods or use 'ground_truth')")
+    real = (config.get("motion_stats") or {}).get("real_trajectory")
+    if real is not None and not Path(real).is_file():
+        messages.append(f"config.motion_stats.real_trajectory: {real}: file not found")
+    qual = (config.get("plots") or {}).get("qualitative_scene")
+    if qual is not None and qual not in names:
+        messages.append(f"config.plots.qualitative_scene: {qual!r} is not a scene of this suite ({', '.join(names)})")
+    if not messages and check_sim:
+        messages += _check_sim_overrides(config) + _check_train_overrides(config)
+    if messages:
+        raise ConfigError("invalid workflow config:\n  " + "\n  ".join(messages))
+
+
+def _check_sim_overrides(config: Mapping) -> list[str]:
+    """Build each scene's SimConfig from its overrides so bad fields fail before any job runs."""
+    try:
+        from egobench.sim.config import SimConfig
+    except ImportError:  # the simulator is optional for a dry run of the workflow
+        return []
+    messages = []
+    defaults = (config.get("defaults") or {}).get("sim") or {}
+    for i, scene in enumerate(config["scenes"]):
+        overrides = {k: format_value(v) for k, v in {**defaults, **(scene.get("sim") or {})}.items()}
+        try:
+            SimConfig.from_overrides(scene["kind"], int(scene.get("sim_seed", 0)), overrides)
+        except (ValueError, TypeError) as exc:
+            messages.append(f"config.scenes[{i}].sim (scene {scene['name']!r}): {exc}")
+    return messages
+
+
+def _check_train_overrides(config: Mapping) -> list[str]:
+    """Apply each scene's train overrides to a TrainConfig so unknown fields fail before any job."""
+    try:
+        from egobench.train import TrainConfig, parse_overrides
+    except ImportError:
+        return []
+    messages = []
+    defaults = (config.get("defaults") or {}).get("train") or {}
+    for i, scene in enumerate(config["scenes"]):
+        items = [f"{k}={format_value(v)}" for k, v in {**defaults, **(scene.get("train") or {})}.items()]
+        try:
+            parse_overrides(TrainConfig(), items)
+        except (ValueError, TypeError) as exc:
+            messages.append(f"config.scenes[{i}].train (scene {scene['name']!r}): {exc}")
+    return messages
+
+
+def fill_defaults(config: dict, schema: Mapping | None = None) -> dict:
+    """Fill the schema's defaults in place (as snakemake.utils.validate does) and return config."""
+    from jsonschema import Draft202012Validator, validators
+
+    schema = load_schema() if schema is None else schema
+    validate_properties = Draft202012Validator.VALIDATORS["properties"]
+
+    def set_defaults(validator, properties, instance, sch):
+        for prop, sub in properties.items():
+            if "default" in sub and isinstance(instance, dict):
+                instance.setdefault(prop, sub["default"])
+        yield from validate_properties(validator, properties, instance, sch)
+
+    cls = validators.extend(Draft202012Validator, {"properties": set_defaults})
+    for err in cls(schema).iter_errors(config):
+        raise ConfigError(f"{_key_path(err.absolute_path)}: {err.message}")
+    return config
+
+
+def format_value(value: Any) -> str:
+    """A config value as the text of ``--set field=value`` (lists comma-joined, null -> none)."""
+    if value is None:
+        return "none"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (list, tuple)):
+        return ",".join(format_value(v) for v in value)
+    return str(value)
+
+
+def set_args(overrides: Mapping[str, Any]) -> str:
+    """``--set k=v`` arguments, shell-quoted, in key order."""
+    return " ".join(f"--set {shlex.quote(f'{k}={format_value(v)}')}" for k, v in sorted(overrides.items()))
+
+
+def egobench_command(setting: str = "auto", repo_root: str | Path = REPO_ROOT) -> str:
+    """The shell prefix rules use to call egobench."""
+    if setting != "auto":
+        return setting
+    if shutil.which("egobench"):
+        return "egobench"
+    root = shlex.quote(str(Path(repo_root).resolve()))
+    return f"env PYTHONPATH={root}${{PYTHONPATH:+:$PYTHONPATH}} {shlex.quote(sys.executable)} -m egobench.cli"
+
+
+@dataclass(frozen=True)
+class Scene:
+    """One scene entry with the suite defaults applied."""
+
+    name: str  # unique scene name
+    kind: str  # outdoor | indoor | object | quest3
+    paper_scene: str | None  # the paper's column, or None
+    sim_seed: int  # seed of the simulated recording
+    seeds: tuple[int, ...]  # training seeds
+    methods: tuple[str, ...]  # methods run on this scene
+    iterations: int  # training iterations
+    preset: str  # starting train config: cpu | paper
+    sim: dict  # SimConfig overrides (defaults.sim updated by the scene's sim)
+    train: dict  # train-config overrides (defaults.train updated by the scene's train)
+
+
+class Suite:
+    """Paths, job lists and verb arguments of one validated, default-filled config."""
+
+    def __init__(self, config: Mapping):
+        self.config = config
+        self.name: str = config["suite"]
+        self.root = f"{config.get('results_dir', 'results').rstrip('/')}/{self.name}"
+        d = config.get("defaults") or {}
+        self.scenes: dict[str, Scene] = {}
+        for s in config["scenes"]:
+            self.scenes[s["name"]] = Scene(
+                name=s["name"],
+                kind=s["kind"],
+                paper_scene=s.get("paper_scene"),
+                sim_seed=int(s.get("sim_seed", 0)),
+                seeds=tuple(s.get("seeds") or d.get("seeds") or [0]),
+                methods=tuple(s["methods"]),
+                iterations=int(s.get("iterations") or d.get("iterations") or 2000),
+                preset=s.get("preset") or d.get("preset") or "cpu",
+                sim={**(d.get("sim") or {}), **(s.get("sim") or {})},
+                train={**(d.get("train") or {}), **(s.get("train") or {})},
+            )
+        diag = config.get("diagnose") or {}
+        self.diagnose_jobs = [(s, m) for s in diag.get("scenes", []) for m in diag.get("methods", ["ours"])]
+        self.diagnose_source: str = diag.get("source", "run")
+        self.qualitative_scene = (config.get("plots") or {}).get("qualitative_scene")
+        ms = config.get("motion_stats") or {}
+        self.motion_stats = bool(ms.get("enabled", False))
+        self.motion_stats_kind: str = ms.get("kind", "indoor")
+        self.motion_stats_real: str | None = ms.get("real_trajectory")
+
+    # ---- paths -----------------------------------------------------------------------------
+    def recording_dir(self, scene: str) -> str:
+        return f"{self.root}/recordings/{scene}"
+
+    def run_dir(self, scene: str, method: str, seed: int | str) -> str:
+        return f"{self.root}/runs/{scene}/{method}/seed{seed}"
+
+    def runs(self) -> list[tuple[str, str, int]]:
+        """Every (scene, method, seed) training job, in config order."""
+        return [(s.name, m, seed) for s in self.scenes.values() for m in s.methods for seed in s.seeds]
+
+    def eval_records(self) -> list[str]:
+        return [f"{self.run_dir(s, m, seed)}/eval.json" for s, m, seed in self.runs()]
+
+    def diagnosis_dirs(self) -> list[str]:
+        return [f"{self.root}/diagnosis/{s}/{m}" for s, m in self.diagnose_jobs]
+
+    def methods(self) -> list[str]:
+        return sorted({m for s in self.scenes.values() for m in s.methods} | {m for _, m in self.diagnose_jobs})
+
+    # ---- verb arguments --------------------------------------------------------------------
+    def _scene(self, scene: str) -> Scene:
+        if scene not in self.scenes:
+            raise ConfigError(f"scene {scene!r} is not in suite {self.name!r} ({', '.join(self.scenes)})")
+        return self.scenes[scene]
+
+    def simulate_args(self, scene: str) -> str:
+        s = self._scene(scene)
+        return f"--kind {s.kind} --seed {s.sim_seed} {set_args({**s.sim, 'name': s.name})}"
+
+    def train_args(self, scene: str) -> str:
+        s = self._scene(scene)
+        return f"--preset {s.preset} --iterations {s.iterations} {set_args(s.train)}".strip()
+
+    def evaluate_args(self, scene: str) -> str:
+        s = self._scene(scene)
+        out = f"--scene {shlex.quote(s.name)}"
+        if s.paper_scene:
+            out += f" --paper-scene {shlex.quote(s.paper_scene)}"
+        return out
+
+    def diagnose_run(self, scene: str, method: str) -> list[str]:
+        """The train record the diagnosis of (scene, method) reads (first seed), or [] for ground_truth."""
+        if self.diagnose_source != "run":
+            return []
+        return [f"{self.run_dir(scene, method, self._scene(scene).seeds[0])}/train.json"]
+
+    def diagnose_args(self, scene: str, method: str) -> str:
+        if self.diagnose_source != "run":
+            return "--source ground_truth"
+        return f"--source run --run {shlex.quote(self.run_dir(scene, method, self._scene(scene).seeds[0]))}"
+
+    def motion_stats_args(self) -> str:
+        out = f"--kind {self.motion_stats_kind}"
+        if self.motion_stats_real:
+            out += f" --real {shlex.quote(self.motion_stats_real)}"
+        return out
+
+    def resources(self, step: str) -> dict[str, int]:
+        """threads, mem_mb, gpu, runtime of one step (schema defaults applied)."""
+        r = {"threads": 1, "mem_mb": 2000, "gpu": 0, "runtime": 60}
+        r.update((self.config.get("resources") or {}).get(step) or {})
+        return r
+
+
+def load_suite(config_path: str | Path) -> Suite:
+    """Read, check and default-fill a config file (for tests and scripts)."""
+    with open(config_path) as f:
+        config = yaml.safe_load(f)
+    if not isinstance(config, dict):
+        raise ConfigError(f"{config_path}: a workflow config is a YAML mapping")
+    try:
+        check_config(config)
+    except ConfigError as exc:
+        raise ConfigError(f"{config_path}: {exc}") from exc
+    return Suite(fill_defaults(config))

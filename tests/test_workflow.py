@@ -1,0 +1,227 @@
+"""The Snakemake workflow: lint, dry runs, config validation, and a real smoke run of ci.yaml."""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+
+from egobench import workflow_config as wc
+
+REPO = Path(__file__).resolve().parents[1]
+SNAKEMAKE = [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile")]
+
+
+def snakemake(args: list[str], workdir: Path, timeout: int = 300) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": f"{REPO}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
+    return subprocess.run([*SNAKEMAKE, "-d", str(workdir), *args], capture_output=True, text=True,
+                          timeout=timeout, env=env)
+
+
+def load(name: str) -> dict:
+    return yaml.safe_load((REPO / "config" / name).read_text())
+
+
+# ------------------------------------------------------------------------------------------------
+# Config -> jobs (unit level)
+
+
+def test_schema_enums_match_the_package():
+    from egobench.methods import METHODS
+    from egobench.sim.config import SCENE_KINDS
+
+    schema = wc.load_schema()
+    assert schema["$defs"]["method"]["enum"] == list(METHODS)
+    assert schema["properties"]["scenes"]["items"]["properties"]["kind"]["enum"] == list(SCENE_KINDS)
+
+
+@pytest.mark.parametrize("name", ["config.yaml", "paper.yaml", "ci.yaml"])
+def test_shipped_configs_are_valid(name):
+    suite = wc.load_suite(REPO / "config" / name)
+    assert suite.runs() and len(set(suite.runs())) == len(suite.runs())
+
+
+def test_default_suite_covers_every_table_row():
+    suite = wc.load_suite(REPO / "config" / "config.yaml")
+    by_kind = {s.kind: set(s.methods) for s in suite.scenes.values()}
+    t1 = {"splatfacto", "on_the_move", "ours", "no_viba", "no_motion_sampling", "no_scene_gamma"}
+    assert by_kind["outdoor"] == t1 and by_kind["indoor"] == t1
+    assert by_kind["object"] == {"ours", "no_motion_sampling", "no_viba", "no_scene_gamma", "splatfacto",
+                                 "ours_2dgs", "2dgs_no_motion_sampling"}
+    assert by_kind["quest3"] == {"ours", "no_viba", "no_motion_sampling"}
+    assert len(suite.runs()) == 6 + 6 + 7 + 3
+
+
+def test_paper_suite_scale():
+    suite = wc.load_suite(REPO / "config" / "paper.yaml")
+    from egobench import paper_numbers as pn
+
+    papers = {s.paper_scene for s in suite.scenes.values() if s.kind in ("outdoor", "indoor")}
+    assert papers == set(pn.TABLE1_OUTDOOR_SCENES) | set(pn.TABLE1_INDOOR_SCENES)
+    for s in suite.scenes.values():
+        assert s.iterations == 30000 and s.sim["rectified_size"] == 2400 and s.preset == "paper"
+        if s.paper_scene in pn.TABLE4:
+            assert s.sim["n_frames"] == pn.TABLE4[s.paper_scene].frames
+    assert suite.resources("train")["gpu"] == 1
+
+
+def test_suite_paths_and_arguments():
+    config = wc.fill_defaults({
+        "suite": "t",
+        "defaults": {"seeds": [0, 1], "iterations": 50, "sim": {"n_frames": 16, "noise": False}},
+        "scenes": [{"name": "a", "kind": "indoor", "paper_scene": "plant hallway", "methods": ["ours", "no_viba"],
+                    "sim": {"n_frames": 8, "white_balance": [1.0, 0.9, 1.1]}, "train": {"lr_colors": 0.5}},
+                   {"name": "b", "kind": "object", "methods": ["ours_2dgs"], "seeds": [3], "iterations": 7,
+                    "preset": "paper"}],
+    })
+    wc.check_config(config)
+    s = wc.Suite(config)
+    assert s.runs() == [("a", "ours", 0), ("a", "ours", 1), ("a", "no_viba", 0), ("a", "no_viba", 1),
+                        ("b", "ours_2dgs", 3)]
+    assert s.eval_records()[-1] == "results/t/runs/b/ours_2dgs/seed3/eval.json"
+    assert s.recording_dir("a") == "results/t/recordings/a"
+    assert s.simulate_args("a") == ("--kind indoor --seed 0 --set n_frames=8 --set name=a --set noise=false "
+                                    "--set white_balance=1.0,0.9,1.1")
+    assert s.train_args("a") == "--preset cpu --iterations 50 --set lr_colors=0.5"
+    assert s.train_args("b") == "--preset paper --iterations 7"
+    assert s.evaluate_args("a") == "--scene a --paper-scene 'plant hallway'"
+    assert s.evaluate_args("b") == "--scene b"
+    assert s.resources("train") == {"threads": 1, "mem_mb": 2000, "gpu": 0, "runtime": 60}
+    with pytest.raises(wc.ConfigError, match="'c' is not in suite"):
+        s.simulate_args("c")
+
+
+def test_diagnose_and_motion_stats_jobs():
+    suite = wc.load_suite(REPO / "config" / "ci.yaml")
+    assert suite.diagnosis_dirs() == ["results/ci/diagnosis/outdoor_0/ours"]
+    assert suite.diagnose_run("outdoor_0", "ours") == ["results/ci/runs/outdoor_0/ours/seed0/train.json"]
+    assert suite.diagnose_args("outdoor_0", "ours") == "--source run --run results/ci/runs/outdoor_0/ours/seed0"
+    assert suite.motion_stats and suite.motion_stats_args() == "--kind indoor"
+    config = load("ci.yaml")
+    config["diagnose"]["source"] = "ground_truth"
+    config["motion_stats"]["real_trajectory"] = __file__  # any existing file
+    wc.check_config(config)
+    gt = wc.Suite(wc.fill_defaults(config))
+    assert gt.diagnose_run("outdoor_0", "ours") == [] and gt.diagnose_args("outdoor_0", "ours") == "--source ground_truth"
+    assert gt.motion_stats_args() == f"--kind indoor --real {__file__}"
+
+
+def test_egobench_command():
+    assert wc.egobench_command("egobench --verbose") == "egobench --verbose"
+    auto = wc.egobench_command("auto")
+    assert auto == "egobench" or auto.endswith("-m egobench.cli")
+
+
+@pytest.mark.parametrize(
+    "mutate, message",
+    [
+        (lambda c: c["scenes"][0].update(kind="mars"), "config.scenes[0].kind: 'mars' is not allowed"),
+        (lambda c: c["scenes"][1]["methods"].append("nerf"), "config.scenes[1].methods[6]: 'nerf' is not allowed"),
+        (lambda c: c.update(bogus=1), "config.bogus: unknown key 'bogus'"),
+        (lambda c: c["scenes"][0].update(frames=3), "config.scenes[0].frames: unknown key 'frames'"),
+        (lambda c: c["resources"]["train"].update(gpus=1), "config.resources.train.gpus: unknown key"),
+        (lambda c: c["scenes"][1].update(name="outdoor_0"), "scene names must be unique; repeated: outdoor_0"),
+        (lambda c: c["diagnose"].update(scenes=["nowhere"]), "config.diagnose.scenes[0]: 'nowhere'"),
+        (lambda c: c["scenes"][0]["sim"].update(kind="indoor"), "config.scenes[0].sim.kind: set by the workflow"),
+        (lambda c: c["scenes"][0]["sim"].update(n_frame=3), "unknown field 'n_frame'"),
+        (lambda c: c["scenes"][0]["sim"].update(n_frames=0), "n_frames"),
+        (lambda c: c["scenes"][0].update(train={"lr_colour": 1}), "lr_colour: unknown TrainConfig field"),
+        (lambda c: c["defaults"].update(preset="gpu"), "config.defaults.preset: 'gpu' is not allowed"),
+        (lambda c: c.pop("suite"), "'suite' is a required property"),
+        (lambda c: c["diagnose"].update(methods=["ours_2dgs"]), "'ours_2dgs' is not run on scene 'indoor_0'"),
+        (lambda c: c["motion_stats"].update(real_trajectory="/nonexistent/traj.csv"),
+         "config.motion_stats.real_trajectory: /nonexistent/traj.csv: file not found"),
+    ],
+)
+def test_bad_configs_name_the_key(mutate, message):
+    config = load("config.yaml")
+    config["scenes"][0].setdefault("sim", {})
+    mutate(config)
+    with pytest.raises(wc.ConfigError) as exc:
+        wc.check_config(config)
+    assert message in str(exc.value)
+
+
+# ------------------------------------------------------------------------------------------------
+# Snakemake itself
+
+
+def test_lint_is_clean(tmp_path):
+    res = snakemake(["--lint"], tmp_path)
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert "Congratulations" in res.stdout + res.stderr
+
+
+@pytest.mark.parametrize("name, min_jobs", [("config.yaml", 53), ("paper.yaml", 214)])
+def test_dry_run(tmp_path, name, min_jobs):
+    res = snakemake(["-n", "--quiet", "rules", "--configfile", str(REPO / "config" / name)], tmp_path)
+    assert res.returncode == 0, res.stdout + res.stderr
+    total = [line for line in (res.stdout + res.stderr).splitlines() if line.startswith("total")]
+    assert total and int(total[0].split()[1]) >= min_jobs, res.stdout
+    assert not (tmp_path / "results").exists()
+
+
+@pytest.mark.parametrize(
+    "edit, key",
+    [
+        (lambda c: c["scenes"][1].update(kind="underwater"), "config.scenes[1].kind"),
+        (lambda c: c["scenes"][2]["methods"].append("instant_ngp"), "config.scenes[2].methods[7]"),
+        (lambda c: c["defaults"].update(iteratons=5), "config.defaults.iteratons"),
+    ],
+)
+def test_bad_config_fails_before_any_job(tmp_path, edit, key):
+    config = load("config.yaml")
+    edit(config)
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(config))
+    res = snakemake(["--cores", "1", "--configfile", str(path)], tmp_path)
+    assert res.returncode != 0
+    assert key in res.stderr + res.stdout, res.stderr
+    assert not (tmp_path / "results").exists()  # nothing ran
+
+
+# ------------------------------------------------------------------------------------------------
+# A real run of the smoke suite (needs every verb the rules call).
+
+VERB_MODULES = ("egobench.sim.cli", "egobench.train", "egobench.evaluate")
+
+
+@pytest.mark.slow
+def test_ci_suite_runs_end_to_end(tmp_path):
+    missing = [m for m in VERB_MODULES if importlib.util.find_spec(m) is None]
+    if missing:
+        pytest.skip(f"verbs not implemented yet: {', '.join(missing)}")
+    res = snakemake(["--cores", "2", "--configfile", str(REPO / "config" / "ci.yaml")], tmp_path, timeout=900)
+    logs = "\n".join(p.read_text()[-2000:] for p in (tmp_path / "results").rglob("*.log")) if res.returncode else ""
+    assert res.returncode == 0, res.stderr[-4000:] + logs
+    root = tmp_path / "results" / "ci"
+    suite = wc.load_suite(REPO / "config" / "ci.yaml")
+    # Every run record exists; the tables parse and hold numbers.
+    results = pd.read_csv(root / "tables" / "results.csv")
+    assert len(results) == len(suite.runs())
+    assert np.isfinite(results["psnr"]).all() and (results["psnr"] > 5).all()
+    t1 = pd.read_csv(root / "tables" / "table1_outdoor.csv")
+    ours = t1[t1["block"] == "egobench"]
+    psnr_cols = [c for c in t1.columns if c.endswith(" PSNR")]
+    assert len(ours) == 2 and psnr_cols and np.isfinite(ours[psnr_cols].to_numpy(float)).all()
+    gains = pd.read_csv(root / "tables" / "gains.csv")
+    row = gains[(gains["group"] == "table1_outdoor") & (gains["method"] == "no_motion_sampling")]
+    assert len(row) == 1 and np.isfinite(row["delta_psnr_mean"].iloc[0])
+    assert all((root / "figures" / f).is_file() for f in __import__("egobench.plots").plots.OUTPUT_FILES)
+    assert (root / "diagnosis" / "outdoor_0" / "ours" / "diagnosis.json").is_file()
+    assert (root / "motion_stats" / "motion_stats.json").is_file()
+    # Rerunning resumes: nothing left to do.
+    again = snakemake(["--cores", "2", "--configfile", str(REPO / "config" / "ci.yaml"), "-n"], tmp_path)
+    assert again.returncode == 0 and "Nothing to be done" in again.stdout + again.stderr
+    # The HTML report builds from the finished run.
+    rep = snakemake(["--configfile", str(REPO / "config" / "ci.yaml"), "--report", str(tmp_path / "report.html")],
+                    tmp_path)
+    assert rep.returncode == 0, rep.stderr[-3000:]
+    assert (tmp_path / "report.html").stat().st_size > 10_000

@@ -1,0 +1,28 @@
+# Helpers shared by the workflow files: config -> targets. The logic lives in
+# egobench/workflow_config.py (unit-tested); this file only adapts it to Snakemake.
+import egobench.tables
+import egobench.plots
+
+
+def res(step, key):
+    """A resource of one step (threads, mem_mb, gpu, runtime) from config.resources."""
+    return SUITE.resources(step)[key]
+
+
+def eval_records():
+    return SUITE.eval_records()
+
+
+def table_files():
+    return [f"{R}/tables/{name}" for name in egobench.tables.OUTPUT_FILES]
+
+
+def figure_files():
+    return [f"{R}/figures/{name}" for name in egobench.plots.OUTPUT_FILES]
+
+
+def all_outputs():
+    out = eval_records() + table_files() + figure_files() + SUITE.diagnosis_dirs()
+    if SUITE.motion_stats:
+        out.append(f"{R}/motion_stats/motion_stats.json")
+    return out

@@ -1,0 +1,54 @@
+# Residual diagnosis of a recording under one method; and (optionally) head-motion statistics.
+
+
+rule diagnose:
+    input:
+        recording=f"{R}/recordings/{{scene}}",
+        run=lambda wildcards: SUITE.diagnose_run(wildcards.scene, wildcards.method),
+    output:
+        report(
+            directory(f"{R}/diagnosis/{{scene}}/{{method}}"),
+            caption="report/diagnose.rst",
+            category="Diagnosis",
+            patterns=["{name}.png"],
+        ),
+    conda:
+        "envs/egobench.yaml"
+    log:
+        f"{R}/logs/diagnose/{{scene}}/{{method}}.log",
+    benchmark:
+        f"{R}/benchmarks/diagnose/{{scene}}/{{method}}.tsv"
+    params:
+        eb=EGOBENCH,
+        args=lambda wildcards: SUITE.diagnose_args(wildcards.scene, wildcards.method),
+    threads: res("diagnose", "threads")
+    resources:
+        mem_mb=res("diagnose", "mem_mb"),
+        gpu=res("diagnose", "gpu"),
+        runtime=res("diagnose", "runtime"),
+    shell:
+        "{params.eb} diagnose {input.recording} --method {wildcards.method}"
+        " --out {output} {params.args} > {log} 2>&1"
+
+
+rule motion_stats:
+    output:
+        json=report(
+            f"{R}/motion_stats/motion_stats.json",
+            caption="report/motion_stats.rst",
+            category="Motion",
+        ),
+        csv=f"{R}/motion_stats/motion_stats.csv",
+    conda:
+        "envs/egobench.yaml"
+    log:
+        f"{R}/logs/motion_stats.log",
+    params:
+        eb=EGOBENCH,
+        out_dir=lambda wildcards, output: os.path.dirname(output.json),
+        args=SUITE.motion_stats_args(),
+    threads: res("motion_stats", "threads")
+    resources:
+        mem_mb=res("motion_stats", "mem_mb"),
+    shell:
+        "{params.eb} motion-stats --out {params.out_dir} {params.args} > {log} 2>&1"
