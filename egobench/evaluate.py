@@ -207,12 +207,32 @@ def evaluate(recording_dir, run_dir, *, scene: str | None = None, paper_scene: s
         "notes": notes,
         "eval": {"resolution": [cam.width, cam.height], "n_test_frames": len(frames),
                  "pose_samples_mean": float(np.mean(counts))},
+        "recording_stats": recording_stats(rec),
         "per_image": per_image,
     }
     if not has_geo:
         notes.setdefault("geometry", "no ground-truth depth/normal in this recording")
     write_json(run_dir / "eval.json", record)
     return record
+
+
+def recording_stats(rec: Recording, step_ns: int = 1_000_000) -> dict[str, Any]:
+    """Frame count and head angular speed (deg/s, from device poses every ``step_ns`` over the
+    frames' span) of a recording: Table 4's frame column and the PSNR-versus-head-speed plot."""
+    from egobench.geometry import so3_log
+
+    t0, t1 = rec.frames[0].read_start_ns, rec.frames[-1].read_end_ns
+    t0 = max(t0, getattr(rec.trajectory, "start_ns", t0))  # analytic test trajectories have no span
+    t1 = min(t1, getattr(rec.trajectory, "end_ns", t1))
+    t = torch.arange(t0, t1 + 1, step_ns, dtype=torch.int64)
+    stats: dict[str, Any] = {"num_frames": len(rec.frames), "duration_s": (t1 - t0) * 1e-9}
+    if len(t) >= 2:
+        R = rec.trajectory.pose(t)[:, :3, :3]
+        rel = R[:-1].transpose(-1, -2) @ R[1:]
+        speed = torch.rad2deg(so3_log(rel).norm(dim=-1)) / (step_ns * 1e-9)
+        stats["head_angular_speed_deg_s_p50"] = float(torch.quantile(speed, 0.5))
+        stats["head_angular_speed_deg_s_p99"] = float(torch.quantile(speed, 0.99))
+    return stats
 
 
 def _geometry(g, geo_rec: Recording, frame: Frame, spec: MethodSpec, config, n: int, scale: float) -> dict:

@@ -540,13 +540,14 @@ def _load_recording(recording_dir, spec: MethodSpec) -> Recording:
     return load_recording(recording_dir, calibration=spec.calibration)
 
 
-def train(recording_dir, method: str, config: TrainConfig, out_dir, *, resume: bool = False,
+def train(recording_dir, method: str, config: TrainConfig, out_dir, *, resume: bool | Literal["auto"] = False,
           stop_after: int | None = None, progress: bool = True) -> TrainResult:
     """Train ``method`` on a recording (a folder, or a loaded `Recording` of the method's calibration).
 
     Writes ``out_dir/checkpoint.pt`` (atomic; every ``checkpoint_every`` and at the end) and
     ``out_dir/train.json``. ``resume`` continues from the checkpoint to the identical result of an
-    uninterrupted run. ``stop_after`` ends after that many total iterations (as an interruption would:
+    uninterrupted run; ``resume="auto"`` (the workflow's choice) resumes a checkpoint of the same
+    method and config and otherwise starts afresh (a stale checkpoint is replaced). ``stop_after`` ends after that many total iterations (as an interruption would:
     checkpoint written, no train.json).
     """
     from tqdm import tqdm
@@ -599,6 +600,8 @@ def train(recording_dir, method: str, config: TrainConfig, out_dir, *, resume: b
     start_it = 0
     last_loss = float("nan")
 
+    if resume == "auto":
+        resume = _checkpoint_matches(ckpt_path, method, config)
     if resume:
         if not ckpt_path.is_file():
             raise FileNotFoundError(f"{ckpt_path}: no checkpoint to resume from")
@@ -772,6 +775,22 @@ def _twodgs_regularisers(outs: list, cam: Pinhole, config: TrainConfig, it: int,
 
 
 # ============================================================================= CLI
+def _checkpoint_matches(ckpt_path: Path, method: str, config: TrainConfig) -> bool:
+    """True when ``ckpt_path`` holds a resumable checkpoint of ``method`` with this exact config."""
+    if not ckpt_path.is_file():
+        return False
+    try:
+        ck = torch.load(ckpt_path, map_location="cpu", weights_only=False)
+    except Exception as exc:  # a truncated or foreign file: start afresh, say so
+        print(f"egobench train: {ckpt_path}: unreadable checkpoint ({exc}); starting afresh", file=sys.stderr)
+        return False
+    same = (ck.get("format") == CHECKPOINT_FORMAT and ck.get("method") == method
+            and ck.get("config_hash") == config.hash(method))
+    if not same:
+        print(f"egobench train: {ckpt_path}: checkpoint of another method or config; starting afresh", file=sys.stderr)
+    return same
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--recording", required=True, help="recording folder (<rec> or a folder with transforms.json)")
     parser.add_argument("--method", required=True, help="method name (egobench.methods)")
@@ -781,7 +800,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", choices=("cpu", "paper"), default="cpu",
                         help="starting config: 'cpu' (small, ~1 min) or 'paper' (30K, full resolution)")
     parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE", help="override a TrainConfig field")
-    parser.add_argument("--resume", action="store_true", help="continue from RUN_DIR/checkpoint.pt")
+    parser.add_argument("--resume", nargs="?", const="yes", choices=("yes", "auto"), default=None,
+                        help="continue from RUN_DIR/checkpoint.pt; 'auto': only if it matches this method and "
+                             "config, else start afresh (what the workflow passes)")
     parser.add_argument("--no-progress", action="store_true", help="no tqdm bar")
 
 
@@ -797,7 +818,8 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
 def run(args: argparse.Namespace) -> int:
     config = config_from_args(args)
     try:
-        res = train(args.recording, args.method, config, args.out, resume=args.resume,
+        resume = {None: False, "yes": True, "auto": "auto"}[args.resume]
+        res = train(args.recording, args.method, config, args.out, resume=resume,
                     progress=not getattr(args, "no_progress", False))
     except TrainingDiverged as exc:
         print(f"egobench train: error: {exc}", file=sys.stderr)

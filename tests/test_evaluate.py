@@ -35,6 +35,10 @@ def test_record_fields_and_psnr_on_saved_render(trained):
         assert key in out, key
     assert out["schema"] == RUN_SCHEMA and out["scene"] == "toy_0" and out["paper_scene"] == "bike shop"
     assert out["method"] == "ours" and out["seed"] == 0 and out["calibration"] == "online"
+    # The toy head turns at a constant 8 rad/s: every percentile of its angular speed is 458.4 deg/s.
+    stats = out["recording_stats"]
+    assert stats["num_frames"] == 17
+    assert stats["head_angular_speed_deg_s_p50"] == pytest.approx(8.0 * 180 / 3.141592653589793, rel=1e-6)
     train_json = read_json(run / "train.json")
     assert out["config_hash"] == train_json["config_hash"]
     assert set(out["train"]) == {"iterations", "time_s", "iters_per_s", "raster_time_share", "num_gaussians"}

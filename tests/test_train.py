@@ -191,6 +191,15 @@ def test_deterministic_and_resume_equals_uninterrupted(toy, tmp_path):
     assert not torch.equal(_params(tmp_path / "d")["means"][:100], pa["means"][:100]) or other.num_gaussians != a.num_gaussians
     with pytest.raises(ValueError, match="different training config"):
         train(toy, "ours", dataclasses.replace(cfg, lr_colors=0.1), tmp_path / "c", progress=False, resume=True)
+    # The workflow's resume="auto": a matching interrupted checkpoint resumes to the same result ...
+    train(toy, "ours", cfg, tmp_path / "e", progress=False, stop_after=25)
+    e = train(toy, "ours", cfg, tmp_path / "e", progress=False, resume="auto")
+    assert e.iterations == 40 and all(torch.equal(pa[k], _params(tmp_path / "e")[k]) for k in pa)
+    # ... and a stale one (another config) is replaced by a fresh run, identical to training from scratch.
+    fresh_cfg = dataclasses.replace(cfg, seed=1)
+    train(toy, "ours", fresh_cfg, tmp_path / "e", progress=False, resume="auto")
+    pe, pd = _params(tmp_path / "e"), _params(tmp_path / "d")
+    assert all(torch.equal(pe[k], pd[k]) for k in pd)
 
 
 def test_fits_a_known_scene(toy, tmp_path):

@@ -1,6 +1,6 @@
 # One job per scene x method x seed. train.json (written last, atomically) marks a finished run;
 # checkpoint.pt is not a declared output, so a failed job keeps it and a rerun resumes from it
-# (--resume is passed when a checkpoint is there; a changed train config makes train refuse it).
+# (--resume auto: a checkpoint of another config is replaced, not resumed).
 
 
 rule train:
@@ -25,5 +25,4 @@ rule train:
         runtime=res("train", "runtime"),
     shell:
         "{params.eb} train --recording {input.recording} --method {wildcards.method}"
-        " --seed {wildcards.seed} --out {params.run_dir} {params.args}"
-        " $(test -f {params.run_dir}/checkpoint.pt && echo --resume) > {log} 2>&1"
+        " --seed {wildcards.seed} --out {params.run_dir} {params.args} --resume auto > {log} 2>&1"

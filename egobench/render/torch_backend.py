@@ -44,20 +44,33 @@ NEAR_PLANE = 0.01  # metres
 FAR_PLANE = 1e10  # metres
 EXTENT_SIGMAS = 3.33  # screen radius in standard deviations (upper bound)
 FILTER_INV_SQUARE_2DGS = 2.0  # 2DGS low-pass filter: sigma_2d = 2 |d|^2 / 2
+SIGMA_CAP = 50.0  # exponents above this give alpha < 1/255 anyway; capped to keep exp() off denormals
+
+
+def _quat_to_rot_matrix() -> tuple[Tensor, Tensor]:
+    """[16, 9] map from q_i q_j (i * 4 + j, (w, x, y, z) = 0..3) to R - I (row-major), and vec(I)."""
+    w, x, y, z = range(4)
+    terms = [  # (R entry, [(+-1, i, j)]) of R - I = 2 * (...)
+        [(-1, y, y), (-1, z, z)], [(1, x, y), (-1, w, z)], [(1, x, z), (1, w, y)],
+        [(1, x, y), (1, w, z)], [(-1, x, x), (-1, z, z)], [(1, y, z), (-1, w, x)],
+        [(1, x, z), (-1, w, y)], [(1, y, z), (1, w, x)], [(-1, x, x), (-1, y, y)],
+    ]
+    C = torch.zeros(16, 9, dtype=torch.float64)
+    for e, ts in enumerate(terms):
+        for sgn, i, j in ts:
+            C[i * 4 + j, e] += 2.0 * sgn
+    return C, torch.eye(3, dtype=torch.float64).reshape(9)
+
+
+_QUAT_TO_ROT, _EYE9 = _quat_to_rot_matrix()
 
 
 def quat_to_rotmat(quats: Tensor) -> Tensor:
     """quats [..., 4] (w, x, y, z), any norm > 0 -> rotation matrices [..., 3, 3]."""
     q = F.normalize(quats, p=2, dim=-1)
-    w, x, y, z = q.unbind(-1)
-    R = torch.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ],
-        dim=-1,
-    )
+    qq = (q[..., :, None] * q[..., None, :]).reshape(q.shape[:-1] + (16,))  # q_i q_j, i * 4 + j
+    # R = I + (2 q_i q_j) combined by a constant [16, 9] matrix: one product + one GEMM (few autograd nodes)
+    R = torch.matmul(qq, _QUAT_TO_ROT.to(dtype=q.dtype, device=q.device)) + _EYE9.to(dtype=q.dtype, device=q.device)
     return R.reshape(q.shape[:-1] + (3, 3))
 
 
@@ -110,11 +123,9 @@ def project_3dgs(
     R_cw, t_cw = _viewmat_parts(viewmats)
     means_c = torch.einsum("iab,nb->ina", R_cw, means) + t_cw[:, None, :]  # [I, N, 3]
     R = quat_to_rotmat(quats)  # [N, 3, 3]
-    M = R * scales[:, None, :]
-    covars = (M[:, :, None, :] * M[:, None, :, :]).sum(-1)  # [N, 3, 3] (elementwise: no tiny bmm)
-    # R_cw cov R_cw^T for every view as one GEMM: vec(cov_c) = (R_cw kron R_cw) vec(cov)
-    kron = (R_cw[:, :, None, :, None] * R_cw[:, None, :, None, :]).reshape(-1, 9, 9)  # [I, 9, 9]
-    covars_c = torch.matmul(covars.reshape(1, -1, 9), kron.transpose(1, 2)).reshape(-1, covars.shape[0], 3, 3)
+    M = R * scales[:, None, :]  # [N, 3, 3]: cov = M M^T
+    # camera-frame factor R_cw M for every view as one GEMM ([I*3, 3] x [3, N*3])
+    Mc = torch.einsum("iab,nbc->inac", R_cw, M)  # [I, N, 3, 3]: cov_c = Mc Mc^T
 
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     x, y, z = means_c.unbind(-1)
@@ -125,16 +136,16 @@ def project_3dgs(
     lim_x_neg = cx / fx + 0.3 * tan_fovx
     lim_y_pos = (height - cy) / fy + 0.3 * tan_fovy
     lim_y_neg = cy / fy + 0.3 * tan_fovy
-    tx = zs * torch.clamp(x / zs, min=-lim_x_neg, max=lim_x_pos)
-    ty = zs * torch.clamp(y / zs, min=-lim_y_neg, max=lim_y_pos)
-    # J = [[j00, 0, j02], [0, j11, j12]]; cov2d = J cov_c J^T written out elementwise
-    j00, j02 = fx / zs, -fx * tx / zs**2
-    j11, j12 = fy / zs, -fy * ty / zs**2
-    s00, s01, s02 = covars_c[..., 0, 0], covars_c[..., 0, 1], covars_c[..., 0, 2]
-    s11, s12, s22 = covars_c[..., 1, 1], covars_c[..., 1, 2], covars_c[..., 2, 2]
-    c00 = j00 * j00 * s00 + 2 * j00 * j02 * s02 + j02 * j02 * s22 + eps2d
-    c11 = j11 * j11 * s11 + 2 * j11 * j12 * s12 + j12 * j12 * s22 + eps2d
-    c01 = j00 * j11 * s01 + j00 * j12 * s02 + j02 * j11 * s12 + j02 * j12 * s22
+    inv_z = 1.0 / zs
+    tx = torch.clamp(x * inv_z, min=-lim_x_neg, max=lim_x_pos)  # clamped x/z (gsplat's tx / z)
+    ty = torch.clamp(y * inv_z, min=-lim_y_neg, max=lim_y_pos)
+    # J = [[j00, 0, j02], [0, j11, j12]] = [[fx/z, 0, -fx tx/z^2], ...]; cov2d = (J Mc)(J Mc)^T
+    j00, j11 = fx * inv_z, fy * inv_z
+    a0 = j00[..., None] * (Mc[..., 0, :] - tx[..., None] * Mc[..., 2, :])  # [I, N, 3] row 0 of J Mc
+    a1 = j11[..., None] * (Mc[..., 1, :] - ty[..., None] * Mc[..., 2, :])  # [I, N, 3] row 1 of J Mc
+    c00 = (a0 * a0).sum(-1) + eps2d
+    c11 = (a1 * a1).sum(-1) + eps2d
+    c01 = (a0 * a1).sum(-1)
     det = c00 * c11 - c01 * c01
     valid = in_depth & (det > 0)
     det_s = torch.where(valid, det, torch.ones_like(det))
@@ -312,6 +323,8 @@ class _Plan:
     depth_channel: int  # feature channel holding the depth (used by the 2DGS distortion)
     chunk: int  # candidates per step
     max_pairs: int  # pixel-candidate pairs per step (memory bound)
+    store_elems: int = 1 << 24  # forward intermediates kept for the backward (elements, upper bound);
+    # above it the backward recomputes each chunk instead (as gsplat's CUDA kernels do)
 
 
 def _tile_phi(tile_size: int, dtype: torch.dtype, device) -> Tensor:
@@ -349,11 +362,11 @@ class _ChunkEval:
         return s, (X, Y, Zs, g3, use3)
 
     def coef_grad(self, G: Tensor, cf: Tensor, saved: tuple) -> Tensor:
-        """G = dL/dsigma' [A, P, S] -> dL/dcoef [A, S, Kc]."""
+        """G = dL/dsigma' [A, P, S] -> dL/dcoef [A, S, Kg] (3DGS: Kg = 6, the log(o) column's
+        gradient is zero (folded into c0) and is added by the caller; 2DGS: Kg = Kc)."""
         A, P, S = G.shape
         if self.mode == "3dgs":
-            g6 = torch.bmm(G.transpose(1, 2), self.phi6.expand(A, -1, -1))  # [A, S, 6]
-            return torch.cat([g6, torch.zeros_like(g6[..., :1])], -1)  # log(o) column: folded into c0
+            return torch.bmm(G.transpose(1, 2), self.phi6.expand(A, -1, -1))  # [A, S, 6]
         X, Y, Zs, g3, use3 = saved
         G3 = torch.where(use3, 0.5 * G, torch.zeros_like(G))
         G2 = 0.5 * G - G3
@@ -374,7 +387,7 @@ def _chunk_schedule(plan: _Plan, n_bins: int, P: int, device):
 
 
 def _pad_index(plan: _Plan, bins: Tensor, c: int, M: int) -> Tensor:
-    ar = torch.arange(plan.chunk, device=bins.device) + c * plan.chunk
+    ar = torch.arange(c * plan.chunk, (c + 1) * plan.chunk, device=plan.starts.device)
     idx = plan.starts[bins, None] + ar[None, :]
     return torch.where(ar[None, :] < plan.lengths[bins, None], idx, torch.full_like(idx, M))  # [A, S]
 
@@ -387,7 +400,9 @@ def _forward_step(ev: _ChunkEval, cf: Tensor, T_all: Tensor, backward: bool):
     composited) and w = alpha * T_exc for composited pairs (0 otherwise), all [A, P, S].
     """
     s, saved = ev.sigma(cf)
-    alpha = s.neg_().exp_()  # o * exp(-sigma)
+    # o * exp(-sigma); the exponent is capped at SIGMA_CAP (alpha ~ 2e-22, thresholded to 0 below
+    # either way): exp of arguments below about -88 yields denormals, ~30x slower on CPU
+    alpha = s.clamp_(max=SIGMA_CAP).neg_().exp_()
     # alpha reaches the clamp only where o >= 0.999: build the mask only for such chunks
     can_clamp = backward and bool((cf[..., LOG_OPACITY_COLUMN[ev.mode]] >= math.log(ALPHA_MAX)).any())
     clamped = (alpha >= ALPHA_MAX) if can_clamp else None
@@ -410,15 +425,27 @@ def _flush_denormal():
         torch.set_flush_denormal(False)
 
 
+def _store_fits(plan: _Plan) -> bool:
+    """Whether keeping every chunk's intermediates (upper bound over all chunks) fits plan.store_elems."""
+    NB, P = plan.T_init.shape
+    if NB == 0:
+        return True
+    n_chunks, _ = _chunk_schedule(plan, NB, P, plan.T_init.device)
+    per_pair = 2 if plan.mode == "3dgs" else 14  # T_inc, w (+ 2DGS: X, Y, Z, g3, use3, 1 - alpha, distortion terms)
+    return NB * P * n_chunks * plan.chunk * per_pair <= plan.store_elems
+
+
 class _Composite(torch.autograd.Function):
     """coef [M, Kc], feat [M, Cf] -> F [NB, P, Cf] (sum w f), T [NB, P] (composited transmittance),
     dist [NB, P] (2DGS depth distortion, zeros for 3DGS)."""
 
     @staticmethod
     def forward(ctx, coef: Tensor, feat: Tensor, plan: _Plan):
+        steps = [] if (ctx.needs_input_grad[0] or ctx.needs_input_grad[1]) and _store_fits(plan) else None
         with _flush_denormal():
-            Fb, Tb, Db = _Composite._run(coef, feat, plan, grads=None)
+            Fb, Tb, Db = _Composite._run(coef, feat, plan, grads=None, steps=steps)
         ctx.plan = plan
+        ctx.steps = steps  # per-chunk intermediates (None: the backward recomputes them)
         ctx.save_for_backward(coef, feat, Fb, Tb, Db)
         return Fb, Tb, Db
 
@@ -429,25 +456,18 @@ class _Composite(torch.autograd.Function):
         gT = torch.zeros_like(Tb) if gT is None else gT.contiguous()
         gD = torch.zeros_like(Db) if gD is None else gD.contiguous()
         with _flush_denormal():
-            gcoef, gfeat = _Composite._run(coef, feat, ctx.plan, grads=(gF, gT, gD, Fb, Tb, Db))
+            gcoef, gfeat = _Composite._run(coef, feat, ctx.plan, grads=(gF, gT, gD, Fb, Tb, Db), steps=ctx.steps)
         return gcoef, gfeat, None
 
     @staticmethod
-    def _run(coef: Tensor, feat: Tensor, plan: _Plan, grads):
+    def _run(coef: Tensor, feat: Tensor, plan: _Plan, grads, steps: list | None = None):
+        """Forward (grads None; appends each chunk's intermediates to `steps` if given) or backward
+        (grads given; replays `steps` if given, else recomputes every chunk front to back)."""
         M, Kc = coef.shape
         Cf = feat.shape[1]
         NB, P = plan.T_init.shape
         dtype, device = coef.dtype, coef.device
         mode, dch = plan.mode, plan.depth_channel
-        # padding row M: exponent +inf-like (alpha = 0), zero features
-        pad = torch.zeros(1, Kc, dtype=dtype, device=device)
-        if mode == "3dgs":
-            pad[0, 0] = 1e30
-            pad[0, 6] = -1e30
-        else:
-            pad[0, 13] = -1e30  # log(opacity) -> alpha = 0
-        coef_p = torch.cat([coef.detach(), pad], 0)
-        feat_p = torch.cat([feat.detach(), feat.new_zeros(1, Cf)], 0)
         ev = _ChunkEval(mode, plan.phi.to(dtype))
         want_dist = mode == "2dgs"
 
@@ -458,74 +478,113 @@ class _Composite(torch.autograd.Function):
             Db = torch.zeros(NB, P, dtype=dtype, device=device)
         else:
             gF, gT, gD, Fb, T_fin, Db = grads
-            gcoef = torch.zeros(M + 1, Kc, dtype=dtype, device=device)
+            Kg = 6 if mode == "3dgs" else Kc  # 3DGS: the log(o) column's gradient is zero
+            gcoef = torch.zeros(M + 1, Kg, dtype=dtype, device=device)
             gfeat = torch.zeros(M + 1, Cf, dtype=dtype, device=device)
             E_tot = (gF * Fb).sum(-1) + 2.0 * gD * Db  # [NB, P]: sum_k e_k w_k
             gTT = gT * T_fin  # dL/dT_final * T_final
             E_carry = torch.zeros(NB, P, dtype=dtype, device=device)
         A_carry = torch.zeros(NB, P, dtype=dtype, device=device) if want_dist else None
 
-        n_chunks, group = _chunk_schedule(plan, NB, P, device)
-        alive = torch.arange(NB, device=device)
+        if grads is not None and steps is not None:
+            schedule = steps  # replay the forward's chunks: no recomputation
+        else:
+            # padding row M: exponent +inf-like (alpha = 0), zero features
+            pad = torch.zeros(1, Kc, dtype=dtype, device=device)
+            if mode == "3dgs":
+                pad[0, 0] = 1e30
+                pad[0, 6] = -1e30
+            else:
+                pad[0, 13] = -1e30  # log(opacity) -> alpha = 0
+            coef_p = torch.cat([coef.detach(), pad], 0)
+            feat_p = torch.cat([feat.detach(), feat.new_zeros(1, Cf)], 0)
+            schedule = _Composite._schedule(plan, coef_p, feat_p, ev, T_all, M, want_dist, A_carry,
+                                            backward=grads is not None or steps is not None)
+        for step in schedule:
+            if grads is None and steps is not None:
+                steps.append(step)
+            bins, idx_flat, cf, ft, saved, clamped, T_inc, w, dist_terms = step
+            if want_dist:
+                z, wz, cwz, A_exc, W_exc = dist_terms
+            if grads is None:
+                Fb[bins] += torch.bmm(w, ft)
+                T_comp[bins] -= w.sum(-1)  # telescoping: sum of weights = drop of composited T
+                if want_dist:
+                    Db[bins] += 2.0 * (wz * W_exc - w * A_exc).sum(-1)
+                continue
+            # ---- backward for this chunk
+            gFa = gF[bins]  # [A, P, Cf]
+            e = torch.bmm(gFa, ft.transpose(1, 2))  # [A, P, S]: dL/dw_k through the features
+            if want_dist:
+                gDa = gD[bins][:, :, None]
+                Z_tot = Fb[bins][:, :, dch][:, :, None]
+                W_tot = (1.0 - T_fin[bins])[:, :, None]
+                W_after = W_tot - W_exc - w  # sum_{j>k} w_j
+                A_after = Z_tot - A_exc - wz  # sum_{j>k} w_j z_j
+                e = e + 2.0 * gDa * ((z * W_exc - A_exc) + (A_after - z * W_after))
+                g_z = (2.0 * gDa * w * (W_exc - W_after)).sum(1)  # [A, S]
+            ew = e * w
+            cum = torch.cumsum(ew, 2) + E_carry[bins][:, :, None]
+            E_carry[bins] = cum[:, :, -1]
+            suffix = E_tot[bins][:, :, None] - cum  # sum_{j>k} e_j w_j
+            # dL/dsigma' = -alpha dL/dalpha, dL/dalpha = e T_exc - (suffix + gT T_final) / (1 - alpha);
+            # for composited pairs alpha / (1 - alpha) = w / T_inc, for the others w = 0
+            ratio = w / T_inc.clamp(min=1e-30)
+            G = ratio.mul_(suffix.add_(gTT[bins][:, :, None])).sub_(ew)
+            if clamped is not None:
+                G.masked_fill_(clamped, 0.0)
+            gc = ev.coef_grad(G, cf, saved)  # [A, S, Kg]
+            gf = torch.bmm(w.transpose(1, 2), gFa)  # [A, S, Cf]
+            if want_dist:
+                gf[:, :, dch] += g_z
+            # every intersection is visited once; duplicates are only the discarded padding row
+            gcoef.index_copy_(0, idx_flat, gc.reshape(-1, Kg))
+            gfeat.index_copy_(0, idx_flat, gf.reshape(-1, Cf))
+        if grads is None:
+            return Fb, T_comp.clamp_(min=0.0), Db
+        if Kg < Kc:
+            return F.pad(gcoef[:M], (0, Kc - Kg)), gfeat[:M]
+        return gcoef[:M], gfeat[:M]
+
+    @staticmethod
+    def _schedule(plan: _Plan, coef_p: Tensor, feat_p: Tensor, ev: _ChunkEval, T_all: Tensor, M: int,
+                  want_dist: bool, A_carry: Tensor | None, backward: bool):
+        """Front-to-back chunks: yields (bins, idx_flat, cf, ft, saved, clamped, T_inc, w,
+        2DGS distortion terms); updates T_all [NB, P] (and A_carry) in place."""
+        NB, P = T_all.shape
+        Kc, Cf = coef_p.shape[1], feat_p.shape[1]
+        n_chunks, group = _chunk_schedule(plan, NB, P, T_all.device)
+        alive = None  # None: every bin (then bins are slices: views instead of gathers/scatters)
         for c in range(n_chunks):
             # bins with candidates left and at least one pixel not finished
-            keep = (plan.lengths[alive] > c * plan.chunk) & (T_all[alive] > T_STOP).any(-1)
-            alive = alive[keep]
-            if alive.numel() == 0:
+            if alive is None:
+                keep = (plan.lengths > c * plan.chunk) & (T_all > T_STOP).any(-1)
+                if not bool(keep.all()):
+                    alive = torch.nonzero(keep).reshape(-1)
+            else:
+                keep = (plan.lengths[alive] > c * plan.chunk) & (T_all[alive] > T_STOP).any(-1)
+                alive = alive[keep]
+            n_alive = NB if alive is None else alive.numel()
+            if n_alive == 0:
                 break
-            for g0 in range(0, alive.numel(), group):
-                bins = alive[g0 : g0 + group]
+            for g0 in range(0, n_alive, group):
+                bins = slice(g0, g0 + group) if alive is None else alive[g0 : g0 + group]
                 idx = _pad_index(plan, bins, c, M)  # [A, S]
-                cf = coef_p[idx]
-                ft = feat_p[idx]  # [A, S, Cf]
-                Ta = T_all[bins]
-                saved, clamped, alpha, one_m, T_inc, w = _forward_step(ev, cf, Ta, grads is not None)
+                idx_flat = idx.reshape(-1)
+                cf = coef_p.index_select(0, idx_flat).reshape(idx.shape + (Kc,))  # index_select: ~5x faster than [idx]
+                ft = feat_p.index_select(0, idx_flat).reshape(idx.shape + (Cf,))  # [A, S, Cf]
+                saved, clamped, alpha, one_m, T_inc, w = _forward_step(ev, cf, T_all[bins], backward)
                 T_all[bins] = T_inc[:, :, -1]
+                dist_terms = None
                 if want_dist:
-                    z = ft[:, None, :, dch]  # [A, 1, S]
+                    z = ft[:, None, :, plan.depth_channel]  # [A, 1, S]
                     wz = w * z
                     cwz = torch.cumsum(wz, 2)
                     A_exc = A_carry[bins][:, :, None] + cwz - wz  # sum_{j<k} w_j z_j
                     W_exc = 1.0 - T_inc / one_m  # sum_{j<k} w_j (pixels start at T = 1)
-                if grads is None:
-                    Fb[bins] += torch.bmm(w, ft)
-                    T_comp[bins] -= w.sum(-1)  # telescoping: sum of weights = drop of composited T
-                    if want_dist:
-                        Db[bins] += 2.0 * (wz * W_exc - w * A_exc).sum(-1)
-                        A_carry[bins] += cwz[:, :, -1]
-                    continue
-                # ---- backward for this chunk
-                gFa = gF[bins]  # [A, P, Cf]
-                e = torch.bmm(gFa, ft.transpose(1, 2))  # [A, P, S]: dL/dw_k through the features
-                if want_dist:
-                    gDa = gD[bins][:, :, None]
-                    Z_tot = Fb[bins][:, :, dch][:, :, None]
-                    W_tot = (1.0 - T_fin[bins])[:, :, None]
-                    W_after = W_tot - W_exc - w  # sum_{j>k} w_j
-                    A_after = Z_tot - A_exc - wz  # sum_{j>k} w_j z_j
-                    e = e + 2.0 * gDa * ((z * W_exc - A_exc) + (A_after - z * W_after))
-                    g_z = (2.0 * gDa * w * (W_exc - W_after)).sum(1)  # [A, S]
-                ew = e * w
-                cum = torch.cumsum(ew, 2) + E_carry[bins][:, :, None]
-                E_carry[bins] = cum[:, :, -1]
-                suffix = E_tot[bins][:, :, None] - cum  # sum_{j>k} e_j w_j
-                # dL/dsigma' = -alpha dL/dalpha, dL/dalpha = e T_exc - (suffix + gT T_final) / (1 - alpha);
-                # for composited pairs alpha / (1 - alpha) = w / T_inc, for the others w = 0
-                ratio = w / T_inc.clamp(min=1e-30)
-                G = ratio.mul_(suffix.add_(gTT[bins][:, :, None])).sub_(ew)
-                if clamped is not None:
-                    G.masked_fill_(clamped, 0.0)
-                gc = ev.coef_grad(G, cf, saved)  # [A, S, Kc]
-                gf = torch.bmm(w.transpose(1, 2), gFa)  # [A, S, Cf]
-                if want_dist:
-                    gf[:, :, dch] += g_z
                     A_carry[bins] += cwz[:, :, -1]
-                # every intersection is visited once; duplicates are only the discarded padding row
-                gcoef[idx.reshape(-1)] = gc.reshape(-1, Kc)
-                gfeat[idx.reshape(-1)] = gf.reshape(-1, Cf)
-        if grads is None:
-            return Fb, T_comp.clamp_(min=0.0), Db
-        return gcoef[:M], gfeat[:M]
+                    dist_terms = (z, wz, cwz, A_exc, W_exc)
+                yield bins, idx_flat, cf, ft, saved, clamped, T_inc, w, dist_terms
 
 
 def composite(coef: Tensor, feat: Tensor, plan: _Plan) -> tuple[Tensor, Tensor, Tensor]:
@@ -555,18 +614,10 @@ def coefficients_3dgs(m_local: Tensor, conics: Tensor, log_opacity: Tensor) -> T
     """
     mx, my = m_local.unbind(-1)
     a, b, c = conics.unbind(-1)
-    return torch.stack(
-        [
-            0.5 * a * mx * mx + 0.5 * c * my * my + b * mx * my - log_opacity,
-            -(a * mx + b * my),
-            -(c * my + b * mx),
-            0.5 * a,
-            b,
-            0.5 * c,
-            log_opacity,
-        ],
-        dim=-1,
-    )
+    c1 = -(a * mx + b * my)  # -(Q m)_x
+    c2 = -(c * my + b * mx)  # -(Q m)_y
+    c0 = -0.5 * (mx * c1 + my * c2) - log_opacity  # m^T Q m / 2 - log(o), from the same products
+    return torch.stack([c0, c1, c2, 0.5 * a, b, 0.5 * c, log_opacity], dim=-1)
 
 
 def coefficients_2dgs(m_local: Tensor, T_sl: Tensor, origin: Tensor, log_opacity: Tensor) -> Tensor:
@@ -662,9 +713,17 @@ def rasterize(
     T_init = T_init.reshape(-1, P)
 
     ids = bins.flat_ids
-    g_ids = ids % N
     origin = _tile_origins(bins, bins.isect_bins, dtype)
-    m_isect = means2d_g.reshape(-1, 2)[ids]
+    # one gather for every per-(image, Gaussian) quantity (index_select: its backward is a single
+    # index_add, both far cheaper on CPU than several advanced-indexing gathers)
+    geom = proj.conics.reshape(-1, 3) if mode == "3dgs" else proj.ray_transforms.reshape(-1, 9)
+    n_geom = geom.shape[1]
+    table = [means2d_g.reshape(-1, 2), geom, log_opacity[None].expand(I, N).reshape(-1, 1),
+             colors[None].expand(I, N, colors.shape[1]).reshape(I * N, -1), proj.depths.reshape(-1, 1)]
+    if proj.normals is not None and (mode == "2dgs" or want_normal):
+        table.append(proj.normals.reshape(-1, 3))
+    gathered = torch.cat(table, dim=1).index_select(0, ids)  # [M, 2 + n_geom + 1 + Cf]
+    m_isect = gathered[:, :2]
     if absgrad and m_isect.requires_grad:
         absgrad_buf = torch.zeros(I * N, 2, dtype=dtype, device=device)
 
@@ -674,20 +733,19 @@ def rasterize(
 
         m_isect.register_hook(_hook)
     m_local = m_isect - origin
-    lo = log_opacity[g_ids]
+    g_geom = gathered[:, 2 : 2 + n_geom]
+    lo = gathered[:, 2 + n_geom]
     if mode == "3dgs":
-        coef = coefficients_3dgs(m_local, proj.conics.reshape(-1, 3)[ids], lo)
+        coef = coefficients_3dgs(m_local, g_geom, lo)
     else:
-        coef = coefficients_2dgs(m_local, proj.ray_transforms.reshape(-1, 3, 3)[ids], origin, lo)
-    feats = [colors[g_ids], proj.depths.reshape(-1)[ids, None]]
-    if proj.normals is not None and (mode == "2dgs" or want_normal):
-        feats.append(proj.normals.reshape(-1, 3)[ids])
-    feat = torch.cat(feats, dim=-1)
+        coef = coefficients_2dgs(m_local, g_geom.reshape(-1, 3, 3), origin, lo)
+    feat = gathered[:, 3 + n_geom :]  # [M, Cf]: colour, depth (channel 3), normal
     plan = _Plan(mode=mode, starts=bins.starts, lengths=bins.lengths, T_init=T_init,
                  phi=_tile_phi(ts, dtype, device), depth_channel=3, chunk=chunk, max_pairs=max_pairs)
     Fb, Tb, Db = composite(coef, feat, plan)
     Cf = feat.shape[1]
-    features = Fb.reshape(-1, Cf)[flat_out]  # [Iout, H, W, Cf]
-    trans = Tb.reshape(-1)[flat_out]
-    dist = Db.reshape(-1)[flat_out]
+    fo = flat_out.reshape(-1)
+    features = Fb.reshape(-1, Cf).index_select(0, fo).reshape(flat_out.shape + (Cf,))  # [Iout, H, W, Cf]
+    trans = Tb.reshape(-1).index_select(0, fo).reshape(flat_out.shape)
+    dist = Db.reshape(-1).index_select(0, fo).reshape(flat_out.shape)
     return RasterResult(features=features, transmittance=trans, distortion=dist, projection=proj, means2d=means2d_out)
