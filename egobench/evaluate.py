@@ -20,8 +20,6 @@ evaluated at the trajectory poses with velocities from the trajectory).
 from __future__ import annotations
 
 import argparse
-import math
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -91,7 +89,7 @@ def evaluate(recording_dir, run_dir, *, scene: str | None = None, paper_scene: s
     ``geometry_recording``: optional loaded online-calibration `Recording` for depth/normal (defaults to
     loading ``recording_dir`` with the online calibration when ground truth exists).
     """
-    from egobench.metrics import depth_si_l1, lpips_alex, lpips_available, normal_l1, psnr, ssim
+    from egobench.metrics import lpips_alex, lpips_available, psnr, ssim
     from egobench.motion_sampling import pixel_pose_index  # noqa: F401  (documented dependency)
     from egobench.train import (
         TrainConfig, formation_model, frame_poses, gaussians_from_params, predict_image, resize_map,

@@ -33,7 +33,7 @@ import torch
 from torch import Tensor
 
 from gsplat.strategy import DefaultStrategy
-from gsplat.strategy.ops import duplicate, remove, reset_opa, split
+from gsplat.strategy.ops import duplicate, reset_opa, split
 
 GAUSSIAN_PARAMS = ("means", "scales", "quats", "opacities", "colors")
 

@@ -18,7 +18,6 @@ as raster time. Divided by the total wall time of the iterations.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import hashlib
 import json
 import math
@@ -915,7 +914,6 @@ def toy_recording(root: Path, size: int = 32, n_frames: int = 9, angular_speed_r
     import cv2
 
     from egobench.data.recording import SparseDepth
-    from egobench.geometry import se3_exp
     from egobench.render import render
     from egobench.render.types import Gaussians
 

@@ -89,6 +89,9 @@ def check_config(config: Mapping, schema: Mapping | None = None, check_sim: bool
                 if name in by_name and m not in by_name[name]["methods"]:
                     messages.append(f"config.diagnose.methods: {m!r} is not run on scene {name!r}; diagnose.source "
                                     "'run' needs the trained run (add it to the scene's methods or use 'ground_truth')")
+    adt = (config.get("diagnose") or {}).get("adt_dir")
+    if adt and not (Path(adt) / "video.vrs").is_file():
+        messages.append(f"config.diagnose.adt_dir: {adt}: expected a folder with video.vrs and synthetic_video.vrs")
     real = (config.get("motion_stats") or {}).get("real_trajectory")
     if real is not None and not Path(real).is_file():
         messages.append(f"config.motion_stats.real_trajectory: {real}: file not found")
@@ -221,6 +224,8 @@ class Suite:
         diag = config.get("diagnose") or {}
         self.diagnose_jobs = [(s, m) for s in diag.get("scenes", []) for m in diag.get("methods", ["ours"])]
         self.diagnose_source: str = diag.get("source", "run")
+        self.sweep_seeds: int = int(diag.get("sweep_seeds", 3))
+        self.adt_dir: str | None = diag.get("adt_dir")
         self.qualitative_scene = (config.get("plots") or {}).get("qualitative_scene")
         ms = config.get("motion_stats") or {}
         self.motion_stats = bool(ms.get("enabled", False))
@@ -278,6 +283,13 @@ class Suite:
         if self.diagnose_source != "run":
             return "--source ground_truth"
         return f"--source run --run {shlex.quote(self.run_dir(scene, method, self._scene(scene).seeds[0]))}"
+
+    def discovery_outputs(self) -> list[str]:
+        """Targets of `snakemake discovery`: the hidden-effect sweep, and the ADT diagnosis if configured."""
+        out = [f"{self.root}/discovery/sweep"]
+        if self.adt_dir:
+            out.append(f"{self.root}/discovery/adt")
+        return out
 
     def motion_stats_args(self) -> str:
         out = f"--kind {self.motion_stats_kind}"

@@ -4,26 +4,18 @@ from __future__ import annotations
 
 import json
 import math
-import os
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
 from egobench.camera import CameraModel, Equidistant, Fisheye624, Pinhole
+from tests.helpers import ARIA_RGB_PARAMS_1408, SHARED_DATA
 
-MPS_SAMPLE = Path(os.environ.get("EGOBENCH_SHARED_DATA", "/work/shared/data")) / "aria_mps_sample"
+MPS_SAMPLE = SHARED_DATA / "aria_mps_sample"
 ONLINE_CALIB = MPS_SAMPLE / "online_calibration.jsonl"
 F64 = torch.float64
 
-#: A real Aria RGB online calibration (1408 x 1408), so the tests run without the data folder.
-ARIA_RGB_PARAMS_1408 = [
-    609.0993041992188, 714.49365234375, 705.4052124023438, 0.4153491258621216, -0.46660879254341125,
-    0.0394107960164547, 1.304983139038086, -1.7682749032974243, 0.6525987982749939,
-    7.804521010257304e-05, 0.0006019965512678027, -0.0011151430662721395, 0.0006172532448545098,
-    -0.00233874237164855, 0.0016606695717200637,
-]
 
 
 def aria_rgb() -> Fisheye624:

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import math
-import os
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,8 +13,9 @@ from egobench.geometry import (
     rotmat_to_quat, se3_exp, se3_interpolate, se3_inverse, se3_log, so3_exp, so3_log,
     transform_points,
 )
+from tests.helpers import SHARED_DATA
 
-MPS_SAMPLE = Path(os.environ.get("EGOBENCH_SHARED_DATA", "/work/shared/data")) / "aria_mps_sample"
+MPS_SAMPLE = SHARED_DATA / "aria_mps_sample"
 F64 = torch.float64
 
 

@@ -324,6 +324,21 @@ def test_backward_recompute_equals_stored(mode, monkeypatch):
         torch.testing.assert_close(stored[1][k], recomputed[1][k], atol=1e-12, rtol=1e-12)
 
 
+def test_stable_argsort_matches_torch_sort():
+    """The CPU radix argsort used for tile binning equals torch's stable sort, ties included."""
+    from egobench.render.torch_backend import _stable_argsort
+
+    g = torch.Generator().manual_seed(3)
+    for dtype in (torch.float32, torch.float64):
+        v = (torch.rand(5000, generator=g, dtype=torch.float64) * 50 + 1e-3).to(dtype)
+        v[::7] = v[3]  # ties must keep index order
+        v[1::11] = torch.tensor(1e-30, dtype=dtype)
+        assert torch.equal(_stable_argsort(v), torch.sort(v, stable=True).indices)
+    b = torch.randint(0, 1 << 16, (7000,), generator=g)
+    assert torch.equal(_stable_argsort(b), torch.sort(b, stable=True).indices)
+    assert _stable_argsort(torch.zeros(0)).numel() == 0
+
+
 # ----------------------------------------------------------------------------------------------
 # rolling shutter
 # ----------------------------------------------------------------------------------------------

@@ -113,6 +113,22 @@ def test_diagnose_and_motion_stats_jobs():
     assert gt.motion_stats_args() == f"--kind indoor --real {__file__}"
 
 
+def test_discovery_targets(tmp_path):
+    """`snakemake discovery`: the sweep always; the ADT diagnosis only with an existing adt_dir."""
+    config = load("ci.yaml")
+    assert wc.Suite(wc.fill_defaults(config)).discovery_outputs() == ["results/ci/discovery/sweep"]
+    adt = tmp_path / "adt"
+    config["diagnose"]["adt_dir"] = str(adt)
+    with pytest.raises(wc.ConfigError, match="config.diagnose.adt_dir"):
+        wc.check_config(config)
+    adt.mkdir()
+    (adt / "video.vrs").write_bytes(b"")
+    wc.check_config(config)
+    suite = wc.Suite(wc.fill_defaults(config))
+    assert suite.discovery_outputs() == ["results/ci/discovery/sweep", "results/ci/discovery/adt"]
+    assert suite.sweep_seeds == 3
+
+
 def test_egobench_command():
     assert wc.egobench_command("egobench --verbose") == "egobench --verbose"
     auto = wc.egobench_command("auto")

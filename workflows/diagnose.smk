@@ -52,3 +52,57 @@ rule motion_stats:
         mem_mb=res("motion_stats", "mem_mb"),
     shell:
         "{params.eb} motion-stats --out {params.out_dir} {params.args} > {log} 2>&1"
+
+
+# `snakemake --cores 2 discovery` (not part of `all`): the hidden-effect sweep (every effect x
+# several magnitudes x seeds, plus null cases: detection and false-alarm rates, parameter error,
+# PSNR gain) and, when config.diagnose.adt_dir is set, the Aria Digital Twin real-vs-twin diagnosis.
+rule discovery:
+    input:
+        SUITE.discovery_outputs(),
+
+
+rule diagnose_sweep:
+    output:
+        report(
+            directory(f"{R}/discovery/sweep"),
+            caption="report/diagnose.rst",
+            category="Diagnosis",
+            patterns=["{name}.md"],
+        ),
+    conda:
+        "envs/egobench.yaml"
+    log:
+        f"{R}/logs/discovery/sweep.log",
+    benchmark:
+        f"{R}/benchmarks/discovery/sweep.tsv"
+    params:
+        eb=EGOBENCH,
+        seeds=SUITE.sweep_seeds,
+    threads: res("diagnose", "threads")
+    resources:
+        mem_mb=res("diagnose", "mem_mb"),
+    shell:
+        "{params.eb} diagnose --sweep --sweep-seeds {params.seeds} --out {output} --no-progress > {log} 2>&1"
+
+
+rule diagnose_adt:
+    output:
+        report(
+            directory(f"{R}/discovery/adt"),
+            caption="report/diagnose.rst",
+            category="Diagnosis",
+            patterns=["{name}.png"],
+        ),
+    conda:
+        "envs/egobench.yaml"
+    log:
+        f"{R}/logs/discovery/adt.log",
+    params:
+        eb=EGOBENCH,
+        adt=SUITE.adt_dir or "",
+    threads: res("diagnose", "threads")
+    resources:
+        mem_mb=res("diagnose", "mem_mb"),
+    shell:
+        "{params.eb} diagnose --adt {params.adt} --out {output} --no-progress > {log} 2>&1"

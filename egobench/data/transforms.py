@@ -22,7 +22,6 @@ rasterizer only (egobench/camera/pinhole.py).
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path

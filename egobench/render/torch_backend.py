@@ -16,7 +16,13 @@ and over groups of tiles, never over Gaussians, tiles or pixels):
    chunk then costs one batched matmul to evaluate every (pixel, candidate) exponent.
 4. `_Composite`: front-to-back compositing with gsplat's rules (alpha = min(0.999, o exp(-s)),
    skip alpha < 1/255, stop before the Gaussian that would bring T to <= 1e-4), with a hand-written
-   backward that recomputes each chunk (no per-pair storage), as gsplat's CUDA kernels do.
+   backward that replays the forward's per-chunk intermediates when they fit in `_Plan.store_elems`
+   and otherwise recomputes each chunk (no per-pair storage), as gsplat's CUDA kernels do.
+
+CPU speed notes (fixed per-call cost matters for small images): gathers use index_select (several
+times faster than advanced indexing, forward and backward), exponents are capped before exp()
+(denormal results are ~30x slower), tile binning sorts with a numpy radix sort, and the
+projection keeps 3-vector axes leading so reductions add whole [I, N] slabs.
 
 Coordinates: internally gsplat's pixel convention (centre of pixel (i, j) at (i+0.5, j+0.5));
 callers pass egobench intrinsics and the conversion cx+0.5 happens here.
@@ -29,6 +35,7 @@ import math
 from dataclasses import dataclass
 from typing import Literal
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -120,15 +127,17 @@ def project_3dgs(
     want_normal: bool = False,
 ) -> Projection:
     """gsplat 1.5.3 `fully_fused_projection` (pinhole, EWA) for I views, differentiable."""
+    # Layout: the 3-vector axes lead ([3, I, N], [3, 3, I, N]) so that per-(view, Gaussian) scalars
+    # broadcast over leading axes and reductions add whole [I, N] slabs (fast on CPU, also backward).
     R_cw, t_cw = _viewmat_parts(viewmats)
-    means_c = torch.einsum("iab,nb->ina", R_cw, means) + t_cw[:, None, :]  # [I, N, 3]
+    means_cT = torch.einsum("iab,nb->ain", R_cw, means) + t_cw.T[:, :, None]  # [3, I, N] camera frame
     R = quat_to_rotmat(quats)  # [N, 3, 3]
     M = R * scales[:, None, :]  # [N, 3, 3]: cov = M M^T
     # camera-frame factor R_cw M for every view as one GEMM ([I*3, 3] x [3, N*3])
-    Mc = torch.einsum("iab,nbc->inac", R_cw, M)  # [I, N, 3, 3]: cov_c = Mc Mc^T
+    McT = torch.einsum("iab,nbc->acin", R_cw, M)  # [3, 3, I, N]: Mc[i, n] = R_cw[i] M[n], cov_c = Mc Mc^T
 
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    x, y, z = means_c.unbind(-1)
+    x, y, z = means_cT.unbind(0)  # [I, N] each
     in_depth = (z >= near_plane) & (z <= far_plane)
     zs = torch.where(in_depth, z, torch.ones_like(z))  # safe z: no inf/NaN in culled entries' graphs
     tan_fovx, tan_fovy = 0.5 * width / fx, 0.5 * height / fy
@@ -141,11 +150,12 @@ def project_3dgs(
     ty = torch.clamp(y * inv_z, min=-lim_y_neg, max=lim_y_pos)
     # J = [[j00, 0, j02], [0, j11, j12]] = [[fx/z, 0, -fx tx/z^2], ...]; cov2d = (J Mc)(J Mc)^T
     j00, j11 = fx * inv_z, fy * inv_z
-    a0 = j00[..., None] * (Mc[..., 0, :] - tx[..., None] * Mc[..., 2, :])  # [I, N, 3] row 0 of J Mc
-    a1 = j11[..., None] * (Mc[..., 1, :] - ty[..., None] * Mc[..., 2, :])  # [I, N, 3] row 1 of J Mc
-    c00 = (a0 * a0).sum(-1) + eps2d
-    c11 = (a1 * a1).sum(-1) + eps2d
-    c01 = (a0 * a1).sum(-1)
+    Mc0, Mc1, Mc2 = McT.unbind(0)  # rows of Mc, [3, I, N] (unbind: one gradient buffer, not three zero-filled)
+    a0 = j00 * (Mc0 - tx * Mc2)  # [3, I, N] row 0 of J Mc
+    a1 = j11 * (Mc1 - ty * Mc2)  # [3, I, N] row 1 of J Mc
+    c00 = (a0 * a0).sum(0) + eps2d
+    c11 = (a1 * a1).sum(0) + eps2d
+    c01 = (a0 * a1).sum(0)
     det = c00 * c11 - c01 * c01
     valid = in_depth & (det > 0)
     det_s = torch.where(valid, det, torch.ones_like(det))
@@ -172,7 +182,7 @@ def project_3dgs(
         # shortest axis of each Gaussian, in camera frame, facing the camera
         axis = torch.argmin(scales.detach(), dim=-1)  # [N]
         n_world = torch.gather(R, 2, axis[:, None, None].expand(-1, 3, 1))[..., 0]  # [N, 3]
-        normals = _face_camera(torch.einsum("iab,nb->ina", R_cw, n_world), means_c)
+        normals = _face_camera(torch.einsum("iab,nb->ina", R_cw, n_world), means_cT.permute(1, 2, 0))
     return Projection(means2d=means2d, depths=z, radii=radii, conics=conics, normals=normals)
 
 
@@ -229,6 +239,33 @@ class TileBins:
     lengths: Tensor  # [NB] int64 number of intersections of each rendered bin
 
 
+def _radix_argsort_cpu(keys: np.ndarray, bits: int) -> np.ndarray:
+    """Stable argsort of unsigned integer keys by LSD passes of numpy's 16-bit radix sort."""
+    perm = None
+    for shift in range(0, bits, 16):
+        digit = ((keys >> shift) & 0xFFFF).astype(np.uint16)
+        p = np.argsort(digit if perm is None else digit[perm], kind="stable")
+        perm = p if perm is None else perm[p]
+    return perm if perm is not None else np.zeros(0, dtype=np.int64)
+
+
+def _stable_argsort(values: Tensor) -> Tensor:
+    """Stable argsort of a 1-D tensor of positive finite floats (depths) or non-negative ints < 2^16.
+
+    On CPU a radix sort (positive IEEE floats order like their bit patterns): about 10x faster than
+    torch.sort there; elsewhere torch.sort(stable=True)."""
+    if values.device.type != "cpu" or values.numel() == 0:
+        return torch.sort(values, stable=True).indices
+    if values.dtype.is_floating_point:
+        itype, bits = {torch.float32: (torch.int32, 32), torch.float64: (torch.int64, 64)}.get(values.dtype, (None, 0))
+        if itype is None:
+            return torch.sort(values, stable=True).indices
+        keys = values.contiguous().view(itype).numpy().view(np.uint32 if bits == 32 else np.uint64)
+    else:
+        keys, bits = values.numpy().astype(np.uint16), 16
+    return torch.from_numpy(_radix_argsort_cpu(keys, bits).astype(np.int64, copy=False))
+
+
 @torch.no_grad()
 def intersect_tiles(
     means2d: Tensor,  # [I, N, 2] gsplat pixel convention
@@ -244,62 +281,66 @@ def intersect_tiles(
     I, N = depths.shape
     tiles_x, tiles_y = math.ceil(width / tile_size), math.ceil(height / tile_size)
     n_tiles = tiles_x * tiles_y
-    m = means2d.detach().reshape(-1, 2)
-    r = radii.reshape(-1, 2).to(m.dtype)
-    valid = (radii.reshape(-1, 2) > 0).all(-1)
-    tm = m / tile_size
-    tr = r / tile_size
-    lim = torch.tensor([tiles_x, tiles_y], device=device)
-    tmin = torch.minimum(torch.floor(tm - tr).clamp_min(0).long(), lim)
-    tmax = torch.minimum(torch.ceil(tm + tr).clamp_min(0).long(), lim)
+    m = means2d.detach()
+    r = radii.to(m.dtype)
+    valid = (radii > 0).all(-1)  # [I, N]
+
+    def tile_range(centre: Tensor, radius: Tensor, n_ax: int) -> tuple[Tensor, Tensor]:
+        tm, tr = centre / tile_size, radius / tile_size  # [I, N]
+        return torch.floor(tm - tr).clamp_(0, n_ax).long(), torch.ceil(tm + tr).clamp_(0, n_ax).long()
+
+    x_lo, x_hi = tile_range(m[..., 0], r[..., 0], tiles_x)  # [I, N] first / one-past-last tile column
+    y_lo, y_hi = tile_range(m[..., 1], r[..., 1], tiles_y)
     if bin_needed is not None:
         # clip each image's tile ranges to the bounding box of its needed bins (rolling shutter:
         # a pose sample owns a band of rows), so that intersections are not generated K-fold
         need = bin_needed.reshape(I, tiles_y, tiles_x)
-        lo, hi = [], []
-        for reduce_dim, n_ax in ((1, tiles_x), (2, tiles_y)):  # x: any over tile rows; y: any over tile columns
-            used = need.any(dim=reduce_dim)  # [I, n_ax]
+        clipped = []
+        for lo_, hi_, reduce_dim, n_ax in ((x_lo, x_hi, 1, tiles_x), (y_lo, y_hi, 2, tiles_y)):
+            used = need.any(dim=reduce_dim)  # [I, n_ax] (x: any over tile rows; y: any over tile columns)
             ar = torch.arange(n_ax, device=device)
             first = torch.where(used, ar, n_ax).amin(-1)
             last = torch.where(used, ar + 1, 0).amax(-1)
-            lo.append(first.repeat_interleave(N))
-            hi.append(last.repeat_interleave(N))
-        tmin = torch.maximum(tmin, torch.stack(lo, -1))
-        tmax = torch.minimum(tmax, torch.stack(hi, -1))
-    ext = (tmax - tmin).clamp_min(0)
-    counts = ext[:, 0] * ext[:, 1] * valid
-    total = int(counts.sum())
-    owner = torch.repeat_interleave(torch.arange(I * N, device=device), counts)  # [M0]
-    first = torch.cumsum(counts, 0) - counts
-    local = torch.arange(total, device=device) - first[owner]
-    w_rect = ext[owner, 0]
-    tx = tmin[owner, 0] + local % w_rect
-    ty = tmin[owner, 1] + local // w_rect
-    image = owner // N
-    bins = image * n_tiles + ty * tiles_x + tx
+            clipped += [torch.maximum(lo_, first[:, None]), torch.minimum(hi_, last[:, None])]
+        x_lo, x_hi, y_lo, y_hi = clipped
+    ext_x = (x_hi - x_lo).clamp_min(0)
+    counts = (ext_x * (y_hi - y_lo).clamp_min(0) * valid).reshape(-1)  # [I * N]
+    # generate each image's intersections front to back (stable depth order: ties broken by Gaussian
+    # index, like gsplat's radix sort); a stable sort by bin alone then gives the (bin, depth) order.
+    # Only (image, Gaussian) pairs with intersections are sorted (images are mixed: bins separate them).
+    vis = torch.nonzero(counts).reshape(-1)  # [V] ascending global ids
+    order = vis[_stable_argsort(depths.detach().reshape(-1)[vis])]  # [V] front to back within each image
+    counts_o = counts[order]
+    total = int(counts_o.sum())
+    # per visible pair: first bin of its rectangle, rectangle width, offset of its first intersection
+    base_o = (order // N) * n_tiles + y_lo.reshape(-1)[order] * tiles_x + x_lo.reshape(-1)[order]
+    w_o = ext_x.reshape(-1)[order]
+    first_o = torch.cumsum(counts_o, 0) - counts_o
+    rep = torch.repeat_interleave(counts_o, output_size=total)  # [M0] index into the visible pairs
+    owner = order.index_select(0, rep)  # [M0] global (image, Gaussian) id
+    w_r = w_o.index_select(0, rep)
+    local = torch.arange(total, device=device) - first_o.index_select(0, rep)
+    row = torch.div(local, w_r, rounding_mode="floor")
+    n_bins_all = I * n_tiles
+    bins = base_o.index_select(0, rep) + row * tiles_x + (local - row * w_r)  # [M0]
     if bin_needed is not None:
-        keep = bin_needed.reshape(-1)[bins]
-        owner, bins = owner[keep], bins[keep]
-    # depth rank within each image (stable: ties broken by Gaussian index, like gsplat's radix sort)
-    order = torch.argsort(depths.detach(), dim=1, stable=True)
-    rank = torch.empty_like(order)
-    rank.scatter_(1, order, torch.arange(N, device=device).expand(I, N))
-    key = bins * N + rank.reshape(-1)[owner]
-    key, perm = torch.sort(key)
-    flat_ids = owner[perm]
-    isect_bins = key // N
-    ubins, ucounts = torch.unique_consecutive(isect_bins, return_counts=True)
+        keep = torch.nonzero(bin_needed.reshape(-1).index_select(0, bins)).reshape(-1)
+        owner, bins = owner.index_select(0, keep), bins.index_select(0, keep)
+    if bins.device.type == "cpu" and n_bins_all <= 1 << 16:
+        perm = _stable_argsort(bins)  # 16-bit radix sort
+    else:
+        perm = torch.sort(bins, stable=True).indices
+    flat_ids = owner.index_select(0, perm)
+    isect_bins = bins.index_select(0, perm)
     if bin_needed is None:
-        bin_ids = torch.arange(I * n_tiles, device=device)
+        bin_ids = torch.arange(n_bins_all, device=device)
     else:
         bin_ids = torch.nonzero(bin_needed.reshape(-1)).reshape(-1)
-    bin_pos = torch.full((I * n_tiles,), -1, dtype=torch.long, device=device)
+    bin_pos = torch.full((n_bins_all,), -1, dtype=torch.long, device=device)
     bin_pos[bin_ids] = torch.arange(bin_ids.numel(), device=device)
-    lengths = torch.zeros(bin_ids.numel(), dtype=torch.long, device=device)
-    starts = torch.zeros_like(lengths)
-    upos = bin_pos[ubins]
-    lengths[upos] = ucounts
-    starts[upos] = torch.cumsum(ucounts, 0) - ucounts
+    per_bin = torch.bincount(isect_bins, minlength=n_bins_all)  # [I * tiles]
+    lengths = per_bin[bin_ids]
+    starts = (torch.cumsum(per_bin, 0) - per_bin)[bin_ids]
     return TileBins(tile_size, tiles_x, tiles_y, flat_ids, isect_bins, bin_ids, bin_pos, starts, lengths)
 
 
@@ -379,7 +420,7 @@ class _ChunkEval:
 
 
 def _chunk_schedule(plan: _Plan, n_bins: int, P: int, device):
-    """Yields (c, groups of bin indices) in front-to-back order; `done` filtering is applied by the caller."""
+    """(number of candidate chunks, bins per group) of a plan; `done` filtering is applied by the caller."""
     max_len = int(plan.lengths.max()) if n_bins else 0
     n_chunks = (max_len + plan.chunk - 1) // plan.chunk
     group = max(1, plan.max_pairs // (P * plan.chunk))
@@ -718,12 +759,22 @@ def rasterize(
     # index_add, both far cheaper on CPU than several advanced-indexing gathers)
     geom = proj.conics.reshape(-1, 3) if mode == "3dgs" else proj.ray_transforms.reshape(-1, 9)
     n_geom = geom.shape[1]
-    table = [means2d_g.reshape(-1, 2), geom, log_opacity[None].expand(I, N).reshape(-1, 1),
-             colors[None].expand(I, N, colors.shape[1]).reshape(I * N, -1), proj.depths.reshape(-1, 1)]
+    per_view = [means2d_g.reshape(-1, 2), geom]  # [I * N, ...]
+    per_gaussian = [log_opacity[:, None], colors]  # [N, ...]
+    tail = [proj.depths.reshape(-1, 1)]
     if proj.normals is not None and (mode == "2dgs" or want_normal):
-        table.append(proj.normals.reshape(-1, 3))
-    gathered = torch.cat(table, dim=1).index_select(0, ids)  # [M, 2 + n_geom + 1 + Cf]
-    m_isect = gathered[:, :2]
+        tail.append(proj.normals.reshape(-1, 3))
+    if I == 1:  # one table, one gather
+        gathered = torch.cat(per_view + per_gaussian + tail, dim=1).index_select(0, ids)
+        Cf = gathered.shape[1] - 3 - n_geom
+        # split (its backward is one cat) rather than slices (each slice's backward zero-fills [M, ...])
+        m_isect, g_geom, lo, feat = gathered.split([2, n_geom, 1, Cf], dim=1)
+    else:  # per-Gaussian columns gathered from [N, 4] instead of being repeated I times
+        n_tail = sum(t.shape[1] for t in tail)
+        g_view = torch.cat(per_view + tail, dim=1).index_select(0, ids)
+        m_isect, g_geom, g_tail = g_view.split([2, n_geom, n_tail], dim=1)
+        lo, g_col = torch.cat(per_gaussian, dim=1).index_select(0, ids % N).split([1, colors.shape[1]], dim=1)
+        feat = torch.cat([g_col, g_tail], dim=1)
     if absgrad and m_isect.requires_grad:
         absgrad_buf = torch.zeros(I * N, 2, dtype=dtype, device=device)
 
@@ -733,13 +784,12 @@ def rasterize(
 
         m_isect.register_hook(_hook)
     m_local = m_isect - origin
-    g_geom = gathered[:, 2 : 2 + n_geom]
-    lo = gathered[:, 2 + n_geom]
+    lo = lo[:, 0]
     if mode == "3dgs":
         coef = coefficients_3dgs(m_local, g_geom, lo)
     else:
         coef = coefficients_2dgs(m_local, g_geom.reshape(-1, 3, 3), origin, lo)
-    feat = gathered[:, 3 + n_geom :]  # [M, Cf]: colour, depth (channel 3), normal
+    # feat [M, Cf]: colour, depth (channel 3), normal
     plan = _Plan(mode=mode, starts=bins.starts, lengths=bins.lengths, T_init=T_init,
                  phi=_tile_phi(ts, dtype, device), depth_channel=3, chunk=chunk, max_pairs=max_pairs)
     Fb, Tb, Db = composite(coef, feat, plan)
