@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from egobench.diagnose.estimators import CAUSES, CauseResult, Noise, ResidualData
-from egobench.diagnose.signatures import LEVEL, DiagnosisContext, checkerboard, erode, holm, psnr
+from egobench.diagnose.signatures import LEVEL, DiagnosisContext, box3, checkerboard, erode, holm, psnr
 
 NO_DISCREPANCY = "no significant discrepancy"
 
@@ -36,7 +36,8 @@ class DiagnosisConfig:
 
     alpha: float = 0.01  # family-wise significance level (Holm over the library, per round)
     effect_floor: float = 0.5 * LEVEL  # smallest RMS display change (0..1) worth naming: half an 8-bit level
-    noise_factor_floor: float = 0.15  # |noise_std_factor - 1| below which noise is not named
+    noise_factor_floor: float = 0.15  # |noise_std_factor - 1| below which noise is not named (also per signal half)
+    noise_nll_gain_floor: float = 0.01  # held-out Gaussian NLL gain (nats/pixel, high-passed flat pixels) noise must exceed
     max_causes: int = 3  # causes named one after another (peeling)
     causes: tuple[str, ...] = tuple(CAUSES)  # the library to test (effect names)
     border_px: int = 2  # image border excluded from fits and scores (warps sample outside there)
@@ -134,6 +135,48 @@ def _check_stack(name: str, x: np.ndarray) -> np.ndarray:
     return x.astype(np.float64)
 
 
+def _noise_factor_beyond_floor(result: CauseResult, floor: float) -> bool:
+    """|f - 1| > floor overall AND in each signal half with the same sign: a wrong noise scale
+    changes the variance at every level; model error of a trained reconstruction (excess at some
+    levels only) does not pass for noise."""
+    f = result.params["noise_std_factor"]
+    if abs(f - 1.0) <= floor:
+        return False
+    halves = result.params.get("noise_std_factor_by_signal")
+    if not halves:
+        return True
+    return all((h - 1.0) * (f - 1.0) > 0 and abs(h - 1.0) > floor for h in halves)
+
+
+def _noise_nll_gain(noise_cause: Noise, noise: CauseResult, measured: np.ndarray, current: np.ndarray,
+                    ctx: DiagnosisContext, eval_idx: np.ndarray, eval_mask: np.ndarray) -> float:
+    """Held-out Gaussian NLL gain (nats/pixel) of the fitted noise over the assumed one.
+
+    With a pipeline reference (the assumed noise drawn through rectification and quantisation)
+    the variance of the high-passed residual is only known where that reference says, so the
+    gain is scored on high-passed residuals, against the reference's per-frame high-passed
+    variance (assumed) and f^2 times it (fitted). Otherwise per pixel, on the residual."""
+    pe, me = current[eval_idx], measured[eval_idx]
+    mask = np.broadcast_to(eval_mask[None, :, :, None], pe.shape)
+    if ctx.noise_reference is not None and "transfer" in noise.internal:
+        full = erode(eval_mask, 1)
+        mask = np.broadcast_to(full[None, :, :, None], pe.shape)
+        ref = ctx.noise_reference[eval_idx]
+        hp_r = (me - pe) - box3(me - pe)
+        hp_ref = ref - box3(ref)
+        var0 = np.broadcast_to(np.mean(hp_ref**2, axis=(1, 2, 3), where=mask)[:, None, None, None], pe.shape)[mask]
+        var0 = np.maximum(var0, 1e-12)
+        var1 = var0 * noise.internal["var_factor"]
+        r2 = hp_r[mask] ** 2
+    else:
+        var0 = noise_cause.variance(pe, None, ctx, eval_idx)[mask]
+        var1 = noise_cause.variance(pe, noise, ctx, eval_idx)[mask]
+        r2 = ((me - pe)[mask]) ** 2
+    nll0 = float(np.mean(0.5 * (np.log(2 * math.pi * var0) + r2 / var0)))
+    nll1 = float(np.mean(0.5 * (np.log(2 * math.pi * var1) + r2 / var1)))
+    return nll0 - nll1
+
+
 def diagnose_residuals(
     measured: np.ndarray,  # [F, H, W, 3] display values in [0, 1] (the captured frames)
     predicted: np.ndarray,  # [F, H, W, 3] the model's prediction of the same frames
@@ -185,7 +228,7 @@ def diagnose_residuals(
             r.effect_floor = cfg.effect_floor
             r.significant = p_adj < cfg.alpha and r.effect_rms >= cfg.effect_floor
             if r.name == "noise" and "noise_std_factor" in r.params:
-                r.significant &= abs(r.params["noise_std_factor"] - 1.0) > cfg.noise_factor_floor
+                r.significant &= _noise_factor_beyond_floor(r, cfg.noise_factor_floor)
             r.score = r.effect_rms * min(1.0, -math.log10(max(p_adj, 1e-300)) / 10.0) if r.significant else 0.0
         # Nested causes: when a cause's own extra term is significant GIVEN the cause it contains
         # (readout's row slope b given the shift a of a time offset) and both are significant, the
@@ -207,14 +250,14 @@ def diagnose_residuals(
             continue
         noise = next((r for r in testable if r.name == "noise" and r.significant), None)
         if noise is not None:
-            pe, me = current[eval_idx], measured[eval_idx]
-            mask = np.broadcast_to(eval_mask[None, :, :, None], pe.shape)
-            var0 = noise_cause.variance(pe, None, ctx, eval_idx)[mask] * noise.internal.get("transfer", 1.0)
-            var1 = noise_cause.variance(pe, noise, ctx, eval_idx)[mask]
-            r2 = ((me - pe)[mask]) ** 2
-            nll0 = float(np.mean(0.5 * (np.log(2 * math.pi * var0) + r2 / var0)))
-            nll1 = float(np.mean(0.5 * (np.log(2 * math.pi * var1) + r2 / var1)))
-            named.append(NamedCause("noise", rnd, noise.p_adjusted, noise.effect_rms, noise.params, 0.0, nll0 - nll1))
+            gain_nll = _noise_nll_gain(noise_cause, noise, measured, current, ctx, eval_idx, eval_mask)
+            noise.params["held_out_nll_gain_nats_per_px"] = gain_nll
+            if gain_nll > cfg.noise_nll_gain_floor:
+                named.append(NamedCause("noise", rnd, noise.p_adjusted, noise.effect_rms, noise.params, 0.0, gain_nll))
+            else:  # the fitted noise does not predict held-out residuals better: not worth modelling
+                noise.significant, noise.score = False, 0.0
+                noise.reason = (f"held-out NLL gain {gain_nll:.4f} nats/px <= {cfg.noise_nll_gain_floor} "
+                                "(DiagnosisConfig.noise_nll_gain_floor)")
         break
     return Diagnosis(
         verdict=named[0].name if named else NO_DISCREPANCY,

@@ -772,6 +772,20 @@ class Distortion(_Geometric):
 
 
 # ============================================================================ noise
+def _factor_by_signal(signal: np.ndarray, observed: np.ndarray, expected: np.ndarray) -> list[float]:
+    """Noise std factor sqrt(sum observed / sum expected) in the lower and upper half of the
+    predicted signal [n] (observed, expected: [n] variances). A wrong noise scale (shot and
+    read noise times f) gives the same factor in both halves; excess variance from model error
+    (a trained reconstruction's residual) generally does not follow the noise model's level
+    dependence (core requires the factor beyond the floor at every level)."""
+    cut = float(np.median(signal))
+    out = []
+    for sel in (signal <= cut, signal > cut):
+        den = float(np.sum(expected[sel]))
+        out.append(math.sqrt(max(float(np.sum(observed[sel])) / den, 1e-4)) if den > 0 and sel.any() else 1.0)
+    return out
+
+
 class Noise(Cause):
     """Noise model wrong: high-passed residual variance in flat regions versus the assumed model.
 
@@ -813,7 +827,8 @@ class Noise(Cause):
             f2 = float(np.clip(obs.sum() / max(ref_obs.sum(), 1e-300), 1e-4, None))
             transfer = float(ref_obs.sum() / max(np.sum(slope2 * model_lin + q_var), 1e-300))
             res.statistic, res.statistic_kind, res.p_value = test.t, f"t({test.df})", test.p_value
-            res.params = {"noise_std_factor": math.sqrt(f2), "pipeline_variance_transfer": transfer}
+            res.params = {"noise_std_factor": math.sqrt(f2), "pipeline_variance_transfer": transfer,
+                          "noise_std_factor_by_signal": _factor_by_signal(signal, obs, ref_obs)}
             res.internal = {"var_factor": f2, "transfer": transfer}
             std_now = np.sqrt(ref_obs.mean() * np.ones_like(obs))
             std_new = std_now * math.sqrt(f2)
@@ -828,7 +843,8 @@ class Noise(Cause):
             test = frame_t_test(np.log(ratio), cnt[okf].astype(float))
             f2 = float(np.clip(np.sum(obs - q_var) / np.sum(slope2 * model_lin), 1e-4, None))
             res.statistic, res.statistic_kind, res.p_value = test.t, f"t({test.df})", test.p_value
-            res.params = {"noise_std_factor": math.sqrt(f2)}
+            res.params = {"noise_std_factor": math.sqrt(f2),
+                          "noise_std_factor_by_signal": _factor_by_signal(signal, obs - q_var, slope2 * model_lin)}
             res.internal = {"var_factor": f2}
             std_now = np.sqrt(expected)
             std_new = np.sqrt(slope2 * model_lin * f2 + q_var)
