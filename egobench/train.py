@@ -492,14 +492,16 @@ def render_frame(gaussians, camera: Pinhole, poses: Tensor, ppi: Tensor | None, 
 
 
 def _depth_normals(depth: Tensor, camera: Pinhole) -> Tensor:
-    """Normals from a depth map [H, W] by central differences of the back-projected points -> [H, W, 3]."""
+    """Normals from a depth map [H, W] by central differences of the back-projected points -> [H, W, 3],
+    facing the camera (negative z for a surface seen from the front) like the rendered normals
+    (gsplat's ``depth_to_normal``: cross(d/drow, d/dcolumn)); zero on the border rows/columns."""
     grid = camera.pixel_grid(dtype=depth.dtype, device=depth.device)
     pts = camera.unproject(grid) * depth[..., None]  # [H, W, 3]
-    dx = torch.zeros_like(pts)
-    dy = torch.zeros_like(pts)
-    dx[:, 1:-1] = pts[:, 2:] - pts[:, :-2]
-    dy[1:-1] = pts[2:] - pts[:-2]
-    n = torch.linalg.cross(dx, dy, dim=-1)
+    d_col = torch.zeros_like(pts)
+    d_row = torch.zeros_like(pts)
+    d_col[:, 1:-1] = pts[:, 2:] - pts[:, :-2]  # along +u (camera +x)
+    d_row[1:-1] = pts[2:] - pts[:-2]  # along +v (camera +y)
+    n = torch.linalg.cross(d_row, d_col, dim=-1)  # y x x = -z: towards the camera
     return torch.nn.functional.normalize(n, dim=-1)
 
 

@@ -277,3 +277,48 @@ def test_bad_inputs_are_named_before_training(toy, tmp_path):
         train(wrong_img, "ours", cfg, tmp_path / "f", progress=False)
     with pytest.raises(ValueError, match="unknown method"):
         train(toy, "nope", cfg, tmp_path / "g", progress=False)
+
+
+# ----------------------------------------------------------------------------- 2DGS regularisers
+def test_depth_normals_face_the_camera_like_rendered_2dgs_normals():
+    """Depth normals of a tilted plane equal its analytic camera-facing normal, and the 2DGS
+    normal-consistency term of a surfel lying in that plane is ~0 (a sign error made it ~2 x lambda,
+    pushing surfels edge-on)."""
+    from egobench.camera.pinhole import Pinhole
+    from egobench.render import render
+    from egobench.render.types import Gaussians
+    from egobench.train import _depth_normals, _twodgs_regularisers
+
+    cam = Pinhole(fx=20.0, fy=20.0, cx=7.5, cy=7.5, width=16, height=16)
+    # plane n . p = c with a camera-facing unit normal (n . p < 0 for points in front of the camera)
+    n = torch.nn.functional.normalize(torch.tensor([0.3, -0.2, -1.0]), dim=0)
+    c = float(n @ torch.tensor([0.0, 0.0, 2.0]))
+    rays = cam.unproject(cam.pixel_grid(dtype=torch.float32))  # [H, W, 3], z = 1
+    depth = c / (rays @ n)  # z-depth of the ray-plane intersection
+    dn = _depth_normals(depth, cam)
+    assert torch.allclose(dn[1:-1, 1:-1], n.expand(14, 14, 3), atol=1e-4)
+
+    # Rendered 2DGS normals face the camera too: a tilted surfel in that plane renders n ...
+    z = -n
+    x = torch.nn.functional.normalize(torch.linalg.cross(torch.tensor([0.0, 1.0, 0.0]), z), dim=0)
+    R = torch.stack([x, torch.linalg.cross(z, x), z], dim=1)
+    w = torch.sqrt(1 + R.trace()) / 2
+    q = torch.stack([w, (R[2, 1] - R[1, 2]) / (4 * w), (R[0, 2] - R[2, 0]) / (4 * w), (R[1, 0] - R[0, 1]) / (4 * w)])
+
+    def surfel(quat):
+        g = Gaussians(means=torch.tensor([[0.0, 0.0, 2.0]]), quats=quat[None],
+                      log_scales=torch.log(torch.tensor([[3.0, 3.0, 3.0]])), opacity_logits=torch.tensor([6.0]),
+                      colors=torch.tensor([[0.5, 0.5, 0.5]]))
+        return render(g, cam, torch.eye(4)[None], mode="2dgs", want_normal=True)
+
+    out = surfel(q)
+    assert torch.allclose(torch.nn.functional.normalize(out.normal[0, 8, 8], dim=0), n, atol=1e-4)
+    # ... and a fronto-parallel surfel (constant depth: gsplat's 2DGS depth is the centre depth) has
+    # zero normal-consistency loss; with opposite-facing depth normals it was 2 x lambda x alpha.
+    out = surfel(torch.tensor([1.0, 0.0, 0.0, 0.0]))
+    cfg = TrainConfig(iterations=10, normal_lambda=1.0, normal_start_frac=0.0, dist_lambda=0.0)
+    interior = torch.zeros(16, 16, 1)
+    interior[1:-1, 1:-1] = 1.0
+    assert float(out.alpha[0, 1:-1, 1:-1].min()) > 0.9
+    reg = _twodgs_regularisers([out], cam, cfg, 5, interior)
+    assert float(reg) < 1e-4
