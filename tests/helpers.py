@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 from tests.conftest import SHARED_DATA
 
-__all__ = ["SHARED_DATA", "ARIA_RGB_PARAMS_1408"]
+__all__ = ["SHARED_DATA", "ARIA_RGB_PARAMS_1408", "write_records"]
 
 #: A real Aria RGB online calibration (1408 x 1408; the first line of the MPS sample's
 #: online_calibration.jsonl), so the analytic tests run without the data folder.
@@ -14,3 +17,15 @@ ARIA_RGB_PARAMS_1408 = [
     7.804521010257304e-05, 0.0006019965512678027, -0.0011151430662721395, 0.0006172532448545098,
     -0.00233874237164855, 0.0016606695717200637,
 ]
+
+
+def write_records(root: Path, recs: list[dict]) -> list[Path]:
+    """Write run records as root/runNNN/eval.json; the paths deliberately do not carry the identity
+    (tables and plots must read it from the records)."""
+    paths = []
+    for i, r in enumerate(recs):
+        p = root / f"run{i:03d}" / "eval.json"
+        p.parent.mkdir(parents=True)
+        p.write_text(json.dumps(r))
+        paths.append(p)
+    return paths

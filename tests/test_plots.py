@@ -12,6 +12,7 @@ import pytest
 from egobench import plots as P
 from egobench import tables as T
 from egobench.cli import main as cli_main
+from tests.helpers import write_records
 
 
 def make_record(scene, kind, method, seed, psnr, paper_scene=None):
@@ -22,14 +23,6 @@ def make_record(scene, kind, method, seed, psnr, paper_scene=None):
     }
 
 
-def write_records(root: Path, recs: list[dict]) -> list[Path]:
-    paths = []
-    for i, r in enumerate(recs):
-        p = root / f"run{i:03d}" / "eval.json"
-        p.parent.mkdir(parents=True)
-        p.write_text(json.dumps(r))
-        paths.append(p)
-    return paths
 
 
 def _png(path: Path, rgb01: np.ndarray) -> None:

@@ -14,6 +14,7 @@ import pytest
 from egobench import paper_numbers as pn
 from egobench import tables as T
 from egobench.cli import main as cli_main
+from tests.helpers import write_records
 
 PAPER_TEX = Path(__file__).resolve().parents[2] / "shared" / "paper" / "paper.tex"
 
@@ -31,15 +32,6 @@ def make_record(scene, kind, method, seed, psnr, ssim=0.5, paper_scene=None, **m
     }
 
 
-def write_records(root: Path, recs: list[dict]) -> list[Path]:
-    paths = []
-    for i, r in enumerate(recs):
-        # Paths deliberately do not carry the identity: tables must read it from the records.
-        p = root / f"run{i:03d}" / "eval.json"
-        p.parent.mkdir(parents=True)
-        p.write_text(json.dumps(r))
-        paths.append(p)
-    return paths
 
 
 # Our synthetic suite: PSNR(method, scene, seed) = base[method] + scene offset + seed effect.
