@@ -479,14 +479,7 @@ class FormationModel:
                 * per_image_gain
                 * _per_image(sensitivity, x, "sensitivity", positive=True)
             )
-        if cfg.vignette:
-            if vignette is None:
-                raise ValueError("vignette: config.vignette is on, so a [H, W] lens-shading map is required")
-            x = x * _check_map(vignette, x)
-        if cfg.white_balance:
-            if white_balance is None:
-                raise ValueError("white_balance: config.white_balance is on, so per-channel gains [3] are required")
-            x = x * _check_wb(white_balance, x)
+        x = x * self._shading(x, vignette, white_balance)
         if cfg.clamp:
             x = x.clamp(0.0, 1.0)  # full well
         if cfg.noise:
@@ -499,6 +492,21 @@ class FormationModel:
         if cfg.quantise_bits is not None:
             y = quantise(y, cfg.quantise_bits)
         return y
+
+    def _shading(self, image: Tensor, vignette, white_balance) -> Tensor:
+        """Product of the switched-on multiplicative factors (vignette [H, W], white balance [3]),
+        broadcastable against ``image`` [..., H, W, 3]; 1 when both are off."""
+        cfg = self.config
+        factor = torch.ones((), dtype=image.dtype, device=image.device)
+        if cfg.vignette:
+            if vignette is None:
+                raise ValueError("vignette: config.vignette is on, so a [H, W] lens-shading map is required")
+            factor = factor * _check_map(vignette, image)
+        if cfg.white_balance:
+            if white_balance is None:
+                raise ValueError("white_balance: config.white_balance is on, so per-channel gains [3] are required")
+            factor = factor * _check_wb(white_balance, image)
+        return factor
 
     def predict(
         self,
@@ -519,14 +527,7 @@ class FormationModel:
         scale = torch.ones((), dtype=scene_colour.dtype, device=scene_colour.device)
         if cfg.exposure_gain:
             scale = scale * _per_image(scale_k, scene_colour, "scale_k", positive=True)
-        if cfg.vignette:
-            if vignette is None:
-                raise ValueError("vignette: config.vignette is on, so a [H, W] lens-shading map is required")
-            scale = scale * _check_map(vignette, scene_colour)
-        if cfg.white_balance:
-            if white_balance is None:
-                raise ValueError("white_balance: config.white_balance is on, so per-channel gains [3] are required")
-            scale = scale * _check_wb(white_balance, scene_colour)
+        scale = scale * self._shading(scene_colour, vignette, white_balance)
         image = self._expose(scene_colour, scale, scene_gamma)
         return image.clamp(0.0, 1.0) if cfg.clamp else image
 
