@@ -7,7 +7,7 @@ from pathlib import Path
 
 from tests.conftest import SHARED_DATA
 
-__all__ = ["SHARED_DATA", "ARIA_RGB_PARAMS_1408", "write_records"]
+__all__ = ["SHARED_DATA", "ARIA_RGB_PARAMS_1408", "real_rgb_calibration", "write_records"]
 
 #: A real Aria RGB online calibration (1408 x 1408; the first line of the MPS sample's
 #: online_calibration.jsonl), so the analytic tests run without the data folder.
@@ -29,3 +29,27 @@ def write_records(root: Path, recs: list[dict]) -> list[Path]:
         p.write_text(json.dumps(r))
         paths.append(p)
     return paths
+
+
+def real_rgb_calibration():
+    """(MPS camera-rgb entry, image size, projectaria CameraCalibration) of the first line of the real
+    online_calibration.jsonl; skips the test when projectaria-tools or the file is absent."""
+    import math
+
+    import numpy as np
+    import pytest
+
+    calibration = pytest.importorskip("projectaria_tools.core.calibration", reason="projectaria_tools not importable")
+    sophus = pytest.importorskip("projectaria_tools.core.sophus", reason="projectaria_tools not importable")
+    path = SHARED_DATA / "aria_mps_sample" / "online_calibration.jsonl"
+    if not path.is_file():
+        pytest.skip(f"real Aria calibration not present at {path}")
+    with path.open() as fh:
+        line = json.loads(fh.readline())
+    (idx,) = [i for i, c in enumerate(line["CameraCalibrations"]) if c["Label"] == "camera-rgb"]
+    entry, size = line["CameraCalibrations"][idx], line["ImageSizes"][idx]
+    ref = calibration.CameraCalibration(
+        "camera-rgb", calibration.CameraModelType.FISHEYE624, np.array(entry["Projection"]["Params"]),
+        sophus.SE3(), size[0], size[1], None, math.pi, "",
+    )
+    return entry, size, ref

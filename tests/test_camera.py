@@ -10,10 +10,8 @@ import pytest
 import torch
 
 from egobench.camera import CameraModel, Equidistant, Fisheye624, Pinhole
-from tests.helpers import ARIA_RGB_PARAMS_1408, SHARED_DATA
+from tests.helpers import ARIA_RGB_PARAMS_1408, real_rgb_calibration
 
-MPS_SAMPLE = SHARED_DATA / "aria_mps_sample"
-ONLINE_CALIB = MPS_SAMPLE / "online_calibration.jsonl"
 F64 = torch.float64
 
 
@@ -138,18 +136,7 @@ def test_fisheye_unproject_flags_nonconvergence():
 
 @pytest.fixture(scope="module")
 def aria_calibration():
-    calibration = pytest.importorskip("projectaria_tools.core.calibration", reason="projectaria_tools not importable")
-    sophus = pytest.importorskip("projectaria_tools.core.sophus", reason="projectaria_tools not importable")
-    if not ONLINE_CALIB.is_file():
-        pytest.skip(f"real Aria calibration not present at {ONLINE_CALIB}")
-    line = json.loads(ONLINE_CALIB.open().readline())
-    (idx,) = [i for i, c in enumerate(line["CameraCalibrations"]) if c["Label"] == "camera-rgb"]
-    entry = line["CameraCalibrations"][idx]
-    size = line["ImageSizes"][idx]
-    ref = calibration.CameraCalibration(
-        "camera-rgb", calibration.CameraModelType.FISHEYE624, np.array(entry["Projection"]["Params"]),
-        sophus.SE3(), size[0], size[1], None, math.pi, "",
-    )
+    entry, size, ref = real_rgb_calibration()
     return Fisheye624.from_mps_json(entry, size), ref
 
 

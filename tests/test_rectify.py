@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import json
-import math
 
 import numpy as np
 import pytest
@@ -11,10 +9,8 @@ import torch
 
 from egobench.camera import Fisheye624, Rectification, default_pinhole_for
 from egobench.geometry import so3_exp
-from tests.helpers import ARIA_RGB_PARAMS_1408, SHARED_DATA
+from tests.helpers import ARIA_RGB_PARAMS_1408, real_rgb_calibration
 
-MPS_SAMPLE = SHARED_DATA / "aria_mps_sample"
-ONLINE_CALIB = MPS_SAMPLE / "online_calibration.jsonl"
 F64 = torch.float64
 
 
@@ -191,18 +187,10 @@ def test_default_pinhole_matches_paper():
 
 def test_matches_projectaria_distort_by_calibration():
     calibration = pytest.importorskip("projectaria_tools.core.calibration", reason="projectaria_tools not importable")
-    sophus = pytest.importorskip("projectaria_tools.core.sophus", reason="projectaria_tools not importable")
     image = pytest.importorskip("projectaria_tools.core.image", reason="projectaria_tools not importable")
-    if not ONLINE_CALIB.is_file():
-        pytest.skip(f"real Aria calibration not present at {ONLINE_CALIB}")
-    line = json.loads(ONLINE_CALIB.open().readline())
-    (idx,) = [i for i, c in enumerate(line["CameraCalibrations"]) if c["Label"] == "camera-rgb"]
-    entry, size = line["CameraCalibrations"][idx], line["ImageSizes"][idx]
+    entry, size, ref_full = real_rgb_calibration()
     src = Fisheye624.from_mps_json(entry, size).scaled(0.25)
-    ref_src = calibration.CameraCalibration(
-        "camera-rgb", calibration.CameraModelType.FISHEYE624, np.array(entry["Projection"]["Params"]),
-        sophus.SE3(), size[0], size[1], None, math.pi, "",
-    ).rescale(np.array([src.width, src.height]), 0.25)
+    ref_src = ref_full.rescale(np.array([src.width, src.height]), 0.25)
     v, u = np.mgrid[0 : src.height, 0 : src.width].astype(np.float32)
     img = (0.55 + 0.4 * np.sin(u / 9.0) * np.cos(v / 13.0)).astype(np.float32)  # smooth, > 0
     for dst in (default_pinhole_for(src), default_pinhole_for(src, 240, 240, 60.0)):
