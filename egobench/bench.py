@@ -3,7 +3,9 @@
 ``raster``: forward+backward time of `egobench.render.render` (median of repeats after warm-up)
 on random but realistic scenes, and the cost of a rolling-shutter render (K pose samples)
 relative to a global-shutter render of the same image.
-``train``: delegated to ``egobench.train.benchmark(args)`` (the trainer's engineer owns it).
+``train``: iterations/s, rasterizer time share and peak memory of `egobench.train.train` with and
+without motion sampling on the synthetic `toy_recording` (or a given recording), at one or more
+resolutions; ``--resolution 2400 --points 1000000 --device cuda`` is the paper-scale case.
 """
 
 from __future__ import annotations
@@ -11,7 +13,6 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
-import sys
 import time
 from dataclasses import asdict, dataclass
 
@@ -160,6 +161,46 @@ def bench_raster(device: str = "cpu", repeats: int = 7, backend: str = "auto", t
     return result
 
 
+def bench_train(device: str = "cpu", backend: str = "auto", sides: tuple[int, ...] = (64, 128),
+                iterations: int = 30, recording: str | None = None, n_points: int = 4000) -> dict:
+    """The training benchmark record: one row per (resolution, method) with iterations/s, the
+    rasterizer's share of the step time, the Gaussian count and peak memory (CUDA: the allocator's
+    peak for that run; CPU: the process's max RSS so far). No densification (refine_start_frac=1),
+    so the Gaussian count stays ``n_points`` (or the recording's semi-dense point count)."""
+    import resource
+    import tempfile
+    from pathlib import Path
+
+    from egobench.train import TrainConfig, toy_recording, train
+
+    results = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for side in sides:
+            rec = recording or toy_recording(Path(tmp) / f"rec{side}", size=side, n_frames=17, angular_speed_rad_s=6.0,
+                                             frame_interval_s=0.01, n_points=n_points)
+            for method in ("no_motion_sampling", "ours"):
+                cfg = TrainConfig(iterations=iterations, max_side=side, device=device, backend=backend,
+                                  motion_warmup_frac=0.0, refine_start_frac=1.0)
+                if device.startswith("cuda"):
+                    torch.cuda.reset_peak_memory_stats()
+                res = train(rec, method, cfg, Path(tmp) / f"{method}{side}", progress=False)
+                if device.startswith("cuda"):
+                    peak, kind = torch.cuda.max_memory_allocated() / 2**20, "cuda max_memory_allocated"
+                else:
+                    peak, kind = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, "process max RSS (cumulative)"
+                results.append({
+                    "method": method, "motion_sampling": method == "ours", "resolution": side,
+                    "iterations": iterations, "iters_per_s": round(res.iters_per_s, 3),
+                    "raster_time_share": round(res.raster_time_share, 3), "num_gaussians": res.num_gaussians,
+                    "pose_samples_mean": res.record["motion_samples"]["mean"],
+                    "peak_memory_mib": round(peak, 1), "peak_memory_kind": kind,
+                })
+    return {"benchmark": "train", "device": device, "backend": backend, "torch": torch.__version__,
+            "threads": torch.get_num_threads(),
+            "recording": str(recording) if recording else f"toy_recording (17 frames, textured plane, {n_points} points)",
+            "results": results}
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("what", choices=["raster", "train"], help="which benchmark")
     parser.add_argument("--device", default="cpu", help="cpu or cuda")
@@ -168,6 +209,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--tile-size", type=int, default=4,
                         help="tile size in pixels (4: fastest for the torch backend on CPU; gsplat's default is 16)")
     parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
+    train = parser.add_argument_group("train benchmark")
+    train.add_argument("--resolution", type=int, action="append",
+                       help="training image side in pixels (repeatable; default 64 and 128; paper: 2400)")
+    train.add_argument("--iterations", type=int, default=30, help="training iterations per case")
+    train.add_argument("--points", type=int, default=4000,
+                       help="initial Gaussians of the synthetic recording (kept: no densification)")
+    train.add_argument("--recording", default=None, help="a recording folder instead of the synthetic one")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -180,11 +228,12 @@ def run(args: argparse.Namespace) -> int:
     if args.what == "raster":
         print(json.dumps(bench_raster(args.device, args.repeats, args.backend, args.tile_size), indent=2))
         return 0
-    try:
-        from egobench import train
-    except ImportError:
-        train = None
-    if train is None or not hasattr(train, "benchmark"):
-        print("egobench bench train: not available yet (egobench.train.benchmark is missing)", file=sys.stderr)
-        return 1
-    return int(train.benchmark(args) or 0)
+    for name in ("iterations", "points"):
+        if getattr(args, name) < 1:
+            raise ValueError(f"--{name}: expected a positive integer, got {getattr(args, name)}")
+    sides = tuple(args.resolution or (64, 128))
+    if min(sides) < 8:
+        raise ValueError(f"--resolution: expected at least 8 pixels, got {min(sides)}")
+    print(json.dumps(bench_train(args.device, args.backend, sides, args.iterations, args.recording, args.points),
+                     indent=2))
+    return 0

@@ -830,57 +830,6 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-# ============================================================================= benchmark
-def benchmark(args: argparse.Namespace) -> int:
-    """`egobench bench train`: prints JSON (iterations/s, raster share, peak memory) for a training
-    step with and without motion sampling, at 64x64 and 128x128 (or ``args.resolution``).
-
-    Reads from ``args`` (all optional): device ("cpu"|"cuda"), backend, resolution (int side),
-    iterations (int; 30 per case), recording (folder; default: the synthetic `toy_recording`, 17
-    frames, fast yaw so that motion sampling uses ~3 pose samples at 64 px).
-    """
-    print(json.dumps(benchmark_record(args), indent=2))
-    return 0
-
-
-def benchmark_record(args: argparse.Namespace) -> dict:
-    import resource
-    import tempfile
-
-    device = getattr(args, "device", "cpu") or "cpu"
-    backend = getattr(args, "backend", "auto") or "auto"
-    res_arg = getattr(args, "resolution", None)
-    sides = [int(res_arg)] if res_arg else [64, 128]
-    iters = int(getattr(args, "iterations", None) or 30)
-    rec_arg = getattr(args, "recording", None)
-    results = []
-    with tempfile.TemporaryDirectory() as tmp:
-        for side in sides:
-            rec: Any = rec_arg or toy_recording(Path(tmp) / f"rec{side}", size=side, n_frames=17,
-                                                angular_speed_rad_s=6.0, frame_interval_s=0.01, n_points=4000)
-            for method in ("no_motion_sampling", "ours"):
-                cfg = TrainConfig(iterations=iters, max_side=side, device=device, backend=backend,
-                                  motion_warmup_frac=0.0, refine_start_frac=1.0)
-                if device.startswith("cuda"):
-                    torch.cuda.reset_peak_memory_stats()
-                res = train(rec, method, cfg, Path(tmp) / f"{method}{side}", progress=False)
-                if device.startswith("cuda"):
-                    peak, kind = torch.cuda.max_memory_allocated() / 2**20, "cuda max_memory_allocated"
-                else:
-                    peak, kind = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, "process max RSS (cumulative)"
-                results.append({
-                    "method": method, "motion_sampling": method == "ours", "resolution": side,
-                    "iterations": iters, "iters_per_s": round(res.iters_per_s, 3),
-                    "raster_time_share": round(res.raster_time_share, 3), "num_gaussians": res.num_gaussians,
-                    "pose_samples_mean": res.record["motion_samples"]["mean"],
-                    "peak_memory_mib": round(peak, 1), "peak_memory_kind": kind,
-                })
-    return {"benchmark": "train", "device": device, "backend": backend, "torch": torch.__version__,
-            "threads": torch.get_num_threads(),
-            "recording": str(rec_arg) if rec_arg else "toy_recording (17 frames, textured plane)",
-            "results": results}
-
-
 # ============================================================================= toy data
 class _TwistTrajectory:
     """Analytic trajectory T_world_device(t) = T0 exp((t - t0) xi) with the `Trajectory` query API."""

@@ -52,3 +52,26 @@ def test_bench_cli_rejects_bad_repeats():
     args = argparse.Namespace(what="raster", device="cpu", repeats=0, backend="torch", tile_size=8, threads=0)
     with pytest.raises(ValueError, match="--repeats"):
         bench.run(args)
+
+
+def test_bench_train_cli_small(capsys):
+    """`egobench bench train` end to end through the CLI parser, at a tiny size."""
+    from egobench.cli import main
+
+    assert main(["bench", "train", "--resolution", "48", "--iterations", "2", "--points", "300"]) == 0
+    rec = json.loads(capsys.readouterr().out)
+    assert rec["benchmark"] == "train" and "300 points" in rec["recording"]
+    rows = {r["method"]: r for r in rec["results"]}
+    assert set(rows) == {"no_motion_sampling", "ours"}
+    for r in rows.values():
+        assert r["resolution"] == 48 and r["iterations"] == 2 and r["iters_per_s"] > 0
+        assert r["num_gaussians"] == 300 and r["peak_memory_mib"] > 0
+    # fast yaw: motion sampling renders more than one pose sample per frame; the baseline one
+    assert rows["ours"]["pose_samples_mean"] > 1.0 and rows["no_motion_sampling"]["pose_samples_mean"] == 1.0
+
+
+@pytest.mark.parametrize("flag, value", [("--iterations", "0"), ("--points", "0"), ("--resolution", "4")])
+def test_bench_train_rejects_bad_arguments(flag, value):
+    from egobench.cli import main
+
+    assert main(["bench", "train", flag, value]) != 0
