@@ -20,6 +20,7 @@ evaluated at the trajectory poses with velocities from the trajectory).
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -66,6 +67,22 @@ def load_checkpoint(run_dir: Path) -> dict:
     return ck
 
 
+def render_device(requested: str | None, trained_on: str, where: str) -> torch.device:
+    """The torch device to render a checkpoint on: ``requested`` (``--device``) or else the run's
+    training device (``config.device``). Raises a ValueError naming ``where`` when that is a CUDA
+    device and this torch has no CUDA (a GPU-trained run evaluated on a CPU machine needs --device cpu)."""
+    name = requested if requested else trained_on
+    try:
+        device = torch.device(name)
+    except RuntimeError as exc:
+        raise ValueError(f"{where}: device {name!r} is not a torch device ({exc})") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        origin = "requested" if requested else "the run's training device (config.device)"
+        raise ValueError(f"{where}: device {name!r} is {origin}, but CUDA is not available here; "
+                         "pass --device cpu (device='cpu') to render on the CPU")
+    return device
+
+
 def _load(recording_dir, calibration: str) -> Recording:
     if isinstance(recording_dir, Recording):
         return recording_dir
@@ -82,12 +99,14 @@ def _gt_file(recording: Recording, kind: str, frame: Frame) -> Path | None:
 
 
 def evaluate(recording_dir, run_dir, *, scene: str | None = None, paper_scene: str | None = None,
-             save_renders: bool = True, geometry_recording=None) -> dict:
+             save_renders: bool = True, geometry_recording=None, device: str | None = None) -> dict:
     """Evaluate the run in ``run_dir`` on the held-out frames; writes and returns eval.json.
 
     ``recording_dir``: the recording folder (or a loaded `Recording` of the method's calibration).
     ``geometry_recording``: optional loaded online-calibration `Recording` for depth/normal (defaults to
     loading ``recording_dir`` with the online calibration when ground truth exists).
+    ``device``: where the Gaussians are rendered (default: the run's training device, `render_device`);
+    renders come back to the CPU for the image formation and the metrics (float64).
     """
     from egobench.metrics import lpips_alex, lpips_available, psnr, ssim
     from egobench.motion_sampling import pixel_pose_index  # noqa: F401  (documented dependency)
@@ -102,6 +121,8 @@ def evaluate(recording_dir, run_dir, *, scene: str | None = None, paper_scene: s
     cfg_dict = dict(ck["config"])
     cfg_dict["background"] = tuple(cfg_dict["background"])
     config = TrainConfig(**cfg_dict)
+    dev = render_device(device, config.device, f"evaluate {run_dir}")
+    config = replace(config, device=str(dev))  # render_frame builds the background on config.device
     rec = _load(recording_dir, spec.calibration)
     if rec.calibration != spec.calibration:
         raise ValueError(f"recording: method {spec.name!r} is evaluated on the {spec.calibration!r} stream, got {rec.calibration!r}")
@@ -115,8 +136,8 @@ def evaluate(recording_dir, run_dir, *, scene: str | None = None, paper_scene: s
     rtr = resize_map(rec.row_time_ratio.float(), cam)
     k_all = exposure_normaliser(rec) if spec.formation else torch.ones(len(rec.frames))
     pos = {f.index: i for i, f in enumerate(rec.frames)}
-    params = {k: v.detach() for k, v in ck["params"].items()}
-    g = gaussians_from_params(params)
+    params = {k: v.detach() for k, v in ck["params"].items()}  # CPU (load_checkpoint maps to the CPU)
+    g = gaussians_from_params(params).to(dev)  # render() runs on the device of the Gaussians
     formation = formation_model(spec)
     pixel_scale = cam.width / rec.camera.width
     # Always adaptive at evaluation for methods that model rolling shutter.
@@ -270,11 +291,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scene", default=None, help="scene name for the record (default: the recording's)")
     parser.add_argument("--paper-scene", default=None, help="the paper's scene this one stands for")
     parser.add_argument("--no-renders", action="store_true", help="do not save renders")
+    parser.add_argument("--device", default=None,
+                        help="torch device to render on (default: the run's training device, config.device)")
 
 
 def run(args: argparse.Namespace) -> int:
     rec = evaluate(args.recording, args.run, scene=args.scene, paper_scene=args.paper_scene,
-                   save_renders=not args.no_renders)
+                   save_renders=not args.no_renders, device=getattr(args, "device", None))
     m = rec["metrics"]
     print(f"evaluated {rec['method']} on {rec['scene']}: PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.3f} "
           f"({len(rec['per_image'])} held-out frames) -> {Path(args.run) / 'eval.json'}")

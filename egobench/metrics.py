@@ -81,11 +81,12 @@ def psnr(pred, target, mask=None) -> float:
 
 # ----------------------------------------------------------------------------- SSIM
 @functools.lru_cache(maxsize=8)
-def _gaussian_1d(window: int, sigma: float, dtype: torch.dtype) -> Tensor:
-    """Normalised Gaussian taps (as scipy.ndimage with truncate so that radius = window // 2)."""
+def _gaussian_1d(window: int, sigma: float, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """Normalised Gaussian taps [window] (as scipy.ndimage with truncate so that radius = window // 2),
+    cached per dtype and device: the training loss does not copy them to the GPU every iteration."""
     x = torch.arange(window, dtype=torch.float64) - (window - 1) / 2.0
     g = torch.exp(-0.5 * (x / sigma) ** 2)
-    return (g / g.sum()).to(dtype)
+    return (g / g.sum()).to(device=device, dtype=dtype)
 
 
 def ssim_map(pred: Tensor, target: Tensor, window: int = SSIM_WINDOW, sigma: float = SSIM_SIGMA) -> Tensor:
@@ -98,7 +99,7 @@ def ssim_map(pred: Tensor, target: Tensor, window: int = SSIM_WINDOW, sigma: flo
     x = pred.permute(0, 3, 1, 2)  # [B, C, H, W]
     y = target.permute(0, 3, 1, 2).to(x.dtype)
     stack = torch.cat([x, y, x * x, y * y, x * y], dim=1)  # [B, 5C, H, W]
-    g = _gaussian_1d(window, float(sigma), x.dtype).to(x.device)
+    g = _gaussian_1d(window, float(sigma), x.dtype, x.device)
     n = stack.shape[1]
     stack = F.conv2d(stack, g.view(1, 1, window, 1).expand(n, 1, window, 1), groups=n)
     stack = F.conv2d(stack, g.view(1, 1, 1, window).expand(n, 1, 1, window), groups=n)

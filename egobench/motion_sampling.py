@@ -238,10 +238,13 @@ def velocity_poses(T_world_camera: Tensor, twist_camera: Tensor, dt_s: Tensor) -
     """Constant-velocity extrapolation of the centre pose (3DGS-on-the-move's motion model):
     T(t_c + dt) = T_c [exp(dt * omega^), dt * v], with (v, omega) = twist_camera in the camera frame.
 
-    T_world_camera [4, 4], twist_camera [6], dt_s [K] -> [K, 4, 4]; differentiable in both inputs.
+    T_world_camera [4, 4], twist_camera [6], dt_s [K] -> [K, 4, 4] on twist_camera's device and dtype
+    (the pose and times, built on the host from the trajectory, follow a trainable twist on the GPU);
+    differentiable in both inputs.
     """
     from egobench.geometry import make_pose, so3_exp  # geometry is another engineer's module
 
-    dt = dt_s.to(twist_camera.dtype)[:, None]  # [K, 1]
+    like = dict(device=twist_camera.device, dtype=twist_camera.dtype)
+    dt = dt_s.to(**like)[:, None]  # [K, 1]
     T_rel = make_pose(so3_exp(dt * twist_camera[None, 3:]), dt * twist_camera[None, :3])  # [K, 4, 4]
-    return T_world_camera[None].to(twist_camera.dtype) @ T_rel
+    return T_world_camera[None].to(**like) @ T_rel

@@ -76,6 +76,7 @@ class Densifier:
         """Add one render's statistics: means2d [C, N, 2] (with .grad), radii [C, N] (or [C, N, 2]) pixels."""
         if step >= self.schedule.refine_stop_iter:
             return
+        self._follow(params)
         if means2d.grad is None:
             raise ValueError("means2d: no gradient; the renderer must return means2d with retain_grad()")
         radii2 = radii if radii.dim() == 3 else radii[..., None].expand(*radii.shape, 2)  # gsplat wants [C, N, 2]
@@ -93,6 +94,7 @@ class Densifier:
         if step >= sch.refine_stop_iter:
             self.last_counts = counts
             return counts
+        self._follow(params)
         if self.state["grad2d"] is not None and step > s.refine_start_iter and step % s.refine_every == 0 \
                 and step % s.reset_every >= s.pause_refine_after_reset:
             counts["duplicated"], counts["split"], counts["capped"] = self.grow(params, optimizers, step)
@@ -133,10 +135,20 @@ class Densifier:
             split(params=params, optimizers=optimizers, state=state, mask=is_split, revised_opacity=s.revised_opacity)
         return n_dupli, n_split, left_out
 
+    def _follow(self, params: dict) -> None:
+        """Move the running statistics (grad2d, count [N]) to the device of ``params["means"]``: a
+        state loaded from a checkpoint (CPU tensors, `state_dict`) follows the parameters."""
+        device = params["means"].device
+        for k, v in self.state.items():
+            if isinstance(v, Tensor) and v.device != device:
+                self.state[k] = v.to(device)
+
     def state_dict(self) -> dict:
-        return {k: (v.clone() if isinstance(v, Tensor) else v) for k, v in self.state.items()}
+        """Copies of the running state with tensors on the CPU (a checkpoint written on CUDA loads anywhere)."""
+        return {k: (v.detach().to("cpu", copy=True) if isinstance(v, Tensor) else v) for k, v in self.state.items()}
 
     def load_state_dict(self, state: dict) -> None:
+        """Restore `state_dict`; tensors move to the parameters' device at the next accumulate/refine."""
         self.state = {k: (v.clone() if isinstance(v, Tensor) else v) for k, v in state.items()}
 
 

@@ -13,6 +13,10 @@ the rasterizer's share of the backward pass, measured from the moment autograd r
 render output (a tensor hook on ``rgb``) to the end of ``loss.backward()``; everything upstream
 of the rasterizer in the graph (pose exponentials, parameter activations) is tiny and is counted
 as raster time. Divided by the total wall time of the iterations.
+
+Image store: the training images stay on the host as uint8 [F, H, W, 3] (`load_image_store`; a
+2400 px frame is 16.5 MiB, so paper-scale recordings fit), page-locked when training on CUDA;
+each iteration copies only its own frame to the device and converts it to float / 255.
 """
 
 from __future__ import annotations
@@ -219,7 +223,7 @@ class TrainingData:
     spec: MethodSpec
     camera: Pinhole  # training-resolution camera
     frames: list[Frame]  # training frames (time order)
-    images: Tensor  # [F, H, W, 3] float32 captured images, 0..1
+    images: Tensor  # [F, H, W, 3] uint8 captured images (the image store, see `load_image_store`)
     mask: Tensor  # [H, W] bool valid pixels
     vignette: Tensor  # [H, W] float32
     row_time_ratio: Tensor  # [H, W] float32 R(u)
@@ -246,6 +250,54 @@ def resize_map(x: Tensor, camera: Pinhole, kind: Literal["area", "nearest"] = "a
     arr = x.detach().cpu().numpy().astype(np.float32)
     out = cv2.resize(arr, (camera.width, camera.height), interpolation=interp)
     return torch.from_numpy(out.reshape(camera.height, camera.width, *x.shape[2:]))
+
+
+def _pin_store(device: torch.device | str) -> bool:
+    """Whether a host image store for ``device`` should be page-locked: only for a CUDA device with
+    CUDA available, so CPU-only torch builds never pin."""
+    return torch.device(device).type == "cuda" and torch.cuda.is_available()
+
+
+def load_image_store(recording: Recording, frames: list[Frame], camera: Pinhole, *, pin_memory: bool = False,
+                     progress: bool = True) -> Tensor:
+    """The frames' captured images at the camera's size as one uint8 tensor [F, H, W, 3].
+
+    Filled frame by frame into a preallocated tensor: peak memory is the store plus one decoded
+    frame (a 2400 px frame is 16.5 MiB as uint8 vs 66 MiB as float32). When the recording is
+    already at the training size the store is exact: ``store[i].float() / 255`` equals
+    ``recording.load_image(frames[i])`` bit for bit (8-bit PNG/JPEG). When the training size is
+    smaller, each frame is area-resized in float (cv2 INTER_AREA, as `resize_map`) and rounded
+    to uint8, i.e. within 0.5/255 of the float resize (as 3DGS / nerfstudio store downscaled
+    image pyramids on disk). ``pin_memory`` allocates page-locked host memory (for non-blocking
+    host-to-GPU copies of one frame per iteration). ``progress``: tqdm bar "load images" on stderr.
+    """
+    from tqdm import tqdm
+
+    H, W = camera.height, camera.width
+    shape = (len(frames), H, W, 3)
+    try:
+        store = torch.empty(shape, dtype=torch.uint8, pin_memory=pin_memory)
+    except RuntimeError as exc:  # page-locking this much host memory can fail; pageable still works
+        print(f"egobench train: could not pin a {math.prod(shape) / 2**20:.0f} MiB image store ({exc}); "
+              "using pageable memory (slower host-to-GPU copies)", file=sys.stderr)
+        store = torch.empty(shape, dtype=torch.uint8)
+    for i, f in enumerate(tqdm(frames, desc="load images", disable=not progress, file=sys.stderr,
+                               mininterval=2.0)):
+        img = recording.load_image(f)  # float32 [H0, W0, 3], = u8 / 255
+        if tuple(img.shape[:2]) != (H, W):
+            img = resize_map(img, camera)
+        # x * 255 recovers the decoded 8-bit value exactly (error < 1e-4 << 0.5); resized values round.
+        store[i].copy_(torch.round(img * 255.0).clamp_(0.0, 255.0))
+        del img
+    return store
+
+
+def image_to_float(pixels: Tensor) -> Tensor:
+    """Image-store pixels (uint8, any shape) -> float32 in 0..1 (u8 / 255, as `Recording.load_image`).
+    A float tensor is taken to be 0..1 already and returned as float32."""
+    if pixels.dtype == torch.uint8:
+        return pixels.float() / 255.0
+    return pixels.float()
 
 
 def exposure_normaliser(recording: Recording) -> Tensor:
@@ -327,12 +379,14 @@ def scene_scale_of(frames: list[Frame], points_world: Tensor) -> float:
     return max(scale, 1e-3)
 
 
-def prepare_data(recording: Recording, spec: MethodSpec, config: TrainConfig) -> TrainingData:
-    """Validate, resize images/maps to the training resolution, compute k and sample counts."""
+def prepare_data(recording: Recording, spec: MethodSpec, config: TrainConfig, progress: bool = True) -> TrainingData:
+    """Validate, load the training images into a uint8 store at the training resolution
+    (`load_image_store`: exact when no resize is needed, else area-resized and rounded to uint8;
+    page-locked when training on CUDA), resize the maps, compute k and sample counts."""
     validate_recording(recording, spec)
     cam = training_camera(recording.camera, config)
     frames = recording.train_frames
-    images = torch.stack([resize_map(recording.load_image(f), cam) for f in frames])  # [F, H, W, 3]
+    images = load_image_store(recording, frames, cam, pin_memory=_pin_store(config.device), progress=progress)
     mask = resize_map(recording.mask.float(), cam) > 0.999
     vignette = resize_map(recording.vignette.float(), cam)
     rtr = resize_map(recording.row_time_ratio.float(), cam)
@@ -399,7 +453,7 @@ def init_params(data: TrainingData, config: TrainConfig, generator: torch.Genera
         ui, vi = ui.clamp(0, cam.width - 1), vi.clamp(0, cam.height - 1)
         inside &= data.mask[vi, ui]
         if inside.any():
-            px = data.images[i][vi[inside], ui[inside]]
+            px = image_to_float(data.images[i][vi[inside], ui[inside]])
             kk = data.k[i].expand(int(inside.sum()))
             colors[inside] = scene_colour_from_image(px, kk, data.vignette[vi[inside], ui[inside]], data.spec).float()
             assigned |= inside
@@ -452,15 +506,15 @@ def frame_poses(data_rec: Recording, frame: Frame, spec: MethodSpec, n: int, row
     H, W = row_time_ratio.shape
     if spec.motion_sampling == "velocity_shift":
         T_c = frame.T_world_camera.to(torch.float32)
-        if pose_delta is not None:
-            T_c = T_c @ se3_exp(pose_delta.to(torch.float32))
+        if pose_delta is not None:  # a trainable on the training device: the host pose follows it
+            T_c = T_c.to(pose_delta.device) @ se3_exp(pose_delta.to(torch.float32))
         if twist is None:
             from egobench.motion_sampling import frame_twist_camera
             twist = frame_twist_camera(data_rec, frame).to(torch.float32)
         times = sample_times_ns(frame, n, n_exposure_samples)  # [M, K]
         dt = ((times - float(frame.timestamp_ns)) * 1e-9).reshape(-1)
         poses = velocity_poses(T_c, twist.to(torch.float32), dt).reshape(times.shape[0], n, 4, 4)
-        ppi = pixel_pose_index(linear_row_time_ratio(H, W), n) if n > 1 else None
+        ppi = pixel_pose_index(linear_row_time_ratio(H, W).to(row_time_ratio.device), n) if n > 1 else None
         return poses, ppi
     if n == 1 and n_exposure_samples == 1:
         poses = frame.T_world_camera.to(torch.float32)[None, None]
@@ -469,7 +523,7 @@ def frame_poses(data_rec: Recording, frame: Frame, spec: MethodSpec, n: int, row
         poses = exposure_pose_samples(data_rec, frame, n, n_exposure_samples).to(torch.float32)
         ppi = pixel_pose_index(row_time_ratio, n) if n > 1 else None
     if pose_delta is not None:
-        poses = poses @ se3_exp(pose_delta.to(torch.float32))
+        poses = poses.to(pose_delta.device) @ se3_exp(pose_delta.to(torch.float32))
     return poses, ppi
 
 
@@ -515,12 +569,17 @@ def _git_commit() -> str:
         return "unknown"
 
 
-def _check_finite(it: int, name: str, value: Tensor) -> None:
-    if not bool(torch.isfinite(value).all()):
-        raise TrainingDiverged(
-            f"training diverged at iteration {it}: {name} is not finite "
-            f"({int((~torch.isfinite(value)).sum())} non-finite values); lower the learning rates or check the input"
-        )
+def _check_finite(it: int, named: list[tuple[str, Tensor]]) -> None:
+    """Raise TrainingDiverged naming the first non-finite tensor of ``named``. One host sync for
+    all of them (a CUDA run does not stall on each tensor); the per-tensor search runs only on failure."""
+    named = [(n, t.detach()) for n, t in named if t is not None]
+    if not named or bool(torch.stack([torch.isfinite(t).all() for _, t in named]).all()):
+        return
+    for name, value in named:
+        bad = int((~torch.isfinite(value)).sum())
+        if bad:
+            raise TrainingDiverged(f"training diverged at iteration {it}: {name} is not finite "
+                                   f"({bad} non-finite values); lower the learning rates or check the input")
 
 
 def _sync(device: torch.device) -> None:
@@ -557,7 +616,7 @@ def train(recording_dir, method: str, config: TrainConfig, out_dir, *, resume: b
     out_dir = Path(out_dir)
     ckpt_path = out_dir / "checkpoint.pt"
     rec = _load_recording(recording_dir, spec)
-    data = prepare_data(rec, spec, config)
+    data = prepare_data(rec, spec, config, progress=progress)
     device = torch.device(config.device)
     torch.manual_seed(config.seed)
     gen = torch.Generator().manual_seed(config.seed)
@@ -588,13 +647,22 @@ def train(recording_dir, method: str, config: TrainConfig, out_dir, *, resume: b
         reset_every=config.reset_every, opacity_reset=config.opacity_reset, max_gaussians=config.max_gaussians,
     ), scene_scale=data.scene_scale)
 
-    images = data.images.to(device)
+    # host store [F, H, W, 3] uint8 (page-locked by prepare_data on CUDA; not re-pinned here: pinning
+    # copies, and a paper-scale store is tens of GiB); one frame per iteration goes to the device
+    images = data.images
     mask3 = data.mask.to(device)[..., None].float()
     n_mask = float(mask3.sum()) * 3
     if n_mask == 0:
         raise ValueError(f"recording {rec.root}: the valid-pixel mask is empty at the training resolution")
     vignette = data.vignette.to(device)
     k = data.k.to(device)
+    row_time_ratio = data.row_time_ratio.to(device)  # [H, W]: pixel-pose indices are built on the device
+    from egobench.render import resolve_backend
+
+    backend_used = resolve_backend(config.backend, device)  # loads (maybe builds) gsplat before timing starts
+    if device.type == "cuda" and backend_used == "torch" and config.backend == "auto":
+        print("egobench train: warning: gsplat's CUDA extension cannot be loaded (needs nvcc to build once); "
+              "training with the pure-torch rasterizer, which is many times slower", file=sys.stderr)
     timing = {"time_s": 0.0, "render_fwd_s": 0.0, "render_bwd_s": 0.0, "iterations_timed": 0}
     order = torch.randperm(F, generator=gen)
     pos = 0
@@ -606,7 +674,7 @@ def train(recording_dir, method: str, config: TrainConfig, out_dir, *, resume: b
     if resume:
         if not ckpt_path.is_file():
             raise FileNotFoundError(f"{ckpt_path}: no checkpoint to resume from")
-        ck = torch.load(ckpt_path, map_location=device, weights_only=False)
+        ck = torch.load(ckpt_path, map_location="cpu", weights_only=False)  # RNG states stay host tensors
         if ck.get("format") != CHECKPOINT_FORMAT or ck.get("method") != method:
             raise ValueError(f"{ckpt_path}: checkpoint is for method {ck.get('method')!r} (format {ck.get('format')}), not {method!r}")
         if ck["config_hash"] != config.hash(method):
@@ -623,6 +691,8 @@ def train(recording_dir, method: str, config: TrainConfig, out_dir, *, resume: b
             extra_opt[k_].load_state_dict(sd)
         densifier.load_state_dict(ck["densifier"])
         torch.set_rng_state(ck["rng_torch"])
+        if device.type == "cuda" and ck.get("rng_cuda") is not None:  # gsplat's split draws on the GPU
+            torch.cuda.set_rng_state(ck["rng_cuda"], device)
         gen.set_state(ck["rng_frames"])
         order, pos, start_it = ck["order"], int(ck["pos"]), int(ck["iteration"])
         timing = dict(ck["timing"])
@@ -639,7 +709,8 @@ def train(recording_dir, method: str, config: TrainConfig, out_dir, *, resume: b
             "extra_optimizers": {k_: o.state_dict() for k_, o in extra_opt.items()},
             "extra_frames": [f.index for f in data.frames],
             "densifier": densifier.state_dict(),
-            "rng_torch": torch.get_rng_state(), "rng_frames": gen.get_state(), "order": order, "pos": pos,
+            "rng_torch": torch.get_rng_state(), "rng_frames": gen.get_state(),
+            "rng_cuda": torch.cuda.get_rng_state(device) if device.type == "cuda" else None, "order": order, "pos": pos,
             "timing": timing, "last_loss": last_loss,
             "camera": cam.to_dict(), "scene_scale": data.scene_scale, "recording": str(rec.root),
             "n_samples": data.n_samples,
@@ -663,7 +734,7 @@ def train(recording_dir, method: str, config: TrainConfig, out_dir, *, resume: b
             n_exp = 1
         else:
             n_exp = spec.n_exposure_samples if spec.motion_sampling == "velocity_shift" else 1
-        poses, ppi = frame_poses(rec, frame, spec, n, data.row_time_ratio,
+        poses, ppi = frame_poses(rec, frame, spec, n, row_time_ratio,
                                  pose_delta=extra["pose_delta"][fi] if "pose_delta" in extra else None,
                                  twist=extra["twist"][fi] if "twist" in extra else None,
                                  n_exposure_samples=n_exp)
@@ -678,9 +749,8 @@ def train(recording_dir, method: str, config: TrainConfig, out_dir, *, resume: b
             if o.means2d is not None and o.means2d.requires_grad:
                 o.means2d.retain_grad()
         rgb = torch.stack([o.rgb[0] for o in outs]).mean(0)  # [H, W, 3] exposure samples averaged
-        _check_finite(it, "rendered rgb", rgb)
         pred = predict_image(rgb, spec, k[fi], vignette, formation)
-        gt = images[fi]
+        gt = image_to_float(images[fi].to(device, non_blocking=True))  # [H, W, 3] 0..1
         l1 = ((pred - gt).abs() * mask3).sum() / n_mask
         from egobench.metrics import ssim_loss
 
@@ -688,7 +758,7 @@ def train(recording_dir, method: str, config: TrainConfig, out_dir, *, resume: b
         loss = (1 - config.ssim_lambda) * l1 + config.ssim_lambda * ssim_term
         if spec.splat_mode == "2dgs":
             loss = loss + _twodgs_regularisers(outs, cam, config, it, mask3)
-        _check_finite(it, "loss", loss)
+        _check_finite(it, [("rendered rgb", rgb), ("loss", loss)])
         hook_t: list[float] = []
         rgb_leaf = outs[-1].rgb
         if rgb_leaf.requires_grad:
@@ -700,9 +770,7 @@ def train(recording_dir, method: str, config: TrainConfig, out_dir, *, resume: b
         for o in outs:
             if o.means2d is not None and o.means2d.grad is not None and o.radii is not None:
                 densifier.accumulate(params, it, o.means2d, o.radii, cam.width, cam.height)
-        for name in GAUSSIAN_PARAMS:
-            if params[name].grad is not None:
-                _check_finite(it, f"gradient of {name}", params[name].grad)
+        _check_finite(it, [(f"gradient of {name}", params[name].grad) for name in GAUSSIAN_PARAMS])
         for o in optimizers.values():
             o.step()
             o.zero_grad(set_to_none=True)
@@ -711,10 +779,7 @@ def train(recording_dir, method: str, config: TrainConfig, out_dir, *, resume: b
             o.zero_grad(set_to_none=True)
         sched.step()
         densifier.refine(params, optimizers, it)
-        for name in GAUSSIAN_PARAMS:
-            _check_finite(it, name, params[name])
-        for name, v in extra.items():
-            _check_finite(it, name, v)
+        _check_finite(it, [(name, params[name]) for name in GAUSSIAN_PARAMS] + list(extra.items()))
         last_loss = float(loss.detach())
         timing["time_s"] += time.perf_counter() - t0
         timing["render_fwd_s"] += t_fwd
@@ -747,7 +812,13 @@ def train(recording_dir, method: str, config: TrainConfig, out_dir, *, resume: b
             "raster_time_share": share, "num_gaussians": result.num_gaussians,
             "render_forward_s": timing["render_fwd_s"], "render_backward_s": timing["render_bwd_s"],
             "timing_method": "render() wall time + backward from the rgb hook to the end of loss.backward(), over iteration wall time",
-            "device": config.device, "final_loss": last_loss if math.isfinite(last_loss) else None,
+            "device": config.device, "backend": backend_used, "final_loss": last_loss if math.isfinite(last_loss) else None,
+            "image_store": {
+                "dtype": str(images.dtype).replace("torch.", ""), "shape": list(images.shape),
+                "mib": images.numel() * images.element_size() / 2**20,
+                "pinned": bool(device.type == "cuda" and images.is_pinned()),
+                "resized": [cam.height, cam.width] != [rec.camera.height, rec.camera.width],
+            },
         },
         "camera": cam.to_dict(), "scene_scale": data.scene_scale,
         "motion_samples": {"mean": float(ns.mean()), "max": int(ns.max()), "min": int(ns.min()),

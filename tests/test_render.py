@@ -432,3 +432,18 @@ def test_means2d_grad_and_absgrad():
     one = Gaussians(m, torch.tensor([[1.0, 0, 0, 0]]), torch.full((1, 3), -3.0), torch.zeros(1), torch.ones(1, 3))
     torch.testing.assert_close(render(one, CAM, torch.eye(4), backend="torch").means2d[0, 0],
                                torch.tensor([CAM.cx, CAM.cy]))
+
+
+def test_resolve_backend_rules(monkeypatch):
+    import egobench.render as R
+
+    assert R.resolve_backend("auto", "cpu") == "torch" and R.resolve_backend("torch", "cpu") == "torch"
+    with pytest.raises(ValueError, match="needs CUDA"):
+        R.resolve_backend("gsplat", "cpu")
+    with pytest.raises(ValueError, match="backend must be"):
+        R.resolve_backend("cuda", "cpu")
+    # on CUDA, auto follows whether gsplat's extension loads
+    monkeypatch.setattr(R, "gsplat_cuda_available", lambda: True)
+    assert R.resolve_backend("auto", "cuda") == "gsplat" and R.resolve_backend("torch", "cuda") == "torch"
+    monkeypatch.setattr(R, "gsplat_cuda_available", lambda: False)
+    assert R.resolve_backend("auto", "cuda") == "torch"

@@ -42,6 +42,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--adt", default=None, help="Aria Digital Twin sample folder: real (video.vrs) vs twin (synthetic_video.vrs)")
     parser.add_argument("--real-trajectory", default=None,
                         help="with --adt: a real Aria closed_loop_trajectory.csv to compare head-motion statistics with")
+    parser.add_argument("--device", default=None,
+                        help="torch device to render the run on (default: its training device); with --train, "
+                             "also the training device (default cpu)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
@@ -71,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
         from egobench.train import TrainConfig, train
 
         run_dir = out / "run"
-        train(rec, args.method, TrainConfig(), run_dir)
+        train(rec, args.method, TrainConfig(device=args.device or "cpu"), run_dir)
     source = args.source
     if source == "auto":
         source = "run" if run_dir is not None else "ground_truth"
@@ -81,7 +84,8 @@ def run(args: argparse.Namespace) -> int:
     if source == "run":
         if run_dir is None:
             raise ValueError("--run: --source run needs a trained run folder (or --train)")
-        src = run_source(rec, run_dir, max_frames=args.max_frames, progress=not args.no_progress)
+        src = run_source(rec, run_dir, max_frames=args.max_frames, progress=not args.no_progress,
+                         device=getattr(args, "device", None))
     else:
         if not (rec / "ground_truth" / "truth.json").is_file():
             raise ValueError(f"{rec}: no ground_truth/truth.json (not simulated): pass --run RUN_DIR or --train")

@@ -294,12 +294,13 @@ def ground_truth_source(recording_dir: str | Path, max_frames: int | None = None
 
 
 def run_source(recording_dir: str | Path, run_dir: str | Path, max_frames: int | None = None,
-               progress: bool = True) -> Sources:
-    """Prediction = a trained run's renders of every frame (its own formation model and poses)."""
+               progress: bool = True, device: str | None = None) -> Sources:
+    """Prediction = a trained run's renders of every frame (its own formation model and poses),
+    rendered on ``device`` (default: the run's training device; see `egobench.evaluate.render_device`)."""
     from tqdm import tqdm
 
     from egobench.data import load_recording
-    from egobench.evaluate import load_checkpoint
+    from egobench.evaluate import load_checkpoint, render_device
     from egobench.methods import get_method
     from egobench.train import (
         TrainConfig, exposure_normaliser, formation_model, frame_poses, gaussians_from_params, predict_image,
@@ -313,6 +314,8 @@ def run_source(recording_dir: str | Path, run_dir: str | Path, max_frames: int |
     cfg = dict(ck["config"])
     cfg["background"] = tuple(cfg["background"])
     config = TrainConfig(**cfg)
+    dev = render_device(device, config.device, f"diagnose run {run_dir}")
+    config = replace(config, device=str(dev))  # render_frame builds the background on config.device
     rec = load_recording(recording_dir, calibration=spec.calibration)
     c = ck["camera"]
     cam = Pinhole(fx=c["fx"], fy=c["fy"], cx=c["cx"], cy=c["cy"], width=c["w"], height=c["h"])
@@ -324,7 +327,7 @@ def run_source(recording_dir: str | Path, run_dir: str | Path, max_frames: int |
     rtr = resize_map(rec.row_time_ratio.float(), cam)
     k_all = exposure_normaliser(rec) if spec.formation else torch.ones(len(rec.frames))
     pos = {f.index: i for i, f in enumerate(rec.frames)}
-    g = gaussians_from_params({k: v.detach() for k, v in ck["params"].items()})
+    g = gaussians_from_params({k: v.detach() for k, v in ck["params"].items()}).to(dev)  # render() runs here
     formation = formation_model(spec)
     counts = sample_counts(rec, frames, spec, config, 1.0)
     measured, predicted, velocity = [], [], []

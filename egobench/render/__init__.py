@@ -17,7 +17,8 @@ from torch import Tensor
 from egobench.camera.pinhole import Pinhole
 from egobench.render.types import Gaussians, RenderOutput, SplatMode
 
-__all__ = ["render", "render_rolling_shutter_reference", "Gaussians", "RenderOutput", "gsplat_cuda_available"]
+__all__ = ["render", "render_rolling_shutter_reference", "Gaussians", "RenderOutput", "gsplat_cuda_available",
+           "resolve_backend"]
 
 Backend = Literal["auto", "torch", "gsplat"]
 
@@ -33,6 +34,19 @@ def gsplat_cuda_available() -> bool:
         return _C is not None
     except Exception:  # ImportError, build failure: fall back to the torch backend
         return False
+
+
+def resolve_backend(backend: str, device: torch.device | str) -> str:
+    """The backend `render(backend=...)` uses for tensors on ``device``: "gsplat" or "torch".
+    (Loading gsplat's CUDA extension the first time may JIT-compile it: minutes.)"""
+    if backend not in ("auto", "torch", "gsplat"):
+        raise ValueError(f"render: backend must be 'auto', 'torch' or 'gsplat', got {backend!r}")
+    on_cuda = torch.device(device).type == "cuda"
+    if backend == "gsplat" and not (on_cuda and gsplat_cuda_available()):
+        raise ValueError("render: backend='gsplat' needs CUDA tensors and gsplat 1.5.3's CUDA extension")
+    if backend == "auto":
+        return "gsplat" if on_cuda and gsplat_cuda_available() else "torch"
+    return backend
 
 
 def _check_gaussians(g: Gaussians) -> int:
@@ -116,8 +130,6 @@ def render(
     """
     if mode not in ("3dgs", "2dgs"):
         raise ValueError(f"render: mode must be '3dgs' or '2dgs', got {mode!r}")
-    if backend not in ("auto", "torch", "gsplat"):
-        raise ValueError(f"render: backend must be 'auto', 'torch' or 'gsplat', got {backend!r}")
     if not isinstance(camera, Pinhole):
         raise ValueError(f"render: camera must be an egobench.camera.pinhole.Pinhole, got {type(camera).__name__}")
     if tile_size is None:
@@ -148,9 +160,7 @@ def render(
                              f"got range {int(idx.min())}..{int(idx.max())}")
         pixel_pose_index = idx.to(device=means.device, dtype=torch.long)
 
-    use_gsplat = backend == "gsplat" or (backend == "auto" and means.is_cuda and gsplat_cuda_available())
-    if backend == "gsplat" and not (means.is_cuda and gsplat_cuda_available()):
-        raise ValueError("render: backend='gsplat' needs CUDA tensors and gsplat 1.5.3's CUDA extension")
+    use_gsplat = resolve_backend(backend, means.device) == "gsplat"
     if n == 0:
         return _empty_output(B if pixel_pose_index is None else 1, H, W, means, background, mode, want_normal)
     viewmats = _viewmats(T)

@@ -114,15 +114,16 @@ def hash_float(ix: Tensor, iy: Tensor, seed: int, salt: int = 0, dtype: torch.dt
 
 
 _TABLE_BITS = 16
-_tables: dict[tuple[int, torch.dtype], Tensor] = {}
+_tables: dict[tuple[int, torch.dtype, torch.device], Tensor] = {}
 
 
-def _lattice_table(seed: int, dtype: torch.dtype) -> Tensor:
-    """2^16 uniform [0, 1) values for lattice noise, a pure function of the seed (cached)."""
-    key = (seed, dtype)
+def _lattice_table(seed: int, dtype: torch.dtype, device: torch.device | str = "cpu") -> Tensor:
+    """2^16 uniform [0, 1) values for lattice noise, a pure function of the seed (cached per device)."""
+    key = (seed, dtype, torch.device(device))
     if key not in _tables:
         ar = torch.arange(1 << _TABLE_BITS, dtype=torch.int64)
-        _tables[key] = (hash_cells(ar, torch.zeros_like(ar), seed, 1).to(torch.float64) / 4294967296.0).to(dtype)
+        table = (hash_cells(ar, torch.zeros_like(ar), seed, 1).to(torch.float64) / 4294967296.0).to(dtype)
+        _tables[key] = table.to(device)
     return _tables[key]
 
 
@@ -140,7 +141,7 @@ def value_noise(uv: Tensor, scale_m: float, seed: int, e: Tensor | None = None) 
     i = torch.floor(p)
     f = _smooth(p - i)
     ix, iy = i[:, 0].long(), i[:, 1].long()
-    table = _lattice_table(seed, uv.dtype)
+    table = _lattice_table(seed, uv.dtype, uv.device)
     mask = (1 << _TABLE_BITS) - 1
     hx0, hx1 = ix * 0x2C9277B5, (ix + 1) * 0x2C9277B5  # multipliers < 2^31: |product| < 2^63 for |ix| < 2^32
     hy0, hy1 = iy * 0x1B873593, (iy + 1) * 0x1B873593
@@ -272,7 +273,7 @@ def glyph_ink(uv: Tensor, char_height_m: float, seed: int, e: Tensor | float = 0
     ly = uv[:, 1] - cy * row_h - line_gap * h  # glyph box starts above the gap
     bits = hash_cells(cx.long(), cy.long(), seed, 11)
     blank = hash_float(cx.long(), cy.long(), seed, 12, uv.dtype) < blank_prob
-    seg = _SEGMENTS.to(uv.dtype)
+    seg = _SEGMENTS.to(device=uv.device, dtype=uv.dtype)
     x0, y0 = seg[:, 0] * glyph_w + 0.075 * h, seg[:, 1] * h
     x1, y1 = seg[:, 2] * glyph_w + 0.075 * h, seg[:, 3] * h
     dx, dy = x1 - x0, y1 - y0
