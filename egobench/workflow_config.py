@@ -224,6 +224,7 @@ class Suite:
         diag = config.get("diagnose") or {}
         self.diagnose_jobs = [(s, m) for s in diag.get("scenes", []) for m in diag.get("methods", ["ours"])]
         self.diagnose_source: str = diag.get("source", "run")
+        self.diagnose_max_frames: int | None = diag.get("max_frames")
         self.sweep_seeds: int = int(diag.get("sweep_seeds", 3))
         self.adt_dir: str | None = diag.get("adt_dir")
         self.qualitative_scene = (config.get("plots") or {}).get("qualitative_scene")
@@ -280,9 +281,10 @@ class Suite:
         return [f"{self.run_dir(scene, method, self._scene(scene).seeds[0])}/train.json"]
 
     def diagnose_args(self, scene: str, method: str) -> str:
+        limit = "" if self.diagnose_max_frames is None else f" --max-frames {int(self.diagnose_max_frames)}"
         if self.diagnose_source != "run":
-            return "--source ground_truth"
-        return f"--source run --run {shlex.quote(self.run_dir(scene, method, self._scene(scene).seeds[0]))}"
+            return "--source ground_truth" + limit
+        return f"--source run --run {shlex.quote(self.run_dir(scene, method, self._scene(scene).seeds[0]))}" + limit
 
     def discovery_outputs(self) -> list[str]:
         """Targets of `snakemake discovery`: the hidden-effect sweep, and the ADT diagnosis if configured."""

@@ -111,6 +111,9 @@ def test_diagnose_and_motion_stats_jobs():
     gt = wc.Suite(wc.fill_defaults(config))
     assert gt.diagnose_run("outdoor_0", "ours") == [] and gt.diagnose_args("outdoor_0", "ours") == "--source ground_truth"
     assert gt.motion_stats_args() == f"--kind indoor --real {__file__}"
+    # the paper suite bounds the diagnosis's in-memory frames
+    paper = wc.load_suite(REPO / "config" / "paper.yaml")
+    assert paper.diagnose_args("bike_shop", "ours").endswith(" --max-frames 64")
 
 
 def test_discovery_targets(tmp_path):

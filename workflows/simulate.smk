@@ -1,4 +1,6 @@
-# One synthetic recording per scene (written atomically by the verb: a failed job leaves no folder).
+# One synthetic recording per scene, built in a hidden .<scene>.partial/ folder beside the output and
+# renamed on success; a failed or killed job leaves that partial folder, and the rerun continues it
+# from its last complete frame (byte-identical to an uninterrupted run; egobench.sim.capture).
 
 
 rule simulate:

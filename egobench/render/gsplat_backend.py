@@ -89,8 +89,11 @@ def render_gsplat(
         radii = meta["radii"]
     elif mode == "2dgs":
         backgrounds = None if bg is None else bg[None].expand(B, -1).contiguous()
+        # per-view colours [B, N, 3]: gsplat 1.5.3's rasterization_2dgs does not broadcast [N, D] colours
+        # (its broadcast is commented out; torch.cat with the [B, N, 1] depths would fail)
+        colors_2dgs = g.colors[None].expand(B, -1, -1)
         img, alpha, normals_world, _normals_from_depth, distort, _median, meta = gsplat.rasterization_2dgs(
-            g.means, g.quats, g.scales, g.opacities, g.colors, vm, Ks, W, H,
+            g.means, g.quats, g.scales, g.opacities, colors_2dgs, vm, Ks, W, H,
             near_plane=NEAR_PLANE, packed=False, tile_size=tile_size, backgrounds=backgrounds,
             render_mode="RGB+ED", absgrad=absgrad, distloss=True,
         )

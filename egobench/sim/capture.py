@@ -29,15 +29,30 @@ max_motion_px is the largest displacement of preview scene points during the exp
 first, middle and last rows. `tests/test_capture.py` checks that doubling S changes the
 noise-free display image by less than half an 8-bit level on average.
 
-Everything is built in a temporary folder and renamed on success (egobench.io_utils.atomic_dir).
+Interruption and resumption: the recording is built in a hidden partial folder beside the output
+(`partial_dir`: `<parent>/.<name>.partial/`). After each frame's files, a small state file
+`.resume/NNNNN.json` is written (atomically, last) holding what later frames depend on: the
+auto-exposure state, the noise generator state, the frame's transforms/calibration/truth records
+and the SimConfig hash. A rerun with `resume="auto"` (the CLI default) continues after the last
+frame with a state file and writes a recording byte-identical to an uninterrupted run
+(recording.json's simulation_time_s aside). On success the partial folder replaces the output
+(os.replace after removing an old output).
 """
 
 from __future__ import annotations
 
+import base64
+import dataclasses
+import hashlib
+import json
 import math
+import os
+import shutil
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import torch
@@ -403,6 +418,8 @@ class CaptureResult:
     temporal_samples: list[int] = field(default_factory=list)
     exposures_s: list[float] = field(default_factory=list)
     gains: list[float] = field(default_factory=list)
+    complete: bool = True  # False: stopped by `stop_after`; `path` is then the partial folder
+    resumed_from: int = 0  # frames taken over from an earlier run's partial folder
 
 
 def _to_uint8(display: Tensor) -> np.ndarray:
@@ -428,8 +445,170 @@ def _rig(cal: CameraCalibration, rect_size: int, device: DeviceProfile):
     return Rectification.build(cal.camera(), pin), pin
 
 
-def simulate_recording(config: SimConfig, out_dir: str | Path, progress: bool = True) -> CaptureResult:
-    """Simulate `config` into the recording folder `out_dir` (layout: docs/architecture.md)."""
+# ----------------------------------------------------------------------------------------
+# interruption and resumption (the partial folder)
+# ----------------------------------------------------------------------------------------
+#: Schema of the partial folder's manifest (`<partial>/.resume/partial.json`).
+PARTIAL_SCHEMA = "egobench.sim.partial/1"
+#: Folder inside the partial folder: the manifest and one state file per completed frame.
+RESUME_SUBDIR = ".resume"
+#: Folders holding one file per frame, named NNNNN.<ext> (frames past the last state file are removed on resume).
+FRAME_DIRS = ("raw", "online/images", "online/sparse_depth", "factory/images", "factory/sparse_depth",
+              "ground_truth/radiance", "ground_truth/depth", "ground_truth/normal")
+
+
+def partial_dir(out_dir: str | Path) -> Path:
+    """The hidden folder `out_dir` is built in: `<parent>/.<name>.partial` (kept when interrupted)."""
+    out_dir = Path(out_dir)
+    return out_dir.parent / f".{out_dir.name}.partial"
+
+
+def sim_config_hash(config: SimConfig) -> str:
+    """sha1 (hex) of the canonical SimConfig (`to_dict`, sorted keys) and the egobench version."""
+    import egobench
+
+    blob = json.dumps({"sim_config": config.to_dict(), "egobench_version": egobench.__version__}, sort_keys=True)
+    return hashlib.sha1(blob.encode()).hexdigest()
+
+
+def _frame_state_path(partial: Path, k: int) -> Path:
+    return partial / RESUME_SUBDIR / f"{k:05d}.json"
+
+
+def _read_partial(partial: Path, config_hash: str) -> tuple[list[dict], str | None]:
+    """-> (state records of the completed frames 0..m-1 in order, None), or ([], why the partial
+    folder cannot be resumed). Frame m is the first without a readable state file of this config."""
+    from egobench.io_utils import read_json
+
+    manifest = partial / RESUME_SUBDIR / "partial.json"
+    try:
+        meta = read_json(manifest)
+    except (FileNotFoundError, ValueError) as exc:
+        return [], f"no readable manifest ({exc})"
+    if not isinstance(meta, dict) or meta.get("schema") != PARTIAL_SCHEMA:
+        return [], f"{manifest}: field 'schema' is not {PARTIAL_SCHEMA!r}"
+    if meta.get("config_hash") != config_hash:
+        return [], (f"it was written for a different SimConfig or egobench version (config hash "
+                    f"{str(meta.get('config_hash'))[:12]}, egobench {meta.get('egobench_version')}; "
+                    f"this run: {config_hash[:12]})")
+    states: list[dict] = []
+    while True:
+        path = _frame_state_path(partial, len(states))
+        if not path.is_file():
+            break
+        try:
+            st = read_json(path)
+        except ValueError:
+            break
+        if not isinstance(st, dict) or st.get("frame") != len(states) or st.get("config_hash") != config_hash:
+            break
+        states.append(st)
+    return states, None
+
+
+def _drop_frames_from(partial: Path, first: int) -> None:
+    """Remove the per-frame files and state files of frames >= `first` (half-written or stale) and
+    the temporary files an interrupted atomic write left anywhere in the partial folder."""
+    for sub in FRAME_DIRS + (RESUME_SUBDIR,):
+        folder = partial / sub
+        if not folder.is_dir():
+            continue
+        for f in folder.iterdir():
+            stem = f.name.split(".", 1)[0]
+            if f.is_file() and stem.isdigit() and int(stem) >= first:
+                f.unlink()
+    for f in partial.rglob(".*.tmp*"):
+        if f.is_file():
+            f.unlink()
+
+
+def _encode_generator(generator: torch.Generator) -> str:
+    return base64.b64encode(generator.get_state().numpy().tobytes()).decode("ascii")
+
+
+def _decode_generator(generator: torch.Generator, text: str) -> None:
+    generator.set_state(torch.frombuffer(bytearray(base64.b64decode(text)), dtype=torch.uint8).clone())
+
+
+def _finalise(partial: Path, out_dir: Path) -> None:
+    """Drop the resume state and move the finished partial folder onto `out_dir` (replacing it)."""
+    state = partial / RESUME_SUBDIR
+    trash = out_dir.parent / f".{out_dir.name}.partial-state.tmp"
+    if trash.exists():
+        shutil.rmtree(trash)
+    if state.exists():
+        os.replace(state, trash)  # one rename: the partial folder is never without its manifest for long
+    if out_dir.exists():
+        shutil.rmtree(out_dir)
+    os.replace(partial, out_dir)
+    if trash.exists():
+        shutil.rmtree(trash)
+
+
+def simulate_recording(config: SimConfig, out_dir: str | Path, progress: bool = True, *,
+                       resume: bool | Literal["auto"] = False, stop_after: int | None = None) -> CaptureResult:
+    """Simulate `config` into the recording folder `out_dir` (layout: docs/architecture.md).
+
+    The recording is built in `partial_dir(out_dir)`; after every frame a state file (written last)
+    records what later frames depend on. ``resume``: False starts afresh (an existing partial folder
+    is discarded) and removes the partial folder when an exception ends the run (nothing left
+    behind); "auto" (the CLI's and the workflow's choice) continues a partial folder of the same
+    SimConfig and egobench version, and discards one of another config with a message on stderr;
+    True continues one and raises (FileNotFoundError / ValueError) when there is none to continue.
+    With resume on, the partial folder is kept when the run fails, so rerunning the command
+    continues it; the result is byte-identical to an uninterrupted run (recording.json's
+    simulation_time_s, summed over the runs, aside). ``stop_after``: stop once that many frames
+    (in total) are done, keeping the partial folder (an interruption hook, as in
+    egobench.train.train); the result then has ``complete=False`` and ``path`` = the partial folder.
+    On success the partial folder replaces `out_dir` (os.replace after removing an old `out_dir`).
+    """
+    import egobench
+    from egobench.io_utils import write_json
+
+    config.validate()
+    if resume not in (True, False, "auto"):
+        raise ValueError(f"simulate_recording: resume must be True, False or 'auto', got {resume!r}")
+    if stop_after is not None and (isinstance(stop_after, bool) or not isinstance(stop_after, int) or stop_after < 0):
+        raise ValueError(f"simulate_recording: stop_after must be None or an int >= 0, got {stop_after!r}")
+    t_begin = time.perf_counter()
+    out_dir = Path(out_dir)
+    partial = partial_dir(out_dir)
+    chash = sim_config_hash(config)
+
+    # Resume a partial folder, or discard it and start afresh.
+    states: list[dict] = []
+    if partial.exists():
+        why = "resume is off"
+        if resume:
+            states, why = _read_partial(partial, chash)
+        if why is not None:
+            if resume is True:
+                raise ValueError(f"{partial}: cannot resume: {why}")
+            print(f"egobench simulate: discarding the partial recording {partial}: {why}; starting afresh",
+                  file=sys.stderr)
+            shutil.rmtree(partial)
+    elif resume is True:
+        raise FileNotFoundError(f"{partial}: no partial recording to resume from")
+    resuming = partial.exists()
+    if resuming:
+        print(f"egobench simulate: resuming {partial} after {len(states)}/{config.n_frames} frames", file=sys.stderr)
+    else:
+        (partial / RESUME_SUBDIR).mkdir(parents=True)
+        write_json(partial / RESUME_SUBDIR / "partial.json", {
+            "schema": PARTIAL_SCHEMA, "config_hash": chash, "egobench_version": egobench.__version__,
+            "sim_config": config.to_dict()})
+
+    try:
+        return _simulate_into(config, out_dir, partial, chash, states, resuming, progress, stop_after, t_begin)
+    except BaseException:
+        if not resume and partial.exists():
+            shutil.rmtree(partial, ignore_errors=True)
+        raise
+
+
+def _simulate_into(config: SimConfig, out_dir: Path, partial: Path, chash: str, states: list[dict], resuming: bool,
+                   progress: bool, stop_after: int | None, t_begin: float) -> CaptureResult:
+    """The body of `simulate_recording`: frames len(states).. into `partial`, then the recording files."""
     import egobench
     from tqdm import tqdm
 
@@ -437,15 +616,12 @@ def simulate_recording(config: SimConfig, out_dir: str | Path, progress: bool = 
     from egobench.data.transforms import frame_entry, write_camera_maps, write_png, write_sparse_depth, write_transforms
     from egobench.formation import FormationConfig, FormationModel, PoissonGaussianNoise, radial_vignette
     from egobench.geometry import se3_inverse, transform_points
-    from egobench.io_utils import atomic_dir, write_json
+    from egobench.io_utils import write_json
     from egobench.sim.calibration import calibration_record, make_calibrations
     from egobench.sim.motion import HeadMotionConfig, simulate_head_motion
     from egobench.sim.world import make_scene
 
-    config.validate()
-    t_begin = time.perf_counter()
     dev = get_device(config.device_name)
-    out_dir = Path(out_dir)
     cals = make_calibrations(config)
     true_cal = cals.true
     scene = make_scene(config.kind, config.seed)
@@ -514,147 +690,184 @@ def simulate_recording(config: SimConfig, out_dir: str | Path, progress: bool = 
     calib_lines = []
     truth_frames = []
 
-    with atomic_dir(out_dir) as tmp:
-        for sub in ("mps", "online/images", "online/sparse_depth", "factory/images", "factory/sparse_depth",
-                    "ground_truth/radiance", "ground_truth/depth", "ground_truth/normal"):
-            (tmp / sub).mkdir(parents=True, exist_ok=True)
-        if config.write_raw:
-            (tmp / "raw").mkdir()
-        iterator = range(config.n_frames)
-        if progress:
-            iterator = tqdm(iterator, desc=f"simulate {config.recording_name}", unit="frame")
-        for k in iterator:
-            read_start_true = int(t_cam[k] + true_offset_ns)
-            # 1. preview: auto-exposure and motion estimate
-            t_mid = read_start_true + int(round(readout_true * 0.5e9))
-            lum, pts, _ = preview(scene, traj, raw, t_mid)
-            exposure_true, gain = ae.step(float(lum.median()) if lum.numel() else 0.0)
-            motion_px = motion_during_exposure_px(traj, raw, pts, read_start_true, exposure_true, readout_true)
-            S = paired_temporal_samples(choose_temporal_samples(config, motion_px), raw.pixel_samples)
-            # 2. raw rolling-shutter capture (clean linear irradiance)
-            irr = capture_irradiance(scene, traj, raw, read_start_true, exposure_true, readout_true, S)
-            # 3. formation
-            display = formation.simulate(irr, exposure_s=exposure_true, gain=gain, sensitivity=dev.sensitivity,
-                                         vignette=vignette_true, white_balance=wb,
-                                         noise=noise_model if config.noise else None, generator=generator)
-            raw8 = _to_uint8(display)
-            raw8[~raw.valid.numpy()] = 0
-            if config.jpeg:
-                raw8 = _jpeg(raw8, config.jpeg_quality)
-            if config.write_raw:
-                write_png(tmp / "raw" / f"{k:05d}.png", raw8)
-            raw_f = torch.from_numpy(raw8).to(torch.float32) / 255.0
-            exposure_recorded = exposure_true * (1.0 + config.exposure_metadata_error) if k in bad_frames else exposure_true
-            # 5. ground truth in the online camera
-            gt_irr = rect_online.warp(irr).clamp(0, FLOAT16_MAX)
-            np.save(tmp / "ground_truth" / "radiance" / f"{k:05d}.npy", gt_irr.to(torch.float16).numpy())
-            t_pix = (read_start_true + torch.round((rtr_online * readout_true + exposure_true / 2) * 1e9).to(torch.int64))
-            Tp = camera_poses(traj, _as_T(cals.online), t_pix[gt_valid])  # [n, 4, 4]
-            d_cam = gt_rays[gt_valid]  # [n, 3] z = 1
-            d_world = torch.einsum("nij,nj->ni", Tp[:, :3, :3], d_cam)
-            norm = d_world.norm(dim=-1, keepdim=True)
-            t_hit, n_world, is_hit = geometry_cast(scene, Tp[:, :3, 3].to(torch.float32).contiguous(),
-                                                   (d_world / norm).to(torch.float32).contiguous())
-            z = t_hit / norm[:, 0]
-            z = torch.where(is_hit & torch.isfinite(z), z, torch.zeros_like(z))
-            n_cam = torch.einsum("nji,nj->ni", Tp[:, :3, :3], n_world)
-            n_cam = torch.where(is_hit[:, None], n_cam, torch.zeros_like(n_cam))
-            depth_map = torch.zeros(gt_valid.shape, dtype=torch.float64)
-            depth_map[gt_valid] = z
-            normal_map = torch.zeros(gt_valid.shape + (3,), dtype=torch.float64)
-            normal_map[gt_valid] = n_cam
-            np.save(tmp / "ground_truth" / "depth" / f"{k:05d}.npy", depth_map.to(torch.float16).numpy())
-            np.save(tmp / "ground_truth" / "normal" / f"{k:05d}.npy", normal_map.to(torch.float16).numpy())
-            # visibility of the semi-dense points from the true camera centre at mid-frame
-            T_mid = camera_poses(traj, _as_T(true_cal), [t_mid])[0]
-            visible = torch.zeros(clean_filtered.shape[0], dtype=torch.bool)
-            if clean_filtered.shape[0]:
-                vec = clean_filtered - T_mid[:3, 3]
-                dist = vec.norm(dim=-1)
-                pc = transform_points(se3_inverse(T_mid), clean_filtered)
-                front = pc[:, 2] > 0.05
-                if bool(front.any()):
-                    t_vis, _, h_vis = geometry_cast(scene, T_mid[:3, 3].to(torch.float32).expand(int(front.sum()), 3).contiguous(),
-                                                    (vec[front] / dist[front, None]).to(torch.float32).contiguous())
-                    ok = h_vis & (t_vis >= dist[front] - (0.02 + 0.01 * dist[front]))
-                    visible[front] = ok
-            # 4. rectify with each calibration and write the frame
-            for name, cal in (("online", cals.online), ("factory", cals.factory)):
-                rect, pin = rigs[name]
-                img = _to_uint8(rect.warp(raw_f))
-                write_png(tmp / name / "images" / f"{k:05d}.png", img)
-                offset_ns = int(round(cal.time_offset_s * 1e9))
-                read_start = int(t_cam[k] + offset_ns)
-                read_end = read_start + int(round(readout_stated * 1e9))
-                timestamp = read_start + int(round((readout_stated / 2 + exposure_recorded / 2) * 1e9))
-                T_dc = _as_T(cal)
-                T_wc = camera_poses(traj, T_dc, [timestamp])[0]
-                frames_out[name].append(frame_entry(k, pin, T_dc.numpy(), T_wc.numpy(), timestamp, read_start, read_end,
-                                                    exposure_recorded, gain))
-                # sparse depth: visible filtered points projected with this calibration's camera
-                pcam = transform_points(se3_inverse(T_wc), noisy_filtered[visible])
-                uv, okp = pin.project(pcam)
-                inside = okp & (uv[:, 0] >= 0) & (uv[:, 0] <= pin.width - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= pin.height - 1)
-                iu = uv[:, 0].round().long().clamp(0, pin.width - 1)
-                iv = uv[:, 1].round().long().clamp(0, pin.height - 1)
-                inside &= rect.valid[iv, iu]
-                idx = visible.nonzero()[:, 0][inside]
-                write_sparse_depth(tmp / name / "sparse_depth" / f"{k:05d}.json", uv[inside].numpy(), pcam[inside, 2].numpy(),
-                                   sd_filtered.inv_dist_std[idx.numpy()], sd_filtered.dist_std[idx.numpy()])
-                if name == "online":
-                    calib_lines.append(calibration_record(cal, tracking_timestamp_us=timestamp // 1000))
-            truth_frames.append({
-                "index": k, "camera_read_start_ns": int(t_cam[k]), "read_start_true_ns": read_start_true,
-                "exposure_true_s": exposure_true, "exposure_recorded_s": exposure_recorded, "gain": gain,
-                "exposure_metadata_wrong": k in bad_frames, "temporal_samples": S,
-                "rays_per_pixel": S * raw.pixel_samples if S < raw.pixel_samples else S,
-                "motion_during_exposure_px": motion_px,
-                "median_luminance": float(lum.median()) if lum.numel() else 0.0,
-            })
-            result.temporal_samples.append(S)
-            result.exposures_s.append(exposure_true)
-            result.gains.append(gain)
+    # Frames already completed by an earlier run: their records and the state after the last one.
+    elapsed_before_s = 0.0
+    if resuming:
+        _drop_frames_from(partial, len(states))
+    online_record = calibration_record(cals.online) if states else None
+    for st in states:
+        for name in ("online", "factory"):
+            frames_out[name].append(st["frames_out"][name])
+        calib_lines.append(dataclasses.replace(online_record, tracking_timestamp_us=st["tracking_timestamp_us"]))
+        truth_frames.append(st["truth"])
+        result.temporal_samples.append(st["truth"]["temporal_samples"])
+        result.exposures_s.append(st["truth"]["exposure_true_s"])
+        result.gains.append(st["truth"]["gain"])
+    if states:
+        last = states[-1]
+        ae.log_eg = last["auto_exposure"]["log_eg"]
+        held = last["auto_exposure"]["held"]
+        ae.held = None if held is None else (float(held[0]), float(held[1]))
+        _decode_generator(generator, last["noise_generator"])
+        elapsed_before_s = float(last["elapsed_s"])
+    result.resumed_from = len(states)
 
-        # camera-level files
+    for sub in ("mps",) + FRAME_DIRS[1:]:
+        (partial / sub).mkdir(parents=True, exist_ok=True)
+    if config.write_raw:
+        (partial / "raw").mkdir(exist_ok=True)
+    end = config.n_frames if stop_after is None else min(config.n_frames, stop_after)
+    iterator = range(len(states), end)
+    if progress:
+        iterator = tqdm(iterator, desc=f"simulate {config.recording_name}", unit="frame", initial=len(states),
+                        total=config.n_frames)
+    for k in iterator:
+        read_start_true = int(t_cam[k] + true_offset_ns)
+        # 1. preview: auto-exposure and motion estimate
+        t_mid = read_start_true + int(round(readout_true * 0.5e9))
+        lum, pts, _ = preview(scene, traj, raw, t_mid)
+        exposure_true, gain = ae.step(float(lum.median()) if lum.numel() else 0.0)
+        motion_px = motion_during_exposure_px(traj, raw, pts, read_start_true, exposure_true, readout_true)
+        S = paired_temporal_samples(choose_temporal_samples(config, motion_px), raw.pixel_samples)
+        # 2. raw rolling-shutter capture (clean linear irradiance)
+        irr = capture_irradiance(scene, traj, raw, read_start_true, exposure_true, readout_true, S)
+        # 3. formation
+        display = formation.simulate(irr, exposure_s=exposure_true, gain=gain, sensitivity=dev.sensitivity,
+                                     vignette=vignette_true, white_balance=wb,
+                                     noise=noise_model if config.noise else None, generator=generator)
+        raw8 = _to_uint8(display)
+        raw8[~raw.valid.numpy()] = 0
+        if config.jpeg:
+            raw8 = _jpeg(raw8, config.jpeg_quality)
+        if config.write_raw:
+            write_png(partial / "raw" / f"{k:05d}.png", raw8)
+        raw_f = torch.from_numpy(raw8).to(torch.float32) / 255.0
+        exposure_recorded = exposure_true * (1.0 + config.exposure_metadata_error) if k in bad_frames else exposure_true
+        # 5. ground truth in the online camera
+        gt_irr = rect_online.warp(irr).clamp(0, FLOAT16_MAX)
+        np.save(partial / "ground_truth" / "radiance" / f"{k:05d}.npy", gt_irr.to(torch.float16).numpy())
+        t_pix = (read_start_true + torch.round((rtr_online * readout_true + exposure_true / 2) * 1e9).to(torch.int64))
+        Tp = camera_poses(traj, _as_T(cals.online), t_pix[gt_valid])  # [n, 4, 4]
+        d_cam = gt_rays[gt_valid]  # [n, 3] z = 1
+        d_world = torch.einsum("nij,nj->ni", Tp[:, :3, :3], d_cam)
+        norm = d_world.norm(dim=-1, keepdim=True)
+        t_hit, n_world, is_hit = geometry_cast(scene, Tp[:, :3, 3].to(torch.float32).contiguous(),
+                                               (d_world / norm).to(torch.float32).contiguous())
+        z = t_hit / norm[:, 0]
+        z = torch.where(is_hit & torch.isfinite(z), z, torch.zeros_like(z))
+        n_cam = torch.einsum("nji,nj->ni", Tp[:, :3, :3], n_world)
+        n_cam = torch.where(is_hit[:, None], n_cam, torch.zeros_like(n_cam))
+        depth_map = torch.zeros(gt_valid.shape, dtype=torch.float64)
+        depth_map[gt_valid] = z
+        normal_map = torch.zeros(gt_valid.shape + (3,), dtype=torch.float64)
+        normal_map[gt_valid] = n_cam
+        np.save(partial / "ground_truth" / "depth" / f"{k:05d}.npy", depth_map.to(torch.float16).numpy())
+        np.save(partial / "ground_truth" / "normal" / f"{k:05d}.npy", normal_map.to(torch.float16).numpy())
+        # visibility of the semi-dense points from the true camera centre at mid-frame
+        T_mid = camera_poses(traj, _as_T(true_cal), [t_mid])[0]
+        visible = torch.zeros(clean_filtered.shape[0], dtype=torch.bool)
+        if clean_filtered.shape[0]:
+            vec = clean_filtered - T_mid[:3, 3]
+            dist = vec.norm(dim=-1)
+            pc = transform_points(se3_inverse(T_mid), clean_filtered)
+            front = pc[:, 2] > 0.05
+            if bool(front.any()):
+                t_vis, _, h_vis = geometry_cast(scene, T_mid[:3, 3].to(torch.float32).expand(int(front.sum()), 3).contiguous(),
+                                                (vec[front] / dist[front, None]).to(torch.float32).contiguous())
+                ok = h_vis & (t_vis >= dist[front] - (0.02 + 0.01 * dist[front]))
+                visible[front] = ok
+        # 4. rectify with each calibration and write the frame
         for name, cal in (("online", cals.online), ("factory", cals.factory)):
             rect, pin = rigs[name]
-            write_camera_maps(tmp / name, rect.warp_vignette(device_vignette(cal)).numpy(), rect.valid.numpy(),
-                              rect.row_time_ratio().numpy())
-            write_transforms(tmp / name, frames_out[name], camera_label=dev.label,
-                             extra={"calibration": name, "readout_s": readout_stated,
-                                    "pixel_centre_convention": "integer (projectaria): cx = (W - 1) / 2 is centred"})
-        traj.to_mps_csv(tmp / "mps" / "closed_loop_trajectory.csv")
-        write_semidense_points(tmp / "mps" / "semidense_points.csv.gz", semidense)
-        write_online_calibration(tmp / "mps" / "online_calibration.jsonl", calib_lines)
-        write_calibration_json(tmp / "mps" / "factory_calibration.json", calibration_record(cals.factory))
-        result.time_s = time.perf_counter() - t_begin
-        write_json(tmp / "ground_truth" / "truth.json", {
-            "true_calibration": calibration_record(true_cal).to_json(),
-            "calibration_errors": cals.perturbations,
-            "hidden_effects": {
-                "readout_scale": config.readout_scale, "readout_true_s": readout_true, "readout_stated_s": readout_stated,
-                "time_offset_s": config.time_offset_s, "time_offset_true_s": true_cal.time_offset_s,
-                "exposure_s": config.exposure_s, "vignette_strength": config.vignette_strength,
-                "response_gamma": gamma, "white_balance": list(config.white_balance),
-                "exposure_metadata_error": config.exposure_metadata_error,
-                "exposure_metadata_frames": sorted(bad_frames),
-                "noise": config.noise, "full_well_e": noise_model.full_well_e, "read_noise_e": noise_model.read_noise_e,
-                "noise_std_factor": config.noise_std_factor, "distortion_k0_delta": config.distortion_k0_delta,
-            },
-            "device": dev.name, "sensitivity": dev.sensitivity, "vignette_corner": dev.vignette_corner,
-            "vignette_power": dev.vignette_power, "exposure_protocol": config.protocol,
-            "gt_units": {"radiance": "clean linear irradiance (world radiance units, cd/m^2-like), exposure-averaged, "
-                                     "rectified like online/ images (float16, clipped at 65000)",
-                         "depth": "z in the online rectified camera, metres, 0 = no hit / invalid (float16)",
-                         "normal": "unit normal in the online camera frame, 0 = none (float16)"},
-            "frames": truth_frames,
+            img = _to_uint8(rect.warp(raw_f))
+            write_png(partial / name / "images" / f"{k:05d}.png", img)
+            offset_ns = int(round(cal.time_offset_s * 1e9))
+            read_start = int(t_cam[k] + offset_ns)
+            read_end = read_start + int(round(readout_stated * 1e9))
+            timestamp = read_start + int(round((readout_stated / 2 + exposure_recorded / 2) * 1e9))
+            T_dc = _as_T(cal)
+            T_wc = camera_poses(traj, T_dc, [timestamp])[0]
+            frames_out[name].append(frame_entry(k, pin, T_dc.numpy(), T_wc.numpy(), timestamp, read_start, read_end,
+                                                exposure_recorded, gain))
+            # sparse depth: visible filtered points projected with this calibration's camera
+            pcam = transform_points(se3_inverse(T_wc), noisy_filtered[visible])
+            uv, okp = pin.project(pcam)
+            inside = okp & (uv[:, 0] >= 0) & (uv[:, 0] <= pin.width - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= pin.height - 1)
+            iu = uv[:, 0].round().long().clamp(0, pin.width - 1)
+            iv = uv[:, 1].round().long().clamp(0, pin.height - 1)
+            inside &= rect.valid[iv, iu]
+            idx = visible.nonzero()[:, 0][inside]
+            write_sparse_depth(partial / name / "sparse_depth" / f"{k:05d}.json", uv[inside].numpy(), pcam[inside, 2].numpy(),
+                               sd_filtered.inv_dist_std[idx.numpy()], sd_filtered.dist_std[idx.numpy()])
+            if name == "online":
+                calib_lines.append(calibration_record(cal, tracking_timestamp_us=timestamp // 1000))
+        truth_frames.append({
+            "index": k, "camera_read_start_ns": int(t_cam[k]), "read_start_true_ns": read_start_true,
+            "exposure_true_s": exposure_true, "exposure_recorded_s": exposure_recorded, "gain": gain,
+            "exposure_metadata_wrong": k in bad_frames, "temporal_samples": S,
+            "rays_per_pixel": S * raw.pixel_samples if S < raw.pixel_samples else S,
+            "motion_during_exposure_px": motion_px,
+            "median_luminance": float(lum.median()) if lum.numel() else 0.0,
         })
-        write_json(tmp / "recording.json", {
-            "name": config.recording_name, "scene_kind": config.kind, "device": dev.name, "motion": config.motion,
-            "seed": config.seed, "sim_config": config.to_dict(), "egobench_version": egobench.__version__,
-            "raw_size": [W_raw, H_raw], "rectified_size": [config.rectified_size, config.rectified_size],
-            "fps": dev.fps, "simulation_time_s": result.time_s,
-            "temporal_samples": {"min": min(result.temporal_samples), "max": max(result.temporal_samples),
-                                 "mean": float(np.mean(result.temporal_samples))},
-        })
+        result.temporal_samples.append(S)
+        result.exposures_s.append(exposure_true)
+        result.gains.append(gain)
+        # the frame's state, written last: a frame without it is redone by a resumed run
+        write_json(_frame_state_path(partial, k), {
+            "frame": k, "config_hash": chash,
+            "frames_out": {name: frames_out[name][-1] for name in ("online", "factory")},
+            "tracking_timestamp_us": calib_lines[-1].tracking_timestamp_us, "truth": truth_frames[-1],
+            "auto_exposure": {"log_eg": ae.log_eg, "held": None if ae.held is None else list(ae.held)},
+            "noise_generator": _encode_generator(generator),
+            "elapsed_s": elapsed_before_s + time.perf_counter() - t_begin,
+        }, indent=None)
+
+    if end < config.n_frames:  # stopped by stop_after: the partial folder stays for a later run
+        result.complete, result.path = False, partial
+        result.time_s = elapsed_before_s + time.perf_counter() - t_begin
+        return result
+
+    # camera-level files
+    for name, cal in (("online", cals.online), ("factory", cals.factory)):
+        rect, pin = rigs[name]
+        write_camera_maps(partial / name, rect.warp_vignette(device_vignette(cal)).numpy(), rect.valid.numpy(),
+                          rect.row_time_ratio().numpy())
+        write_transforms(partial / name, frames_out[name], camera_label=dev.label,
+                         extra={"calibration": name, "readout_s": readout_stated,
+                                "pixel_centre_convention": "integer (projectaria): cx = (W - 1) / 2 is centred"})
+    traj.to_mps_csv(partial / "mps" / "closed_loop_trajectory.csv")
+    write_semidense_points(partial / "mps" / "semidense_points.csv.gz", semidense)
+    write_online_calibration(partial / "mps" / "online_calibration.jsonl", calib_lines)
+    write_calibration_json(partial / "mps" / "factory_calibration.json", calibration_record(cals.factory))
+    result.time_s = elapsed_before_s + time.perf_counter() - t_begin
+    write_json(partial / "ground_truth" / "truth.json", {
+        "true_calibration": calibration_record(true_cal).to_json(),
+        "calibration_errors": cals.perturbations,
+        "hidden_effects": {
+            "readout_scale": config.readout_scale, "readout_true_s": readout_true, "readout_stated_s": readout_stated,
+            "time_offset_s": config.time_offset_s, "time_offset_true_s": true_cal.time_offset_s,
+            "exposure_s": config.exposure_s, "vignette_strength": config.vignette_strength,
+            "response_gamma": gamma, "white_balance": list(config.white_balance),
+            "exposure_metadata_error": config.exposure_metadata_error,
+            "exposure_metadata_frames": sorted(bad_frames),
+            "noise": config.noise, "full_well_e": noise_model.full_well_e, "read_noise_e": noise_model.read_noise_e,
+            "noise_std_factor": config.noise_std_factor, "distortion_k0_delta": config.distortion_k0_delta,
+        },
+        "device": dev.name, "sensitivity": dev.sensitivity, "vignette_corner": dev.vignette_corner,
+        "vignette_power": dev.vignette_power, "exposure_protocol": config.protocol,
+        "gt_units": {"radiance": "clean linear irradiance (world radiance units, cd/m^2-like), exposure-averaged, "
+                                 "rectified like online/ images (float16, clipped at 65000)",
+                     "depth": "z in the online rectified camera, metres, 0 = no hit / invalid (float16)",
+                     "normal": "unit normal in the online camera frame, 0 = none (float16)"},
+        "frames": truth_frames,
+    })
+    write_json(partial / "recording.json", {
+        "name": config.recording_name, "scene_kind": config.kind, "device": dev.name, "motion": config.motion,
+        "seed": config.seed, "sim_config": config.to_dict(), "egobench_version": egobench.__version__,
+        "raw_size": [W_raw, H_raw], "rectified_size": [config.rectified_size, config.rectified_size],
+        "fps": dev.fps, "simulation_time_s": result.time_s,
+        "temporal_samples": {"min": min(result.temporal_samples), "max": max(result.temporal_samples),
+                             "mean": float(np.mean(result.temporal_samples))},
+    })
+    _finalise(partial, out_dir)
     return result

@@ -1,4 +1,10 @@
-"""`egobench simulate --kind K --out DIR --seed S [--set field=value ...] [--frames N]`."""
+"""`egobench simulate --kind K --out DIR --seed S [--set field=value ...] [--frames N] [--no-resume]`.
+
+The recording is built in the hidden folder `<parent>/.<name>.partial/` beside --out; rerunning
+the same command after an interruption (time limit, OOM, Ctrl-C, a crash) continues after the
+last completed frame (egobench.sim.capture.simulate_recording, resume="auto"); a partial folder
+written for another configuration is discarded with a message on stderr.
+"""
 
 from __future__ import annotations
 
@@ -16,6 +22,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="FIELD=VALUE",
                         help="override a SimConfig field (repeatable), e.g. --set motion=fast --set readout_scale=1.3")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--no-resume", action="store_true",
+                        help="start afresh: discard a partial recording of an interrupted run of the same --out "
+                             "(by default it is continued), and remove the partial folder if this run fails")
 
 
 def parse_overrides(items: list[str]) -> dict[str, str]:
@@ -37,7 +46,8 @@ def run(args: argparse.Namespace) -> int:
     if args.frames is not None:
         overrides["n_frames"] = str(args.frames)
     config = SimConfig.from_overrides(args.kind, args.seed, overrides)
-    result = simulate_recording(config, args.out, progress=not args.no_progress)
+    result = simulate_recording(config, args.out, progress=not args.no_progress,
+                                resume=False if args.no_resume else "auto")
     print(json.dumps({"recording": str(result.path), "frames": result.n_frames, "time_s": round(result.time_s, 2),
-                      "temporal_samples_max": max(result.temporal_samples)}))
+                      "temporal_samples_max": max(result.temporal_samples), "resumed_from_frame": result.resumed_from}))
     return 0
