@@ -685,4 +685,13 @@ def test_wrapper_means2d_2dgs_is_the_gradient_carrier(fake_gsplat):
     assert a.means2d.shape == (1, 300, 2) and a.means2d.is_leaf and (a.means2d == 0).all()
     assert a.means2d.grad is not None and float(a.means2d.grad[0][keep].abs().max()) > 0
     mv = a.extras["means2d_values"][0]
-    torch.testing.assert_close(mv[keep] - 0.5, b.means2d[0][keep].detach(), atol=2e-5, rtol=0)
+    torch.testing.assert_close(mv[keep] - 0.5, b.extras["means2d_values"][0][keep].detach(), atol=2e-5, rtol=0)
+    # the torch backend returns the same carrier (so CPU and GPU 2DGS runs densify alike): its
+    # gradient equals gsplat's v_densify = (dL/dM[0, 2], dL/dM[1, 2]) * z
+    assert b.means2d.shape == (1, 300, 2) and b.means2d.is_leaf and (b.means2d == 0).all()
+    ga, gb = a.means2d.grad[0][keep], b.means2d.grad[0][keep]
+    assert float((gb - ga).norm() / ga.norm()) < 1e-4  # float32 summation order
+    assert (b.means2d.grad[0][~keep] == 0).all()
+    # and it is not the filter-only gradient of the projected centres (what it was before)
+    filt = b.extras["means2d_values"].grad
+    assert filt is None or float((filt[0][keep] - b.means2d.grad[0][keep]).abs().max()) > 1e-3

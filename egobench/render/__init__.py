@@ -186,9 +186,13 @@ def render(
     normal = feats[..., 4:7] if feats.shape[-1] >= 7 else None
     radii = res.projection.radii.amax(-1)
     extras = {"backend": "torch", "tile_size": int(tile_size)}
+    means2d = res.means2d
     if mode == "2dgs":
         extras["distortion"] = res.distortion[..., None]
-    return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, normal=normal, means2d=res.means2d, radii=radii, extras=extras)
+        if res.densify_2dgs is not None:  # as the gsplat backend: means2d carries gsplat's gradient_2dgs
+            extras["means2d_values"] = res.means2d
+            means2d = res.densify_2dgs
+    return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, normal=normal, means2d=means2d, radii=radii, extras=extras)
 
 
 def _empty_output(b, H, W, means, background, mode, want_normal) -> RenderOutput:

@@ -695,6 +695,22 @@ class RasterResult:
     distortion: Tensor  # [Iout, H, W] 2DGS depth distortion (zeros for 3DGS)
     projection: Projection
     means2d: Tensor  # [I, N, 2] egobench pixel convention (grad-retaining)
+    densify_2dgs: Tensor | None = None  # [I, N, 2] 2DGS: zeros whose gradient is gsplat's gradient_2dgs
+
+
+def _densify_carrier_2dgs(T_sl: Tensor, track: bool) -> tuple[Tensor, Tensor | None]:
+    """gsplat 1.5.3's 2DGS densification signal: a zero [I, N, 2] leaf whose gradient is
+    (dL/dM[0, 2], dL/dM[1, 2]) * z, with M = T_sl the ray transform (its translation column is the
+    homogeneous projected centre, so this is the image-plane gradient of the centre at fixed depth;
+    RasterizeToPixels2DGSBwd.cu ``v_densify``). In 2DGS the centre enters the image only through M,
+    so ``means2d.grad`` alone would carry just the small 2D-filter part. Adds exact zeros to M."""
+    if not track:
+        return T_sl, None
+    carrier = torch.zeros(T_sl.shape[:-2] + (2,), dtype=T_sl.dtype, device=T_sl.device, requires_grad=True)
+    z = T_sl[..., 2, 2].detach()[..., None]  # [I, N, 1]
+    col = torch.cat([carrier * z, torch.zeros_like(z)], dim=-1)  # [I, N, 3]: added to column 2
+    zero = torch.zeros_like(col)
+    return T_sl + torch.stack([zero, zero, col], dim=-1), carrier
 
 
 def rasterize(
@@ -757,7 +773,12 @@ def rasterize(
     origin = _tile_origins(bins, bins.isect_bins, dtype)
     # one gather for every per-(image, Gaussian) quantity (index_select: its backward is a single
     # index_add, both far cheaper on CPU than several advanced-indexing gathers)
-    geom = proj.conics.reshape(-1, 3) if mode == "3dgs" else proj.ray_transforms.reshape(-1, 9)
+    densify_2dgs = None
+    if mode == "3dgs":
+        geom = proj.conics.reshape(-1, 3)
+    else:
+        T_sl, densify_2dgs = _densify_carrier_2dgs(proj.ray_transforms, proj.ray_transforms.requires_grad)
+        geom = T_sl.reshape(-1, 9)
     n_geom = geom.shape[1]
     per_view = [means2d_g.reshape(-1, 2), geom]  # [I * N, ...]
     per_gaussian = [log_opacity[:, None], colors]  # [N, ...]
@@ -798,4 +819,5 @@ def rasterize(
     features = Fb.reshape(-1, Cf).index_select(0, fo).reshape(flat_out.shape + (Cf,))  # [Iout, H, W, Cf]
     trans = Tb.reshape(-1).index_select(0, fo).reshape(flat_out.shape)
     dist = Db.reshape(-1).index_select(0, fo).reshape(flat_out.shape)
-    return RasterResult(features=features, transmittance=trans, distortion=dist, projection=proj, means2d=means2d_out)
+    return RasterResult(features=features, transmittance=trans, distortion=dist, projection=proj, means2d=means2d_out,
+                        densify_2dgs=densify_2dgs)

@@ -57,6 +57,6 @@ class RenderOutput:
     alpha: Tensor  # [B, H, W, 1] accumulated opacity
     depth: Tensor  # [B, H, W, 1] expected depth (camera z), alpha-weighted and normalised by alpha
     normal: Tensor | None = None  # [B, H, W, 3] alpha-weighted normals in camera frame (2DGS; 3DGS when asked)
-    means2d: Tensor | None = None  # [B, N, 2] projected means; retains grad for densification statistics
+    means2d: Tensor | None = None  # [B, N, 2] projected means, retaining grad for densification statistics; 2DGS: gsplat's gradient_2dgs carrier (zeros; values in extras["means2d_values"])
     radii: Tensor | None = None  # [B, N] screen-space radius in pixels, 0 where culled
     extras: dict | None = None  # backend-specific (2DGS distortion map, timings)

@@ -63,8 +63,14 @@ from egobench.data.mps import CameraCalibration, SemiDensePoints
 from egobench.sim.config import SimConfig
 from egobench.sim.devices import SEMIDENSE_NOISE, DeviceProfile, get_device
 
-#: Rays per Scene.cast call (bounds memory).
+#: Rays per Scene.cast call (bounds memory) on the CPU, and on a GPU (fewer, larger kernels).
 CAST_CHUNK = 1 << 16
+CAST_CHUNK_GPU = 1 << 18
+
+
+def cast_chunk_size(device: torch.device | str) -> int:
+    """Rays per Scene.cast call on ``device``."""
+    return CAST_CHUNK if torch.device(device).type == "cpu" else CAST_CHUNK_GPU
 #: Seconds of trajectory before the first and after the last frame.
 TRAJECTORY_MARGIN_S = 0.2
 #: Preview grid (per axis) for auto-exposure and the motion estimate.
@@ -101,14 +107,16 @@ def camera_poses(trajectory, T_device_camera: Tensor, t_ns) -> Tensor:
 
 def cast_chunked(scene, origins: Tensor, dirs: Tensor, want: tuple[str, ...] = ("radiance",),
                  pixel_angle_rad: float | None = None) -> dict[str, Tensor]:
-    """Scene.cast in chunks of CAST_CHUNK rays; origins/dirs [N, 3] float32 (dirs unit).
+    """Scene.cast in chunks (`cast_chunk_size` of the rays' device); origins/dirs [N, 3] float32
+    (dirs unit). The scene works on the rays' device; outputs stay there.
 
     ``pixel_angle_rad`` (about 1 / focal_px) lets textures average over each pixel's footprint,
     as a real pixel integrates over its area (without it, one ray per pixel aliases)."""
     outs: dict[str, list[Tensor]] = {k: [] for k in want}
     n = origins.shape[0]
-    for s in range(0, n, CAST_CHUNK):
-        hit = scene.cast(origins[s:s + CAST_CHUNK], dirs[s:s + CAST_CHUNK], pixel_angle_rad=pixel_angle_rad)
+    chunk = cast_chunk_size(origins.device)
+    for s in range(0, n, chunk):
+        hit = scene.cast(origins[s:s + chunk], dirs[s:s + chunk], pixel_angle_rad=pixel_angle_rad)
         for k in want:
             outs[k].append(getattr(hit, k))
     if n == 0:
@@ -116,12 +124,17 @@ def cast_chunked(scene, origins: Tensor, dirs: Tensor, want: tuple[str, ...] = (
     return {k: torch.cat(v, 0) for k, v in outs.items()}
 
 
-def geometry_cast(scene, origins: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def geometry_cast(scene, origins: Tensor, dirs: Tensor, device: torch.device | str | None = None
+                  ) -> tuple[Tensor, Tensor, Tensor]:
     """Depth-only cast (no shading): -> (t [N] float64 (inf on miss), normal facing the ray [N, 3], hit [N]).
 
     Uses Scene.intersect + Scene.surface_frame when the scene has them (several times cheaper
-    than Scene.cast, which also shades); otherwise Scene.cast.
+    than Scene.cast, which also shades); otherwise Scene.cast. ``device``: cast there (e.g. a GPU)
+    and return the results on the inputs' device.
     """
+    if device is not None and torch.device(device) != origins.device:
+        home = origins.device
+        return tuple(x.to(home) for x in geometry_cast(scene, origins.to(device), dirs.to(device)))
     if not (hasattr(scene, "intersect") and hasattr(scene, "surface_frame")):
         out = cast_chunked(scene, origins, dirs, ("depth_t", "normal_world", "hit"))
         return out["depth_t"].to(torch.float64), out["normal_world"].to(torch.float64), out["hit"]
@@ -237,7 +250,7 @@ def row_start_times_ns(read_start_ns: int, readout_s: float, height: int) -> Ten
 
 
 def capture_irradiance(scene, trajectory, raw: RawCamera, read_start_ns: int, exposure_s: float, readout_s: float,
-                       n_samples: int) -> Tensor:
+                       n_samples: int, device: torch.device | str = "cpu") -> Tensor:
     """Clean linear irradiance of one rolling-shutter raw frame, [H, W, 3] float32.
 
     Every raw row integrates `n_samples` exposure samples (formation.exposure_sample_times_ns)
@@ -245,7 +258,8 @@ def capture_irradiance(scene, trajectory, raw: RawCamera, read_start_ns: int, ex
     `raw.pixel_samples` sub-pixel positions (`sample_schedule`; S is first rounded up by
     `paired_temporal_samples`). Textures are box-filtered over each ray sample's share of the
     pixel (1 / sqrt(P) of the pixel angle), so texture and edge integration together cover
-    the pixel area once. Invalid raw pixels (outside the lens model) are 0.
+    the pixel area once. Invalid raw pixels (outside the lens model) are 0. ``device``: where rays
+    are built and cast (SimConfig.compute_device); the result comes back on the CPU.
     """
     from egobench.formation import exposure_sample_times_ns
 
@@ -257,14 +271,15 @@ def capture_irradiance(scene, trajectory, raw: RawCamera, read_start_ns: int, ex
     T = camera_poses(trajectory, _as_T(raw.calibration), t.reshape(-1)).reshape(H, S, 4, 4)
     time_idx, sub_idx = sample_schedule(S, P)  # [n], [n]
     n = int(time_idx.numel())
-    R = T[:, time_idx, :3, :3].to(torch.float32)  # [H, n, 3, 3]
-    o = T[:, time_idx, :3, 3].to(torch.float32)  # [H, n, 3]
-    rays = raw.sample_rays().to(torch.float32)  # [P, H, W, 3]
-    valid = raw.valid
+    R = T[:, time_idx, :3, :3].to(device=device, dtype=torch.float32)  # [H, n, 3, 3]
+    o = T[:, time_idx, :3, 3].to(device=device, dtype=torch.float32)  # [H, n, 3]
+    rays = raw.sample_rays().to(device=device, dtype=torch.float32)  # [P, H, W, 3]
+    valid = raw.valid.to(device)
+    sub_idx = sub_idx.to(device)
     # radians one ray sample's share of a raw pixel subtends at the centre
     pixel_angle = 1.0 / float(raw.calibration.camera().f) / math.sqrt(P)
-    out = torch.zeros(H, W, 3, dtype=torch.float32)
-    rows_per_chunk = max(1, CAST_CHUNK // max(1, W * n))
+    out = torch.zeros(H, W, 3, dtype=torch.float32, device=device)
+    rows_per_chunk = max(1, cast_chunk_size(device) // max(1, W * n))
     for r0 in range(0, H, rows_per_chunk):
         r1 = min(H, r0 + rows_per_chunk)
         vmask = valid[r0:r1]  # [h, W]
@@ -275,14 +290,16 @@ def capture_irradiance(scene, trajectory, raw: RawCamera, read_start_ns: int, ex
         m = vmask[:, None, :].expand(d.shape[:3])
         rad = cast_chunked(scene, orig[m].contiguous(), d[m].contiguous(),
                            pixel_angle_rad=pixel_angle)["radiance"].to(torch.float32)
-        full = torch.zeros(d.shape[:3] + (3,), dtype=torch.float32)
+        full = torch.zeros(d.shape[:3] + (3,), dtype=torch.float32, device=device)
         full[m] = rad
         out[r0:r1] = full.mean(dim=1)
-    return out
+    return out.cpu()
 
 
-def preview(scene, trajectory, raw: RawCamera, t_ns: int, grid: int = PREVIEW_GRID) -> tuple[Tensor, Tensor, Tensor]:
-    """Coarse cast at one time -> (luminance [n], hit points world [m, 3], their raw pixels [m, 2])."""
+def preview(scene, trajectory, raw: RawCamera, t_ns: int, grid: int = PREVIEW_GRID,
+            device: torch.device | str = "cpu") -> tuple[Tensor, Tensor, Tensor]:
+    """Coarse cast at one time (on ``device``) -> (luminance [n], hit points world [m, 3], their raw
+    pixels [m, 2]), on the CPU."""
     H, W = raw.valid.shape
     iv = torch.linspace(0, H - 1, grid).round().long()
     iu = torch.linspace(0, W - 1, grid).round().long()
@@ -292,7 +309,8 @@ def preview(scene, trajectory, raw: RawCamera, t_ns: int, grid: int = PREVIEW_GR
     T = camera_poses(trajectory, _as_T(raw.calibration), [t_ns])[0]
     d = (rays @ T[:3, :3].T).to(torch.float32)
     o = T[:3, 3].to(torch.float32).expand_as(d).contiguous()
-    hit = scene.cast(o, d)
+    hit = scene.cast(o.to(device), d.to(device))
+    hit = type(hit)(**{k: v.cpu() if isinstance(v, Tensor) else v for k, v in vars(hit).items()})
     lum = hit.radiance.to(torch.float32) @ torch.tensor([0.2126, 0.7152, 0.0722])
     good = hit.hit & torch.isfinite(hit.depth_t)
     pts = (o + d * hit.depth_t[:, None])[good].to(torch.float64)
@@ -622,6 +640,7 @@ def _simulate_into(config: SimConfig, out_dir: Path, partial: Path, chash: str, 
     from egobench.sim.world import make_scene
 
     dev = get_device(config.device_name)
+    compute = config.compute_torch_device()  # where rays are cast; formation and files stay on the CPU
     cals = make_calibrations(config)
     true_cal = cals.true
     scene = make_scene(config.kind, config.seed)
@@ -725,12 +744,12 @@ def _simulate_into(config: SimConfig, out_dir: Path, partial: Path, chash: str, 
         read_start_true = int(t_cam[k] + true_offset_ns)
         # 1. preview: auto-exposure and motion estimate
         t_mid = read_start_true + int(round(readout_true * 0.5e9))
-        lum, pts, _ = preview(scene, traj, raw, t_mid)
+        lum, pts, _ = preview(scene, traj, raw, t_mid, device=compute)
         exposure_true, gain = ae.step(float(lum.median()) if lum.numel() else 0.0)
         motion_px = motion_during_exposure_px(traj, raw, pts, read_start_true, exposure_true, readout_true)
         S = paired_temporal_samples(choose_temporal_samples(config, motion_px), raw.pixel_samples)
         # 2. raw rolling-shutter capture (clean linear irradiance)
-        irr = capture_irradiance(scene, traj, raw, read_start_true, exposure_true, readout_true, S)
+        irr = capture_irradiance(scene, traj, raw, read_start_true, exposure_true, readout_true, S, device=compute)
         # 3. formation
         display = formation.simulate(irr, exposure_s=exposure_true, gain=gain, sensitivity=dev.sensitivity,
                                      vignette=vignette_true, white_balance=wb,
@@ -752,7 +771,7 @@ def _simulate_into(config: SimConfig, out_dir: Path, partial: Path, chash: str, 
         d_world = torch.einsum("nij,nj->ni", Tp[:, :3, :3], d_cam)
         norm = d_world.norm(dim=-1, keepdim=True)
         t_hit, n_world, is_hit = geometry_cast(scene, Tp[:, :3, 3].to(torch.float32).contiguous(),
-                                               (d_world / norm).to(torch.float32).contiguous())
+                                               (d_world / norm).to(torch.float32).contiguous(), device=compute)
         z = t_hit / norm[:, 0]
         z = torch.where(is_hit & torch.isfinite(z), z, torch.zeros_like(z))
         n_cam = torch.einsum("nji,nj->ni", Tp[:, :3, :3], n_world)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 from dataclasses import dataclass, fields
 from typing import Any, Literal
 
@@ -82,6 +83,7 @@ class SimConfig:
     factory_principal_px: float = 0.75  # factory principal point error at full resolution
     factory_time_offset_s: float = 1e-3  # factory time offset error
     name: str | None = None  # recording name; None = "<kind>_<seed>"
+    compute_device: str = "cpu"  # where rays are cast: cpu | cuda | cuda:N | auto (cuda when available); GPU results differ from the CPU's by float rounding
 
     # ------------------------------------------------------------------------------------
     @property
@@ -113,6 +115,18 @@ class SimConfig:
     def true_readout_s(self) -> float:
         return self.stated_readout_s() * self.readout_scale
 
+    def compute_torch_device(self) -> "torch.device":
+        """The torch device rays are cast on (``compute_device``; "auto": CUDA when available)."""
+        import torch
+
+        if self.compute_device == "auto":
+            return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+        dev = torch.device(self.compute_device)
+        if dev.type == "cuda" and not torch.cuda.is_available():
+            raise ValueError(f"SimConfig.compute_device: {self.compute_device!r} but CUDA is not available "
+                             "on this machine (use cpu or auto)")
+        return dev
+
     def validate(self) -> "SimConfig":
         """Raise ValueError naming the first bad field and the expected form; return self."""
 
@@ -138,6 +152,8 @@ class SimConfig:
             bad("device", f"one of {sorted(DEVICES)} or None")
         if self.motion not in MOTION_SETTINGS:
             bad("motion", f"one of {list(MOTION_SETTINGS)}")
+        if not isinstance(self.compute_device, str) or not re.fullmatch(r"cpu|auto|cuda(:\d+)?", self.compute_device):
+            bad("compute_device", "cpu, cuda, cuda:N or auto")
         if self.exposure_protocol is not None and self.exposure_protocol not in EXPOSURE_PROTOCOLS:
             bad("exposure_protocol", f"one of {list(EXPOSURE_PROTOCOLS)} or None")
         for name, lo in (("seed", 0), ("n_frames", 1), ("rectified_size", 8), ("n_semidense_points", 0),
