@@ -167,8 +167,7 @@ def evaluate(recording_dir, run_dir, *, scene: str | None = None, paper_scene: s
     with torch.no_grad():
         for f, n in zip(frames, counts):
             kk = k_all[pos[f.index]]
-            poses, ppi = frame_poses(rec, f, spec, n, rtr, n_exposure_samples=spec.n_exposure_samples
-                                     if spec.motion_sampling == "velocity_shift" else 1)
+            poses, ppi = frame_poses(rec, f, spec, n, rtr, n_exposure_samples=spec.render_exposure_samples)
             outs = render_frame(g, cam, poses, ppi, spec, config)
             rgb = torch.stack([o.rgb[0] for o in outs]).mean(0).cpu()
             pred = quantise8(predict_image(rgb, spec, kk, vignette, formation))

@@ -39,6 +39,12 @@ class MethodSpec:
     table_labels: tuple[tuple[str, str], ...] = ()  # (table, label) where a table spells the row differently
     description: str = ""  # one sentence for reports
 
+    @property
+    def render_exposure_samples(self) -> int:
+        """Poses averaged over the exposure when rendering a frame after warm-up: the velocity-shift
+        model's ``n_exposure_samples``; the trajectory-sampling methods render 1."""
+        return int(self.n_exposure_samples) if self.motion_sampling == "velocity_shift" else 1
+
     def __post_init__(self) -> None:
         if self.calibration not in ("online", "factory"):
             raise ValueError(f"MethodSpec {self.name}: calibration must be 'online' or 'factory', got {self.calibration!r}")

@@ -730,10 +730,7 @@ def train(recording_dir, method: str, config: TrainConfig, out_dir, *, resume: b
         pos += 1
         frame = data.frames[fi]
         n = data.n_samples[fi] if it >= config.motion_warmup_iter else 1
-        if spec.motion_sampling == "velocity_shift" and it < config.motion_warmup_iter:
-            n_exp = 1
-        else:
-            n_exp = spec.n_exposure_samples if spec.motion_sampling == "velocity_shift" else 1
+        n_exp = spec.render_exposure_samples if it >= config.motion_warmup_iter else 1
         poses, ppi = frame_poses(rec, frame, spec, n, row_time_ratio,
                                  pose_delta=extra["pose_delta"][fi] if "pose_delta" in extra else None,
                                  twist=extra["twist"][fi] if "twist" in extra else None,

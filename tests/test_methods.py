@@ -64,3 +64,11 @@ def test_bad_names_and_switches():
     with pytest.raises(ValueError, match="calibration"):
         MethodSpec(name="x", label="x", calibration="viba", formation=True, response_gamma=2.2, scene_gamma=True,
                    motion_sampling="centre", splat_mode="3dgs", pose_optimisation=False)
+
+
+def test_render_exposure_samples():
+    from egobench.methods import get_method
+
+    assert get_method("on_the_move").render_exposure_samples == 2  # velocity shift renders blur
+    for name in ("ours", "no_motion_sampling", "splatfacto", "ours_2dgs"):
+        assert get_method(name).render_exposure_samples == 1

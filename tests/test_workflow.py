@@ -42,7 +42,7 @@ def test_schema_enums_match_the_package():
     assert schema["properties"]["scenes"]["items"]["properties"]["kind"]["enum"] == list(SCENE_KINDS)
 
 
-@pytest.mark.parametrize("name", ["config.yaml", "paper.yaml", "ci.yaml"])
+@pytest.mark.parametrize("name", ["config.yaml", "paper.yaml", "ci.yaml", "paper_smoke.yaml"])
 def test_shipped_configs_are_valid(name):
     suite = wc.load_suite(REPO / "config" / name)
     assert suite.runs() and len(set(suite.runs())) == len(suite.runs())
@@ -178,7 +178,7 @@ def test_lint_is_clean(tmp_path):
     assert "Congratulations" in res.stdout + res.stderr
 
 
-@pytest.mark.parametrize("name, min_jobs", [("config.yaml", 53), ("paper.yaml", 214)])
+@pytest.mark.parametrize("name, min_jobs", [("config.yaml", 53), ("paper.yaml", 214), ("paper_smoke.yaml", 6)])
 def test_dry_run(tmp_path, name, min_jobs):
     res = snakemake(["-n", "--quiet", "rules", "--configfile", str(REPO / "config" / name)], tmp_path)
     assert res.returncode == 0, res.stdout + res.stderr

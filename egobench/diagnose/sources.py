@@ -334,7 +334,7 @@ def run_source(recording_dir: str | Path, run_dir: str | Path, max_frames: int |
     iterator = tqdm(list(zip(frames, counts)), desc="render run", unit="frame") if progress else zip(frames, counts)
     with torch.no_grad():
         for f, n in iterator:
-            poses, ppi = frame_poses(rec, f, spec, n, rtr)
+            poses, ppi = frame_poses(rec, f, spec, n, rtr, n_exposure_samples=spec.render_exposure_samples)
             outs = render_frame(g, cam, poses, ppi, spec, config)
             rgb = torch.stack([o.rgb[0] for o in outs]).mean(0).cpu()
             predicted.append(predict_image(rgb, spec, k_all[pos[f.index]], vignette, formation).numpy())

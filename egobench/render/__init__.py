@@ -67,10 +67,13 @@ def _check_gaussians(g: Gaussians) -> int:
                              f"got {t.dtype}, {t.device}")
     if not means.dtype.is_floating_point:
         raise ValueError(f"render: gaussians.means must be a floating-point tensor, got {means.dtype}")
-    for name in ("means", "quats", "log_scales", "opacity_logits", "colors"):
-        if not bool(torch.isfinite(getattr(g, name)).all()):
-            raise ValueError(f"render: gaussians.{name} must be finite (no NaN/inf)")
-    if n and bool((g.quats.detach().norm(dim=-1) == 0).any()):
+    names = ("means", "quats", "log_scales", "opacity_logits", "colors")
+    checks = [torch.isfinite(getattr(g, name).detach()).all() for name in names]
+    checks.append(~(g.quats.detach().norm(dim=-1) == 0).any())
+    if not bool(torch.stack(checks).all()):  # one host sync; name the culprit only on failure
+        for name, ok in zip(names, checks):
+            if not bool(ok):
+                raise ValueError(f"render: gaussians.{name} must be finite (no NaN/inf)")
         raise ValueError("render: gaussians.quats must be non-zero quaternions (w, x, y, z); found a zero quaternion")
     return n
 
