@@ -172,10 +172,19 @@ def test_bad_configs_name_the_key(mutate, message):
 # Snakemake itself
 
 
+#: The one lint we take on purpose: rules call `{EGOBENCH} <verb>` with the command prefix as a
+#: global, not a param, so that how egobench is invoked (venv script vs `python -m`) is not
+#: provenance and never makes Snakemake redo finished simulations and training.
+ACCEPTED_LINT = "Shell command directly uses variable EGOBENCH from outside of the rule"
+
+
 def test_lint_is_clean(tmp_path):
     res = snakemake(["--lint"], tmp_path)
-    assert res.returncode == 0, res.stdout + res.stderr
-    assert "Congratulations" in res.stdout + res.stderr
+    out = res.stdout + res.stderr
+    lints = [line.strip() for line in out.splitlines() if line.lstrip().startswith("* ")]
+    other = [line for line in lints if ACCEPTED_LINT not in line]
+    assert not other, out
+    assert res.returncode == 0 or lints, out  # a non-zero exit only for the accepted lint
 
 
 @pytest.mark.parametrize("name, min_jobs", [("config.yaml", 53), ("paper.yaml", 214), ("paper_smoke.yaml", 6)])
@@ -239,6 +248,11 @@ def test_ci_suite_runs_end_to_end(tmp_path):
     # Rerunning resumes: nothing left to do.
     again = snakemake(["--cores", "2", "--configfile", str(REPO / "config" / "ci.yaml"), "-n"], tmp_path)
     assert again.returncode == 0 and "Nothing to be done" in again.stdout + again.stderr
+    # ... also when egobench is called another way (an activated venv's script vs python -m): the
+    # command prefix is not provenance, so it must not make Snakemake redo simulations and training
+    other = snakemake(["--cores", "2", "--configfile", str(REPO / "config" / "ci.yaml"), "-n",
+                       "--config", f"egobench_command=env {sys.executable} -m egobench.cli"], tmp_path)
+    assert other.returncode == 0 and "Nothing to be done" in other.stdout + other.stderr, other.stdout[-3000:]
     # The HTML report builds from the finished run.
     rep = snakemake(["--configfile", str(REPO / "config" / "ci.yaml"), "--report", str(tmp_path / "report.html")],
                     tmp_path)

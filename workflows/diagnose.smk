@@ -19,7 +19,6 @@ rule diagnose:
     benchmark:
         f"{R}/benchmarks/diagnose/{{scene}}/{{method}}.tsv"
     params:
-        eb=EGOBENCH,
         args=lambda wildcards: SUITE.diagnose_args(wildcards.scene, wildcards.method),
     threads: res("diagnose", "threads")
     resources:
@@ -27,7 +26,7 @@ rule diagnose:
         gpu=res("diagnose", "gpu"),
         runtime=res("diagnose", "runtime"),
     shell:
-        "{params.eb} diagnose {input.recording} --method {wildcards.method}"
+        "{EGOBENCH} diagnose {input.recording} --method {wildcards.method}"
         " --out {output} {params.args} > {log} 2>&1"
 
 
@@ -44,14 +43,13 @@ rule motion_stats:
     log:
         f"{R}/logs/motion_stats.log",
     params:
-        eb=EGOBENCH,
         out_dir=lambda wildcards, output: os.path.dirname(output.json),
         args=SUITE.motion_stats_args(),
     threads: res("motion_stats", "threads")
     resources:
         mem_mb=res("motion_stats", "mem_mb"),
     shell:
-        "{params.eb} motion-stats --out {params.out_dir} {params.args} > {log} 2>&1"
+        "{EGOBENCH} motion-stats --out {params.out_dir} {params.args} > {log} 2>&1"
 
 
 # `snakemake --cores 2 discovery` (not part of `all`): the hidden-effect sweep (every effect x
@@ -77,13 +75,12 @@ rule diagnose_sweep:
     benchmark:
         f"{R}/benchmarks/discovery/sweep.tsv"
     params:
-        eb=EGOBENCH,
         seeds=SUITE.sweep_seeds,
     threads: res("diagnose", "threads")
     resources:
         mem_mb=res("diagnose", "mem_mb"),
     shell:
-        "{params.eb} diagnose --sweep --sweep-seeds {params.seeds} --out {output} --no-progress > {log} 2>&1"
+        "{EGOBENCH} diagnose --sweep --sweep-seeds {params.seeds} --out {output} --no-progress > {log} 2>&1"
 
 
 rule diagnose_adt:
@@ -99,10 +96,9 @@ rule diagnose_adt:
     log:
         f"{R}/logs/discovery/adt.log",
     params:
-        eb=EGOBENCH,
         adt=SUITE.adt_dir or "",
     threads: res("diagnose", "threads")
     resources:
         mem_mb=res("diagnose", "mem_mb"),
     shell:
-        "{params.eb} diagnose --adt {params.adt} --out {output} --no-progress > {log} 2>&1"
+        "{EGOBENCH} diagnose --adt {params.adt} --out {output} --no-progress > {log} 2>&1"

@@ -15,7 +15,6 @@ rule evaluate:
     benchmark:
         f"{R}/benchmarks/evaluate/{{scene}}/{{method}}/seed{{seed}}.tsv"
     params:
-        eb=EGOBENCH,
         run_dir=lambda wildcards, output: os.path.dirname(output.record),
         args=lambda wildcards: SUITE.evaluate_args(wildcards.scene),
     threads: res("evaluate", "threads")
@@ -24,5 +23,5 @@ rule evaluate:
         gpu=res("evaluate", "gpu"),
         runtime=res("evaluate", "runtime"),
     shell:
-        "{params.eb} evaluate --recording {input.recording} --run {params.run_dir}"
+        "{EGOBENCH} evaluate --recording {input.recording} --run {params.run_dir}"
         " {params.args} > {log} 2>&1"

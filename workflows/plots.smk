@@ -17,7 +17,6 @@ rule plots:
     log:
         f"{R}/logs/plots.log",
     params:
-        eb=EGOBENCH,
         out_dir=lambda wildcards, output: os.path.dirname(output[0]),
         qualitative=(
             f"--qualitative-scene {SUITE.qualitative_scene}"
@@ -28,5 +27,5 @@ rule plots:
     resources:
         mem_mb=res("plots", "mem_mb"),
     shell:
-        "{params.eb} plots --records {input.records} --recordings {input.recordings}"
+        "{EGOBENCH} plots --records {input.records} --recordings {input.recordings}"
         " --out-dir {params.out_dir} {params.qualitative} > {log} 2>&1"

@@ -13,7 +13,6 @@ rule simulate:
     benchmark:
         f"{R}/benchmarks/simulate/{{scene}}.tsv"
     params:
-        eb=EGOBENCH,
         args=lambda wildcards: SUITE.simulate_args(wildcards.scene),
     threads: res("simulate", "threads")
     resources:
@@ -21,4 +20,4 @@ rule simulate:
         gpu=res("simulate", "gpu"),
         runtime=res("simulate", "runtime"),
     shell:
-        "{params.eb} simulate --out {output} {params.args} > {log} 2>&1"
+        "{EGOBENCH} simulate --out {output} {params.args} > {log} 2>&1"

@@ -14,10 +14,9 @@ rule tables:
     log:
         f"{R}/logs/tables.log",
     params:
-        eb=EGOBENCH,
         out_dir=lambda wildcards, output: os.path.dirname(output[0]),
     threads: res("tables", "threads")
     resources:
         mem_mb=res("tables", "mem_mb"),
     shell:
-        "{params.eb} tables --records {input.records} --out-dir {params.out_dir} > {log} 2>&1"
+        "{EGOBENCH} tables --records {input.records} --out-dir {params.out_dir} > {log} 2>&1"

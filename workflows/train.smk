@@ -15,7 +15,6 @@ rule train:
     benchmark:
         f"{R}/benchmarks/train/{{scene}}/{{method}}/seed{{seed}}.tsv"
     params:
-        eb=EGOBENCH,
         run_dir=lambda wildcards, output: os.path.dirname(output.record),
         args=lambda wildcards: SUITE.train_args(wildcards.scene),
     threads: res("train", "threads")
@@ -24,5 +23,5 @@ rule train:
         gpu=res("train", "gpu"),
         runtime=res("train", "runtime"),
     shell:
-        "{params.eb} train --recording {input.recording} --method {wildcards.method}"
+        "{EGOBENCH} train --recording {input.recording} --method {wildcards.method}"
         " --seed {wildcards.seed} --out {params.run_dir} {params.args} --resume auto > {log} 2>&1"
