@@ -288,7 +288,6 @@ def load_image_store(recording: Recording, frames: list[Frame], camera: Pinhole,
             img = resize_map(img, camera)
         # x * 255 recovers the decoded 8-bit value exactly (error < 1e-4 << 0.5); resized values round.
         store[i].copy_(torch.round(img * 255.0).clamp_(0.0, 255.0))
-        del img
     return store
 
 

@@ -41,11 +41,11 @@ def resolve_backend(backend: str, device: torch.device | str) -> str:
     (Loading gsplat's CUDA extension the first time may JIT-compile it: minutes.)"""
     if backend not in ("auto", "torch", "gsplat"):
         raise ValueError(f"render: backend must be 'auto', 'torch' or 'gsplat', got {backend!r}")
-    on_cuda = torch.device(device).type == "cuda"
-    if backend == "gsplat" and not (on_cuda and gsplat_cuda_available()):
+    gsplat_ok = torch.device(device).type == "cuda" and gsplat_cuda_available()
+    if backend == "gsplat" and not gsplat_ok:
         raise ValueError("render: backend='gsplat' needs CUDA tensors and gsplat 1.5.3's CUDA extension")
     if backend == "auto":
-        return "gsplat" if on_cuda and gsplat_cuda_available() else "torch"
+        return "gsplat" if gsplat_ok else "torch"
     return backend
 
 

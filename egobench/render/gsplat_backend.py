@@ -30,10 +30,10 @@ EPS2D = 0.3
 
 
 def _gather(images: Tensor, index: Tensor | None) -> Tensor:
-    if index is None:
-        return images
-    K, H, W, C = images.shape
-    return torch.gather(images, 0, index[None, :, :, None].expand(1, H, W, C))
+    """[K, H, W, C] -> [1, H, W, C] per-pixel pose sample (`gather_pixels`), or as is without an index."""
+    from egobench.render import gather_pixels
+
+    return images if index is None else gather_pixels(images, index)
 
 
 def _shortest_axis_normals(g: Gaussians, viewmats: Tensor) -> Tensor:
