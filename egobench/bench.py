@@ -4,7 +4,7 @@
 on random but realistic scenes, and the cost of a rolling-shutter render (K pose samples)
 relative to a global-shutter render of the same image.
 ``train``: iterations/s, rasterizer time share and peak memory of `egobench.train.train` with and
-without motion sampling on the synthetic `toy_recording` (or a given recording), at one or more
+without motion sampling on the synthetic `egobench.sim.plane.plane_recording` (or a given recording), at one or more
 resolutions; ``--resolution 2400 --points 1000000 --device cuda`` is the paper-scale case.
 """
 
@@ -171,12 +171,13 @@ def bench_train(device: str = "cpu", backend: str = "auto", sides: tuple[int, ..
     import tempfile
     from pathlib import Path
 
-    from egobench.train import TrainConfig, toy_recording, train
+    from egobench.sim.plane import plane_recording
+    from egobench.train import TrainConfig, train
 
     results = []
     with tempfile.TemporaryDirectory() as tmp:
         for side in sides:
-            rec = recording or toy_recording(Path(tmp) / f"rec{side}", size=side, n_frames=17, angular_speed_rad_s=6.0,
+            rec = recording or plane_recording(Path(tmp) / f"rec{side}", size=side, n_frames=17, angular_speed_rad_s=6.0,
                                              frame_interval_s=0.01, n_points=n_points)
             for method in ("no_motion_sampling", "ours"):
                 cfg = TrainConfig(iterations=iterations, max_side=side, device=device, backend=backend,
@@ -197,7 +198,7 @@ def bench_train(device: str = "cpu", backend: str = "auto", sides: tuple[int, ..
                 })
     return {"benchmark": "train", "device": device, "backend": backend, "torch": torch.__version__,
             "threads": torch.get_num_threads(),
-            "recording": str(recording) if recording else f"toy_recording (17 frames, textured plane, {n_points} points)",
+            "recording": str(recording) if recording else f"plane_recording (17 frames, textured plane, {n_points} points)",
             "results": results}
 
 

@@ -20,7 +20,7 @@ evaluated at the trajectory poses with velocities from the trajectory).
 from __future__ import annotations
 
 import argparse
-from dataclasses import replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -29,10 +29,14 @@ import torch
 from torch import Tensor
 
 from egobench import __version__
-from egobench.camera.pinhole import Pinhole
 from egobench.data.recording import Frame, Recording
-from egobench.io_utils import read_json, write_json
-from egobench.methods import MethodSpec, get_method
+from egobench.io_utils import git_commit, read_json, write_json
+from egobench.methods import get_method
+from egobench.predict import (
+    FrameMaps, RenderSettings, formation_model, frame_maps, frame_poses, method_normaliser, predict_frame,
+    render_frame, resize_map, sample_counts,
+)
+from egobench.train.checkpoint import TrainedRun, load_trained_run
 
 RUN_SCHEMA = "egobench.run/1"
 VIRTUAL_GAIN = 3.0  # paper teaser: re-render at 3x gain
@@ -55,34 +59,6 @@ def quantise8(image: Tensor) -> Tensor:
     return torch.round(image.clamp(0, 1) * 255.0) / 255.0
 
 
-def load_checkpoint(run_dir: Path) -> dict:
-    path = Path(run_dir) / "checkpoint.pt"
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no checkpoint (train the run first)")
-    from egobench.train import CHECKPOINT_FORMAT
-
-    ck = torch.load(path, map_location="cpu", weights_only=False)
-    if not isinstance(ck, dict) or ck.get("format") != CHECKPOINT_FORMAT:
-        raise ValueError(f"{path}: not an egobench checkpoint (expected format {CHECKPOINT_FORMAT})")
-    return ck
-
-
-def render_device(requested: str | None, trained_on: str, where: str) -> torch.device:
-    """The torch device to render a checkpoint on: ``requested`` (``--device``) or else the run's
-    training device (``config.device``). Raises a ValueError naming ``where`` when that is a CUDA
-    device and this torch has no CUDA (a GPU-trained run evaluated on a CPU machine needs --device cpu)."""
-    name = requested if requested else trained_on
-    try:
-        device = torch.device(name)
-    except RuntimeError as exc:
-        raise ValueError(f"{where}: device {name!r} is not a torch device ({exc})") from None
-    if device.type == "cuda" and not torch.cuda.is_available():
-        origin = "requested" if requested else "the run's training device (config.device)"
-        raise ValueError(f"{where}: device {name!r} is {origin}, but CUDA is not available here; "
-                         "pass --device cpu (device='cpu') to render on the CPU")
-    return device
-
-
 def _load(recording_dir, calibration: str) -> Recording:
     if isinstance(recording_dir, Recording):
         return recording_dir
@@ -98,6 +74,87 @@ def _gt_file(recording: Recording, kind: str, frame: Frame) -> Path | None:
     return p if p.is_file() else None
 
 
+@dataclass
+class _Held:
+    """A trained run set up to predict the held-out frames of a recording."""
+
+    run: TrainedRun
+    recording: Recording
+    frames: list[Frame]  # held-out frames
+    counts: list[int]  # rolling-shutter pose samples of each (always adaptive at evaluation)
+    maps: FrameMaps  # at the run's training resolution
+    k_of: dict[int, Tensor]  # frame index -> exposure*gain normaliser
+    formation: object
+    settings: RenderSettings
+
+
+def _held_out(recording_dir, run_dir, device: str | None) -> _Held:
+    run = load_trained_run(run_dir, device, f"evaluate {run_dir}")
+    spec = run.spec
+    rec = _load(recording_dir, spec.calibration)
+    if rec.calibration != spec.calibration:
+        raise ValueError(f"recording: method {spec.name!r} is evaluated on the {spec.calibration!r} stream, got {rec.calibration!r}")
+    frames = rec.test_frames
+    if not frames:
+        raise ValueError(f"recording {rec.root}: no held-out frames (every 8th frame, from index 0)")
+    counts = sample_counts(rec, frames, spec, run.config.max_pose_samples, run.config.sample_rule,
+                           pixel_scale=run.camera.width / rec.camera.width)
+    return _Held(run=run, recording=rec, frames=frames, counts=counts, maps=frame_maps(rec, run.camera),
+                 k_of=method_normaliser(rec, spec), formation=formation_model(spec),
+                 settings=RenderSettings.of(run.config))
+
+
+def _geometry_recording(held: _Held, recording_dir, geometry_recording, notes: dict) -> Recording | None:
+    """The online-calibration recording to measure depth and normals in, or None when there is no
+    ground truth (or it cannot be had: a note says why)."""
+    rec, first = held.recording, held.frames[0]
+    if _gt_file(rec, "depth", first) is None and _gt_file(rec, "normal", first) is None:
+        notes.setdefault("geometry", "no ground-truth depth/normal in this recording")
+        return None
+    if geometry_recording is not None:
+        return geometry_recording
+    if rec.calibration == "online":
+        return rec
+    if not isinstance(recording_dir, Recording):
+        return _load(recording_dir, "online")
+    notes["geometry"] = "skipped: pass geometry_recording (online calibration) for a factory-calibrated Recording"
+    return None
+
+
+def _evaluate_frame(held: _Held, f: Frame, n: int, geo_rec: Recording | None, renders_dir: Path | None,
+                    ok_lpips: bool, teaser: bool) -> dict[str, Any]:
+    """Metrics of one held-out frame (on its 8-bit render); renders and the virtual-gain teaser saved."""
+    from egobench.metrics import lpips_alex, psnr, ssim
+
+    run, spec = held.run, held.run.spec
+    p = predict_frame(run.gaussians, held.recording, f, spec, run.camera, held.maps, held.k_of[f.index], n,
+                      held.settings, held.formation)
+    pred = quantise8(p.image)
+    gt = resize_map(held.recording.load_image(f), run.camera)
+    entry: dict[str, Any] = {"frame": f.index, "psnr": psnr(pred, gt, held.maps.mask),
+                             "ssim": ssim(pred, gt, held.maps.mask), "pose_samples": int(n)}
+    if ok_lpips:
+        entry["lpips"] = lpips_alex(pred, gt)
+    if renders_dir is not None:
+        _to_png(renders_dir / f"{f.index:05d}.png", pred)
+        if teaser:
+            _save_virtual_gain(held, f, p.rgb, gt, renders_dir)
+    if geo_rec is not None:
+        entry.update(_geometry(run, geo_rec, f, n, run.camera.width / held.recording.camera.width))
+    return entry
+
+
+def _save_virtual_gain(held: _Held, f: Frame, rgb: Tensor, gt: Tensor, renders_dir: Path) -> None:
+    """The teaser: the frame re-rendered at VIRTUAL_GAIN x its gain, alone and beside the input."""
+    spec = held.run.spec
+    boosted = held.formation.virtual_gain(rgb, VIRTUAL_GAIN, scale_k=held.k_of[f.index],
+                                          scene_gamma=spec.scene_gamma if spec.formation else True,
+                                          vignette=held.maps.vignette if spec.formation else None)
+    boosted = quantise8(boosted)
+    _to_png(renders_dir / f"virtual_gain_{VIRTUAL_GAIN:g}x_{f.index:05d}.png", boosted)
+    _to_png(renders_dir / f"virtual_gain_{VIRTUAL_GAIN:g}x_{f.index:05d}_beside_input.png", torch.cat([gt, boosted], dim=1))
+
+
 def evaluate(recording_dir, run_dir, *, scene: str | None = None, paper_scene: str | None = None,
              save_renders: bool = True, geometry_recording=None, device: str | None = None) -> dict:
     """Evaluate the run in ``run_dir`` on the held-out frames; writes and returns eval.json.
@@ -108,96 +165,38 @@ def evaluate(recording_dir, run_dir, *, scene: str | None = None, paper_scene: s
     ``device``: where the Gaussians are rendered (default: the run's training device, `render_device`);
     renders come back to the CPU for the image formation and the metrics (float64).
     """
-    from egobench.metrics import lpips_alex, lpips_available, psnr, ssim
-    from egobench.motion_sampling import pixel_pose_index  # noqa: F401  (documented dependency)
-    from egobench.train import (
-        TrainConfig, formation_model, frame_poses, gaussians_from_params, predict_image, resize_map,
-        exposure_normaliser, render_frame, sample_counts,
-    )
+    from egobench.metrics import lpips_available
 
-    run_dir = Path(run_dir)
-    ck = load_checkpoint(run_dir)
-    spec: MethodSpec = get_method(ck["method"])
-    cfg_dict = dict(ck["config"])
-    cfg_dict["background"] = tuple(cfg_dict["background"])
-    config = TrainConfig(**cfg_dict)
-    dev = render_device(device, config.device, f"evaluate {run_dir}")
-    config = replace(config, device=str(dev))  # render_frame builds the background on config.device
-    rec = _load(recording_dir, spec.calibration)
-    if rec.calibration != spec.calibration:
-        raise ValueError(f"recording: method {spec.name!r} is evaluated on the {spec.calibration!r} stream, got {rec.calibration!r}")
-    frames = rec.test_frames
-    if not frames:
-        raise ValueError(f"recording {rec.root}: no held-out frames (every 8th frame, from index 0)")
-    c = ck["camera"]
-    cam = Pinhole(fx=c["fx"], fy=c["fy"], cx=c["cx"], cy=c["cy"], width=c["w"], height=c["h"])
-    mask = resize_map(rec.mask.float(), cam) > 0.999
-    vignette = resize_map(rec.vignette.float(), cam)
-    rtr = resize_map(rec.row_time_ratio.float(), cam)
-    k_all = exposure_normaliser(rec) if spec.formation else torch.ones(len(rec.frames))
-    pos = {f.index: i for i, f in enumerate(rec.frames)}
-    params = {k: v.detach() for k, v in ck["params"].items()}  # CPU (load_checkpoint maps to the CPU)
-    g = gaussians_from_params(params).to(dev)  # render() runs on the device of the Gaussians
-    formation = formation_model(spec)
-    pixel_scale = cam.width / rec.camera.width
-    # Always adaptive at evaluation for methods that model rolling shutter.
-    counts = sample_counts(rec, frames, spec, config, pixel_scale)
-    renders_dir = run_dir / "renders"
+    held = _held_out(recording_dir, run_dir, device)
     ok_lpips, lpips_reason = lpips_available()
-    notes: dict[str, str] = {}
-    if not ok_lpips:
-        notes["lpips"] = lpips_reason
+    notes: dict[str, str] = {} if ok_lpips else {"lpips": lpips_reason}
     notes["psnr_clean"] = "not computed: PSNR against clean ground-truth radiance needs the simulator's formation"
-    if spec.pose_optimisation:
+    if held.run.spec.pose_optimisation:
         notes["test_poses"] = "held-out frames use trajectory poses (no test-time pose optimisation)"
-
-    # Geometry on scenes with ground truth, through the true (online) camera.
-    geo_rec = geometry_recording
-    has_geo = _gt_file(rec, "depth", frames[0]) is not None or _gt_file(rec, "normal", frames[0]) is not None
-    if has_geo and geo_rec is None:
-        if rec.calibration == "online":
-            geo_rec = rec
-        elif not isinstance(recording_dir, Recording):
-            geo_rec = _load(recording_dir, "online")
-        else:
-            notes["geometry"] = "skipped: pass geometry_recording (online calibration) for a factory-calibrated Recording"
-
-    per_image: list[dict[str, Any]] = []
-    noisiest = max(frames, key=lambda f: (float(f.gain), -f.index))
+    geo_rec = _geometry_recording(held, recording_dir, geometry_recording, notes)
+    renders_dir = Path(run_dir) / "renders" if save_renders else None
+    noisiest = max(held.frames, key=lambda f: (float(f.gain), -f.index))
     with torch.no_grad():
-        for f, n in zip(frames, counts):
-            kk = k_all[pos[f.index]]
-            poses, ppi = frame_poses(rec, f, spec, n, rtr, n_exposure_samples=spec.render_exposure_samples)
-            outs = render_frame(g, cam, poses, ppi, spec, config)
-            rgb = torch.stack([o.rgb[0] for o in outs]).mean(0).cpu()
-            pred = quantise8(predict_image(rgb, spec, kk, vignette, formation))
-            gt = resize_map(rec.load_image(f), cam)
-            entry: dict[str, Any] = {"frame": f.index, "psnr": psnr(pred, gt, mask), "ssim": ssim(pred, gt, mask),
-                                     "pose_samples": int(n)}
-            if ok_lpips:
-                entry["lpips"] = lpips_alex(pred, gt)
-            if save_renders:
-                _to_png(renders_dir / f"{f.index:05d}.png", pred)
-            if f is noisiest and save_renders:
-                boosted = formation.virtual_gain(rgb, VIRTUAL_GAIN, scale_k=kk,
-                                                 scene_gamma=spec.scene_gamma if spec.formation else True,
-                                                 vignette=vignette if spec.formation else None)
-                boosted = quantise8(boosted)
-                _to_png(renders_dir / f"virtual_gain_{VIRTUAL_GAIN:g}x_{f.index:05d}.png", boosted)
-                _to_png(renders_dir / f"virtual_gain_{VIRTUAL_GAIN:g}x_{f.index:05d}_beside_input.png",
-                        torch.cat([gt, boosted], dim=1))
-            if has_geo and geo_rec is not None:
-                entry.update(_geometry(g, geo_rec, f, spec, config, n, cam.width / rec.camera.width))
-            per_image.append(entry)
+        per_image = [_evaluate_frame(held, f, n, geo_rec, renders_dir, ok_lpips, teaser=f is noisiest)
+                     for f, n in zip(held.frames, held.counts)]
+    record = _run_record(held, per_image, notes, scene, paper_scene)
+    write_json(Path(run_dir) / "eval.json", record)
+    return record
+
+
+def _run_record(held: _Held, per_image: list[dict], notes: dict, scene: str | None,
+                paper_scene: str | None) -> dict:
+    """eval.json: the run's identity, training summary, mean metrics and per-image metrics."""
+    run, rec, spec = held.run, held.recording, held.run.spec
 
     def mean_of(key: str) -> float | None:
         vals = [e[key] for e in per_image if e.get(key) is not None]
         return float(np.mean(vals)) if vals else None
 
-    train_rec = read_json(run_dir / "train.json") if (run_dir / "train.json").is_file() else {}
+    train_rec = read_json(run.path / "train.json") if (run.path / "train.json").is_file() else {}
     tr = train_rec.get("train", {})
     meta = rec.meta or {}
-    record = {
+    return {
         "schema": RUN_SCHEMA,
         "scene": scene or meta.get("scene") or rec.name,
         "scene_kind": meta.get("scene_kind"),
@@ -205,33 +204,29 @@ def evaluate(recording_dir, run_dir, *, scene: str | None = None, paper_scene: s
         "paper_scene": paper_scene if paper_scene is not None else meta.get("paper_scene"),
         "method": spec.name,
         "method_label": spec.label,
-        "seed": int(config.seed),
+        "seed": int(run.config.seed),
         "calibration": spec.calibration,
-        "config_hash": ck["config_hash"],
-        "git_commit": train_rec.get("git_commit") or _git(),
+        "config_hash": run.checkpoint["config_hash"],
+        "git_commit": train_rec.get("git_commit") or git_commit(),
         "egobench_version": __version__,
         "recording": str(rec.root),
         "train": {
-            "iterations": int(ck["iteration"]),
+            "iterations": int(run.checkpoint["iteration"]),
             "time_s": tr.get("time_s"),
             "iters_per_s": tr.get("iters_per_s"),
             "raster_time_share": tr.get("raster_time_share"),
-            "num_gaussians": int(len(params["means"])),
+            "num_gaussians": int(len(run.checkpoint["params"]["means"])),
         },
         "metrics": {
             "psnr": mean_of("psnr"), "ssim": mean_of("ssim"), "lpips": mean_of("lpips"),
             "depth_si_l1": mean_of("depth_si_l1"), "normal_l1": mean_of("normal_l1"),
         },
         "notes": notes,
-        "eval": {"resolution": [cam.width, cam.height], "n_test_frames": len(frames),
-                 "pose_samples_mean": float(np.mean(counts))},
+        "eval": {"resolution": [run.camera.width, run.camera.height], "n_test_frames": len(held.frames),
+                 "pose_samples_mean": float(np.mean(held.counts))},
         "recording_stats": recording_stats(rec),
         "per_image": per_image,
     }
-    if not has_geo:
-        notes.setdefault("geometry", "no ground-truth depth/normal in this recording")
-    write_json(run_dir / "eval.json", record)
-    return record
 
 
 def recording_stats(rec: Recording, step_ns: int = 1_000_000) -> dict[str, Any]:
@@ -253,11 +248,10 @@ def recording_stats(rec: Recording, step_ns: int = 1_000_000) -> dict[str, Any]:
     return stats
 
 
-def _geometry(g, geo_rec: Recording, frame: Frame, spec: MethodSpec, config, n: int, scale: float) -> dict:
+def _geometry(run: TrainedRun, geo_rec: Recording, frame: Frame, n: int, scale: float) -> dict:
     """Depth SI-L1 and normal L1 of one held-out frame rendered through the true (online) camera
     and trajectory poses at the evaluation scale; ground truth resized by nearest neighbour."""
     from egobench.metrics import depth_si_l1, normal_l1
-    from egobench.train import frame_poses, render_frame, resize_map
 
     gf = next((x for x in geo_rec.frames if x.index == frame.index), None)
     out: dict[str, Any] = {}
@@ -265,9 +259,10 @@ def _geometry(g, geo_rec: Recording, frame: Frame, spec: MethodSpec, config, n: 
         return out
     cam = geo_rec.camera if abs(scale - 1) < 1e-12 else geo_rec.camera.scaled(scale)
     d_path, n_path = _gt_file(geo_rec, "depth", gf), _gt_file(geo_rec, "normal", gf)
-    pose_spec = get_method("ours") if spec.models_rolling_shutter else get_method("no_motion_sampling")
+    pose_spec = get_method("ours") if run.spec.models_rolling_shutter else get_method("no_motion_sampling")
     poses, ppi = frame_poses(geo_rec, gf, pose_spec, n, resize_map(geo_rec.row_time_ratio.float(), cam))
-    o = render_frame(g, cam, poses, ppi, spec, config, want_normal=n_path is not None)[0]
+    o = render_frame(run.gaussians, cam, poses, ppi, run.spec, RenderSettings.of(run.config),
+                     want_normal=n_path is not None)[0]
     valid = (resize_map(geo_rec.mask.float(), cam, "nearest") > 0.5) & (o.alpha[0, ..., 0].cpu() > 0.5)
     if d_path is not None:
         gt_d = resize_map(torch.from_numpy(np.load(d_path).astype(np.float32)), cam, "nearest")
@@ -276,12 +271,6 @@ def _geometry(g, geo_rec: Recording, frame: Frame, spec: MethodSpec, config, n: 
         gt_n = resize_map(torch.from_numpy(np.load(n_path).astype(np.float32)), cam, "nearest")
         out["normal_l1"] = normal_l1(o.normal[0].cpu(), gt_n, valid)
     return out
-
-
-def _git() -> str:
-    from egobench.train import _git_commit
-
-    return _git_commit()
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

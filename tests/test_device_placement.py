@@ -161,7 +161,7 @@ def test_velocity_poses_follow_a_trainable_twist_on_the_device(no_value_checks):
 
 def test_frame_poses_velocity_shift_with_device_twist(no_value_checks):
     from egobench.methods import get_method
-    from egobench.train import frame_poses
+    from egobench.predict import frame_poses
 
     frame = _frame()
     with fake_accelerator():
@@ -173,7 +173,7 @@ def test_frame_poses_velocity_shift_with_device_twist(no_value_checks):
 
 def test_frame_poses_velocity_shift_with_device_pose_delta(no_value_checks):
     from egobench.methods import get_method
-    from egobench.train import frame_poses
+    from egobench.predict import frame_poses
 
     frame = _frame()
     with fake_accelerator():
@@ -184,11 +184,11 @@ def test_frame_poses_velocity_shift_with_device_pose_delta(no_value_checks):
 
 def test_depth_normals_of_the_2dgs_regulariser_stay_on_the_device():
     from egobench.camera.pinhole import Pinhole
-    from egobench.train import _depth_normals
+    from egobench.train.losses import depth_normals
 
     cam = Pinhole(fx=10.0, fy=10.0, cx=3.5, cy=2.5, width=8, height=6)
     with fake_accelerator():
-        n = _depth_normals(dev(6, 8), cam)
+        n = depth_normals(dev(6, 8), cam)
         assert_on_fake(n)
         assert tuple(n.shape) == (6, 8, 3)
 
@@ -232,9 +232,10 @@ def test_densifier_statistics_live_on_the_device_and_checkpoint_on_the_cpu():
 
 # ----------------------------------------------------------------------------- evaluation device
 def _toy_run(tmp_path, device: str):
-    from egobench.train import TrainConfig, toy_recording
+    from egobench.sim.plane import plane_recording
+    from egobench.train import TrainConfig
 
-    rec = toy_recording(tmp_path / "rec", size=16, n_frames=9, n_points=50)
+    rec = plane_recording(tmp_path / "rec", size=16, n_frames=9, n_points=50)
     n = 20
     gen = torch.Generator().manual_seed(0)
     params = {"means": torch.rand(n, 3, generator=gen) + torch.tensor([0.0, 0.0, 2.0]), "scales": torch.full((n, 3), -3.0),
@@ -251,7 +252,8 @@ def _toy_run(tmp_path, device: str):
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the CPU-only message")
 def test_evaluate_of_a_gpu_run_on_a_cpu_machine_names_the_fix(tmp_path):
-    from egobench.evaluate import evaluate, render_device
+    from egobench.evaluate import evaluate
+    from egobench.train.checkpoint import render_device
 
     rec, run = _toy_run(tmp_path, "cuda")
     with pytest.raises(ValueError, match=r"training device.*CUDA is not available.*--device cpu"):
@@ -264,20 +266,20 @@ def test_evaluate_of_a_gpu_run_on_a_cpu_machine_names_the_fix(tmp_path):
 
 def test_evaluate_renders_on_the_requested_device(tmp_path, monkeypatch):
     """The Gaussians are rendered where asked (before: always on the CPU, whatever config.device)."""
-    import egobench.train as train_mod
+    import egobench.predict as predict_mod
     from egobench.evaluate import evaluate
     from egobench.render.types import RenderOutput
 
     rec, run = _toy_run(tmp_path, "cpu")
     seen = []
 
-    def fake_render_frame(g, camera, poses, ppi, spec, config, want_normal=False):
-        seen.append((g.means.device, g.colors.device, torch.device(config.device)))
+    def fake_render_frame(g, camera, poses, ppi, spec, settings, want_normal=False):
+        seen.append((g.means.device, g.colors.device, settings.device))
         H, W = camera.height, camera.width
         return [RenderOutput(rgb=torch.full((1, H, W, 3), 0.5), alpha=torch.ones(1, H, W, 1),
                              depth=torch.ones(1, H, W, 1))]
 
-    monkeypatch.setattr(train_mod, "render_frame", fake_render_frame)
+    monkeypatch.setattr(predict_mod, "render_frame", fake_render_frame)
     out = evaluate(rec, run, save_renders=False, device="meta")
     assert seen and all(d == (FAKE, FAKE, FAKE) for d in seen)
     assert out["train"]["num_gaussians"] == 20

@@ -12,13 +12,15 @@ import torch
 from egobench.evaluate import RUN_SCHEMA, evaluate
 from egobench.io_utils import read_json
 from egobench.metrics import psnr, ssim
-from egobench.train import TrainConfig, resize_map, toy_recording, train
+from egobench.predict import resize_map
+from egobench.sim.plane import plane_recording
+from egobench.train import TrainConfig, train
 
 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
     root = tmp_path_factory.mktemp("ev")
-    rec = toy_recording(root / "rec", size=32, n_frames=17, angular_speed_rad_s=8.0, n_points=800, readout_s=16e-3,
+    rec = plane_recording(root / "rec", size=32, n_frames=17, angular_speed_rad_s=8.0, n_points=800, readout_s=16e-3,
                         frame_interval_s=0.01, with_ground_truth=True)
     cfg = TrainConfig(iterations=30, refine_start_frac=1.0, motion_warmup_frac=0.5, lr_colors=1e-2)
     train(rec, "ours", cfg, root / "run", progress=False)

@@ -10,8 +10,9 @@ import pytest
 import torch
 
 from egobench.optim import Densifier, DensifySchedule, make_adam
+from egobench.sim.plane import plane_recording
 from egobench.train import (
-    PAPER_ITERATIONS, TrainConfig, TrainingDiverged, parse_overrides, toy_recording, train,
+    PAPER_ITERATIONS, TrainConfig, TrainingDiverged, parse_overrides, train,
 )
 
 SMALL = dict(max_gaussians=1500, refine_every_frac=5 / 40 * 1.0)
@@ -20,7 +21,7 @@ SMALL = dict(max_gaussians=1500, refine_every_frac=5 / 40 * 1.0)
 @pytest.fixture(scope="module")
 def toy(tmp_path_factory):
     """17 frames of a textured plane, 32x32, camera translating and yawing (2 held out... 3: 0, 8, 16)."""
-    return toy_recording(tmp_path_factory.mktemp("toy"), size=32, n_frames=17, angular_speed_rad_s=1.0,
+    return plane_recording(tmp_path_factory.mktemp("toy"), size=32, n_frames=17, angular_speed_rad_s=1.0,
                          n_points=1200, frame_interval_s=0.05)
 
 
@@ -287,7 +288,7 @@ def test_depth_normals_face_the_camera_like_rendered_2dgs_normals():
     from egobench.camera.pinhole import Pinhole
     from egobench.render import render
     from egobench.render.types import Gaussians
-    from egobench.train import _depth_normals, _twodgs_regularisers
+    from egobench.train.losses import depth_normals, twodgs_regularisers
 
     cam = Pinhole(fx=20.0, fy=20.0, cx=7.5, cy=7.5, width=16, height=16)
     # plane n . p = c with a camera-facing unit normal (n . p < 0 for points in front of the camera)
@@ -295,7 +296,7 @@ def test_depth_normals_face_the_camera_like_rendered_2dgs_normals():
     c = float(n @ torch.tensor([0.0, 0.0, 2.0]))
     rays = cam.unproject(cam.pixel_grid(dtype=torch.float32))  # [H, W, 3], z = 1
     depth = c / (rays @ n)  # z-depth of the ray-plane intersection
-    dn = _depth_normals(depth, cam)
+    dn = depth_normals(depth, cam)
     assert torch.allclose(dn[1:-1, 1:-1], n.expand(14, 14, 3), atol=1e-4)
 
     # Rendered 2DGS normals face the camera too: a tilted surfel in that plane renders n ...
@@ -320,5 +321,5 @@ def test_depth_normals_face_the_camera_like_rendered_2dgs_normals():
     interior = torch.zeros(16, 16, 1)
     interior[1:-1, 1:-1] = 1.0
     assert float(out.alpha[0, 1:-1, 1:-1].min()) > 0.9
-    reg = _twodgs_regularisers([out], cam, cfg, 5, interior)
+    reg = twodgs_regularisers([out], cam, cfg, 5, interior)
     assert float(reg) < 1e-4

@@ -10,17 +10,21 @@ import numpy as np
 import pytest
 import torch
 
-import egobench.train as T
+import egobench.predict as P
+import egobench.train.data as T
+import egobench.train.initialise as I
+import egobench.train.loop as L
 from egobench.methods import get_method
-from egobench.train import TrainConfig, load_image_store, prepare_data, toy_recording, train
+from egobench.sim.plane import plane_recording
+from egobench.train import TrainConfig, load_image_store, prepare_data, train
 
-SPEC = get_method("no_motion_sampling")  # online calibration (as toy_recording), centre-row poses
+SPEC = get_method("no_motion_sampling")  # online calibration (as plane_recording), centre-row poses
 
 
 @pytest.fixture(scope="module")
 def toy(tmp_path_factory):
     """9 frames of 32x32 (frames 0 and 8 held out: 7 training frames)."""
-    return toy_recording(tmp_path_factory.mktemp("toy_store"), size=32, n_frames=9, angular_speed_rad_s=1.0,
+    return plane_recording(tmp_path_factory.mktemp("toy_store"), size=32, n_frames=9, angular_speed_rad_s=1.0,
                          n_points=600)
 
 
@@ -84,14 +88,14 @@ def test_pinning_guarded_without_cuda(toy, monkeypatch):
 
 def _float_store_prepare(monkeypatch):
     """Patch prepare_data to the pre-uint8 path: a float32 stack of load_image (resize_map'd)."""
-    orig = T.prepare_data
+    orig = L.prepare_data
 
     def float_prepare(recording, spec, config, progress=True):
         data = orig(recording, spec, config, progress=progress)
-        data.images = torch.stack([T.resize_map(recording.load_image(f), data.camera) for f in data.frames])
+        data.images = torch.stack([P.resize_map(recording.load_image(f), data.camera) for f in data.frames])
         return data
 
-    monkeypatch.setattr(T, "prepare_data", float_prepare)
+    monkeypatch.setattr(L, "prepare_data", float_prepare)
 
 
 @pytest.mark.parametrize("method", ["ours", "no_motion_sampling"])
@@ -119,9 +123,9 @@ def test_init_colours_read_the_store_as_float(toy):
     """init_params converts uint8 pixels to 0..1 (a missing /255 would give colours far above 1)."""
     cfg = TrainConfig(max_side=0, max_gaussians=300)
     data = prepare_data(toy, SPEC, cfg, progress=False)
-    p_u8 = T.init_params(data, cfg, torch.Generator().manual_seed(0))
+    p_u8 = I.init_params(data, cfg, torch.Generator().manual_seed(0))
     data.images = torch.stack([toy.load_image(f) for f in data.frames])
-    p_f32 = T.init_params(data, cfg, torch.Generator().manual_seed(0))
+    p_f32 = I.init_params(data, cfg, torch.Generator().manual_seed(0))
     assert torch.equal(p_u8["colors"], p_f32["colors"])
     colors = p_u8["colors"].detach()
     assert float(colors.max()) <= 4.0 and not torch.all(colors == 0.5)

@@ -296,51 +296,34 @@ def ground_truth_source(recording_dir: str | Path, max_frames: int | None = None
 def run_source(recording_dir: str | Path, run_dir: str | Path, max_frames: int | None = None,
                progress: bool = True, device: str | None = None) -> Sources:
     """Prediction = a trained run's renders of every frame (its own formation model and poses),
-    rendered on ``device`` (default: the run's training device; see `egobench.evaluate.render_device`)."""
+    rendered on ``device`` (default: the run's training device; see `egobench.train.checkpoint.render_device`)."""
     from tqdm import tqdm
 
     from egobench.data import load_recording
-    from egobench.evaluate import load_checkpoint, render_device
-    from egobench.methods import get_method
-    from egobench.train import (
-        TrainConfig, exposure_normaliser, formation_model, frame_poses, gaussians_from_params, predict_image,
-        render_frame, resize_map, sample_counts,
+    from egobench.predict import (
+        RenderSettings, formation_model, frame_maps, method_normaliser, predict_frame, sample_counts,
     )
-    from egobench.camera.pinhole import Pinhole
+    from egobench.train.checkpoint import load_trained_run
 
-    run_dir = Path(run_dir)
-    ck = load_checkpoint(run_dir)
-    spec = get_method(ck["method"])
-    cfg = dict(ck["config"])
-    cfg["background"] = tuple(cfg["background"])
-    config = TrainConfig(**cfg)
-    dev = render_device(device, config.device, f"diagnose run {run_dir}")
-    config = replace(config, device=str(dev))  # render_frame builds the background on config.device
+    run = load_trained_run(run_dir, device, f"diagnose run {run_dir}")
+    spec, cam = run.spec, run.camera
     rec = load_recording(recording_dir, calibration=spec.calibration)
-    c = ck["camera"]
-    cam = Pinhole(fx=c["fx"], fy=c["fy"], cx=c["cx"], cy=c["cy"], width=c["w"], height=c["h"])
     if (cam.width, cam.height) != (rec.camera.width, rec.camera.height):
         raise ValueError(f"{run_dir}: trained at {cam.width}x{cam.height}, the recording is "
                          f"{rec.camera.width}x{rec.camera.height}; diagnose needs full-resolution renders")
     frames = _select(rec.frames, max_frames)
-    vignette = resize_map(rec.vignette.float(), cam)
-    rtr = resize_map(rec.row_time_ratio.float(), cam)
-    k_all = exposure_normaliser(rec) if spec.formation else torch.ones(len(rec.frames))
-    pos = {f.index: i for i, f in enumerate(rec.frames)}
-    g = gaussians_from_params({k: v.detach() for k, v in ck["params"].items()}).to(dev)  # render() runs here
-    formation = formation_model(spec)
-    counts = sample_counts(rec, frames, spec, config, 1.0)
+    maps, k_of, formation = frame_maps(rec, cam), method_normaliser(rec, spec), formation_model(spec)
+    settings = RenderSettings.of(run.config)
+    counts = sample_counts(rec, frames, spec, run.config.max_pose_samples, run.config.sample_rule, 1.0)
     measured, predicted, velocity = [], [], []
-    iterator = tqdm(list(zip(frames, counts)), desc="render run", unit="frame") if progress else zip(frames, counts)
+    pairs = list(zip(frames, counts))
     with torch.no_grad():
-        for f, n in iterator:
-            poses, ppi = frame_poses(rec, f, spec, n, rtr, n_exposure_samples=spec.render_exposure_samples)
-            outs = render_frame(g, cam, poses, ppi, spec, config)
-            rgb = torch.stack([o.rgb[0] for o in outs]).mean(0).cpu()
-            predicted.append(predict_image(rgb, spec, k_all[pos[f.index]], vignette, formation).numpy())
+        for f, n in tqdm(pairs, desc="render run", unit="frame", disable=not progress):
+            p = predict_frame(run.gaussians, rec, f, spec, cam, maps, k_of[f.index], n, settings, formation)
+            predicted.append(p.image.numpy())
             measured.append(rec.load_image(f).numpy())
-            depth = outs[0].depth[0, ..., 0].cpu().numpy().astype(np.float64)
-            alpha = outs[0].alpha[0, ..., 0].cpu().numpy()
+            depth = p.outs[0].depth[0, ..., 0].cpu().numpy().astype(np.float64)
+            alpha = p.outs[0].alpha[0, ..., 0].cpu().numpy()
             velocity.append(pixel_velocity(rec, f, np.where(alpha > 0.5, depth, 0.0)))
     meta = {"recording": str(recording_dir), "run": str(run_dir), "method": spec.name,
             "source": f"renders of trained run ({spec.name})"}

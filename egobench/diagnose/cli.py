@@ -1,0 +1,97 @@
+"""`egobench diagnose`: what a model gets wrong about a recording (see `egobench.diagnose`)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from egobench.diagnose.core import DiagnosisConfig, diagnose_residuals
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("recording", nargs="?", help="recording folder (not needed with --sweep or --adt)")
+    parser.add_argument("--method", default="ours", help="method whose model is diagnosed (egobench.methods)")
+    parser.add_argument("--out", required=True, help="output folder: report.md, diagnosis.json, figures/")
+    parser.add_argument("--run", default=None, help="trained run folder: diagnose its renders")
+    parser.add_argument("--train", action="store_true", help="train --method first (into OUT/run) and diagnose it")
+    parser.add_argument("--source", choices=("auto", "ground_truth", "run"), default="auto",
+                        help="prediction: simulator world re-cast under the model's assumptions (ground_truth), "
+                             "the run's renders (run); auto = run if --run/--train given, else ground_truth")
+    parser.add_argument("--alpha", type=float, default=DiagnosisConfig.alpha, help="family-wise significance level")
+    parser.add_argument("--max-causes", type=int, default=DiagnosisConfig.max_causes, help="causes peeled off at most")
+    parser.add_argument("--max-frames", type=int, default=None, help="use only the first N frames")
+    parser.add_argument("--sweep", action="store_true", help="run the hidden-case sweep (synthetic textures)")
+    parser.add_argument("--sweep-seeds", type=int, default=3, help="seeds per effect and magnitude in --sweep")
+    parser.add_argument("--sweep-null", type=int, default=20, help="null cases in --sweep")
+    parser.add_argument("--adt", default=None, help="Aria Digital Twin sample folder: real (video.vrs) vs twin (synthetic_video.vrs)")
+    parser.add_argument("--real-trajectory", default=None,
+                        help="with --adt: a real Aria closed_loop_trajectory.csv to compare head-motion statistics with")
+    parser.add_argument("--device", default=None,
+                        help="torch device to render the run on (default: its training device); with --train, "
+                             "also the training device (default cpu)")
+    parser.add_argument("--preset", choices=("cpu", "paper"), default="cpu",
+                        help="with --train: the starting config, as `egobench train --preset` (at the recording's "
+                             "full resolution: diagnosis compares full-resolution renders)")
+    parser.add_argument("--iterations", type=int, default=None, help="with --train: iterations (schedule scaled)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+
+
+def run(args: argparse.Namespace) -> int:
+    cfg = DiagnosisConfig(alpha=args.alpha, max_causes=args.max_causes).validate()
+    out = Path(args.out)
+    if args.sweep:
+        from egobench.diagnose.sweep import SweepConfig, run_sweep
+
+        summary = run_sweep(out, SweepConfig(seeds=args.sweep_seeds, null_cases=args.sweep_null), cfg,
+                            progress=not args.no_progress)
+        print(json.dumps({"out": str(out), "false_alarm_rate": summary["false_alarm_rate"], "n_cases": summary["n_cases"]}))
+        return 0
+    if args.adt:
+        from egobench.diagnose.adt import diagnose_adt
+
+        record = diagnose_adt(args.adt, out, config=cfg, real_trajectory=args.real_trajectory)
+        print(json.dumps({"out": str(out), "verdict": record["verdict"], "named": [n["name"] for n in record["named"]]}))
+        return 0
+    return _diagnose_recording(args, cfg, out)
+
+
+def _train_for_diagnosis(args: argparse.Namespace, rec: Path, out: Path) -> Path:
+    """--train: train --method with the --preset rules of `egobench train`, at full resolution, into OUT/run."""
+    from dataclasses import replace
+
+    from egobench.train import preset_config, train
+
+    config = replace(preset_config(args.preset), max_side=0, device=args.device or "cpu")
+    if args.iterations is not None:
+        config = config.scaled_to(args.iterations)
+    run_dir = out / "run"
+    train(rec, args.method, config, run_dir, progress=not args.no_progress)
+    return run_dir
+
+
+def _diagnose_recording(args: argparse.Namespace, cfg: DiagnosisConfig, out: Path) -> int:
+    """Diagnose one recording against the simulator's world (ground_truth) or a trained run's renders."""
+    from egobench.diagnose.report import write_report
+    from egobench.diagnose.sources import ground_truth_source, run_source
+
+    if not args.recording:
+        raise ValueError("recording: a recording folder is required (or use --sweep / --adt)")
+    rec = Path(args.recording)
+    if not rec.is_dir():
+        raise FileNotFoundError(f"{rec}: recording folder not found")
+    run_dir = _train_for_diagnosis(args, rec, out) if args.train else (Path(args.run) if args.run else None)
+    source = args.source if args.source != "auto" else ("run" if run_dir is not None else "ground_truth")
+    if source == "run":
+        if run_dir is None:
+            raise ValueError("--run: --source run needs a trained run folder (or --train)")
+        src = run_source(rec, run_dir, max_frames=args.max_frames, progress=not args.no_progress, device=args.device)
+    else:
+        if not (rec / "ground_truth" / "truth.json").is_file():
+            raise ValueError(f"{rec}: no ground_truth/truth.json (not simulated): pass --run RUN_DIR or --train")
+        src = ground_truth_source(rec, max_frames=args.max_frames, progress=not args.no_progress)
+    d = diagnose_residuals(src.measured, src.predicted, src.context, cfg)
+    record = write_report(out, d, src.measured, src.predicted, title=f"Residual diagnosis of {rec.name} ({src.description})",
+                          extra={"method": args.method, "source": src.description})
+    print(json.dumps({"out": str(out), "verdict": record["verdict"], "psnr_gain_db": record["psnr_gain_db"]}))
+    return 0

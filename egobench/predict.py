@@ -1,0 +1,216 @@
+"""The per-frame render path shared by training, evaluation and diagnosis.
+
+Given Gaussians, a recording and one of its frames: the poses the method renders the frame
+with (centre row; K rolling-shutter samples gathered per pixel by the row-time image R(u); M
+exposure samples averaged; or the velocity-shift model of 3DGS-on-the-move), the rasterized
+scene colour, and the method's image formation (exposure*gain normaliser k, vignette,
+response, scene gamma) that turns it into a predicted captured image (PAPER-NOTES §2).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Literal
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from egobench.camera.pinhole import Pinhole
+from egobench.data.recording import Frame, Recording
+from egobench.methods import MethodSpec
+
+if TYPE_CHECKING:  # pragma: no cover
+    from egobench.render.types import Gaussians, RenderOutput
+
+
+def resize_map(x: Tensor, camera: Pinhole, kind: Literal["area", "nearest"] = "area") -> Tensor:
+    """Resize an [H, W] or [H, W, C] map to the camera's size (area average, or nearest)."""
+    import cv2
+
+    if tuple(x.shape[:2]) == (camera.height, camera.width):
+        return x
+    interp = cv2.INTER_AREA if kind == "area" else cv2.INTER_NEAREST
+    arr = x.detach().cpu().numpy().astype(np.float32)
+    out = cv2.resize(arr, (camera.width, camera.height), interpolation=interp)
+    return torch.from_numpy(out.reshape(camera.height, camera.width, *x.shape[2:]))
+
+
+@dataclass
+class FrameMaps:
+    """The recording's per-pixel maps at a rendering camera's size."""
+
+    mask: Tensor  # [H, W] bool valid pixels
+    vignette: Tensor  # [H, W] float32
+    row_time_ratio: Tensor  # [H, W] float32 R(u)
+
+
+def frame_maps(recording: Recording, camera: Pinhole) -> FrameMaps:
+    """Mask (area-resized, kept where fully valid), vignette and R(u) at ``camera``'s size."""
+    return FrameMaps(mask=resize_map(recording.mask.float(), camera) > 0.999,
+                     vignette=resize_map(recording.vignette.float(), camera),
+                     row_time_ratio=resize_map(recording.row_time_ratio.float(), camera))
+
+
+def exposure_normaliser(recording: Recording) -> Tensor:
+    """k [F] over all frames of the recording (exposure*gain / median), float32."""
+    from egobench.formation import exposure_gain_normaliser
+
+    exposure = torch.tensor([f.exposure_s for f in recording.frames], dtype=torch.float64)
+    gain = torch.tensor([f.gain for f in recording.frames], dtype=torch.float64)
+    return exposure_gain_normaliser(exposure, gain).to(torch.float32)
+
+
+def method_normaliser(recording: Recording, spec: MethodSpec) -> dict[int, Tensor]:
+    """Frame index -> the k the method predicts that frame with (1 for methods without formation)."""
+    k_all = exposure_normaliser(recording) if spec.formation else torch.ones(len(recording.frames))
+    return {f.index: k_all[i] for i, f in enumerate(recording.frames)}
+
+
+def sample_counts(recording: Recording, frames: list[Frame], spec: MethodSpec, max_samples: int,
+                  rule: str, pixel_scale: float) -> list[int]:
+    """Rolling-shutter sample count per frame at the rendering resolution (1 for centre methods).
+
+    A frame whose sparse depth is empty gets 1 sample (as the released code: it cannot see motion).
+    """
+    from egobench.motion_sampling import estimate_motion
+
+    if spec.motion_sampling == "centre":
+        return [1] * len(frames)
+    counts = []
+    for f in frames:  # per frame (not per pixel)
+        if f.sparse_depth is None or len(f.sparse_depth.z) == 0:
+            counts.append(1)
+            continue
+        est = estimate_motion(recording, f, max_samples=max_samples, rule=rule, pixel_scale=pixel_scale)
+        counts.append(est.n_samples)
+    return counts
+
+
+def gaussians_from_params(params: dict) -> "Gaussians":
+    """The trainer's parameter dict (means, scales, quats, opacities, colors) as `Gaussians`."""
+    from egobench.render.types import Gaussians
+
+    return Gaussians(means=params["means"], quats=params["quats"], log_scales=params["scales"],
+                     opacity_logits=params["opacities"], colors=params["colors"])
+
+
+def formation_model(spec: MethodSpec):
+    """The trainer's image formation model for ``spec`` (its response gamma)."""
+    from egobench.formation import FormationConfig, FormationModel
+
+    return FormationModel(FormationConfig.paper_trainer(gamma=spec.response_gamma))
+
+
+def predict_image(rgb: Tensor, spec: MethodSpec, k: Tensor | float, vignette: Tensor, formation) -> Tensor:
+    """Rasterized scene colour [H, W, 3] -> predicted captured image [H, W, 3] in [0, 1]."""
+    if not spec.formation:
+        return rgb.clamp(0.0, 1.0)
+    return formation.predict(rgb, scale_k=k, vignette=vignette, scene_gamma=spec.scene_gamma)
+
+
+def frame_poses(recording: Recording, frame: Frame, spec: MethodSpec, n: int, row_time_ratio: Tensor,
+                pose_delta: Tensor | None = None, twist: Tensor | None = None,
+                n_exposure_samples: int = 1) -> tuple[Tensor, Tensor | None]:
+    """Poses to render one frame: (T_world_camera [M, K, 4, 4] float32, pixel_pose_index [H, W] | None).
+
+    M exposure samples (averaged by the caller), K rolling-shutter samples gathered per pixel.
+    ``pose_delta`` [6] (se(3), right-multiplied) and ``twist`` [6] are the per-frame trainables of
+    pose-optimising / velocity-shift methods.
+    """
+    from egobench.geometry import se3_exp
+    from egobench.motion_sampling import exposure_pose_samples, pixel_pose_index
+
+    if spec.motion_sampling == "velocity_shift":
+        return _velocity_shift_poses(recording, frame, n, row_time_ratio, pose_delta, twist, n_exposure_samples)
+    if n == 1 and n_exposure_samples == 1:
+        poses = frame.T_world_camera.to(torch.float32)[None, None]
+        ppi = None
+    else:
+        poses = exposure_pose_samples(recording, frame, n, n_exposure_samples).to(torch.float32)
+        ppi = pixel_pose_index(row_time_ratio, n) if n > 1 else None
+    if pose_delta is not None:
+        poses = poses.to(pose_delta.device) @ se3_exp(pose_delta.to(torch.float32))
+    return poses, ppi
+
+
+def _velocity_shift_poses(recording: Recording, frame: Frame, n: int, row_time_ratio: Tensor,
+                          pose_delta: Tensor | None, twist: Tensor | None,
+                          n_exposure_samples: int) -> tuple[Tensor, Tensor | None]:
+    """3DGS-on-the-move: the centre pose moved by a constant twist over the pinhole row times."""
+    from egobench.geometry import se3_exp
+    from egobench.motion_sampling import (
+        frame_twist_camera, linear_row_time_ratio, pixel_pose_index, sample_times_ns, velocity_poses,
+    )
+
+    H, W = row_time_ratio.shape
+    T_c = frame.T_world_camera.to(torch.float32)
+    if pose_delta is not None:  # a trainable on the training device: the host pose follows it
+        T_c = T_c.to(pose_delta.device) @ se3_exp(pose_delta.to(torch.float32))
+    if twist is None:
+        twist = frame_twist_camera(recording, frame).to(torch.float32)
+    times = sample_times_ns(frame, n, n_exposure_samples)  # [M, K]
+    dt = ((times - float(frame.timestamp_ns)) * 1e-9).reshape(-1)
+    poses = velocity_poses(T_c, twist.to(torch.float32), dt).reshape(times.shape[0], n, 4, 4)
+    ppi = pixel_pose_index(linear_row_time_ratio(H, W).to(row_time_ratio.device), n) if n > 1 else None
+    return poses, ppi
+
+
+@dataclass
+class RenderSettings:
+    """How a run renders: the device, its background colour and the rasterizer backend."""
+
+    device: torch.device
+    background: tuple[float, float, float]
+    backend: str
+
+    @classmethod
+    def of(cls, config, device: torch.device | str | None = None) -> "RenderSettings":
+        """From a `TrainConfig` (``device`` overrides ``config.device``)."""
+        return cls(torch.device(device if device is not None else config.device), tuple(config.background),
+                   config.backend)
+
+
+def render_frame(gaussians, camera: Pinhole, poses: Tensor, ppi: Tensor | None, spec: MethodSpec,
+                 settings: RenderSettings, want_normal: bool = False) -> list["RenderOutput"]:
+    """Render the M exposure samples of one frame -> list of M RenderOutput (one image each)."""
+    from egobench.render import render
+
+    device = settings.device
+    bg = torch.tensor(settings.background, dtype=torch.float32, device=device)
+    outs = []
+    for m in range(poses.shape[0]):  # exposure samples (1 unless the method asks for blur)
+        outs.append(render(
+            gaussians, camera, poses[m].to(device),
+            pixel_pose_index=None if ppi is None else ppi.to(device),
+            mode=spec.splat_mode, background=bg, backend=settings.backend,
+            want_normal=want_normal or spec.splat_mode == "2dgs",
+        ))
+    return outs
+
+
+def mean_rgb(outs: list["RenderOutput"]) -> Tensor:
+    """The exposure samples' scene colour averaged -> [H, W, 3]."""
+    return torch.stack([o.rgb[0] for o in outs]).mean(0)
+
+
+@dataclass
+class FramePrediction:
+    """One frame predicted: the captured image, the scene colour and the raw render outputs."""
+
+    image: Tensor  # [H, W, 3] predicted captured image in [0, 1]
+    rgb: Tensor  # [H, W, 3] scene colour (exposure samples averaged), on the CPU
+    outs: list  # M RenderOutput
+
+
+def predict_frame(gaussians, recording: Recording, frame: Frame, spec: MethodSpec, camera: Pinhole,
+                  maps: FrameMaps, k: Tensor | float, n_samples: int, settings: RenderSettings,
+                  formation) -> FramePrediction:
+    """Render ``frame`` with the method's poses (``n_samples`` rolling-shutter samples and its exposure
+    samples) and formation; the image formation runs on the CPU (float, as the metrics)."""
+    poses, ppi = frame_poses(recording, frame, spec, n_samples, maps.row_time_ratio,
+                             n_exposure_samples=spec.render_exposure_samples)
+    outs = render_frame(gaussians, camera, poses, ppi, spec, settings)
+    rgb = mean_rgb(outs).cpu()
+    image = predict_image(rgb, spec, k, maps.vignette, formation)
+    return FramePrediction(image=image, rgb=rgb, outs=outs)

@@ -1,0 +1,119 @@
+"""Run checkpoints: ``checkpoint.pt`` written atomically, read without executing code
+(``torch.load(weights_only=True)``: a checkpoint is tensors, numbers, strings and containers),
+matched against a method and config for ``--resume auto``, and loaded as a trained model for
+evaluation and diagnosis (`load_trained_run`)."""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import torch
+
+from egobench.camera.pinhole import Pinhole
+from egobench.io_utils import atomic_path
+from egobench.methods import MethodSpec, get_method
+from egobench.train.config import TrainConfig
+
+CHECKPOINT_FORMAT = "egobench.checkpoint/1"
+
+
+def read_checkpoint(path: str | Path) -> dict:
+    """The checkpoint dict at ``path``. FileNotFoundError if it is missing; ValueError naming the file
+    if it cannot be read safely or is not an egobench checkpoint."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no checkpoint (train the run first)")
+    try:
+        ck = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # truncated, foreign, or holding code objects: never unpickled with code
+        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise ValueError(f"{path}: not a readable egobench checkpoint ({reason})") from None
+    if not isinstance(ck, dict) or ck.get("format") != CHECKPOINT_FORMAT:
+        found = ck.get("format") if isinstance(ck, dict) else type(ck).__name__
+        raise ValueError(f"{path}: not an egobench checkpoint (format {found!r}, expected {CHECKPOINT_FORMAT!r})")
+    return ck
+
+
+def write_checkpoint(path: Path, state: dict) -> None:
+    """Write ``state`` (a dict with ``format`` = CHECKPOINT_FORMAT) atomically."""
+    with atomic_path(path) as tmp:
+        torch.save({"format": CHECKPOINT_FORMAT, **state}, tmp)
+
+
+def checkpoint_matches(path: Path, method: str, config: TrainConfig) -> bool:
+    """True when ``path`` holds a resumable checkpoint of ``method`` with this exact config; an
+    unreadable one or one of another run is reported on stderr (the caller starts afresh)."""
+    if not path.is_file():
+        return False
+    try:
+        ck = read_checkpoint(path)
+    except ValueError as exc:
+        print(f"egobench train: {exc}; starting afresh", file=sys.stderr)
+        return False
+    same = ck.get("method") == method and ck.get("config_hash") == config.hash(method)
+    if not same:
+        print(f"egobench train: {path}: checkpoint of another method or config; starting afresh", file=sys.stderr)
+    return same
+
+
+def resumable_checkpoint(path: Path, method: str, config: TrainConfig) -> dict:
+    """The checkpoint to resume ``method`` with ``config`` from; a named error when it is of another run."""
+    ck = read_checkpoint(path)
+    if ck.get("method") != method:
+        raise ValueError(f"{path}: checkpoint is for method {ck.get('method')!r}, not {method!r}")
+    if ck.get("config_hash") != config.hash(method):
+        raise ValueError(f"{path}: checkpoint was written with a different training config; resume needs the same")
+    return ck
+
+
+def config_of(ck: dict) -> TrainConfig:
+    """The `TrainConfig` a checkpoint was trained with."""
+    cfg = dict(ck["config"])
+    cfg["background"] = tuple(cfg["background"])
+    return TrainConfig(**cfg)
+
+
+@dataclass
+class TrainedRun:
+    """A trained run loaded for rendering (evaluation, diagnosis)."""
+
+    path: Path  # the run folder
+    checkpoint: dict
+    spec: MethodSpec
+    config: TrainConfig  # the training config, ``device`` set to where it renders now
+    camera: Pinhole  # the training-resolution camera
+    gaussians: object  # `Gaussians` on ``config.device``
+
+
+def load_trained_run(run_dir: str | Path, device: str | None, where: str) -> TrainedRun:
+    """The run in ``run_dir`` ready to render on ``device`` (default: its training device,
+    `render_device`); ``where`` names the caller in errors."""
+    from egobench.predict import gaussians_from_params
+
+    run_dir = Path(run_dir)
+    ck = read_checkpoint(run_dir / "checkpoint.pt")
+    config = config_of(ck)
+    dev = render_device(device, config.device, where)
+    c = ck["camera"]
+    camera = Pinhole(fx=c["fx"], fy=c["fy"], cx=c["cx"], cy=c["cy"], width=c["w"], height=c["h"])
+    gaussians = gaussians_from_params({k: v.detach() for k, v in ck["params"].items()}).to(dev)
+    return TrainedRun(path=run_dir, checkpoint=ck, spec=get_method(ck["method"]),
+                      config=replace(config, device=str(dev)), camera=camera, gaussians=gaussians)
+
+
+def render_device(requested: str | None, trained_on: str, where: str) -> torch.device:
+    """The torch device to render a checkpoint on: ``requested`` (``--device``) or else the run's
+    training device (``config.device``). Raises a ValueError naming ``where`` when that is a CUDA
+    device and this torch has no CUDA (a GPU-trained run evaluated on a CPU machine needs --device cpu)."""
+    name = requested if requested else trained_on
+    try:
+        device = torch.device(name)
+    except RuntimeError as exc:
+        raise ValueError(f"{where}: device {name!r} is not a torch device ({exc})") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        origin = "requested" if requested else "the run's training device (config.device)"
+        raise ValueError(f"{where}: device {name!r} is {origin}, but CUDA is not available here; "
+                         "pass --device cpu (device='cpu') to render on the CPU")
+    return device

@@ -1,0 +1,250 @@
+"""The training loop (paper Sec. 3-4, PAPER-NOTES §2 and §7).
+
+Each iteration picks a training frame (seeded permutation per epoch), renders it under the
+method's pose model (centre-row pose; adaptive rolling-shutter pose samples after the warm-up;
+or the velocity-shift model of the 3DGS-on-the-move baseline; `egobench.predict`), applies the
+method's image formation, takes the loss 0.8 L1 + 0.2 (1 - SSIM) on valid-mask pixels, steps
+Adam per parameter group and gsplat 1.5.3's densification (`egobench.optim`). Deterministic on
+the CPU for a seed; resumable from a checkpoint to the identical result.
+
+Timing method (``raster_time_share`` in train.json): wall time inside `render()` (forward) plus
+the rasterizer's share of the backward pass, measured from the moment autograd reaches the
+render output (a tensor hook on ``rgb``) to the end of ``loss.backward()``; everything upstream
+of the rasterizer in the graph (pose exponentials, parameter activations) is tiny and is counted
+as raster time. Divided by the total wall time of the iterations.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import torch
+from torch import Tensor
+
+from egobench.data.recording import Recording
+from egobench.methods import MethodSpec, get_method
+from egobench.optim import GAUSSIAN_PARAMS
+from egobench.predict import (
+    RenderSettings, formation_model, frame_poses, gaussians_from_params, mean_rgb, predict_image, render_frame,
+)
+from egobench.train.checkpoint import checkpoint_matches, resumable_checkpoint, write_checkpoint
+from egobench.train.config import TrainConfig
+from egobench.train.data import TrainingData, image_to_float, prepare_data
+from egobench.train.losses import photometric_loss, twodgs_regularisers
+from egobench.train.record import train_record
+from egobench.train.state import TrainState, load_state, new_state, state_dict
+
+
+class TrainingDiverged(RuntimeError):
+    """Raised when a loss or parameter becomes non-finite (names the iteration and quantity)."""
+
+
+@dataclass
+class TrainResult:
+    """What `train` returns (and writes to train.json)."""
+
+    run_dir: Path
+    checkpoint: Path
+    iterations: int  # completed iterations
+    num_gaussians: int
+    time_s: float  # wall time of the iterations (all sessions, excluding setup and checkpoints)
+    iters_per_s: float
+    raster_time_share: float
+    final_loss: float
+    record: dict = field(default_factory=dict)
+
+
+@dataclass
+class StepContext:
+    """What every iteration reads: the prepared data and its per-pixel maps on the training device."""
+
+    data: TrainingData
+    config: TrainConfig
+    settings: RenderSettings
+    formation: object  # the method's `FormationModel`
+    mask3: Tensor  # [H, W, 1] float valid pixels
+    n_mask: float  # valid pixels x 3
+    vignette: Tensor  # [H, W]
+    k: Tensor  # [F] exposure*gain normaliser of the training frames
+    row_time_ratio: Tensor  # [H, W] R(u): pixel-pose indices are built on the device
+
+
+def step_context(data: TrainingData, config: TrainConfig, device: torch.device) -> StepContext:
+    """Move the maps to the device; a valid mask that is empty at the training resolution is a named error."""
+    mask3 = data.maps.mask.to(device)[..., None].float()
+    n_mask = float(mask3.sum()) * 3
+    if n_mask == 0:
+        raise ValueError(f"recording {data.recording.root}: the valid-pixel mask is empty at the training resolution")
+    return StepContext(data=data, config=config, settings=RenderSettings.of(config, device),
+                       formation=formation_model(data.spec), mask3=mask3, n_mask=n_mask,
+                       vignette=data.maps.vignette.to(device), k=data.k.to(device),
+                       row_time_ratio=data.maps.row_time_ratio.to(device))
+
+
+def _check_finite(it: int, named: list[tuple[str, Tensor]]) -> None:
+    """Raise TrainingDiverged naming the first non-finite tensor of ``named``. One host sync for
+    all of them (a CUDA run does not stall on each tensor); the per-tensor search runs only on failure."""
+    named = [(n, t.detach()) for n, t in named if t is not None]
+    if not named or bool(torch.stack([torch.isfinite(t).all() for _, t in named]).all()):
+        return
+    for name, value in named:
+        bad = int((~torch.isfinite(value)).sum())
+        if bad:
+            raise TrainingDiverged(f"training diverged at iteration {it}: {name} is not finite "
+                                   f"({bad} non-finite values); lower the learning rates or check the input")
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _forward(state: TrainState, ctx: StepContext, it: int, fi: int) -> tuple[Tensor, list, float]:
+    """Render training frame ``fi`` and return (loss, render outputs, forward render seconds)."""
+    data, config, spec = ctx.data, ctx.config, ctx.data.spec
+    warm = it >= config.motion_warmup_iter
+    poses, ppi = frame_poses(data.recording, data.frames[fi], spec, data.n_samples[fi] if warm else 1,
+                             ctx.row_time_ratio, **state.frame_trainables(fi),
+                             n_exposure_samples=spec.render_exposure_samples if warm else 1)
+    g = gaussians_from_params(state.params)
+    _sync(ctx.settings.device)
+    t0 = time.perf_counter()
+    outs = render_frame(g, data.camera, poses, ppi, spec, ctx.settings)
+    _sync(ctx.settings.device)
+    t_fwd = time.perf_counter() - t0
+    for o in outs:
+        if o.means2d is not None and o.means2d.requires_grad:
+            o.means2d.retain_grad()
+    rgb = mean_rgb(outs)  # [H, W, 3] exposure samples averaged
+    pred = predict_image(rgb, spec, ctx.k[fi], ctx.vignette, ctx.formation)
+    gt = image_to_float(data.images[fi].to(ctx.settings.device, non_blocking=True))  # [H, W, 3] 0..1
+    loss = photometric_loss(pred, gt, ctx.mask3, ctx.n_mask, config.ssim_lambda)
+    if spec.splat_mode == "2dgs":
+        loss = loss + twodgs_regularisers(outs, data.camera, config, it, ctx.mask3)
+    _check_finite(it, [("rendered rgb", rgb), ("loss", loss)])
+    return loss, outs, t_fwd
+
+
+def _backward(loss: Tensor, outs: list, device: torch.device) -> float:
+    """loss.backward(); returns the rasterizer's share of it in seconds (from the rgb hook to the end)."""
+    hook_t: list[float] = []
+    rgb_leaf = outs[-1].rgb
+    if rgb_leaf.requires_grad:
+        rgb_leaf.register_hook(lambda grad: hook_t.append(time.perf_counter()) or None)
+    loss.backward()
+    _sync(device)
+    return (time.perf_counter() - min(hook_t)) if hook_t else 0.0
+
+
+def train_step(state: TrainState, ctx: StepContext, it: int) -> None:
+    """One iteration: forward, backward, densification statistics, optimiser steps, refinement."""
+    t0 = time.perf_counter()
+    loss, outs, t_fwd = _forward(state, ctx, it, state.next_frame())
+    t_bwd = _backward(loss, outs, ctx.settings.device)
+    cam = ctx.data.camera
+    for o in outs:
+        if o.means2d is not None and o.means2d.grad is not None and o.radii is not None:
+            state.densifier.accumulate(state.params, it, o.means2d, o.radii, cam.width, cam.height)
+    _check_finite(it, [(f"gradient of {name}", state.params[name].grad) for name in GAUSSIAN_PARAMS])
+    state.step_optimisers(it)
+    _check_finite(it, [(name, state.params[name]) for name in GAUSSIAN_PARAMS] + list(state.extra.items()))
+    state.last_loss = float(loss.detach())
+    state.iteration = it + 1
+    for key, value in (("time_s", time.perf_counter() - t0), ("render_fwd_s", t_fwd), ("render_bwd_s", t_bwd),
+                       ("iterations_timed", 1)):
+        state.timing[key] += value
+
+
+def _recording_for(recording_dir, spec: MethodSpec) -> Recording:
+    """A folder loaded with the method's calibration, or a loaded `Recording` checked against it."""
+    if isinstance(recording_dir, Recording):
+        if recording_dir.calibration != spec.calibration:
+            raise ValueError(
+                f"recording: method {spec.name!r} needs the {spec.calibration!r} calibration, got a recording "
+                f"loaded with {recording_dir.calibration!r}"
+            )
+        return recording_dir
+    from egobench.data import load_recording
+
+    return load_recording(recording_dir, calibration=spec.calibration)
+
+
+def _checkpoint_state(state: TrainState, method: str, config: TrainConfig, data: TrainingData,
+                      device: torch.device) -> dict:
+    """The checkpoint dict: the state plus what identifies the run."""
+    return {"method": method, "config": config.to_dict(), "config_hash": config.hash(method),
+            **state_dict(state, device), "extra_frames": [f.index for f in data.frames],
+            "camera": data.camera.to_dict(), "scene_scale": data.scene_scale,
+            "recording": str(data.recording.root), "n_samples": data.n_samples}
+
+
+def _warn_backend(device: torch.device, config: TrainConfig) -> str:
+    """Resolve (maybe build) the rasterizer backend before timing starts; warn on a slow CUDA fallback."""
+    from egobench.render import resolve_backend
+
+    backend = resolve_backend(config.backend, device)
+    if device.type == "cuda" and backend == "torch" and config.backend == "auto":
+        print("egobench train: warning: gsplat's CUDA extension cannot be loaded (needs nvcc to build once); "
+              "training with the pure-torch rasterizer, which is many times slower", file=sys.stderr)
+    return backend
+
+
+def train(recording_dir, method: str, config: TrainConfig, out_dir, *, resume: bool | Literal["auto"] = False,
+          stop_after: int | None = None, progress: bool = True) -> TrainResult:
+    """Train ``method`` on a recording (a folder, or a loaded `Recording` of the method's calibration).
+
+    Writes ``out_dir/checkpoint.pt`` (atomic; every ``checkpoint_every`` and at the end) and
+    ``out_dir/train.json``. ``resume`` continues from the checkpoint to the identical result of an
+    uninterrupted run; ``resume="auto"`` (the workflow's choice) resumes a checkpoint of the same
+    method and config and otherwise starts afresh (a stale checkpoint is replaced). ``stop_after``
+    ends after that many total iterations (as an interruption would: checkpoint written, no train.json).
+    """
+    from tqdm import tqdm
+
+    spec = get_method(method)
+    ckpt_path = Path(out_dir) / "checkpoint.pt"
+    data = prepare_data(_recording_for(recording_dir, spec), spec, config, progress=progress)
+    device = torch.device(config.device)
+    state = new_state(data, config, device)
+    ctx = step_context(data, config, device)
+    backend = _warn_backend(device, config)
+    if resume == "auto":
+        resume = checkpoint_matches(ckpt_path, method, config)
+    if resume:
+        state = load_state(resumable_checkpoint(ckpt_path, method, config), config, data.scene_scale, device)
+    start_it = state.iteration
+    end_it = config.iterations if stop_after is None else min(config.iterations, int(stop_after))
+    bar = tqdm(range(start_it, end_it), desc=f"train {method}", disable=not progress, file=sys.stderr,
+               initial=start_it, total=config.iterations, mininterval=2.0)
+    for it in bar:
+        train_step(state, ctx, it)
+        if progress and it % 50 == 0:
+            bar.set_postfix(loss=f"{state.last_loss:.4f}", n=len(state.params["means"]))
+        if config.checkpoint_every > 0 and (it + 1) % config.checkpoint_every == 0 and it + 1 < end_it:
+            write_checkpoint(ckpt_path, _checkpoint_state(state, method, config, data, device))
+    bar.close()
+    state.iteration = max(end_it, start_it)
+    write_checkpoint(ckpt_path, _checkpoint_state(state, method, config, data, device))
+    return _result(state, data, config, method, Path(out_dir), backend)
+
+
+def _result(state: TrainState, data: TrainingData, config: TrainConfig, method: str, out_dir: Path,
+            backend: str) -> TrainResult:
+    """The run's result; train.json is written only for a finished run (the workflow's output)."""
+    from egobench.io_utils import write_json
+
+    ts, its = state.timing["time_s"], state.timing["iterations_timed"]
+    result = TrainResult(
+        run_dir=out_dir, checkpoint=out_dir / "checkpoint.pt", iterations=state.iteration,
+        num_gaussians=int(len(state.params["means"])), time_s=ts, iters_per_s=its / ts if ts > 0 else 0.0,
+        raster_time_share=(state.timing["render_fwd_s"] + state.timing["render_bwd_s"]) / ts if ts > 0 else 0.0,
+        final_loss=state.last_loss,
+    )
+    result.record = train_record(result, state, data, config, method, backend)
+    if result.record["complete"]:
+        write_json(out_dir / "train.json", result.record)
+    return result

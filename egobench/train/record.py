@@ -1,0 +1,56 @@
+"""train.json: the self-describing record of a training run (identity, config, provenance, timings)."""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+
+from egobench import __version__
+from egobench.io_utils import git_commit
+from egobench.train.config import TrainConfig
+from egobench.train.data import TrainingData
+from egobench.train.state import TrainState
+
+if TYPE_CHECKING:  # pragma: no cover
+    from egobench.train.loop import TrainResult
+
+TRAIN_SCHEMA = "egobench.train/1"
+
+
+def train_record(result: "TrainResult", state: TrainState, data: TrainingData, config: TrainConfig,
+                 method: str, backend: str) -> dict:
+    """The train.json record of a run (``complete`` once every iteration has run)."""
+    spec, rec, cam = data.spec, data.recording, data.camera
+    ns = np.asarray(data.n_samples)
+    return {
+        "schema": TRAIN_SCHEMA, "method": method, "method_label": spec.label, "seed": config.seed,
+        "recording": str(rec.root), "scene": rec.name, "calibration": spec.calibration,
+        "config": config.to_dict(), "config_hash": config.hash(method), "git_commit": git_commit(),
+        "egobench_version": __version__, "complete": result.iterations >= config.iterations,
+        "train": {
+            "iterations": result.iterations, "time_s": result.time_s, "iters_per_s": result.iters_per_s,
+            "raster_time_share": result.raster_time_share, "num_gaussians": result.num_gaussians,
+            "render_forward_s": state.timing["render_fwd_s"], "render_backward_s": state.timing["render_bwd_s"],
+            "timing_method": "render() wall time + backward from the rgb hook to the end of loss.backward(), over iteration wall time",
+            "device": config.device, "backend": backend,
+            "final_loss": result.final_loss if math.isfinite(result.final_loss) else None,
+            "image_store": _image_store_stats(data, config),
+        },
+        "camera": cam.to_dict(), "scene_scale": data.scene_scale,
+        "motion_samples": {"mean": float(ns.mean()), "max": int(ns.max()), "min": int(ns.min()),
+                           "warmup_iter": config.motion_warmup_iter, "rule": config.sample_rule},
+        "densification_last": state.densifier.last_counts,
+    }
+
+
+def _image_store_stats(data: TrainingData, config: TrainConfig) -> dict:
+    images, cam, raw = data.images, data.camera, data.recording.camera
+    return {
+        "dtype": str(images.dtype).replace("torch.", ""), "shape": list(images.shape),
+        "mib": images.numel() * images.element_size() / 2**20,
+        "pinned": bool(torch.device(config.device).type == "cuda" and images.is_pinned()),
+        "resized": [cam.height, cam.width] != [raw.height, raw.width],
+    }
