@@ -61,7 +61,9 @@ def load_checkpoint(run_dir: Path) -> dict:
         raise FileNotFoundError(f"{path}: no checkpoint (train the run first)")
     from egobench.train import CHECKPOINT_FORMAT
 
-    ck = torch.load(path, map_location="cpu", weights_only=False)
+    from egobench.checkpoint import read_checkpoint
+
+    ck = read_checkpoint(path)
     if not isinstance(ck, dict) or ck.get("format") != CHECKPOINT_FORMAT:
         raise ValueError(f"{path}: not an egobench checkpoint (expected format {CHECKPOINT_FORMAT})")
     return ck

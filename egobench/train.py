@@ -38,6 +38,7 @@ from torch import Tensor
 
 from egobench import __version__
 from egobench.camera.pinhole import Pinhole
+from egobench.checkpoint import read_checkpoint
 from egobench.data.recording import Frame, Recording
 from egobench.io_utils import atomic_path, write_json
 from egobench.methods import MethodSpec, get_method
@@ -673,7 +674,7 @@ def train(recording_dir, method: str, config: TrainConfig, out_dir, *, resume: b
     if resume:
         if not ckpt_path.is_file():
             raise FileNotFoundError(f"{ckpt_path}: no checkpoint to resume from")
-        ck = torch.load(ckpt_path, map_location="cpu", weights_only=False)  # RNG states stay host tensors
+        ck = read_checkpoint(ckpt_path)  # weights_only; RNG states stay host tensors
         if ck.get("format") != CHECKPOINT_FORMAT or ck.get("method") != method:
             raise ValueError(f"{ckpt_path}: checkpoint is for method {ck.get('method')!r} (format {ck.get('format')}), not {method!r}")
         if ck["config_hash"] != config.hash(method):
@@ -848,8 +849,8 @@ def _checkpoint_matches(ckpt_path: Path, method: str, config: TrainConfig) -> bo
     if not ckpt_path.is_file():
         return False
     try:
-        ck = torch.load(ckpt_path, map_location="cpu", weights_only=False)
-    except Exception as exc:  # a truncated or foreign file: start afresh, say so
+        ck = read_checkpoint(ckpt_path)
+    except ValueError as exc:  # a truncated or foreign file: start afresh, say so
         print(f"egobench train: {ckpt_path}: unreadable checkpoint ({exc}); starting afresh", file=sys.stderr)
         return False
     same = (ck.get("format") == CHECKPOINT_FORMAT and ck.get("method") == method
