@@ -77,6 +77,7 @@ def check_config(config: Mapping, schema: Mapping | None = None, check_sim: bool
                 if key in src:
                     messages.append(f"config.scenes[{i}].sim.{key}: set by the workflow from the scene entry "
                                     "(kind, sim_seed, name); remove it from sim")
+    messages += _check_paper_scenes(config["scenes"])
     diag = config.get("diagnose") or {}
     for i, name in enumerate(diag.get("scenes") or []):
         if name not in names:
@@ -102,6 +103,19 @@ def check_config(config: Mapping, schema: Mapping | None = None, check_sim: bool
         messages += _check_sim_overrides(config) + _check_train_overrides(config)
     if messages:
         raise ConfigError("invalid workflow config:\n  " + "\n  ".join(messages))
+
+
+def _check_paper_scenes(scenes: list) -> list[str]:
+    """A paper_scene must name one of the paper's table columns (case-insensitive), else its cell stays empty."""
+    from egobench.paper_numbers import PAPER_SCENES
+
+    messages = []
+    for i, scene in enumerate(scenes):
+        value = scene.get("paper_scene")
+        if value is not None and value.lower() not in PAPER_SCENES:
+            messages.append(f"config.scenes[{i}].paper_scene: {value!r} (scene {scene['name']!r}) is not a scene of "
+                            f"the paper's tables; expected one of {', '.join(map(repr, PAPER_SCENES))} or null")
+    return messages
 
 
 def _check_sim_overrides(config: Mapping) -> list[str]:

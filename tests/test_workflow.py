@@ -155,6 +155,9 @@ def test_egobench_command():
         (lambda c: c["defaults"].update(preset="gpu"), "config.defaults.preset: 'gpu' is not allowed"),
         (lambda c: c.pop("suite"), "'suite' is a required property"),
         (lambda c: c["diagnose"].update(methods=["ours_2dgs"]), "'ours_2dgs' is not run on scene 'indoor_0'"),
+        (lambda c: c["scenes"][0].update(paper_scene="plant halway"),
+         "config.scenes[0].paper_scene: 'plant halway' (scene 'outdoor_0') is not a scene of the paper's tables; "
+         "expected one of 'bike shop', 'steakhouse patio'"),
         (lambda c: c["motion_stats"].update(real_trajectory="/nonexistent/traj.csv"),
          "config.motion_stats.real_trajectory: /nonexistent/traj.csv: file not found"),
     ],
