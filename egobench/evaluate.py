@@ -213,6 +213,8 @@ def evaluate(recording_dir, run_dir, *, scene: str | None = None, paper_scene: s
         "git_commit": train_rec.get("git_commit") or _git(),
         "egobench_version": __version__,
         "recording": str(rec.root),
+        "trajectory_file": meta.get("trajectory_file"),  # what the recording was read with (plots reload it)
+        "points_file": meta.get("points_file"),
         "train": {
             "iterations": int(ck["iteration"]),
             "time_s": tr.get("time_s"),
@@ -294,10 +296,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-renders", action="store_true", help="do not save renders")
     parser.add_argument("--device", default=None,
                         help="torch device to render on (default: the run's training device, config.device)")
+    from egobench.data.reader import add_input_arguments
+
+    add_input_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
-    rec = evaluate(args.recording, args.run, scene=args.scene, paper_scene=args.paper_scene,
+    from egobench.data.reader import recording_from_args
+
+    recording = args.recording
+    if getattr(args, "trajectory", None) or getattr(args, "points", None):  # load with the run's calibration
+        recording = recording_from_args(args.recording, get_method(load_checkpoint(Path(args.run))["method"]).calibration,
+                                        args)
+    rec = evaluate(recording, args.run, scene=args.scene, paper_scene=args.paper_scene,
                    save_renders=not args.no_renders, device=getattr(args, "device", None))
     m = rec["metrics"]
     print(f"evaluated {rec['method']} on {rec['scene']}: PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.3f} "

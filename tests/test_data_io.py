@@ -291,3 +291,37 @@ def test_readout_displacement_matches_manual_projection(rec_dir):
     assert d[0] == pytest.approx(float((uv[1] - uv[0]).norm()), rel=1e-6, abs=1e-9)
     q = displacement_percentiles(rec)
     assert q.shape == (6, 3) and np.all(q[:, 0] <= q[:, 2])
+
+
+def test_verbs_take_trajectory_and_points(authors_scene, rec_dir, tmp_path):
+    """train and evaluate read the authors' folder with explicit --trajectory / --points; diagnose and
+    plots take the same options."""
+    from egobench.cli import build_parser, main
+
+    scene, stream = authors_scene
+    full = _stream(rec_dir) / "closed_loop_trajectory.csv"
+    pts = scene / "mps" / "slam" / "semidense_points.csv.gz"
+    run = tmp_path / "run"
+    assert main(["train", "--recording", str(stream), "--method", "ours", "--out", str(run), "--iterations", "2",
+                 "--trajectory", str(full), "--points", str(pts), "--no-progress"]) == 0
+    assert main(["evaluate", "--recording", str(stream), "--run", str(run), "--no-renders",
+                 "--trajectory", str(full), "--points", str(pts)]) == 0
+    ev = json.loads((run / "eval.json").read_text())
+    assert ev["trajectory_file"] == str(full) and ev["points_file"] == str(pts)
+    # with the full trajectory no frame is dropped: 6 frames, frame 0 (sim frame 0) held out
+    from egobench.data import load_recording
+
+    assert len(load_recording(stream, trajectory_path=full).test_frames) == 1
+    assert len(ev["per_image"]) == 1
+    # without --trajectory the folder's own (cut) trajectory drops the end frames: a different held-out frame
+    assert load_recording(stream).test_frames[0].timestamp_ns != load_recording(stream, trajectory_path=full).test_frames[0].timestamp_ns
+    import sys
+
+    for verb, extra in (("diagnose", [str(stream), "--out", "x"]), ("plots", ["--records", "r", "--out-dir", "x"])):
+        old = sys.argv
+        sys.argv = ["egobench", verb]
+        try:
+            args = build_parser().parse_args([verb, *extra, "--trajectory", "t.csv", "--points", "p.csv.gz"])
+        finally:
+            sys.argv = old
+        assert (args.trajectory, args.points) == ("t.csv", "p.csv.gz")

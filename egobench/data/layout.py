@@ -65,6 +65,12 @@ def variant_path(folder: Path, calibration: str) -> Path:
     return folder.parent / (base + (FACTORY_SUFFIX if calibration == "factory" else ""))
 
 
+def recording_root(path: str | Path) -> Path:
+    """The recording folder of ``path``: the parent of a stream folder, else ``path`` itself."""
+    path = Path(path)
+    return path.parent if is_stream(path) else path
+
+
 def link_mps_files(stream: Path, mps_dir: Path) -> None:
     """Put closed_loop_trajectory.csv and semidense_points.csv.gz inside a stream folder as symlinks
     to the MPS files: relative when the MPS folder lies inside the recording (it can move), else absolute."""

@@ -46,6 +46,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="torch device to render the run on (default: its training device); with --train, "
                              "also the training device (default cpu)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    from egobench.data.reader import add_input_arguments
+
+    add_input_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -71,10 +74,13 @@ def run(args: argparse.Namespace) -> int:
         raise FileNotFoundError(f"{rec}: recording folder not found")
     run_dir = Path(args.run) if args.run else None
     if args.train:
+        from egobench.data.reader import recording_from_args
+        from egobench.methods import get_method
         from egobench.train import TrainConfig, train
 
         run_dir = out / "run"
-        train(rec, args.method, TrainConfig(device=args.device or "cpu"), run_dir)
+        train(recording_from_args(rec, get_method(args.method).calibration, args), args.method,
+              TrainConfig(device=args.device or "cpu"), run_dir)
     source = args.source
     if source == "auto":
         source = "run" if run_dir is not None else "ground_truth"
@@ -85,9 +91,12 @@ def run(args: argparse.Namespace) -> int:
         if run_dir is None:
             raise ValueError("--run: --source run needs a trained run folder (or --train)")
         src = run_source(rec, run_dir, max_frames=args.max_frames, progress=not args.no_progress,
-                         device=getattr(args, "device", None))
+                         device=getattr(args, "device", None), trajectory_path=getattr(args, "trajectory", None),
+                         semidense_path=getattr(args, "points", None))
     else:
-        if not (rec / "ground_truth" / "truth.json").is_file():
+        from egobench.data.layout import recording_root
+
+        if not (recording_root(rec) / "ground_truth" / "truth.json").is_file():
             raise ValueError(f"{rec}: no ground_truth/truth.json (not simulated): pass --run RUN_DIR or --train")
         src = ground_truth_source(rec, max_frames=args.max_frames, progress=not args.no_progress)
     d = diagnose_residuals(src.measured, src.predicted, src.context, cfg)
