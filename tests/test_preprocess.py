@@ -141,7 +141,7 @@ def test_rectification_agrees_with_projectaria(processed):
     valid = cv2.erode((cv2.imread(str(factory / "mask.png"), 0) > 127).astype(np.uint8), np.ones((5, 5))) > 0
     diff = np.abs(ours - theirs)[valid]
     assert valid.mean() > 0.5
-    assert diff.mean() < 0.75 and np.quantile(diff, 0.99) <= 4, (diff.mean(), np.quantile(diff, 0.99))
+    assert diff.max() <= 1, diff.max()  # within one 8-bit level (rounding; measured mean 0.49)
     # the rectified pinhole follows projectaria's linear model: same intrinsics
     assert (frame["fx"], frame["cx"], frame["cy"]) == (FOCAL, (SIZE - 1) / 2, (SIZE - 1) / 2)
     assert dst.get_principal_point().tolist() == [frame["cx"], frame["cy"]]

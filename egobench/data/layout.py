@@ -71,9 +71,10 @@ def recording_root(path: str | Path) -> Path:
     return path.parent if is_stream(path) else path
 
 
-def link_mps_files(stream: Path, mps_dir: Path) -> None:
+def link_mps_files(stream: Path, mps_dir: Path, absolute: bool = False) -> None:
     """Put closed_loop_trajectory.csv and semidense_points.csv.gz inside a stream folder as symlinks
-    to the MPS files: relative when the MPS folder lies inside the recording (it can move), else absolute."""
+    to the MPS files: relative when the MPS folder lies inside the recording (it can move) unless
+    ``absolute`` (the authors' choice; needed when the folder is renamed into another parent)."""
     import os
 
     recording = stream.absolute().parent
@@ -81,7 +82,7 @@ def link_mps_files(stream: Path, mps_dir: Path) -> None:
         link, target = stream / name, (mps_dir / name).absolute()
         if not target.is_file():
             raise FileNotFoundError(f"{target}: MPS file not found (needed in {stream})")
-        inside = target.is_relative_to(recording)
+        inside = target.is_relative_to(recording) and not absolute
         if link.is_symlink() or link.exists():
             link.unlink()
         link.symlink_to(os.path.relpath(target, stream.absolute()) if inside else target)

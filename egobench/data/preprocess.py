@@ -18,8 +18,9 @@ simulator's. Sparse depth: the semi-dense points observed by the SLAM cameras in
 nearest to the RGB centre time (semidense_observations.csv.gz), projected into the rectified
 camera. projectaria-tools (VRS reading) is imported only here, lazily.
 
-Resumable: frames are written into ``<out>/.<stream>.partial/`` (a frame's record last) and a
-rerun reuses finished frames; the folder is renamed onto the stream folder at the end.
+Resumable: frames are written into ``<out parent>/.<out name>.<stream>.partial/`` beside the
+output (a frame's record last; a workflow that clears ``<out>`` before a rerun keeps it) and a
+rerun reuses finished frames; the folder is renamed onto ``<out>/<stream>/`` at the end.
 """
 
 from __future__ import annotations
@@ -321,7 +322,7 @@ def preprocess(vrs: str | Path, mps_dir: str | Path, out: str | Path, options: P
         print(f"egobench preprocess: warning: {warning}", file=sys.stderr)
 
     name = stream_folder_name(o.camera_label, o.focal_px, o.size_px, factory=o.factory)
-    final, partial = out / name, out / f".{name}.partial"
+    final, partial = out / name, out.absolute().parent / f".{out.name}.{name}.partial"
     _open_partial(partial, o.fingerprint(vrs, mps_dir))
     rig = _Rig(rectified_pinhole(o.focal_px, o.size_px))
     n = provider.get_num_data(stream_id) if o.max_frames is None else min(o.max_frames, provider.get_num_data(stream_id))
@@ -344,10 +345,11 @@ def preprocess(vrs: str | Path, mps_dir: str | Path, out: str | Path, options: P
     write_transforms(partial, frames, camera_label=o.camera_label, camera_model="linear", extra={
         "transform_cpf": None if cpf is None else np.asarray(cpf.to_matrix()).tolist(),
         "calibration": "factory" if o.factory else "online"})
-    link_mps_files(partial, mps_dir)
+    link_mps_files(partial, mps_dir, absolute=True)
     shutil.rmtree(partial / ".frames")
     if final.exists():
         shutil.rmtree(final)
+    out.mkdir(parents=True, exist_ok=True)
     partial.rename(final)
     skipped = len(entries) - len(frames)
     print(f"egobench preprocess: {len(frames)} frames -> {final}" + (f" ({skipped} outside the trajectory skipped)"
