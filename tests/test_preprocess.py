@@ -228,3 +228,31 @@ def test_missing_mps_file_is_named(processed, tmp_path):
     empty.mkdir()
     with pytest.raises(FileNotFoundError, match=r"slam/closed_loop_trajectory\.csv: trajectory file not found"):
         preprocess(adt / "video.vrs", empty, tmp_path / "out", PreprocessOptions(focal_px=FOCAL, size_px=SIZE))
+
+
+def test_interrupted_preprocess_resumes_to_the_same_folder(processed, tmp_path, monkeypatch):
+    from egobench.data import preprocess as pp
+
+    adt, mps, _, online, _, _ = processed
+    out = tmp_path / "recording"
+    real, calls = pp._process_frame, []
+
+    def interrupted(i, *args, **kwargs):
+        calls.append(i)
+        if len(calls) == 3:  # frame 2, after frames 0 (skipped: outside the trajectory) and 1
+            raise KeyboardInterrupt
+        return real(i, *args, **kwargs)
+
+    monkeypatch.setattr(pp, "_process_frame", interrupted)
+    opts = pp.PreprocessOptions(focal_px=FOCAL, size_px=SIZE)
+    with pytest.raises(KeyboardInterrupt):
+        pp.preprocess(adt / "video.vrs", mps, out, opts, progress=False)
+    assert not (out / online.name).exists()
+    calls.clear()
+    final = pp.preprocess(adt / "video.vrs", mps, out, opts, progress=False)
+    assert calls == [2]  # frames 0 and 1 were finished by the first run
+    assert not list(tmp_path.glob(".*partial"))
+    for rel in ("transforms_with_sparse_depth.json", "image_index.png", "vignette.png"):
+        assert (final / rel).read_bytes() == (online / rel).read_bytes(), rel
+    for f in json.loads((final / "transforms.json").read_text())["frames"]:
+        assert (final / f["image_path"]).read_bytes() == (online / f["image_path"]).read_bytes()
