@@ -101,7 +101,8 @@ def _gt_file(recording: Recording, kind: str, frame: Frame) -> Path | None:
 
 
 def evaluate(recording_dir, run_dir, *, scene: str | None = None, paper_scene: str | None = None,
-             save_renders: bool = True, geometry_recording=None, device: str | None = None) -> dict:
+             save_renders: bool = True, geometry_recording=None, device: str | None = None,
+             scene_kind: str | None = None) -> dict:
     """Evaluate the run in ``run_dir`` on the held-out frames; writes and returns eval.json.
 
     ``recording_dir``: the recording folder (or a loaded `Recording` of the method's calibration).
@@ -202,7 +203,7 @@ def evaluate(recording_dir, run_dir, *, scene: str | None = None, paper_scene: s
     record = {
         "schema": RUN_SCHEMA,
         "scene": scene or meta.get("scene") or rec.name,
-        "scene_kind": meta.get("scene_kind"),
+        "scene_kind": scene_kind or meta.get("scene_kind"),  # real recordings: from --scene-kind
         "device": meta.get("device"),
         "paper_scene": paper_scene if paper_scene is not None else meta.get("paper_scene"),
         "method": spec.name,
@@ -293,6 +294,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--run", required=True, help="run folder with checkpoint.pt (eval.json written here)")
     parser.add_argument("--scene", default=None, help="scene name for the record (default: the recording's)")
     parser.add_argument("--paper-scene", default=None, help="the paper's scene this one stands for")
+    parser.add_argument("--scene-kind", default=None, choices=("outdoor", "indoor", "object", "quest3"),
+                        help="table block of a real recording (simulated ones carry their kind)")
     parser.add_argument("--no-renders", action="store_true", help="do not save renders")
     parser.add_argument("--device", default=None,
                         help="torch device to render on (default: the run's training device, config.device)")
@@ -309,7 +312,8 @@ def run(args: argparse.Namespace) -> int:
         recording = recording_from_args(args.recording, get_method(load_checkpoint(Path(args.run))["method"]).calibration,
                                         args)
     rec = evaluate(recording, args.run, scene=args.scene, paper_scene=args.paper_scene,
-                   save_renders=not args.no_renders, device=getattr(args, "device", None))
+                   save_renders=not args.no_renders, device=getattr(args, "device", None),
+                   scene_kind=getattr(args, "scene_kind", None))
     m = rec["metrics"]
     print(f"evaluated {rec['method']} on {rec['scene']}: PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.3f} "
           f"({len(rec['per_image'])} held-out frames) -> {Path(args.run) / 'eval.json'}")

@@ -358,6 +358,8 @@ class Suite:
         out = f"--scene {shlex.quote(s.name)}"
         if s.paper_scene:
             out += f" --paper-scene {shlex.quote(s.paper_scene)}"
+        if s.aria is not None and s.kind:  # a real recording carries no kind: its table block
+            out += f" --scene-kind {s.kind}"
         return out
 
     def diagnose_run(self, scene: str, method: str) -> list[str]:

@@ -287,6 +287,9 @@ def test_aria_scene_is_preprocessed(tmp_path):
     assert suite.preprocess_args("my_room") == "--focal 100 --size 200 --vignette v.png"
     assert suite.needs_factory_stream("my_room") and not suite.needs_factory_stream("outdoor_0")  # no_viba: factory
     assert suite.recording_dir("my_room") == "results/ci/recordings/my_room"
+    assert suite.evaluate_args("my_room") == "--scene my_room"  # no kind given
+    assert wc.Suite(wc.fill_defaults(_aria_config(tmp_path / "k", kind="indoor"))).evaluate_args("my_room") == \
+        "--scene my_room --scene-kind indoor"
     import re
 
     assert re.fullmatch(suite.scene_regex(suite.aria_scenes()), "my_room")
