@@ -1,4 +1,4 @@
-# egobench workflow: simulate -> train (scene x method x seed) -> evaluate -> tables -> plots,
+# egobench workflow: simulate (or preprocess a real Aria recording) -> train (scene x method x seed) -> evaluate -> tables -> plots,
 # plus diagnose. Every rule calls one `egobench <verb>`; the science lives in the package.
 #
 #   snakemake --cores 2                                # the embedded default suite
@@ -43,6 +43,7 @@ wildcard_constraints:
 
 include: "workflows/common.smk"
 include: "workflows/simulate.smk"
+include: "workflows/preprocess.smk"
 include: "workflows/train.smk"
 include: "workflows/evaluate.smk"
 include: "workflows/tables.smk"

@@ -14,6 +14,7 @@ import sys
 #: verb -> (module, one-line help)
 VERBS: dict[str, tuple[str, str]] = {
     "simulate": ("egobench.sim.cli", "simulate a synthetic egocentric recording"),
+    "preprocess": ("egobench.data.preprocess", "rectify a raw Aria VRS recording with its MPS output"),
     "train": ("egobench.train.cli", "train one method on one recording"),
     "evaluate": ("egobench.evaluate", "evaluate a trained run on the held-out frames"),
     "tables": ("egobench.tables", "build the paper-shaped CSV and LaTeX tables from run records"),

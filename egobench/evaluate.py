@@ -29,6 +29,7 @@ import torch
 from torch import Tensor
 
 from egobench import __version__
+from egobench.data.reader import add_input_arguments
 from egobench.data.recording import Frame, Recording
 from egobench.io_utils import git_commit, read_json, write_json
 from egobench.methods import get_method
@@ -156,7 +157,8 @@ def _save_virtual_gain(held: _Held, f: Frame, rgb: Tensor, gt: Tensor, renders_d
 
 
 def evaluate(recording_dir, run_dir, *, scene: str | None = None, paper_scene: str | None = None,
-             save_renders: bool = True, geometry_recording=None, device: str | None = None) -> dict:
+             save_renders: bool = True, geometry_recording=None, device: str | None = None,
+             scene_kind: str | None = None) -> dict:
     """Evaluate the run in ``run_dir`` on the held-out frames; writes and returns eval.json.
 
     ``recording_dir``: the recording folder (or a loaded `Recording` of the method's calibration).
@@ -164,6 +166,7 @@ def evaluate(recording_dir, run_dir, *, scene: str | None = None, paper_scene: s
     loading ``recording_dir`` with the online calibration when ground truth exists).
     ``device``: where the Gaussians are rendered (default: the run's training device, `render_device`);
     renders come back to the CPU for the image formation and the metrics (float64).
+    ``scene_kind``: the table block of a real recording (simulated ones carry their kind).
     """
     from egobench.metrics import lpips_available
 
@@ -179,13 +182,13 @@ def evaluate(recording_dir, run_dir, *, scene: str | None = None, paper_scene: s
     with torch.no_grad():
         per_image = [_evaluate_frame(held, f, n, geo_rec, renders_dir, ok_lpips, teaser=f is noisiest)
                      for f, n in zip(held.frames, held.counts)]
-    record = _run_record(held, per_image, notes, scene, paper_scene)
+    record = _run_record(held, per_image, notes, scene, paper_scene, scene_kind)
     write_json(Path(run_dir) / "eval.json", record)
     return record
 
 
 def _run_record(held: _Held, per_image: list[dict], notes: dict, scene: str | None,
-                paper_scene: str | None) -> dict:
+                paper_scene: str | None, scene_kind: str | None) -> dict:
     """eval.json: the run's identity, training summary, mean metrics and per-image metrics."""
     run, rec, spec = held.run, held.recording, held.run.spec
 
@@ -199,7 +202,7 @@ def _run_record(held: _Held, per_image: list[dict], notes: dict, scene: str | No
     return {
         "schema": RUN_SCHEMA,
         "scene": scene or meta.get("scene") or rec.name,
-        "scene_kind": meta.get("scene_kind"),
+        "scene_kind": scene_kind or meta.get("scene_kind"),  # real recordings: from --scene-kind
         "device": meta.get("device"),
         "paper_scene": paper_scene if paper_scene is not None else meta.get("paper_scene"),
         "method": spec.name,
@@ -210,6 +213,8 @@ def _run_record(held: _Held, per_image: list[dict], notes: dict, scene: str | No
         "git_commit": train_rec.get("git_commit") or git_commit(),
         "egobench_version": __version__,
         "recording": str(rec.root),
+        "trajectory_file": meta.get("trajectory_file"),  # what the recording was read with (plots reload it)
+        "points_file": meta.get("points_file"),
         "train": {
             "iterations": int(run.checkpoint["iteration"]),
             "time_s": tr.get("time_s"),
@@ -278,14 +283,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--run", required=True, help="run folder with checkpoint.pt (eval.json written here)")
     parser.add_argument("--scene", default=None, help="scene name for the record (default: the recording's)")
     parser.add_argument("--paper-scene", default=None, help="the paper's scene this one stands for")
+    parser.add_argument("--scene-kind", default=None, choices=("outdoor", "indoor", "object", "quest3"),
+                        help="table block of a real recording (simulated ones carry their kind)")
     parser.add_argument("--no-renders", action="store_true", help="do not save renders")
     parser.add_argument("--device", default=None,
                         help="torch device to render on (default: the run's training device, config.device)")
+    add_input_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
-    rec = evaluate(args.recording, args.run, scene=args.scene, paper_scene=args.paper_scene,
-                   save_renders=not args.no_renders, device=getattr(args, "device", None))
+    from egobench.data.reader import recording_from_args
+    from egobench.train.checkpoint import read_run_checkpoint
+
+    recording = args.recording
+    if args.trajectory or args.points:  # load with the run's calibration
+        method = read_run_checkpoint(Path(args.run) / "checkpoint.pt")["method"]
+        recording = recording_from_args(args.recording, get_method(method).calibration, args)
+    rec = evaluate(recording, args.run, scene=args.scene, paper_scene=args.paper_scene,
+                   save_renders=not args.no_renders, device=args.device, scene_kind=args.scene_kind)
     m = rec["metrics"]
     print(f"evaluated {rec['method']} on {rec['scene']}: PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.3f} "
           f"({len(rec['per_image'])} held-out frames) -> {Path(args.run) / 'eval.json'}")

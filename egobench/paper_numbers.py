@@ -105,6 +105,8 @@ TABLE1_INDOOR = PaperTable(
 #: The single column of Tables 2 and 3 (the paper reports one number per row).
 DTC_COLUMN = "dtc objects"
 QUEST_COLUMN = "quest 3"
+#: Every scene column of the paper's tables (lower case): the valid values of a scene's paper_scene.
+PAPER_SCENES = TABLE1_OUTDOOR_SCENES + TABLE1_INDOOR_SCENES + (DTC_COLUMN, QUEST_COLUMN)
 
 #: Table 2 (tab:dtc_evaluation): PSNR, depth scale-invariant L1, normal L1 on the DTC objects.
 TABLE2 = PaperTable(

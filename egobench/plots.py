@@ -160,7 +160,8 @@ def ground_truth(record: RunRecord, frame: int, shape: tuple[int, ...]) -> np.nd
         rec_path = record.raw.get("recording")
         if not rec_path:
             raise ValueError(f"{record.path}: field 'recording' is missing; cannot find the ground truth of frame {frame}")
-        rec = load_recording(rec_path, record.raw.get("calibration") or "online", load_sparse_depth=False)
+        rec = load_recording(rec_path, record.raw.get("calibration") or "online", load_sparse_depth=False,
+                             trajectory_path=record.raw.get("trajectory_file"), semidense_path=record.raw.get("points_file"))
         match = [f for f in rec.frames if f.index == frame]
         if not match:
             raise ValueError(f"{rec_path}: no frame {frame} (from {record.path})")
@@ -265,8 +266,9 @@ def gain3x_figure(records: Sequence[RunRecord], scene: str | None = None):
     return fig, f"ok: scene {scene}, frame {frame}"
 
 
-def motion_figure(recordings: Sequence[str | Path]):
-    """The simulator's motion-displacement figure (egobench.sim.figures) of the first recording."""
+def motion_figure(recordings: Sequence[str | Path], trajectory: str | None = None, points: str | None = None):
+    """The simulator's motion-displacement figure (egobench.sim.figures) of the first recording
+    (read with ``trajectory`` / ``points`` when given: the CLI's --trajectory / --points)."""
     if not recordings:
         return placeholder_figure("Motion displacement", "no recording given (--recordings)"), "placeholder: no recording"
     try:
@@ -279,7 +281,7 @@ def motion_figure(recordings: Sequence[str | Path]):
     from egobench.data.reader import load_recording
 
     rec_path = Path(recordings[0])
-    rec = load_recording(rec_path, "online")
+    rec = load_recording(rec_path, "online", trajectory_path=trajectory, semidense_path=points)
     with tempfile.TemporaryDirectory() as tmp:
         png = Path(tmp) / "motion.png"
         q = motion_displacement_figure(rec, png)  # [F, 3] per-frame 25/50/75th percentile, px
@@ -292,8 +294,10 @@ def motion_figure(recordings: Sequence[str | Path]):
 
 
 def make_plots(records: Sequence[RunRecord], out_dir: str | Path, recordings: Sequence[str | Path] = (),
-               qualitative_scene: str | None = None) -> list[Path]:
-    """Write every file in OUTPUT_FILES into out_dir; return their paths."""
+               qualitative_scene: str | None = None, trajectory: str | None = None,
+               points: str | None = None) -> list[Path]:
+    """Write every file in OUTPUT_FILES into out_dir; return their paths (``trajectory`` / ``points``:
+    read the first of ``recordings`` with these MPS files)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     notes: dict[str, str] = {}
@@ -302,7 +306,7 @@ def make_plots(records: Sequence[RunRecord], out_dir: str | Path, recordings: Se
         "gains": lambda: gains_figure(records),
         "psnr_vs_head_speed": lambda: head_speed_figure(records),
         "qualitative": lambda: qualitative_figure(records, qualitative_scene),
-        "motion_displacement": lambda: motion_figure(recordings),
+        "motion_displacement": lambda: motion_figure(recordings, trajectory, points),
         "gain3x": lambda: gain3x_figure(records, qualitative_scene),
     }
     for name in FIGURES:
@@ -323,6 +327,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--recordings", nargs="*", default=[], help="recording folders (motion-displacement figure)")
     parser.add_argument("--qualitative-scene", default=None,
                         help="scene of the qualitative and 3x-gain figures (default: first scene with ours renders)")
+    from egobench.data.reader import add_input_arguments
+
+    add_input_arguments(parser)  # for the --recordings figure
 
 
 def run(args: argparse.Namespace) -> int:
@@ -331,7 +338,8 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("--records: no eval.json run records found")
     if args.qualitative_scene is not None and args.qualitative_scene not in {r.scene for r in records}:
         raise ValueError(f"--qualitative-scene: {args.qualitative_scene!r} is not a scene of the records")
-    written = make_plots(records, args.out_dir, args.recordings, args.qualitative_scene)
+    written = make_plots(records, args.out_dir, args.recordings, args.qualitative_scene,
+                         trajectory=getattr(args, "trajectory", None), points=getattr(args, "points", None))
     notes = json.loads((Path(args.out_dir) / "notes.json").read_text())
     for name, note in notes.items():
         print(f"  {name}: {note}")

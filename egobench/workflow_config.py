@@ -77,6 +77,7 @@ def check_config(config: Mapping, schema: Mapping | None = None, check_sim: bool
                 if key in src:
                     messages.append(f"config.scenes[{i}].sim.{key}: set by the workflow from the scene entry "
                                     "(kind, sim_seed, name); remove it from sim")
+    messages += _check_paper_scenes(config["scenes"]) + _check_aria_scenes(config)
     diag = config.get("diagnose") or {}
     for i, name in enumerate(diag.get("scenes") or []):
         if name not in names:
@@ -104,6 +105,50 @@ def check_config(config: Mapping, schema: Mapping | None = None, check_sim: bool
         raise ConfigError("invalid workflow config:\n  " + "\n  ".join(messages))
 
 
+def _check_paper_scenes(scenes: list) -> list[str]:
+    """A paper_scene must name one of the paper's table columns (case-insensitive), else its cell stays empty."""
+    from egobench.paper_numbers import PAPER_SCENES
+
+    messages = []
+    for i, scene in enumerate(scenes):
+        value = scene.get("paper_scene")
+        if value is not None and value.lower() not in PAPER_SCENES:
+            messages.append(f"config.scenes[{i}].paper_scene: {value!r} (scene {scene['name']!r}) is not a scene of "
+                            f"the paper's tables; expected one of {', '.join(map(repr, PAPER_SCENES))} or null")
+    return messages
+
+
+def aria_inputs(scene: Mapping, aria_root: str | None) -> tuple[str, str] | None:
+    """(vrs, mps folder) of a scene preprocessed from a real recording, or None for a simulated one."""
+    if scene.get("source") == "aria":
+        return scene["vrs"], scene["mps"]
+    if aria_root and scene.get("aria_scene"):
+        base = f"{aria_root.rstrip('/')}/{scene['aria_scene']}"
+        return scene.get("vrs") or f"{base}/recording.vrs", scene.get("mps") or f"{base}/mps/slam"
+    return None
+
+
+def _check_aria_scenes(config: Mapping) -> list[str]:
+    """Real scenes: the VRS file and the MPS folder exist; they have no simulator ground truth to diagnose."""
+    messages = []
+    root = config.get("aria_root")
+    diag = config.get("diagnose") or {}
+    for i, scene in enumerate(config["scenes"]):
+        inputs = aria_inputs(scene, root)
+        if inputs is None:
+            continue
+        vrs, mps = inputs
+        if not Path(vrs).is_file():
+            messages.append(f"config.scenes[{i}].vrs (scene {scene['name']!r}): {vrs}: file not found")
+        if not Path(mps).is_dir():
+            messages.append(f"config.scenes[{i}].mps (scene {scene['name']!r}): {mps}: folder not found "
+                            "(expected the MPS slam folder)")
+        if diag.get("source") == "ground_truth" and scene["name"] in (diag.get("scenes") or []):
+            messages.append(f"config.diagnose.source: 'ground_truth' needs a simulated scene; {scene['name']!r} is "
+                            "a real recording (use 'run')")
+    return messages
+
+
 def _check_sim_overrides(config: Mapping) -> list[str]:
     """Build each scene's SimConfig from its overrides so bad fields fail before any job runs."""
     try:
@@ -113,6 +158,8 @@ def _check_sim_overrides(config: Mapping) -> list[str]:
     messages = []
     defaults = (config.get("defaults") or {}).get("sim") or {}
     for i, scene in enumerate(config["scenes"]):
+        if aria_inputs(scene, config.get("aria_root")) is not None:
+            continue  # preprocessed, not simulated
         overrides = {k: format_value(v) for k, v in {**defaults, **(scene.get("sim") or {})}.items()}
         try:
             SimConfig.from_overrides(scene["kind"], int(scene.get("sim_seed", 0)), overrides)
@@ -188,7 +235,7 @@ class Scene:
     """One scene entry with the suite defaults applied."""
 
     name: str  # unique scene name
-    kind: str  # outdoor | indoor | object | quest3
+    kind: str | None  # outdoor | indoor | object | quest3 (None: a real scene without a label)
     paper_scene: str | None  # the paper's column, or None
     sim_seed: int  # seed of the simulated recording
     seeds: tuple[int, ...]  # training seeds
@@ -197,6 +244,10 @@ class Scene:
     preset: str  # starting train config: cpu | paper
     sim: dict  # SimConfig overrides (defaults.sim updated by the scene's sim)
     train: dict  # train-config overrides (defaults.train updated by the scene's train)
+    aria: tuple[str, str] | None = None  # (vrs, mps folder) of a real scene preprocessed into the recording
+    vignette: str | None = None  # real scene: raw lens shading PNG
+    focal: float = 1200.0  # real scene: rectified focal, px
+    size: int = 2400  # real scene: rectified side, px
 
 
 class Suite:
@@ -211,7 +262,7 @@ class Suite:
         for s in config["scenes"]:
             self.scenes[s["name"]] = Scene(
                 name=s["name"],
-                kind=s["kind"],
+                kind=s.get("kind"),
                 paper_scene=s.get("paper_scene"),
                 sim_seed=int(s.get("sim_seed", 0)),
                 seeds=tuple(s.get("seeds") or d.get("seeds") or [0]),
@@ -220,6 +271,10 @@ class Suite:
                 preset=s.get("preset") or d.get("preset") or "cpu",
                 sim={**(d.get("sim") or {}), **(s.get("sim") or {})},
                 train={**(d.get("train") or {}), **(s.get("train") or {})},
+                aria=aria_inputs(s, config.get("aria_root")),
+                vignette=s.get("vignette"),
+                focal=float(s.get("focal", 1200)),
+                size=int(s.get("size", 2400)),
             )
         diag = config.get("diagnose") or {}
         self.diagnose_jobs = [(s, m) for s in diag.get("scenes", []) for m in diag.get("methods", ["ours"])]
@@ -259,6 +314,37 @@ class Suite:
             raise ConfigError(f"scene {scene!r} is not in suite {self.name!r} ({', '.join(self.scenes)})")
         return self.scenes[scene]
 
+    @staticmethod
+    def scene_regex(names: list[str]) -> str:
+        """A wildcard constraint matching exactly these scene names (none: matches nothing)."""
+        import re
+
+        return "|".join(re.escape(n) for n in sorted(names)) or "(?!x)x"
+
+    def simulated_scenes(self) -> list[str]:
+        return [s.name for s in self.scenes.values() if s.aria is None]
+
+    def aria_scenes(self) -> list[str]:
+        return [s.name for s in self.scenes.values() if s.aria is not None]
+
+    def aria_input(self, scene: str, which: str) -> str:
+        """The real scene's "vrs" file or "mps" folder."""
+        s = self._scene(scene)
+        if s.aria is None:
+            raise ConfigError(f"scene {scene!r} is simulated, not preprocessed")
+        return s.aria[0] if which == "vrs" else s.aria[1]
+
+    def preprocess_args(self, scene: str) -> str:
+        s = self._scene(scene)
+        out = f"--focal {s.focal:g} --size {s.size}"
+        return out + (f" --vignette {shlex.quote(s.vignette)}" if s.vignette else "")
+
+    def needs_factory_stream(self, scene: str) -> bool:
+        """True when a method of the scene trains on the factory calibration (preprocess it too)."""
+        from egobench.methods import get_method
+
+        return any(get_method(m).calibration == "factory" for m in self._scene(scene).methods)
+
     def simulate_args(self, scene: str) -> str:
         s = self._scene(scene)
         return f"--kind {s.kind} --seed {s.sim_seed} {set_args({**s.sim, 'name': s.name})}"
@@ -272,6 +358,8 @@ class Suite:
         out = f"--scene {shlex.quote(s.name)}"
         if s.paper_scene:
             out += f" --paper-scene {shlex.quote(s.paper_scene)}"
+        if s.aria is not None and s.kind:  # a real recording carries no kind: its table block
+            out += f" --scene-kind {s.kind}"
         return out
 
     def diagnose_run(self, scene: str, method: str) -> list[str]:

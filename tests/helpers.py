@@ -53,3 +53,52 @@ def real_rgb_calibration():
         sophus.SE3(), size[0], size[1], None, math.pi, "",
     )
     return entry, size, ref
+
+
+def authors_stream_copy(stream: Path, scene: Path, vrs_name: str = "recording") -> Path:
+    """Rewrite a simulated stream folder exactly as the authors' preprocessing leaves one.
+
+    <scene>/mps/slam/ holds the MPS files; <scene>/<vrs_name>/<stream name>/ holds images named
+    <label>_<timestamp>.png (timestamps as the float the authors' script writes), frames listed in
+    another order than time, the authors' per-frame keys (image_modality, image_width_raw,
+    mask_path "", sparse_depth -> sparse_depth/<label>_<timestamp>.json), no row_time_ratio.npy and
+    absolute symlinks to the MPS files. Returns the new stream folder.
+    """
+    import os
+    import shutil
+
+    src = json.loads((stream / "transforms_with_sparse_depth.json").read_text())
+    mps = scene / "mps" / "slam"
+    mps.mkdir(parents=True, exist_ok=True)
+    for name in ("closed_loop_trajectory.csv", "semidense_points.csv.gz"):
+        if not (mps / name).exists():
+            shutil.copyfile(stream / name, mps / name)
+    dst = scene / vrs_name / stream.name
+    (dst / "images").mkdir(parents=True)
+    (dst / "sparse_depth").mkdir()
+    for name in ("vignette.png", "mask.png", "image_index.png"):
+        shutil.copyfile(stream / name, dst / name)
+    label = src["camera_label"]
+    frames = []
+    for f in src["frames"]:
+        ts = float(f["timestamp"])
+        img, depth = f"images/{label}_{ts}.png", f"sparse_depth/{label}_{ts}.json"
+        shutil.copyfile(stream / f["image_path"], dst / img)
+        shutil.copyfile(stream / f["sparse_depth"], dst / depth)
+        frames.append({
+            "fx": f["fx"], "fy": f["fy"], "cx": f["cx"], "cy": f["cy"], "w": f["w"], "h": f["h"],
+            "image_width_raw": 2 * f["w"], "image_height_raw": 2 * f["h"], "image_path": img,
+            "image_modality": "rgb", "mask_path": "", "camera2device": f["camera2device"],
+            "transform_matrix": f["transform_matrix"], "timestamp": ts,
+            "timestamp_read_start": f["timestamp_read_start"], "timestamp_read_end": float(f["timestamp_read_end"]),
+            "exposure_duration_s": f["exposure_duration_s"], "gain": f["gain"], "sparse_depth": depth,
+        })
+    frames = frames[1::2] + frames[0::2]  # not in time order: the reader sorts by image path
+    top = {"camera_model": "linear", "camera_label": label, "transform_cpf": [[1.0, 0, 0, 0], [0, 1.0, 0, 0],
+                                                                              [0, 0, 1.0, 0], [0, 0, 0, 1.0]]}
+    (dst / "transforms.json").write_text(json.dumps({**top, "frames": [
+        {k: v for k, v in f.items() if k != "sparse_depth"} for f in frames]}, indent=4))
+    (dst / "transforms_with_sparse_depth.json").write_text(json.dumps({**top, "frames": frames}, indent=4))
+    for name in ("closed_loop_trajectory.csv", "semidense_points.csv.gz"):
+        os.symlink((mps / name).absolute(), dst / name)
+    return dst

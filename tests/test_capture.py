@@ -25,13 +25,24 @@ def tiny(tmp_path_factory):
 
 def test_layout_and_metadata(tiny):
     root, cfg = tiny
-    for rel in ("recording.json", "mps/closed_loop_trajectory.csv", "mps/semidense_points.csv.gz",
-                "mps/online_calibration.jsonl", "mps/factory_calibration.json", "ground_truth/truth.json",
-                "online/transforms.json", "factory/transforms.json", "online/images/00009.png",
-                "online/vignette.png", "online/mask.png", "online/image_index.png", "online/row_time_ratio.npy",
-                "online/sparse_depth/00000.json", "ground_truth/depth/00000.npy", "ground_truth/normal/00000.npy",
+    on, fa = "camera-rgb-rectified-24-h48", "camera-rgb-rectified-24-h48-factory-calib"  # f = 0.5 W, the authors' naming
+    for rel in ("recording.json", "mps/slam/closed_loop_trajectory.csv", "mps/slam/semidense_points.csv.gz",
+                "mps/slam/online_calibration.jsonl", "factory_calibration.json", "ground_truth/truth.json",
+                f"{on}/transforms.json", f"{on}/transforms_with_sparse_depth.json", f"{fa}/transforms.json",
+                f"{fa}/transforms_with_sparse_depth.json", f"{on}/images/00009.png",
+                f"{on}/vignette.png", f"{on}/mask.png", f"{on}/image_index.png", f"{on}/row_time_ratio.npy",
+                f"{on}/sparse_depth/00000.json", "ground_truth/depth/00000.npy", "ground_truth/normal/00000.npy",
                 "ground_truth/radiance/00000.npy"):
         assert (root / rel).is_file(), rel
+    for stream in (on, fa):  # the MPS files inside each stream folder: relative symlinks into mps/slam/
+        for name in ("closed_loop_trajectory.csv", "semidense_points.csv.gz"):
+            link = root / stream / name
+            assert link.is_symlink() and not link.readlink().is_absolute()
+            assert link.read_bytes() == (root / "mps/slam" / name).read_bytes()
+    with_depth = json.loads((root / on / "transforms_with_sparse_depth.json").read_text())
+    plain = json.loads((root / on / "transforms.json").read_text())
+    assert [f["sparse_depth"] for f in with_depth["frames"]][:2] == ["sparse_depth/00000.json", "sparse_depth/00001.json"]
+    assert plain["frames"] == [{k: v for k, v in f.items() if k != "sparse_depth"} for f in with_depth["frames"]]
     meta = json.loads((root / "recording.json").read_text())
     assert meta["scene_kind"] == "indoor" and meta["sim_config"]["n_frames"] == 10
     assert not list(root.parent.glob(".*.tmp")), "temporary folders left behind"
@@ -50,8 +61,8 @@ def test_round_trip_poses_times_and_maps(tiny, calibration):
     rec = load_recording(root, calibration)
     assert len(rec.frames) == 10 and rec.calibration == calibration
     assert rec.camera.width == 48 and rec.camera.fx == pytest.approx(24.0) and rec.camera.cx == pytest.approx(23.5)
-    cal = (read_online_calibration(root / "mps/online_calibration.jsonl")[0] if calibration == "online"
-           else read_calibration_json(root / "mps/factory_calibration.json")).camera("camera-rgb")
+    cal = (read_online_calibration(root / "mps/slam/online_calibration.jsonl")[0] if calibration == "online"
+           else read_calibration_json(root / "factory_calibration.json")).camera("camera-rgb")
     readout = cfg.stated_readout_s()
     for fr in rec.frames:
         T = rec.trajectory.pose([fr.timestamp_ns])[0] @ torch.as_tensor(cal.T_device_camera)
@@ -84,7 +95,7 @@ def test_sparse_depth_reprojects_to_stated_pixels(tiny, calibration):
 
     root, _ = tiny
     rec = load_recording(root, calibration)
-    pts = read_semidense_points(root / "mps/semidense_points.csv.gz")  # filtered
+    pts = read_semidense_points(root / "mps/slam/semidense_points.csv.gz")  # filtered
     pts_w = torch.from_numpy(pts.points_world)
     total = 0
     for fr in rec.frames:
@@ -253,7 +264,7 @@ def test_cuda_casting_matches_cpu(tmp_path):
         simulate_recording(SimConfig.from_overrides("outdoor", 0, {**base, "compute_device": dev}), tmp_path / dev,
                            progress=False)
     for k in range(3):
-        a, b = (cv2.imread(str(tmp_path / d / "online" / "images" / f"{k:05d}.png")).astype(int) for d in ("cpu", "cuda"))
+        a, b = (cv2.imread(str(tmp_path / d / "camera-rgb-rectified-32-h64" / "images" / f"{k:05d}.png")).astype(int) for d in ("cpu", "cuda"))
         diff = np.abs(a - b)
         assert diff.max() <= 2 and (diff > 0).mean() < 0.01, (k, diff.max(), (diff > 0).mean())
         da, db = (np.load(tmp_path / d / "ground_truth" / "depth" / f"{k:05d}.npy").astype(np.float32) for d in ("cpu", "cuda"))

@@ -29,6 +29,13 @@ def _config(name: str, **extra) -> SimConfig:
     return SimConfig.from_overrides(kind, seed, {**overrides, **extra})
 
 
+def _on() -> str:
+    """The online stream folder of the "fixed" config (the authors' naming)."""
+    from egobench.sim.capture import stream_names
+
+    return stream_names(_config("fixed"))["online"]
+
+
 @pytest.fixture(scope="module")
 def reference(tmp_path_factory):
     """Uninterrupted recordings, one per config: name -> folder."""
@@ -108,7 +115,7 @@ def test_the_resumed_run_uses_the_saved_noise_state(reference, tmp_path):
     st["noise_generator"] = _encode_generator(torch.Generator().manual_seed(int(cfg.seed) * 7919 + 17))
     st_path.write_text(json.dumps(st))
     simulate_recording(cfg, out, progress=False, resume=True)
-    same = [(out / f"online/images/{k:05d}.png").read_bytes() == (reference["fixed"] / f"online/images/{k:05d}.png").read_bytes()
+    same = [(out / f"{_on()}/images/{k:05d}.png").read_bytes() == (reference["fixed"] / f"{_on()}/images/{k:05d}.png").read_bytes()
             for k in range(N_FRAMES)]
     assert same == [True, True, True, False, False, False]
 
@@ -139,14 +146,14 @@ def test_half_written_frame_is_redone(reference, tmp_path):
     finally:
         transforms.write_sparse_depth = real
     assert not out.exists() and part.is_dir()
-    assert (part / "online/images/00003.png").is_file() and (part / "online/sparse_depth/00003.json").is_file()
+    assert (part / _on() / "images/00003.png").is_file() and (part / _on() / "sparse_depth/00003.json").is_file()
     assert not (part / ".resume/00003.json").exists()
     # make the half-written frame visibly wrong, and add debris an interruption could leave
-    (part / "online/images/00003.png").write_bytes(b"\x89PNG truncated")
-    (part / "online/sparse_depth/00003.json").write_text('{"u": [1.0, 2')
+    (part / _on() / "images/00003.png").write_bytes(b"\x89PNG truncated")
+    (part / _on() / "sparse_depth/00003.json").write_text('{"u": [1.0, 2')
     np.save(part / "ground_truth/depth/00003.npy", np.zeros((2, 2), np.float16))
     np.save(part / "ground_truth/depth/00009.npy", np.zeros((2, 2), np.float16))  # beyond n_frames
-    (part / "online/images/.00004.png.x1y2.tmp.png").write_bytes(b"partial")
+    (part / _on() / "images/.00004.png.x1y2.tmp.png").write_bytes(b"partial")
     (part / ".resume/.00003.json.abcd.tmp.json").write_text("{")
     result = simulate_recording(cfg, out, progress=False, resume="auto")
     assert result.resumed_from == 3 and result.complete
@@ -176,7 +183,7 @@ def test_stale_partial_of_another_config_is_discarded(reference, tmp_path, capsy
     with pytest.raises(FileNotFoundError, match="no partial recording"):
         simulate_recording(cfg, tmp_path / "other", progress=False, resume=True)
     # a partial folder without a manifest (interrupted before it was written) is discarded too
-    (tmp_path / ".bare.partial" / "online").mkdir(parents=True)
+    (tmp_path / ".bare.partial" / _on()).mkdir(parents=True)
     r = simulate_recording(cfg, tmp_path / "bare", progress=False, resume="auto", stop_after=1)
     assert r.resumed_from == 0 and "no readable manifest" in capsys.readouterr().err
 

@@ -26,7 +26,7 @@ def toy(tmp_path_factory):
 
 
 def _params(run_dir):
-    return torch.load(run_dir / "checkpoint.pt", weights_only=False)["params"]
+    return torch.load(run_dir / "checkpoint.pt", weights_only=True)["params"]
 
 
 # ----------------------------------------------------------------------------- config
@@ -245,7 +245,7 @@ def test_other_methods_run(toy, tmp_path):
 
     factory = dataclasses.replace(toy, calibration="factory")
     r = train(factory, "on_the_move", cfg, tmp_path / "otm", progress=False)
-    ck = torch.load(tmp_path / "otm" / "checkpoint.pt", weights_only=False)
+    ck = torch.load(tmp_path / "otm" / "checkpoint.pt", weights_only=True)
     assert float(ck["extra"]["pose_delta"].abs().sum()) > 0 and ck["extra"]["twist"].shape == (len(toy.train_frames), 6)
     assert math.isfinite(r.final_loss)
     r2 = train(toy, "ours_2dgs", dataclasses.replace(cfg, normal_start_frac=0.0, dist_start_frac=0.0),

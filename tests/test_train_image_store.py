@@ -113,8 +113,8 @@ def test_training_identical_to_float_store(toy, tmp_path, monkeypatch, method):
         ref = train(toy, method, cfg, tmp_path / "f32", progress=False)
     assert ref.record["train"]["image_store"]["dtype"] == "float32"  # the patch really took effect
     assert res.final_loss == ref.final_loss and np.isfinite(res.final_loss)
-    p_u8 = torch.load(res.checkpoint, weights_only=False)["params"]
-    p_f32 = torch.load(ref.checkpoint, weights_only=False)["params"]
+    p_u8 = torch.load(res.checkpoint, weights_only=True)["params"]
+    p_f32 = torch.load(ref.checkpoint, weights_only=True)["params"]
     for name in p_u8:
         assert torch.equal(p_u8[name], p_f32[name]), name
 

@@ -155,6 +155,9 @@ def test_egobench_command():
         (lambda c: c["defaults"].update(preset="gpu"), "config.defaults.preset: 'gpu' is not allowed"),
         (lambda c: c.pop("suite"), "'suite' is a required property"),
         (lambda c: c["diagnose"].update(methods=["ours_2dgs"]), "'ours_2dgs' is not run on scene 'indoor_0'"),
+        (lambda c: c["scenes"][0].update(paper_scene="plant halway"),
+         "config.scenes[0].paper_scene: 'plant halway' (scene 'outdoor_0') is not a scene of the paper's tables; "
+         "expected one of 'bike shop', 'steakhouse patio'"),
         (lambda c: c["motion_stats"].update(real_trajectory="/nonexistent/traj.csv"),
          "config.motion_stats.real_trajectory: /nonexistent/traj.csv: file not found"),
     ],
@@ -258,3 +261,104 @@ def test_ci_suite_runs_end_to_end(tmp_path):
                     tmp_path)
     assert rep.returncode == 0, rep.stderr[-3000:]
     assert (tmp_path / "report.html").stat().st_size > 10_000
+
+
+# ------------------------------------------------------------------------------------------------
+# Real scenes: preprocess before training
+
+
+def _aria_config(tmp_path, **scene_extra):
+    tmp_path.mkdir(parents=True, exist_ok=True)
+    (tmp_path / "rec.vrs").write_bytes(b"")
+    (tmp_path / "mps" / "slam").mkdir(parents=True)
+    config = load("ci.yaml")
+    config["scenes"].append({"name": "my_room", "source": "aria", "vrs": str(tmp_path / "rec.vrs"),
+                             "mps": str(tmp_path / "mps" / "slam"), "focal": 100, "size": 200,
+                             "methods": ["ours", "no_viba"], **scene_extra})
+    return config
+
+
+def test_aria_scene_is_preprocessed(tmp_path):
+    config = _aria_config(tmp_path, vignette="v.png")
+    wc.check_config(config)
+    suite = wc.Suite(wc.fill_defaults(config))
+    assert suite.aria_scenes() == ["my_room"] and suite.simulated_scenes() == ["outdoor_0"]
+    assert suite.aria_input("my_room", "vrs") == str(tmp_path / "rec.vrs")
+    assert suite.preprocess_args("my_room") == "--focal 100 --size 200 --vignette v.png"
+    assert suite.needs_factory_stream("my_room") and not suite.needs_factory_stream("outdoor_0")  # no_viba: factory
+    assert suite.recording_dir("my_room") == "results/ci/recordings/my_room"
+    assert suite.evaluate_args("my_room") == "--scene my_room"  # no kind given
+    assert wc.Suite(wc.fill_defaults(_aria_config(tmp_path / "k", kind="indoor"))).evaluate_args("my_room") == \
+        "--scene my_room --scene-kind indoor"
+    import re
+
+    assert re.fullmatch(suite.scene_regex(suite.aria_scenes()), "my_room")
+    assert not re.fullmatch(suite.scene_regex(suite.aria_scenes()), "outdoor_0")
+    assert not re.fullmatch(suite.scene_regex([]), "")
+
+
+def test_aria_scene_inputs_are_checked(tmp_path):
+    config = _aria_config(tmp_path)
+    config["scenes"][-1]["vrs"] = str(tmp_path / "missing.vrs")
+    with pytest.raises(wc.ConfigError, match=r"config\.scenes\[1\]\.vrs \(scene 'my_room'\): .*missing\.vrs: file not found"):
+        wc.check_config(config)
+    config = _aria_config(tmp_path / "b")
+    del config["scenes"][-1]["mps"]
+    with pytest.raises(wc.ConfigError, match=r"config\.scenes\[1\]: 'mps' is a required property"):
+        wc.check_config(config)
+
+
+def test_paper_suite_points_at_the_released_scenes_by_name(tmp_path):
+    from egobench import paper_numbers as pn
+
+    config = load("paper.yaml")
+    names = [s["aria_scene"] for s in config["scenes"] if "aria_scene" in s]
+    assert len(names) == 12 and "livingroom" in names
+    assert wc.Suite(wc.fill_defaults(load("paper.yaml"))).aria_scenes() == []  # aria_root null: simulated
+    for n in names:
+        (tmp_path / n / "mps" / "slam").mkdir(parents=True)
+        (tmp_path / n / "recording.vrs").write_bytes(b"")
+    config["aria_root"] = str(tmp_path)
+    wc.check_config(config)
+    suite = wc.Suite(wc.fill_defaults(config))
+    real = suite.aria_scenes()
+    assert {suite.scenes[s].paper_scene for s in real} == set(pn.TABLE1_OUTDOOR_SCENES) | set(pn.TABLE1_INDOOR_SCENES)
+    assert suite.aria_input("livingroom", "vrs") == f"{tmp_path}/livingroom/recording.vrs"
+    assert suite.aria_input("livingroom", "mps") == f"{tmp_path}/livingroom/mps/slam"
+    assert suite.preprocess_args("livingroom") == "--focal 1200 --size 2400"
+
+
+def test_dry_run_preprocesses_a_real_scene(tmp_path):
+    path = tmp_path / "aria.yaml"
+    path.write_text(yaml.safe_dump(_aria_config(tmp_path)))
+    res = snakemake(["-n", "--quiet", "rules", "--configfile", str(path)], tmp_path)
+    out = res.stdout + res.stderr
+    assert res.returncode == 0, out
+    counts = {line.split()[0]: int(line.split()[1]) for line in out.splitlines()
+              if len(line.split()) == 2 and line.split()[1].isdigit()}
+    assert counts.get("preprocess") == 1 and counts.get("simulate") == 1, out
+
+
+def test_real_aria_scene_runs_end_to_end(tmp_path, shared_data):
+    """ADT's real frames with a test-built MPS folder: preprocess (online + factory) -> train -> evaluate -> tables."""
+    pytest.importorskip("projectaria_tools")
+    from tests.test_preprocess import _write_mps
+
+    scene = tmp_path / "adt_scene"
+    _write_mps(shared_data / "adt_sample", scene / "mps" / "slam")
+    config = {"suite": "real", "defaults": {"iterations": 5, "preset": "cpu"},
+              "scenes": [{"name": "adt", "source": "aria", "vrs": str(shared_data / "adt_sample" / "video.vrs"),
+                          "mps": str(scene / "mps" / "slam"), "focal": 60, "size": 120, "kind": "indoor",
+                          "methods": ["ours", "no_viba"]}]}
+    path = tmp_path / "real.yaml"
+    path.write_text(yaml.safe_dump(config))
+    res = snakemake(["--cores", "2", "--configfile", str(path), "--until", "tables"], tmp_path, timeout=600)
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    rec = tmp_path / "results" / "real" / "recordings" / "adt"
+    streams = sorted(p.name for p in rec.iterdir() if not p.name.startswith("."))  # not .snakemake_timestamp
+    assert streams == ["camera-rgb-rectified-60-h120", "camera-rgb-rectified-60-h120-factory-calib"]
+    table = pd.read_csv(tmp_path / "results" / "real" / "tables" / "table1_indoor.csv")
+    ours = table[(table["block"] == "egobench") & (table["method"] == "ours")]
+    assert len(ours) == 1 and np.isfinite(float(ours["adt PSNR"].iloc[0]))
+    ev = yaml.safe_load((tmp_path / "results/real/runs/adt/no_viba/seed0/eval.json").read_text())
+    assert ev["calibration"] == "factory" and ev["recording"].endswith("-factory-calib") and ev["scene_kind"] == "indoor"

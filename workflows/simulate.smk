@@ -4,6 +4,8 @@
 
 
 rule simulate:
+    wildcard_constraints:
+        scene=SUITE.scene_regex(SUITE.simulated_scenes()),
     output:
         directory(f"{R}/recordings/{{scene}}"),
     conda:

@@ -1,82 +1,92 @@
-"""`load_recording`: a simulated recording or the authors' preprocessed folder -> `Recording`."""
+"""`load_recording`: a rectified stream in the authors' layout (real or simulated) -> `Recording`.
+
+Read as the authors' training reads it (``scene/dataset_readers.py``): the transforms file
+``transforms_with_sparse_depth.json`` (else ``transforms.json``), frames sorted by image path,
+frames whose centre timestamp lies within 1 ms of either end of the trajectory dropped, then
+every 8th frame from 0 held out (`Recording.test_frames`); the trajectory and the semi-dense
+points from the folder (``closed_loop_trajectory.csv``, ``semidense_points.csv.gz``, often
+symlinks) unless passed explicitly (``--trajectory``, ``--points``).
+"""
 
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from egobench.data.layout import POINTS_FILE, TRAJECTORY_END_MARGIN_NS, TRAJECTORY_FILE, find_stream
 from egobench.data.recording import Calibration, Frame, Recording
-from egobench.data.transforms import read_png, read_sparse_depth, read_transforms
+from egobench.data.transforms import TransformsFile, read_png, read_sparse_depth, read_transforms
 
 
-def _resolve(path: Path, calibration: str) -> tuple[Path, Path | None]:
-    """-> (folder with transforms.json, simulated recording root or None)."""
-    if calibration not in ("online", "factory"):
-        raise ValueError(f"calibration: expected 'online' or 'factory', got {calibration!r}")
-    if (path / "transforms.json").is_file():
-        return path, None
-    if (path / calibration / "transforms.json").is_file():
-        return path / calibration, path
-    if not path.exists():
-        raise FileNotFoundError(f"{path}: recording folder not found")
-    raise ValueError(
-        f"{path}: no transforms.json here nor in {path / calibration}/ "
-        f"(expected a simulated recording root or an authors'-format folder)"
-    )
+def _input_file(explicit: str | Path | None, folder: Path, name: str, what: str, option: str) -> Path:
+    """The explicit file, else <folder>/<name>; FileNotFoundError names it (and a broken symlink's target)."""
+    path = Path(explicit) if explicit is not None else folder / name
+    if path.is_file():
+        return path
+    if path.is_symlink():
+        raise FileNotFoundError(f"{path}: {what} is a symlink to {path.resolve()}, which does not exist "
+                                f"(pass {option} FILE)")
+    raise FileNotFoundError(f"{path}: {what} not found (pass {option} FILE)")
 
 
-def load_recording(path: str | Path, calibration: Calibration = "online", *, trajectory_path: str | Path | None = None,
-                   semidense_path: str | Path | None = None, load_sparse_depth: bool = True) -> Recording:
-    """Read one rectified camera stream and its trajectory/points into a `Recording`.
+def _load_points(path: Path) -> torch.Tensor:
+    """Filtered semi-dense points [P, 3] float32; ValueError when the MPS quality filter keeps none."""
+    from egobench.data.mps import MAX_DIST_STD, MAX_INV_DIST_STD, read_semidense_points
 
-    path: a simulated recording root (uses <path>/<calibration>/) or a folder holding
-    transforms.json directly (the authors' format: the trajectory then comes from
-    ../mps/closed_loop_trajectory.csv or `trajectory_path`, points from
-    ../mps/semidense_points.csv.gz or `semidense_path`). Every frame is validated: missing
-    image, bad JSON, NaN pose, timestamps outside the trajectory -> ValueError naming the file
-    and the frame.
-    """
-    from egobench.data.mps import read_semidense_points, read_trajectory
-    from egobench.io_utils import read_json
+    pts = read_semidense_points(path, filter=False)
+    kept = pts.filtered()
+    if len(kept) == 0:
+        why = ("the file holds no points" if len(pts) == 0 else
+               f"the MPS quality filter (inv_dist_std < {MAX_INV_DIST_STD} 1/m and dist_std < {MAX_DIST_STD} m) "
+               f"removed all {len(pts)} points")
+        raise ValueError(f"{path}: no semi-dense points to initialise the Gaussians: {why}")
+    return torch.from_numpy(kept.points_world.astype(np.float32))
 
-    path = Path(path)
-    folder, sim_root = _resolve(path, calibration)
-    tf = read_transforms(folder)
-    mps_dir = (sim_root / "mps") if sim_root is not None else (folder.parent / "mps")
-    traj_file = Path(trajectory_path) if trajectory_path is not None else mps_dir / "closed_loop_trajectory.csv"
-    if not traj_file.is_file():
-        raise ValueError(f"{traj_file}: trajectory not found for {tf.path} (pass trajectory_path=...)")
-    trajectory = read_trajectory(traj_file)
 
+def _frames(tf: TransformsFile, trajectory, traj_file: Path, load_sparse_depth: bool) -> tuple[list[Frame], list[str]]:
+    """Frames sorted by image path, the 1 ms trajectory-end frames dropped (their image paths returned)."""
     cam0 = tf.frames[0].camera
-    order = sorted(range(len(tf.frames)), key=lambda i: tf.frames[i].timestamp_ns)
+    order = sorted(tf.frames, key=lambda f: f.image_rel)
+    lo, hi = trajectory.start_ns + TRAJECTORY_END_MARGIN_NS, trajectory.end_ns - TRAJECTORY_END_MARGIN_NS
     frames: list[Frame] = []
-    for index, pos in enumerate(order):
-        fr = tf.frames[pos]
-        where = f"{tf.path}: frame {pos} ({fr.image_path.name})"
+    dropped: list[str] = []
+    for fr in order:
+        where = f"{tf.path}: frame {fr.position} ({fr.image_rel})"
         if fr.camera != cam0:
             raise ValueError(f"{where}: intrinsics {fr.camera} differ from frame 0's {cam0}; one rectified camera expected")
-        span_end = fr.read_end_ns + int(round(fr.exposure_s * 1e9))
-        if fr.read_start_ns < trajectory.start_ns or span_end > trajectory.end_ns or not (
-                trajectory.start_ns <= fr.timestamp_ns <= trajectory.end_ns):
-            raise ValueError(
-                f"{where}: timestamps [{fr.read_start_ns}, {span_end}] ns (read start .. last row's exposure end, "
-                f"centre {fr.timestamp_ns}) fall outside the trajectory span [{trajectory.start_ns}, {trajectory.end_ns}] ns "
-                f"of {traj_file}"
-            )
+        if not lo <= fr.timestamp_ns <= hi:
+            dropped.append(fr.image_rel)
+            continue
+        half = (fr.read_end_ns - fr.read_start_ns) // 2
+        t0, t1 = fr.timestamp_ns - half, fr.timestamp_ns + half  # the readout span the poses are sampled on
+        if t0 < trajectory.start_ns or t1 > trajectory.end_ns:
+            raise ValueError(f"{where}: readout [{t0}, {t1}] ns around the centre {fr.timestamp_ns} falls outside "
+                             f"the trajectory span [{trajectory.start_ns}, {trajectory.end_ns}] ns of {traj_file}")
+        if frames and fr.timestamp_ns <= frames[-1].timestamp_ns:
+            raise ValueError(f"{where}: sorted by image path, its timestamp {fr.timestamp_ns} does not follow the "
+                             f"previous frame's {frames[-1].timestamp_ns}; image names must sort in time order")
         sparse = None
-        if load_sparse_depth and fr.sparse_depth_path is not None and fr.sparse_depth_path.is_file():
-            sparse = read_sparse_depth(fr.sparse_depth_path, where=f" (frame {pos})")
+        if load_sparse_depth and fr.sparse_depth_path is not None:
+            if not fr.sparse_depth_path.is_file():
+                raise FileNotFoundError(f"{fr.sparse_depth_path}: sparse depth of {where} not found")
+            sparse = read_sparse_depth(fr.sparse_depth_path, where=f" ({where})")
         frames.append(Frame(
-            index=index, image_path=fr.image_path, timestamp_ns=fr.timestamp_ns, read_start_ns=fr.read_start_ns,
+            index=len(frames), image_path=fr.image_path, timestamp_ns=fr.timestamp_ns, read_start_ns=fr.read_start_ns,
             read_end_ns=fr.read_end_ns, exposure_s=fr.exposure_s, gain=fr.gain,
             T_world_camera=torch.from_numpy(fr.transform_matrix.copy()),
             T_device_camera=torch.from_numpy(fr.camera2device.copy()), sparse_depth=sparse,
         ))
+    if not frames:
+        raise ValueError(f"{tf.path}: no frame lies inside the trajectory span [{trajectory.start_ns}, "
+                         f"{trajectory.end_ns}] ns of {traj_file} (1 ms from either end dropped)")
+    return frames, dropped
 
-    H, W = cam0.height, cam0.width
+
+def _camera_maps(folder: Path, tf: TransformsFile, H: int, W: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(vignette [H, W] 0..1, mask [H, W] bool, row-time ratio [H, W] 0..1) of a stream folder."""
 
     def check_shape(arr: np.ndarray, name: Path) -> np.ndarray:
         if arr.shape[:2] != (H, W):
@@ -88,11 +98,10 @@ def load_recording(path: str | Path, calibration: Calibration = "online", *, tra
                 if vig_path.is_file() else np.ones((H, W), np.float32))
     mask_path = tf.frames[0].mask_path if tf.frames[0].mask_path is not None else folder / "mask.png"
     mask = (check_shape(read_png(mask_path, "mask"), mask_path) > 127) if mask_path.is_file() else np.ones((H, W), bool)
-    rtr_path = folder / "row_time_ratio.npy"
-    idx_path = folder / "image_index.png"
+    rtr_path, idx_path = folder / "row_time_ratio.npy", folder / "image_index.png"
     if rtr_path.is_file():
         try:
-            row_time_ratio = np.load(rtr_path).astype(np.float32)
+            row_time_ratio = np.load(rtr_path, allow_pickle=False).astype(np.float32)
         except (ValueError, OSError, EOFError) as exc:
             raise ValueError(f"{rtr_path}: unreadable row-time ratio array ({exc})") from exc
         check_shape(row_time_ratio, rtr_path)
@@ -102,24 +111,62 @@ def load_recording(path: str | Path, calibration: Calibration = "online", *, tra
         row_time_ratio = check_shape(read_png(idx_path, "image index"), idx_path).astype(np.float32) / 255.0
     else:
         raise ValueError(f"{folder}: neither row_time_ratio.npy nor image_index.png present (rolling-shutter row times)")
+    return vignette, mask, row_time_ratio
 
-    sd_file = Path(semidense_path) if semidense_path is not None else mps_dir / "semidense_points.csv.gz"
-    meta: dict = {}
-    if sd_file.is_file():
-        pts = read_semidense_points(sd_file, filter=True)
-        points_world = torch.from_numpy(pts.points_world.astype(np.float32))
-    elif semidense_path is not None:
-        raise ValueError(f"{sd_file}: semi-dense points file not found")
-    else:
-        points_world = torch.zeros((0, 3), dtype=torch.float32)
-        meta["notes"] = {"points_world": f"no semi-dense points at {sd_file}"}
-    if sim_root is not None and (sim_root / "recording.json").is_file():
-        meta.update(read_json(sim_root / "recording.json"))
-    name = str(meta.get("name", (sim_root or folder).name))
-    gt = sim_root / "ground_truth" if sim_root is not None and (sim_root / "ground_truth").is_dir() else None
+
+def load_recording(path: str | Path, calibration: Calibration = "online", *, trajectory_path: str | Path | None = None,
+                   semidense_path: str | Path | None = None, load_sparse_depth: bool = True) -> Recording:
+    """Read one rectified camera stream and its trajectory and points into a `Recording`.
+
+    path: a rectified stream folder (``<label>-rectified-<focal>-h<size>[-factory-calib]``), or a
+    recording / scene folder holding one (`egobench.data.layout.find_stream`). The calibration
+    selects the stream by the authors' naming; one that is not there is a ValueError.
+    trajectory_path / semidense_path: override the folder's closed_loop_trajectory.csv /
+    semidense_points.csv.gz. Every frame is validated (missing image, bad JSON, NaN pose,
+    readout outside the trajectory -> ValueError naming the file and the frame).
+    """
+    from egobench.data.mps import read_trajectory
+    from egobench.io_utils import read_json
+
+    folder = find_stream(path, calibration)
+    tf = read_transforms(folder)
+    traj_file = _input_file(trajectory_path, folder, TRAJECTORY_FILE, "trajectory", "--trajectory")
+    trajectory = read_trajectory(traj_file)
+    frames, dropped = _frames(tf, trajectory, traj_file, load_sparse_depth)
+    cam0 = tf.frames[0].camera
+    vignette, mask, row_time_ratio = _camera_maps(folder, tf, cam0.height, cam0.width)
+    points_file = _input_file(semidense_path, folder, POINTS_FILE, "semi-dense points file", "--points")
+    points_world = _load_points(points_file)
+
+    rec_root = folder.parent  # <vrs name>/ (simulated: the recording folder with recording.json)
+    meta: dict = {"transforms": str(tf.path), "trajectory_file": str(traj_file), "points_file": str(points_file),
+                  "dropped_frames": dropped}
+    if (rec_root / "recording.json").is_file():
+        meta.update(read_json(rec_root / "recording.json"))
+    name = str(meta.get("name", rec_root.name))
+    gt = rec_root / "ground_truth" if (rec_root / "ground_truth" / "truth.json").is_file() else None
     return Recording(
         root=folder, name=name, calibration=calibration, camera=cam0, camera_model="linear", frames=frames,
         vignette=torch.from_numpy(vignette), mask=torch.from_numpy(np.ascontiguousarray(mask)),
         row_time_ratio=torch.from_numpy(row_time_ratio), trajectory=trajectory, points_world=points_world,
         ground_truth=gt, meta=meta,
     )
+
+
+# ----------------------------------------------------------------------------------------
+# the verbs' recording options
+# ----------------------------------------------------------------------------------------
+def add_input_arguments(parser: argparse.ArgumentParser) -> None:
+    """--trajectory and --points: every verb that takes a recording."""
+    parser.add_argument("--trajectory", default=None, metavar="CSV",
+                        help="MPS closed_loop_trajectory.csv (default: the one in the recording's stream folder)")
+    parser.add_argument("--points", default=None, metavar="CSV_GZ",
+                        help="MPS semidense_points.csv.gz (default: the one in the recording's stream folder)")
+
+
+def recording_from_args(path, calibration: str, args: argparse.Namespace):
+    """``path`` loaded with --trajectory/--points when either is given, else ``path`` itself (loaded later)."""
+    traj, pts = getattr(args, "trajectory", None), getattr(args, "points", None)
+    if traj is None and pts is None:
+        return path
+    return load_recording(path, calibration, trajectory_path=traj, semidense_path=pts)

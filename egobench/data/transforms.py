@@ -1,19 +1,21 @@
 """The authors' preprocessed format (facebookresearch/egocentric_splats): write and parse.
 
-One folder per rectified camera::
+One folder per rectified camera stream (egobench.data.layout says where they lie)::
 
-    transforms.json        camera_model, camera_label, frames[]
-    images/NNNNN.png       rectified 8-bit RGB
-    vignette.png           rectified lens shading x 255 (8-bit, grey)
-    mask.png               valid rectified pixels (255) / invalid (0)
-    image_index.png        round(R(u) * 255): raw row / (H_raw - 1), rectified (8-bit)
-    row_time_ratio.npy     the same R(u) as float32 [H, W] (egobench addition, full precision)
-    sparse_depth/NNNNN.json  {"u": [...], "v": [...], "z": [...], "inverseDistanceStd": [...], "distanceStd": [...]}
+    transforms.json                    camera_model, camera_label, transform_cpf, frames[]
+    transforms_with_sparse_depth.json  the same, each frame adding ``sparse_depth`` (what training reads)
+    images/*.png                       rectified 8-bit RGB
+    vignette.png                       rectified lens shading x 255 (8-bit)
+    mask.png                           valid rectified pixels (255) / invalid (0)
+    image_index.png                    round(R(u) * 255): raw row / (H_raw - 1), rectified (8-bit)
+    row_time_ratio.npy                 the same R(u) as float32 [H, W] (egobench addition, full precision)
+    sparse_depth/*.json                {"u": [...], "v": [...], "z": [...], "inverseDistanceStd": [...], "distanceStd": [...]}
 
-Per frame: fx, fy, cx, cy, w, h, image_path, mask_path, camera2device (4x4, rectified camera to
-device), transform_matrix (4x4 camera-to-world, OpenCV axes, metres, at `timestamp`),
-timestamp, timestamp_read_start, timestamp_read_end (device clock, ns; read_end = when the last
-raw row starts exposing), exposure_duration_s, gain; egobench adds sparse_depth_path.
+Per frame: fx, fy, cx, cy, w, h, image_path, mask_path ("" = none), camera2device (4x4, rectified
+camera to device), transform_matrix (4x4 camera-to-world, OpenCV axes, metres, at `timestamp`),
+timestamp, timestamp_read_start, timestamp_read_end (device clock, ns; the authors write
+capture time, capture + readout / 2 and capture + readout), exposure_duration_s, gain; the
+``_with_sparse_depth`` file adds sparse_depth (a path relative to the folder).
 
 Principal point convention: cx, cy follow projectaria-tools (centre of pixel (i, j) at (i, j),
 an image centred on the axis has cx = (W - 1) / 2). gsplat's +0.5 is added inside the
@@ -42,6 +44,7 @@ class TransformsFrame:
 
     position: int  # index in the file's frames list
     image_path: Path  # absolute
+    image_rel: str  # image_path as written in the file (the authors sort frames by it)
     mask_path: Path | None
     camera: Pinhole
     camera2device: np.ndarray  # [4, 4] float64
@@ -71,7 +74,8 @@ class TransformsFile:
 def frame_entry(index: int, camera: Pinhole, camera2device: np.ndarray, transform_matrix: np.ndarray,
                 timestamp_ns: int, read_start_ns: int, read_end_ns: int, exposure_s: float, gain: float,
                 image_ext: str = "png") -> dict:
-    """One frames[] entry (paths relative to the folder: images/NNNNN.png, sparse_depth/NNNNN.json)."""
+    """One frames[] entry of transforms_with_sparse_depth.json (paths relative to the folder:
+    images/NNNNN.png, sparse_depth/NNNNN.json; zero-padded, so sorting by image path is time order)."""
     return {
         "fx": float(camera.fx), "fy": float(camera.fy), "cx": float(camera.cx), "cy": float(camera.cy),
         "w": int(camera.width), "h": int(camera.height),
@@ -81,17 +85,22 @@ def frame_entry(index: int, camera: Pinhole, camera2device: np.ndarray, transfor
         "timestamp": int(timestamp_ns), "timestamp_read_start": int(read_start_ns),
         "timestamp_read_end": int(read_end_ns),
         "exposure_duration_s": float(exposure_s), "gain": float(gain),
-        "sparse_depth_path": f"sparse_depth/{index:05d}.json",
+        "sparse_depth": f"sparse_depth/{index:05d}.json",
     }
 
 
 def write_transforms(folder: str | Path, frames: list[dict], camera_label: str = "camera-rgb",
                      camera_model: str = "linear", extra: dict | None = None) -> None:
-    """Write transforms.json (atomically)."""
+    """Write transforms_with_sparse_depth.json (frames as given) and transforms.json (without
+    the per-frame ``sparse_depth``), atomically, as the authors' preprocessing leaves them."""
+    from egobench.data.layout import TRANSFORMS, TRANSFORMS_WITH_DEPTH
+
     obj: dict[str, Any] = {"camera_model": camera_model, "camera_label": camera_label}
     obj.update(extra or {})
-    obj["frames"] = frames
-    write_json(Path(folder) / "transforms.json", obj)
+    plain = [{k: v for k, v in f.items() if k != "sparse_depth"} for f in frames]
+    if any("sparse_depth" in f for f in frames):
+        write_json(Path(folder) / TRANSFORMS_WITH_DEPTH, {**obj, "frames": frames})
+    write_json(Path(folder) / TRANSFORMS, {**obj, "frames": plain})
 
 
 def write_png(path: str | Path, image: np.ndarray) -> None:
@@ -167,12 +176,20 @@ def _number(entry: dict, key: str, where: str, integer: bool = False, positive: 
     return v
 
 
-def read_transforms(folder: str | Path, check_files: bool = True) -> TransformsFile:
-    """Parse and validate <folder>/transforms.json; ValueError names the file, frame and field."""
+def read_transforms(path: str | Path, check_files: bool = True) -> TransformsFile:
+    """Parse and validate a transforms file (or a stream folder's: transforms_with_sparse_depth.json,
+    else transforms.json); ValueError names the file, frame and field. Paths inside are relative
+    to the file's folder."""
+    from egobench.data.layout import TRANSFORMS_WITH_DEPTH, transforms_file
     from egobench.io_utils import read_json
 
-    folder = Path(folder)
-    path = folder / "transforms.json"
+    path = Path(path)
+    if path.is_dir():
+        found = transforms_file(path)
+        if found is None:
+            raise FileNotFoundError(f"{path}: neither {TRANSFORMS_WITH_DEPTH} nor transforms.json here")
+        path = found
+    folder = path.parent
     obj = read_json(path)
     if not isinstance(obj, dict):
         raise ValueError(f"{path}: expected a JSON object with 'frames'")
@@ -204,14 +221,14 @@ def read_transforms(folder: str | Path, check_files: bool = True) -> TransformsF
         if check_files and not image_path.is_file():
             raise ValueError(f"{where}: image file {image_path} is missing")
         mask_path = folder / str(entry["mask_path"]) if entry.get("mask_path") else None
-        sd = entry.get("sparse_depth_path")
+        sd = entry.get("sparse_depth")
         t = _number(entry, "timestamp", where, integer=True)
         t0 = _number(entry, "timestamp_read_start", where, integer=True)
         t1 = _number(entry, "timestamp_read_end", where, integer=True)
         if t1 < t0:
             raise ValueError(f"{where}: timestamp_read_end {t1} precedes timestamp_read_start {t0}")
         frames.append(TransformsFrame(
-            position=i, image_path=image_path, mask_path=mask_path, camera=cam,
+            position=i, image_path=image_path, image_rel=str(entry["image_path"]), mask_path=mask_path, camera=cam,
             camera2device=_matrix(entry["camera2device"], where, "camera2device"),
             transform_matrix=_matrix(entry["transform_matrix"], where, "transform_matrix"),
             timestamp_ns=t, read_start_ns=t0, read_end_ns=t1,

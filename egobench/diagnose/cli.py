@@ -6,6 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
+from egobench.data.reader import add_input_arguments
 from egobench.diagnose.core import DiagnosisConfig, diagnose_residuals
 
 
@@ -35,6 +36,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "full resolution: diagnosis compares full-resolution renders)")
     parser.add_argument("--iterations", type=int, default=None, help="with --train: iterations (schedule scaled)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    add_input_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -60,13 +62,16 @@ def _train_for_diagnosis(args: argparse.Namespace, rec: Path, out: Path) -> Path
     """--train: train --method with the --preset rules of `egobench train`, at full resolution, into OUT/run."""
     from dataclasses import replace
 
+    from egobench.data.reader import recording_from_args
+    from egobench.methods import get_method
     from egobench.train import preset_config, train
 
     config = replace(preset_config(args.preset), max_side=0, device=args.device or "cpu")
     if args.iterations is not None:
         config = config.scaled_to(args.iterations)
     run_dir = out / "run"
-    train(rec, args.method, config, run_dir, progress=not args.no_progress)
+    recording = recording_from_args(rec, get_method(args.method).calibration, args)
+    train(recording, args.method, config, run_dir, progress=not args.no_progress)
     return run_dir
 
 
@@ -85,9 +90,12 @@ def _diagnose_recording(args: argparse.Namespace, cfg: DiagnosisConfig, out: Pat
     if source == "run":
         if run_dir is None:
             raise ValueError("--run: --source run needs a trained run folder (or --train)")
-        src = run_source(rec, run_dir, max_frames=args.max_frames, progress=not args.no_progress, device=args.device)
+        src = run_source(rec, run_dir, max_frames=args.max_frames, progress=not args.no_progress, device=args.device,
+                         trajectory_path=args.trajectory, semidense_path=args.points)
     else:
-        if not (rec / "ground_truth" / "truth.json").is_file():
+        from egobench.data.layout import recording_root
+
+        if not (recording_root(rec) / "ground_truth" / "truth.json").is_file():
             raise ValueError(f"{rec}: no ground_truth/truth.json (not simulated): pass --run RUN_DIR or --train")
         src = ground_truth_source(rec, max_frames=args.max_frames, progress=not args.no_progress)
     d = diagnose_residuals(src.measured, src.predicted, src.context, cfg)

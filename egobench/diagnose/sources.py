@@ -91,18 +91,18 @@ def recording_rectification(recording_dir: str | Path, calibration: str, device,
     recording has no MPS calibration of the device's camera (then the pipeline is unknown).
 
     Simulated recordings rectify each stream with its own calibration (online: the first line of
-    mps/online_calibration.jsonl; factory: mps/factory_calibration.json) onto the stored pinhole,
+    mps/slam/online_calibration.jsonl; factory: factory_calibration.json) onto the stored pinhole,
     without rotation (egobench.sim.capture._rig)."""
     from egobench.camera import Rectification
+    from egobench.data.layout import FACTORY_CALIBRATION_FILE, MPS_SLAM, ONLINE_CALIBRATION_FILE, recording_root
     from egobench.data.mps import read_calibration_json, read_online_calibration
 
-    root = Path(recording_dir)
-    mps = root / "mps"
+    root = recording_root(recording_dir)
     try:
         if calibration == "factory":
-            cal = read_calibration_json(mps / "factory_calibration.json").camera(device.label)
+            cal = read_calibration_json(root / FACTORY_CALIBRATION_FILE).camera(device.label)
         else:
-            cal = read_online_calibration(mps / "online_calibration.jsonl")[0].camera(device.label)
+            cal = read_online_calibration(root / MPS_SLAM / ONLINE_CALIBRATION_FILE)[0].camera(device.label)
     except (FileNotFoundError, ValueError):
         return None
     src = cal.camera()
@@ -224,7 +224,9 @@ def ground_truth_source(recording_dir: str | Path, max_frames: int | None = None
     from egobench.sim.devices import get_device
     from egobench.sim.world import make_scene
 
-    root = Path(recording_dir)
+    from egobench.data.layout import MPS_SLAM, ONLINE_CALIBRATION_FILE, recording_root
+
+    root = recording_root(recording_dir)
     info = read_json(root / "recording.json")
     truth = read_json(root / "ground_truth" / "truth.json")
     if "sim_config" not in info:
@@ -235,7 +237,7 @@ def ground_truth_source(recording_dir: str | Path, max_frames: int | None = None
     frames = _select(rec.frames, max_frames)
     cals = make_calibrations(config)
     cal_online = cals.online
-    calib_lines = read_online_calibration(root / "mps" / "online_calibration.jsonl")
+    calib_lines = read_online_calibration(root / MPS_SLAM / ONLINE_CALIBRATION_FILE)
     stated = calib_lines[0].camera(dev.label)
     if not np.allclose(stated.params, cal_online.params):
         raise ValueError(f"{root}: the online calibration on disk differs from the simulator's (was the recording edited?)")
@@ -294,9 +296,11 @@ def ground_truth_source(recording_dir: str | Path, max_frames: int | None = None
 
 
 def run_source(recording_dir: str | Path, run_dir: str | Path, max_frames: int | None = None,
-               progress: bool = True, device: str | None = None) -> Sources:
+               progress: bool = True, device: str | None = None, trajectory_path: str | Path | None = None,
+               semidense_path: str | Path | None = None) -> Sources:
     """Prediction = a trained run's renders of every frame (its own formation model and poses),
-    rendered on ``device`` (default: the run's training device; see `egobench.train.checkpoint.render_device`)."""
+    rendered on ``device`` (default: the run's training device; see `egobench.train.checkpoint.render_device`).
+    ``trajectory_path`` / ``semidense_path``: as `load_recording`'s (the CLI's --trajectory / --points)."""
     from tqdm import tqdm
 
     from egobench.data import load_recording
@@ -307,7 +311,8 @@ def run_source(recording_dir: str | Path, run_dir: str | Path, max_frames: int |
 
     run = load_trained_run(run_dir, device, f"diagnose run {run_dir}")
     spec, cam = run.spec, run.camera
-    rec = load_recording(recording_dir, calibration=spec.calibration)
+    rec = load_recording(recording_dir, calibration=spec.calibration, trajectory_path=trajectory_path,
+                         semidense_path=semidense_path)
     if (cam.width, cam.height) != (rec.camera.width, rec.camera.height):
         raise ValueError(f"{run_dir}: trained at {cam.width}x{cam.height}, the recording is "
                          f"{rec.camera.width}x{rec.camera.height}; diagnose needs full-resolution renders")

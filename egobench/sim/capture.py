@@ -470,9 +470,22 @@ def _rig(cal: CameraCalibration, rect_size: int, device: DeviceProfile):
 PARTIAL_SCHEMA = "egobench.sim.partial/1"
 #: Folder inside the partial folder: the manifest and one state file per completed frame.
 RESUME_SUBDIR = ".resume"
-#: Folders holding one file per frame, named NNNNN.<ext> (frames past the last state file are removed on resume).
-FRAME_DIRS = ("raw", "online/images", "online/sparse_depth", "factory/images", "factory/sparse_depth",
-              "ground_truth/radiance", "ground_truth/depth", "ground_truth/normal")
+
+
+def stream_names(config: SimConfig) -> dict[str, str]:
+    """calibration -> rectified stream folder name, by the authors' naming (egobench.data.layout)."""
+    from egobench.data.layout import stream_folder_name
+
+    dev = get_device(config.device_name)
+    focal = dev.rectified_focal_ratio * config.rectified_size
+    return {name: stream_folder_name(dev.label, focal, config.rectified_size, factory=name == "factory")
+            for name in ("online", "factory")}
+
+
+def frame_dirs(config: SimConfig) -> tuple[str, ...]:
+    """Folders holding one file per frame, named NNNNN.<ext> (frames past the last state file are removed on resume)."""
+    streams = tuple(f"{d}/{sub}" for d in stream_names(config).values() for sub in ("images", "sparse_depth"))
+    return ("raw",) + streams + ("ground_truth/radiance", "ground_truth/depth", "ground_truth/normal")
 
 
 def partial_dir(out_dir: str | Path) -> Path:
@@ -524,10 +537,10 @@ def _read_partial(partial: Path, config_hash: str) -> tuple[list[dict], str | No
     return states, None
 
 
-def _drop_frames_from(partial: Path, first: int) -> None:
+def _drop_frames_from(partial: Path, first: int, dirs: tuple[str, ...]) -> None:
     """Remove the per-frame files and state files of frames >= `first` (half-written or stale) and
     the temporary files an interrupted atomic write left anywhere in the partial folder."""
-    for sub in FRAME_DIRS + (RESUME_SUBDIR,):
+    for sub in dirs + (RESUME_SUBDIR,):
         folder = partial / sub
         if not folder.is_dir():
             continue
@@ -630,6 +643,8 @@ def _simulate_into(config: SimConfig, out_dir: Path, partial: Path, chash: str, 
     import egobench
     from tqdm import tqdm
 
+    from egobench.data.layout import (FACTORY_CALIBRATION_FILE, MPS_SLAM, ONLINE_CALIBRATION_FILE, POINTS_FILE,
+                                      TRAJECTORY_FILE, link_mps_files)
     from egobench.data.mps import write_calibration_json, write_online_calibration, write_semidense_points
     from egobench.data.transforms import frame_entry, write_camera_maps, write_png, write_sparse_depth, write_transforms
     from egobench.formation import FormationConfig, FormationModel, PoissonGaussianNoise, radial_vignette
@@ -712,7 +727,7 @@ def _simulate_into(config: SimConfig, out_dir: Path, partial: Path, chash: str, 
     # Frames already completed by an earlier run: their records and the state after the last one.
     elapsed_before_s = 0.0
     if resuming:
-        _drop_frames_from(partial, len(states))
+        _drop_frames_from(partial, len(states), frame_dirs(config))
     online_record = calibration_record(cals.online) if states else None
     for st in states:
         for name in ("online", "factory"):
@@ -731,7 +746,9 @@ def _simulate_into(config: SimConfig, out_dir: Path, partial: Path, chash: str, 
         elapsed_before_s = float(last["elapsed_s"])
     result.resumed_from = len(states)
 
-    for sub in ("mps",) + FRAME_DIRS[1:]:
+    streams = stream_names(config)  # calibration -> stream folder
+    mps_dir = partial / MPS_SLAM
+    for sub in (str(MPS_SLAM),) + frame_dirs(config)[1:]:
         (partial / sub).mkdir(parents=True, exist_ok=True)
     if config.write_raw:
         (partial / "raw").mkdir(exist_ok=True)
@@ -799,7 +816,7 @@ def _simulate_into(config: SimConfig, out_dir: Path, partial: Path, chash: str, 
         for name, cal in (("online", cals.online), ("factory", cals.factory)):
             rect, pin = rigs[name]
             img = _to_uint8(rect.warp(raw_f))
-            write_png(partial / name / "images" / f"{k:05d}.png", img)
+            write_png(partial / streams[name] / "images" / f"{k:05d}.png", img)
             offset_ns = int(round(cal.time_offset_s * 1e9))
             read_start = int(t_cam[k] + offset_ns)
             read_end = read_start + int(round(readout_stated * 1e9))
@@ -816,7 +833,7 @@ def _simulate_into(config: SimConfig, out_dir: Path, partial: Path, chash: str, 
             iv = uv[:, 1].round().long().clamp(0, pin.height - 1)
             inside &= rect.valid[iv, iu]
             idx = visible.nonzero()[:, 0][inside]
-            write_sparse_depth(partial / name / "sparse_depth" / f"{k:05d}.json", uv[inside].numpy(), pcam[inside, 2].numpy(),
+            write_sparse_depth(partial / streams[name] / "sparse_depth" / f"{k:05d}.json", uv[inside].numpy(), pcam[inside, 2].numpy(),
                                sd_filtered.inv_dist_std[idx.numpy()], sd_filtered.dist_std[idx.numpy()])
             if name == "online":
                 calib_lines.append(calibration_record(cal, tracking_timestamp_us=timestamp // 1000))
@@ -849,15 +866,17 @@ def _simulate_into(config: SimConfig, out_dir: Path, partial: Path, chash: str, 
     # camera-level files
     for name, cal in (("online", cals.online), ("factory", cals.factory)):
         rect, pin = rigs[name]
-        write_camera_maps(partial / name, rect.warp_vignette(device_vignette(cal)).numpy(), rect.valid.numpy(),
+        write_camera_maps(partial / streams[name], rect.warp_vignette(device_vignette(cal)).numpy(), rect.valid.numpy(),
                           rect.row_time_ratio().numpy())
-        write_transforms(partial / name, frames_out[name], camera_label=dev.label,
+        write_transforms(partial / streams[name], frames_out[name], camera_label=dev.label,
                          extra={"calibration": name, "readout_s": readout_stated,
                                 "pixel_centre_convention": "integer (projectaria): cx = (W - 1) / 2 is centred"})
-    traj.to_mps_csv(partial / "mps" / "closed_loop_trajectory.csv")
-    write_semidense_points(partial / "mps" / "semidense_points.csv.gz", semidense)
-    write_online_calibration(partial / "mps" / "online_calibration.jsonl", calib_lines)
-    write_calibration_json(partial / "mps" / "factory_calibration.json", calibration_record(cals.factory))
+    traj.to_mps_csv(mps_dir / TRAJECTORY_FILE)
+    write_semidense_points(mps_dir / POINTS_FILE, semidense)
+    write_online_calibration(mps_dir / ONLINE_CALIBRATION_FILE, calib_lines)
+    write_calibration_json(partial / FACTORY_CALIBRATION_FILE, calibration_record(cals.factory))
+    for name in ("online", "factory"):  # the MPS files inside each stream folder, as relative symlinks
+        link_mps_files(partial / streams[name], mps_dir)
     result.time_s = elapsed_before_s + time.perf_counter() - t_begin
     write_json(partial / "ground_truth" / "truth.json", {
         "true_calibration": calibration_record(true_cal).to_json(),
@@ -875,7 +894,7 @@ def _simulate_into(config: SimConfig, out_dir: Path, partial: Path, chash: str, 
         "device": dev.name, "sensitivity": dev.sensitivity, "vignette_corner": dev.vignette_corner,
         "vignette_power": dev.vignette_power, "exposure_protocol": config.protocol,
         "gt_units": {"radiance": "clean linear irradiance (world radiance units, cd/m^2-like), exposure-averaged, "
-                                 "rectified like online/ images (float16, clipped at 65000)",
+                                 "rectified like the online stream's images (float16, clipped at 65000)",
                      "depth": "z in the online rectified camera, metres, 0 = no hit / invalid (float16)",
                      "normal": "unit normal in the online camera frame, 0 = none (float16)"},
         "frames": truth_frames,

@@ -21,7 +21,7 @@ import importlib
 #: public name -> the module that defines it (imported on first use: ``egobench.train.cli`` stays light)
 _EXPORTS = {
     "CHECKPOINT_FORMAT": "checkpoint", "TrainedRun": "checkpoint", "load_trained_run": "checkpoint",
-    "read_checkpoint": "checkpoint", "PAPER_ITERATIONS": "config", "PRESETS": "config", "TrainConfig": "config",
+    "read_run_checkpoint": "checkpoint", "PAPER_ITERATIONS": "config", "PRESETS": "config", "TrainConfig": "config",
     "parse_overrides": "config", "preset_config": "config", "TrainingData": "data", "load_image_store": "data",
     "prepare_data": "data", "TrainingDiverged": "loop", "TrainResult": "loop", "train": "loop",
 }

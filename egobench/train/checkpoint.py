@@ -1,5 +1,5 @@
 """Run checkpoints: ``checkpoint.pt`` written atomically, read without executing code
-(``torch.load(weights_only=True)``: a checkpoint is tensors, numbers, strings and containers),
+(`egobench.checkpoint.read_checkpoint`: a checkpoint is tensors, numbers, strings and containers),
 matched against a method and config for ``--resume auto``, and loaded as a trained model for
 evaluation and diagnosis (`load_trained_run`)."""
 
@@ -12,6 +12,7 @@ from pathlib import Path
 import torch
 
 from egobench.camera.pinhole import Pinhole
+from egobench.checkpoint import read_checkpoint
 from egobench.io_utils import atomic_path
 from egobench.methods import MethodSpec, get_method
 from egobench.train.config import TrainConfig
@@ -19,20 +20,17 @@ from egobench.train.config import TrainConfig
 CHECKPOINT_FORMAT = "egobench.checkpoint/1"
 
 
-def read_checkpoint(path: str | Path) -> dict:
-    """The checkpoint dict at ``path``. FileNotFoundError if it is missing; ValueError naming the file
-    if it cannot be read safely or is not an egobench checkpoint."""
+def read_run_checkpoint(path: str | Path) -> dict:
+    """The training checkpoint at ``path`` (read safely by `egobench.checkpoint.read_checkpoint`).
+    FileNotFoundError if it is missing; ValueError naming the file if it cannot be read or is not an
+    egobench training checkpoint."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no checkpoint (train the run first)")
-    try:
-        ck = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # truncated, foreign, or holding code objects: never unpickled with code
-        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise ValueError(f"{path}: not a readable egobench checkpoint ({reason})") from None
-    if not isinstance(ck, dict) or ck.get("format") != CHECKPOINT_FORMAT:
-        found = ck.get("format") if isinstance(ck, dict) else type(ck).__name__
-        raise ValueError(f"{path}: not an egobench checkpoint (format {found!r}, expected {CHECKPOINT_FORMAT!r})")
+    ck = read_checkpoint(path)
+    if ck.get("format") != CHECKPOINT_FORMAT:
+        raise ValueError(f"{path}: not an egobench checkpoint (format {ck.get('format')!r}, "
+                         f"expected {CHECKPOINT_FORMAT!r})")
     return ck
 
 
@@ -48,7 +46,7 @@ def checkpoint_matches(path: Path, method: str, config: TrainConfig) -> bool:
     if not path.is_file():
         return False
     try:
-        ck = read_checkpoint(path)
+        ck = read_run_checkpoint(path)
     except ValueError as exc:
         print(f"egobench train: {exc}; starting afresh", file=sys.stderr)
         return False
@@ -60,7 +58,7 @@ def checkpoint_matches(path: Path, method: str, config: TrainConfig) -> bool:
 
 def resumable_checkpoint(path: Path, method: str, config: TrainConfig) -> dict:
     """The checkpoint to resume ``method`` with ``config`` from; a named error when it is of another run."""
-    ck = read_checkpoint(path)
+    ck = read_run_checkpoint(path)
     if ck.get("method") != method:
         raise ValueError(f"{path}: checkpoint is for method {ck.get('method')!r}, not {method!r}")
     if ck.get("config_hash") != config.hash(method):
@@ -93,7 +91,7 @@ def load_trained_run(run_dir: str | Path, device: str | None, where: str) -> Tra
     from egobench.predict import gaussians_from_params
 
     run_dir = Path(run_dir)
-    ck = read_checkpoint(run_dir / "checkpoint.pt")
+    ck = read_run_checkpoint(run_dir / "checkpoint.pt")
     config = config_of(ck)
     dev = render_device(device, config.device, where)
     c = ck["camera"]

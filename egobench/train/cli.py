@@ -6,11 +6,13 @@ import argparse
 import sys
 from dataclasses import replace
 
+from egobench.data.reader import add_input_arguments
 from egobench.train.config import PRESETS, TrainConfig, parse_overrides, preset_config
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--recording", required=True, help="recording folder (<rec> or a folder with transforms.json)")
+    parser.add_argument("--recording", required=True,
+                        help="recording: a rectified stream folder (<label>-rectified-<focal>-h<size>) or the folder holding it")
     parser.add_argument("--method", required=True, help="method name (egobench.methods)")
     parser.add_argument("--seed", type=int, default=0, help="random seed")
     parser.add_argument("--out", required=True, help="run folder (checkpoint.pt, train.json)")
@@ -22,6 +24,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="continue from RUN_DIR/checkpoint.pt; 'auto': only if it matches this method and "
                              "config, else start afresh (what the workflow passes)")
     parser.add_argument("--no-progress", action="store_true", help="no tqdm bar")
+    add_input_arguments(parser)
 
 
 def config_from_args(args: argparse.Namespace) -> TrainConfig:
@@ -34,12 +37,15 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
 
 
 def run(args: argparse.Namespace) -> int:
+    from egobench.data.reader import recording_from_args
+    from egobench.methods import get_method
     from egobench.train.loop import TrainingDiverged, train
 
     config = config_from_args(args)
     try:
         resume = {None: False, "yes": True, "auto": "auto"}[args.resume]
-        res = train(args.recording, args.method, config, args.out, resume=resume, progress=not args.no_progress)
+        recording = recording_from_args(args.recording, get_method(args.method).calibration, args)
+        res = train(recording, args.method, config, args.out, resume=resume, progress=not args.no_progress)
     except TrainingDiverged as exc:
         print(f"egobench train: error: {exc}", file=sys.stderr)
         return 3
