@@ -56,12 +56,22 @@ def quantise8(image: Tensor) -> Tensor:
 
 
 def load_checkpoint(run_dir: Path) -> dict:
+    """The run's checkpoint.pt (tensors, dicts, lists, numbers and strings only: nothing in it can
+    execute code). FileNotFoundError without one, ValueError naming the file when it is not an
+    egobench checkpoint."""
+    import pickle
+    import struct
+
     path = Path(run_dir) / "checkpoint.pt"
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no checkpoint (train the run first)")
     from egobench.train import CHECKPOINT_FORMAT
 
-    ck = torch.load(path, map_location="cpu", weights_only=False)
+    try:
+        ck = torch.load(path, map_location="cpu", weights_only=True)
+    except (pickle.UnpicklingError, EOFError, RuntimeError, struct.error) as exc:
+        why = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+        raise ValueError(f"{path}: not a readable egobench checkpoint ({why})") from exc
     if not isinstance(ck, dict) or ck.get("format") != CHECKPOINT_FORMAT:
         raise ValueError(f"{path}: not an egobench checkpoint (expected format {CHECKPOINT_FORMAT})")
     return ck
