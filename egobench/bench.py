@@ -1,4 +1,4 @@
-"""`egobench bench raster|train`: micro-benchmarks printed as JSON.
+"""`egobench bench raster|train|cast`: micro-benchmarks printed as JSON.
 
 ``raster``: forward+backward time of `egobench.render.render` (median of repeats after warm-up)
 on random but realistic scenes, and the cost of a rolling-shutter render (K pose samples)
@@ -6,6 +6,8 @@ relative to a global-shutter render of the same image.
 ``train``: iterations/s, rasterizer time share and peak memory of `egobench.train.train` with and
 without motion sampling on the synthetic `egobench.sim.plane.plane_recording` (or a given recording), at one or more
 resolutions; ``--resolution 2400 --points 1000000 --device cuda`` is the paper-scale case.
+``cast``: the simulator's ray casting (`egobench.sim.world.Scene.cast`, the cost of simulating a
+frame): 128 x 128 rays x 8 temporal samples from inside the indoor scene in one call.
 """
 
 from __future__ import annotations
@@ -202,8 +204,32 @@ def bench_train(device: str = "cpu", backend: str = "auto", sides: tuple[int, ..
             "results": results}
 
 
+def bench_cast(device: str = "cpu", repeats: int = 7, kind: str = "indoor", side: int = 128,
+               samples: int = 8) -> dict:
+    """The ray-casting benchmark record: side x side x samples rays from near the walk region's
+    centre in random directions through `Scene.cast` (texture footprint of a side-pixel image)."""
+    import numpy as np
+
+    from egobench.sim.world import make_scene
+
+    scene = make_scene(kind, 0)
+    rng = np.random.default_rng(0)
+    n = side * side * samples
+    eye = torch.tensor(scene.walk_region.center_point, dtype=torch.float32)
+    origins = (eye + 0.01 * torch.tensor(rng.normal(size=(n, 3)), dtype=torch.float32)).contiguous().to(device)
+    directions = torch.tensor(rng.normal(size=(n, 3)), dtype=torch.float32).to(device)
+    timing = time_fwd_bwd(lambda: scene.cast(origins, directions, pixel_angle_rad=1 / side), device, repeats,
+                          warmup=1)
+    return {"benchmark": "cast", "device": device, "torch": torch.__version__, "threads": torch.get_num_threads(),
+            "scene": f"{kind}_0", "rays": n, "image": f"{side}x{side}", "temporal_samples": samples,
+            "median_ms": timing["median_ms"], "min_ms": timing["min_ms"],
+            "cpu_median_ms": timing["cpu_median_ms"], "repeats": repeats,
+            "rays_per_s": round(n / (timing["median_ms"] * 1e-3)),
+            "note": "wall time of one Scene.cast call, median of repeats after 1 warm-up; noisy on a shared machine"}
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("what", choices=["raster", "train"], help="which benchmark")
+    parser.add_argument("what", choices=["raster", "train", "cast"], help="which benchmark")
     parser.add_argument("--device", default="cpu", help="cpu or cuda")
     parser.add_argument("--repeats", type=int, default=7, help="timed repeats (median reported)")
     parser.add_argument("--backend", default="auto", choices=["auto", "torch", "gsplat"], help="rasterizer backend")
@@ -228,6 +254,9 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--repeats: expected a positive integer, got {args.repeats}")
     if args.what == "raster":
         print(json.dumps(bench_raster(args.device, args.repeats, args.backend, args.tile_size), indent=2))
+        return 0
+    if args.what == "cast":
+        print(json.dumps(bench_cast(args.device, args.repeats), indent=2))
         return 0
     for name in ("iterations", "points"):
         if getattr(args, name) < 1:

@@ -9,6 +9,7 @@ one line (the CLI prints it without a traceback).
 from __future__ import annotations
 
 import pickle
+import struct
 import zipfile
 from pathlib import Path
 
@@ -23,7 +24,7 @@ def read_checkpoint(path: str | Path) -> dict:
     try:
         ck = torch.load(path, map_location="cpu", weights_only=True)
     except (pickle.UnpicklingError, RuntimeError, EOFError, OSError, zipfile.BadZipFile, ValueError,
-            AttributeError, TypeError, KeyError, IndexError) as exc:
+            AttributeError, TypeError, KeyError, IndexError, struct.error) as exc:
         lines = str(exc).strip().splitlines()
         first = lines[0] if lines else type(exc).__name__
         if "weights_only" in str(exc) or isinstance(exc, pickle.UnpicklingError):

@@ -180,8 +180,3 @@ TABLE4: Mapping[str, SceneStatistics] = MappingProxyType(
         "livingroom": SceneStatistics(1517, "indoor, dim light, 200- lux"),
     }
 )
-
-#: Which paper table a simulated scene kind is compared with.
-KIND_TO_PAPER_TABLE: Mapping[str, PaperTable] = MappingProxyType(
-    {"outdoor": TABLE1_OUTDOOR, "indoor": TABLE1_INDOOR, "object": TABLE2, "quest3": TABLE3}
-)

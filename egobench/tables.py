@@ -35,7 +35,8 @@ METRICS = (pn.PSNR, pn.SSIM, pn.LPIPS, pn.DEPTH, pn.NORMAL)
 GAIN_REFERENCE = {"2dgs_no_motion_sampling": "ours_2dgs"}
 #: Table of each group in egobench.methods' row labels ("aria", "dtc", "quest3").
 LABEL_TABLE = {"table1_outdoor": "aria", "table1_indoor": "aria", "table2": "dtc", "table3": "quest3"}
-#: Table groups: name -> (scene kind, paper table).
+#: Table groups: name -> (scene kind, paper table): the one place that says which paper table a
+#: simulated scene kind is compared with.
 GROUPS = {
     "table1_outdoor": ("outdoor", pn.TABLE1_OUTDOOR),
     "table1_indoor": ("indoor", pn.TABLE1_INDOOR),

@@ -75,3 +75,16 @@ def test_bench_train_rejects_bad_arguments(flag, value):
     from egobench.cli import main
 
     assert main(["bench", "train", flag, value]) != 0
+
+
+def test_bench_cast_record(capsys):
+    """`egobench bench cast` (the simulator's ray-casting time; was a wall-clock bound in test_world)."""
+    from egobench.cli import main
+
+    rec = bench.bench_cast("cpu", repeats=1, side=8, samples=2)
+    json.dumps(rec, allow_nan=False)
+    assert rec["rays"] == 8 * 8 * 2 and rec["image"] == "8x8" and rec["scene"] == "indoor_0"
+    assert rec["median_ms"] > 0 and rec["rays_per_s"] == round(128 / (rec["median_ms"] * 1e-3))
+    assert main(["bench", "cast", "--repeats", "1"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["benchmark"] == "cast" and out["rays"] == 128 * 128 * 8

@@ -185,15 +185,70 @@ def test_temporal_samples_suffice():
     assert err_1 > err  # a single sample is measurably worse: the test can fail
 
 
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """[start, stop) of the runs of True in a 1-D mask."""
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], mask.astype(int), [0]])))
+    return list(zip(edges[::2].tolist(), edges[1::2].tolist()))
+
+
 def test_figures(tiny, tmp_path):
+    """The contact sheet shows each frame's images and maps in their colour maps; the motion figure
+    plots the returned per-frame median displacement."""
+    import cv2
+    from matplotlib import colormaps
+
     from egobench.data import load_recording
     from egobench.sim.figures import contact_sheet, motion_displacement_figure
 
     root, _ = tiny
     contact_sheet(root, tmp_path / "sheet.png", n=4)
-    q = motion_displacement_figure(load_recording(root), tmp_path / "motion.png")
-    assert (tmp_path / "sheet.png").stat().st_size > 1000 and (tmp_path / "motion.png").stat().st_size > 1000
+    rec, rec_f = load_recording(root), load_recording(root, "factory")
+    q = motion_displacement_figure(rec, tmp_path / "motion.png")
     assert q.shape == (10, 3) and np.all(np.isfinite(q)) and float(q[:, 1].max()) > 0
+    assert np.all(q[:, 0] <= q[:, 1]) and np.all(q[:, 1] <= q[:, 2])
+
+    # Contact sheet: 4 columns x (online, factory, R(u) or vignette, GT depth) at 1.8 x 1.9 in, 100 dpi.
+    sheet = cv2.cvtColor(cv2.imread(str(tmp_path / "sheet.png")), cv2.COLOR_BGR2RGB)
+    assert sheet.shape == (4 * 190, 4 * 180, 3)
+    ink = (sheet < 255).any(axis=-1)  # the figure background is pure white
+    columns = _runs(ink.mean(axis=0) > 0.3)
+    assert len(columns) == 4, columns
+
+    def scaled(x):
+        return (x - x.min()) / (x.max() - x.min())
+
+    for c, (c0, c1) in enumerate(columns):
+        panels = _runs(ink[:, c0:c1].mean(axis=1) > 0.5)
+        assert len(panels) == 4, panels
+        i = round(c * (len(rec.frames) - 1) / 3)  # evenly spaced frames 0, 3, 6, 9
+        depth = np.load(root / "ground_truth" / "depth" / f"{i:05d}.npy").astype(np.float32)
+        maps = colormaps["viridis"](scaled(rec.row_time_ratio.numpy())) if c == 0 else \
+            colormaps["gray"](rec.vignette.numpy())
+        expected = [rec.load_image(rec.frames[i]).numpy(), rec_f.load_image(rec_f.frames[i]).numpy(), maps[..., :3],
+                    colormaps["magma"](scaled(depth))[..., :3]]
+        for (r0, r1), e in zip(panels, expected):
+            shown = cv2.resize(sheet[r0:r1, c0:c1], (e.shape[1], e.shape[0]), interpolation=cv2.INTER_AREA) / 255.0
+            assert np.abs(shown - e).mean() < 0.01, (c, r0)  # measured <= 0.0035
+
+    # Motion figure (7 x 3 in, 120 dpi): the median line (pure C0) passes through the returned medians,
+    # y an affine function of q[:, 1] with the axes' autoscaled slope (data range of the 25-75 band + 5 %
+    # margins); frames in the left 60 % of the time axis (the legend is upper right).
+    img = cv2.cvtColor(cv2.imread(str(tmp_path / "motion.png")), cv2.COLOR_BGR2RGB).astype(int)
+    assert img.shape == (3 * 120, 7 * 120, 3)
+    line = np.all(np.abs(img - [0x1F, 0x77, 0xB4]) <= 3, axis=-1)
+    x0, x1 = np.flatnonzero(line.any(axis=0))[[0, -1]]
+    spines = np.flatnonzero((img < 60).all(axis=-1).sum(axis=1) > 0.5 * (x1 - x0))
+    t = np.array([(f.timestamp_ns - rec.frames[0].timestamp_ns) * 1e-9 for f in rec.frames])
+    ys, qs = [], []
+    for ti, qi in zip(t, q[:, 1]):
+        if ti <= t[0] + 0.6 * (t[-1] - t[0]):
+            x = min(max(int(round(x0 + (ti - t[0]) / (t[-1] - t[0]) * (x1 - x0))), x0 + 1), x1 - 1)
+            ys.append(np.flatnonzero(line[:, x]).mean())
+            qs.append(qi)
+    slope, offset = np.polyfit(qs, ys, 1)
+    assert np.abs(np.array(ys) - (offset + slope * np.array(qs))).max() < 1.5
+    axes_px = spines.max() - spines.min()
+    assert slope == pytest.approx(-axes_px / (1.1 * (q[:, 2].max() - q[:, 0].min())), rel=0.03)
 
 
 def test_pixel_area_integration_band_limits_sub_pixel_motion():

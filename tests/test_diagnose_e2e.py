@@ -81,11 +81,16 @@ def test_simulated_hidden_geometric_effect_is_named(tmp_path, effect, overrides,
     assert d.named[0].psnr_gain_db > 0, d.named[0]
 
 
-def test_cli_errors_name_the_argument(tmp_path):
+def test_cli_errors_name_the_argument(tmp_path, capsys):
     from egobench.cli import main
 
     assert main(["diagnose", "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err  # one line naming the missing argument
+    assert err.count("\n") == 1 and "error: recording: a recording folder is required" in err, err
     assert main(["diagnose", str(tmp_path / "missing"), "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err  # one line naming the path
+    assert err.count("\n") == 1 and f"error: {tmp_path / 'missing'}: recording folder not found" in err, err
+    assert not (tmp_path / "x").exists()  # nothing written
 
 
 def test_report_files_from_a_synthetic_case(tmp_path):

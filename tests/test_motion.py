@@ -21,8 +21,11 @@ from egobench.sim.world import make_scene
 #: The real Aria sample walk (PAPER-NOTES 4; recomputed from the csv when it is present).
 REAL_ANGULAR_DEG_S = {"p25": 14.66, "p50": 27.00, "p75": 39.75, "p90": 50.87, "p99": 77.13}
 REAL_LINEAR_P50_M_S = 0.75
-#: Stated band of the `normal` setting around the real walk (relative error per percentile).
-BAND = {"p25": 0.40, "p50": 0.20, "p75": 0.25, "p90": 0.25, "p99": 0.25}
+REAL_DURATION_S = 11.4
+#: The real walk is one 11.4 s draw: its percentiles are compared with the spread of the model's own
+#: 11.4 s walks (N_DRAWS seeds) and must lie within Z_MAX standard deviations of their mean.
+N_DRAWS = 12
+Z_MAX = 2.5
 
 
 def _real_csv(shared_data):
@@ -77,30 +80,41 @@ def test_object_scene_keeps_the_object_in_view():
 
 
 def _real_reference(shared_data_dir):
+    """(angular-speed percentiles, linear-speed p50, duration s) of the real Aria walk."""
     csv = shared_data_dir / "aria_mps_sample" / "closed_loop_trajectory.csv" if shared_data_dir else None
     if csv is not None and csv.is_file():
         real = Trajectory.from_mps_csv(csv)
-        return angular_speed_percentiles(real), linear_speed_percentiles(real)["p50"]
-    return REAL_ANGULAR_DEG_S, REAL_LINEAR_P50_M_S
+        return angular_speed_percentiles(real), linear_speed_percentiles(real)["p50"], real.duration_s
+    return REAL_ANGULAR_DEG_S, REAL_LINEAR_P50_M_S, REAL_DURATION_S
 
 
 @pytest.mark.parametrize("kind", ["indoor", "outdoor"])
 def test_normal_setting_matches_the_real_walk(kind):
-    """Pooled over 3 seeds x 20 s, each angular-speed percentile of `normal` lies in BAND of the real walk."""
+    """The real walk is a plausible draw of `normal`: each of its angular-speed percentiles (and its
+    median linear speed) lies within Z_MAX standard deviations of the model's walks of the same
+    duration, the spread measured over N_DRAWS seeds (z = (real - mean) / (std sqrt(1 + 1/N))).
+
+    Measured (indoor): z = -1.57, 0.09, 0.41, -0.22, 0.25 for p25..p99 and 1.7 for the linear speed;
+    4 -> 6 deg look-around gives p25 z = -3.5, a 2 Hz look-around bandwidth p50 z = -7.9."""
     from tests.conftest import SHARED_DATA
 
-    ref, ref_lin = _real_reference(SHARED_DATA if SHARED_DATA.is_dir() else None)
+    ref, ref_lin, duration_s = _real_reference(SHARED_DATA if SHARED_DATA.is_dir() else None)
     sc = make_scene(kind, 0)
-    speeds, lin = [], []
-    for seed in range(3):
-        tr = simulate_head_motion(HeadMotionConfig(duration_s=20.0), sc, seed)
-        speeds.append(tr.angular_speed_deg_s())
-        lin.append(linear_speed_percentiles(tr)["p50"])
-    pooled = np.concatenate(speeds)
-    for q, tol in BAND.items():
-        sim = float(np.percentile(pooled, int(q[1:])))
-        assert abs(sim - ref[q]) <= tol * ref[q], f"{kind} {q}: simulated {sim:.1f} deg/s vs real {ref[q]:.1f}"
-    assert abs(np.mean(lin) - ref_lin) <= 0.25 * ref_lin
+    angular, linear = [], []
+    for seed in range(N_DRAWS):
+        tr = simulate_head_motion(HeadMotionConfig(duration_s=duration_s), sc, seed)
+        p = angular_speed_percentiles(tr)
+        angular.append([p[q] for q in ref])
+        linear.append(linear_speed_percentiles(tr)["p50"])
+    scale = np.sqrt(1 + 1 / N_DRAWS)  # the model mean's own uncertainty beside one real draw
+    angular = np.array(angular)
+    for j, q in enumerate(ref):
+        mean, std = angular[:, j].mean(), angular[:, j].std(ddof=1)
+        z = (ref[q] - mean) / (std * scale)
+        assert abs(z) <= Z_MAX, f"{kind} {q}: real {ref[q]:.1f} deg/s, model {mean:.1f} +- {std:.1f} (z = {z:.2f})"
+        assert std < 0.3 * mean, (q, std, mean)  # a plausible draw-to-draw spread (measured <= 0.21), not a broken model
+    z_lin = (ref_lin - np.mean(linear)) / (np.std(linear, ddof=1) * scale)
+    assert abs(z_lin) <= Z_MAX, f"{kind} linear p50: real {ref_lin:.2f} m/s, model {np.mean(linear):.2f} (z = {z_lin:.2f})"
 
 
 def test_fast_setting_turns_at_several_hundred_deg_s():

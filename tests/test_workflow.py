@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import os
 import subprocess
 import sys
@@ -182,12 +181,26 @@ ACCEPTED_LINT = "Shell command directly uses variable EGOBENCH from outside of t
 
 
 def test_lint_is_clean(tmp_path):
+    import re
+
     res = snakemake(["--lint"], tmp_path)
     out = res.stdout + res.stderr
     lints = [line.strip() for line in out.splitlines() if line.lstrip().startswith("* ")]
     other = [line for line in lints if ACCEPTED_LINT not in line]
     assert not other, out
-    assert res.returncode == 0 or lints, out  # a non-zero exit only for the accepted lint
+    assert "Traceback" not in out and "error" not in out.lower(), out
+    # The accepted lint is reported once for each {EGOBENCH} call in a rule's shell command, and
+    # for no other rule; Snakemake exits 1 when it reports lints, 0 when there are none.
+    calls: dict[str, int] = {}
+    for smk in [REPO / "Snakefile", *sorted((REPO / "workflows").glob("*.smk"))]:
+        rule = None
+        for line in smk.read_text().splitlines():
+            rule = m.group(1) if (m := re.match(r"rule (\w+):", line)) else rule
+            if "{EGOBENCH}" in line:
+                calls[rule] = calls.get(rule, 0) + line.count("{EGOBENCH}")
+    linted = re.findall(r"Lints for rule (\w+) ", out)
+    assert sorted(linted) == sorted(calls) and len(lints) == sum(calls.values()), out
+    assert res.returncode == (1 if lints else 0), out
 
 
 @pytest.mark.parametrize("name, min_jobs", [("config.yaml", 53), ("paper.yaml", 214), ("paper_smoke.yaml", 6)])
@@ -221,14 +234,9 @@ def test_bad_config_fails_before_any_job(tmp_path, edit, key):
 # ------------------------------------------------------------------------------------------------
 # A real run of the smoke suite (needs every verb the rules call).
 
-VERB_MODULES = ("egobench.sim.cli", "egobench.train", "egobench.evaluate")
-
 
 @pytest.mark.slow
 def test_ci_suite_runs_end_to_end(tmp_path):
-    missing = [m for m in VERB_MODULES if importlib.util.find_spec(m) is None]
-    if missing:
-        pytest.skip(f"verbs not implemented yet: {', '.join(missing)}")
     res = snakemake(["--cores", "2", "--configfile", str(REPO / "config" / "ci.yaml")], tmp_path, timeout=900)
     logs = "\n".join(p.read_text()[-2000:] for p in (tmp_path / "results").rglob("*.log")) if res.returncode else ""
     assert res.returncode == 0, res.stderr[-4000:] + logs
@@ -237,7 +245,26 @@ def test_ci_suite_runs_end_to_end(tmp_path):
     # Every run record exists; the tables parse and hold numbers.
     results = pd.read_csv(root / "tables" / "results.csv")
     assert len(results) == len(suite.runs())
-    assert np.isfinite(results["psnr"]).all() and (results["psnr"] > 5).all()
+    assert np.isfinite(results["psnr"]).all()
+    # Each table row is the mean PSNR of the run's saved held-out renders against the recording's
+    # frames (recomputed here), and beats rendering nothing (the black background) by 3 dB.
+    import cv2
+    import torch
+
+    from egobench.data import load_recording
+    from egobench.metrics import psnr
+
+    for _, row in results.iterrows():
+        rec = load_recording(root / "recordings" / row["scene"], row["calibration"])
+        renders = root / "runs" / row["scene"] / row["method"] / f"seed{row['seed']}" / "renders"
+        scores, black = [], []
+        for f in (f for f in rec.frames if f.index % 8 == 0):
+            gt = rec.load_image(f)
+            img = cv2.cvtColor(cv2.imread(str(renders / f"{f.index:05d}.png")), cv2.COLOR_BGR2RGB)
+            scores.append(psnr(torch.from_numpy(img).float() / 255.0, gt, rec.mask))
+            black.append(psnr(torch.zeros_like(gt), gt, rec.mask))
+        assert row["psnr"] == pytest.approx(np.mean(scores), abs=1e-9), row["method"]
+        assert row["psnr"] > np.mean(black) + 3.0, (row["method"], row["psnr"], np.mean(black))
     t1 = pd.read_csv(root / "tables" / "table1_outdoor.csv")
     ours = t1[t1["block"] == "egobench"]
     psnr_cols = [c for c in t1.columns if c.endswith(" PSNR")]

@@ -177,6 +177,71 @@ def _noise_nll_gain(noise_cause: Noise, noise: CauseResult, measured: np.ndarray
     return nll0 - nll1
 
 
+@dataclass
+class _Split:
+    """Which frames and pixels fit the causes and which score them."""
+
+    fit_idx: np.ndarray  # [f_fit] fitting frames (not held out)
+    eval_idx: np.ndarray  # [f_eval] scored frames (held out; every frame when none is)
+    fit_pixels: np.ndarray | None  # [H, W] bool pixels fitted on (None: all; even checkerboard when nothing is held out)
+    eval_mask: np.ndarray  # [H, W] bool scored pixels: odd checkerboard inside the eroded valid region
+    fit_mask: np.ndarray  # [H, W] bool even checkerboard: per-frame parameters of held-out frames come from here
+
+
+def _split_frames(ctx: DiagnosisContext, cfg: DiagnosisConfig, F: int, H: int, W: int) -> _Split:
+    """Fitting and scoring frames/pixels of F frames of H x W (see the module docstring, step 1)."""
+    held = ctx.held_out
+    fit_idx = np.flatnonzero(~held)
+    eval_idx = np.flatnonzero(held)
+    if fit_idx.size < 3:
+        raise ValueError(f"measured: need at least 3 fitting (not held-out) frames, got {fit_idx.size} of {F}")
+    fit_pixels = None
+    if eval_idx.size == 0:  # nothing held out: fit on even, score on odd checkerboard pixels of every frame
+        eval_idx = np.arange(F)
+        fit_pixels = checkerboard(H, W, 0)
+    valid_eval = erode(ctx.valid, cfg.border_px)
+    return _Split(fit_idx, eval_idx, fit_pixels, valid_eval & checkerboard(H, W, 1), checkerboard(H, W, 0))
+
+
+def _adjust_and_rank(testable: list[CauseResult], cfg: DiagnosisConfig) -> None:
+    """Holm-adjust the testable causes' p-values, mark the significant ones and score them (in place)."""
+    for r, p_adj in zip(testable, holm([r.p_value for r in testable]) if testable else []):
+        r.p_adjusted = p_adj
+        r.effect_floor = cfg.effect_floor
+        r.significant = p_adj < cfg.alpha and r.effect_rms >= cfg.effect_floor
+        if r.name == "noise" and "noise_std_factor" in r.params:
+            r.significant &= _noise_factor_beyond_floor(r, cfg.noise_factor_floor)
+        r.score = r.effect_rms * min(1.0, -math.log10(max(p_adj, 1e-300)) / 10.0) if r.significant else 0.0
+    # Nested causes: when a cause's own extra term is significant GIVEN the cause it contains
+    # (readout's row slope b given the shift a of a time offset) and both are significant, the
+    # contained cause cannot explain the residual, so the general one outranks it.
+    by_name = {r.name: r for r in testable}
+    for r in testable:
+        for inner in CAUSES[r.name].nests:
+            o = by_name.get(inner)
+            if r.significant and o is not None and o.significant and o.score >= r.score:
+                r.score = o.score * (1.0 + 1e-9) + 1e-12
+
+
+def _name_noise(testable: list[CauseResult], rnd: int, measured: np.ndarray, current: np.ndarray,
+                ctx: DiagnosisContext, split: _Split, cfg: DiagnosisConfig) -> NamedCause | None:
+    """The noise cause when it is significant AND predicts held-out residuals better (NLL gain
+    above the floor); otherwise None (a significant noise that does not is marked not significant)."""
+    noise = next((r for r in testable if r.name == "noise" and r.significant), None)
+    if noise is None:
+        return None
+    noise_cause: Noise = CAUSES["noise"]  # type: ignore[assignment]
+    gain_nll = _noise_nll_gain(noise_cause, noise, measured, current, ctx, split.eval_idx, split.eval_mask)
+    noise.params["held_out_nll_gain_nats_per_px"] = gain_nll
+    if gain_nll > cfg.noise_nll_gain_floor:
+        return NamedCause("noise", rnd, noise.p_adjusted, noise.effect_rms, noise.params, 0.0, gain_nll)
+    # the fitted noise does not predict held-out residuals better: not worth modelling
+    noise.significant, noise.score = False, 0.0
+    noise.reason = (f"held-out NLL gain {gain_nll:.4f} nats/px <= {cfg.noise_nll_gain_floor} "
+                    "(DiagnosisConfig.noise_nll_gain_floor)")
+    return None
+
+
 def diagnose_residuals(
     measured: np.ndarray,  # [F, H, W, 3] display values in [0, 1] (the captured frames)
     predicted: np.ndarray,  # [F, H, W, 3] the model's prediction of the same frames
@@ -192,80 +257,46 @@ def diagnose_residuals(
         raise ValueError(f"predicted: shape {list(predicted.shape)} differs from measured {list(measured.shape)}")
     F, H, W, _ = measured.shape
     ctx = context.validate(F, H, W)
-    held = ctx.held_out
-    fit_idx = np.flatnonzero(~held)
-    eval_idx = np.flatnonzero(held)
-    if fit_idx.size < 3:
-        raise ValueError(f"measured: need at least 3 fitting (not held-out) frames, got {fit_idx.size} of {F}")
-    fit_pixels = None
-    if eval_idx.size == 0:  # nothing held out: fit on even, score on odd checkerboard pixels of every frame
-        eval_idx = np.arange(F)
-        fit_pixels = checkerboard(H, W, 0)
-    valid_eval = erode(ctx.valid, cfg.border_px)
-    eval_mask = valid_eval & checkerboard(H, W, 1)
-    fit_mask = checkerboard(H, W, 0)
+    split = _split_frames(ctx, cfg, F, H, W)
 
     def score(pred: np.ndarray) -> float:
-        return psnr(pred[eval_idx], measured[eval_idx], eval_mask)
+        return psnr(pred[split.eval_idx], measured[split.eval_idx], split.eval_mask)
 
     current = predicted.copy()
     baseline = score(current)
     named: list[NamedCause] = []
     rounds: list[list[CauseResult]] = []
     unmodelled_fraction, unmodelled_map = 0.0, None
-    noise_cause: Noise = CAUSES["noise"]  # type: ignore[assignment]
     for rnd in range(1, int(cfg.max_causes) + 1):
-        data = ResidualData(measured[fit_idx], current[fit_idx], ctx, fit_idx, border_px=cfg.border_px,
-                            pixel_mask=fit_pixels)
+        data = ResidualData(measured[split.fit_idx], current[split.fit_idx], ctx, split.fit_idx,
+                            border_px=cfg.border_px, pixel_mask=split.fit_pixels)
         results = [CAUSES[name].fit(data) for name in cfg.causes if name not in {n.name for n in named}]
         if rnd == 1 and data._photometric is not None and data._photometric.testable:
             pf = data._photometric
             unmodelled_fraction = float(pf.trimmed.mean()) if pf.n_cells else 0.0
             unmodelled_map = getattr(pf, "trimmed_map", None)
         testable = [r for r in results if r.testable]
-        for r, p_adj in zip(testable, holm([r.p_value for r in testable]) if testable else []):
-            r.p_adjusted = p_adj
-            r.effect_floor = cfg.effect_floor
-            r.significant = p_adj < cfg.alpha and r.effect_rms >= cfg.effect_floor
-            if r.name == "noise" and "noise_std_factor" in r.params:
-                r.significant &= _noise_factor_beyond_floor(r, cfg.noise_factor_floor)
-            r.score = r.effect_rms * min(1.0, -math.log10(max(p_adj, 1e-300)) / 10.0) if r.significant else 0.0
-        # Nested causes: when a cause's own extra term is significant GIVEN the cause it contains
-        # (readout's row slope b given the shift a of a time offset) and both are significant, the
-        # contained cause cannot explain the residual, so the general one outranks it.
-        by_name = {r.name: r for r in testable}
-        for r in testable:
-            for inner in CAUSES[r.name].nests:
-                o = by_name.get(inner)
-                if r.significant and o is not None and o.significant and o.score >= r.score:
-                    r.score = o.score * (1.0 + 1e-9) + 1e-12
+        _adjust_and_rank(testable, cfg)
         rounds.append(results)
         mean_sig = [r for r in testable if r.significant and CAUSES[r.name].mean_affecting]
         if mean_sig:
             top = max(mean_sig, key=lambda r: r.score)
-            new = CAUSES[top.name].apply(current, top, ctx, np.arange(F), measured=measured, fit_mask=fit_mask)
+            new = CAUSES[top.name].apply(current, top, ctx, np.arange(F), measured=measured, fit_mask=split.fit_mask)
             gain = score(new) - score(current)
             named.append(NamedCause(top.name, rnd, top.p_adjusted, top.effect_rms, top.params, gain))
             current = new
             continue
-        noise = next((r for r in testable if r.name == "noise" and r.significant), None)
+        noise = _name_noise(testable, rnd, measured, current, ctx, split, cfg)
         if noise is not None:
-            gain_nll = _noise_nll_gain(noise_cause, noise, measured, current, ctx, eval_idx, eval_mask)
-            noise.params["held_out_nll_gain_nats_per_px"] = gain_nll
-            if gain_nll > cfg.noise_nll_gain_floor:
-                named.append(NamedCause("noise", rnd, noise.p_adjusted, noise.effect_rms, noise.params, 0.0, gain_nll))
-            else:  # the fitted noise does not predict held-out residuals better: not worth modelling
-                noise.significant, noise.score = False, 0.0
-                noise.reason = (f"held-out NLL gain {gain_nll:.4f} nats/px <= {cfg.noise_nll_gain_floor} "
-                                "(DiagnosisConfig.noise_nll_gain_floor)")
+            named.append(noise)
         break
     return Diagnosis(
         verdict=named[0].name if named else NO_DISCREPANCY,
         named=named, rounds=rounds, baseline_psnr_db=baseline, extended_psnr_db=score(current),
-        held_out_frames=[int(ctx.frame_index[i]) for i in eval_idx], runtime_s=time.perf_counter() - t0,
+        held_out_frames=[int(ctx.frame_index[i]) for i in split.eval_idx], runtime_s=time.perf_counter() - t0,
         config=cfg, extended_prediction=current, unmodelled_fraction=unmodelled_fraction,
         unmodelled_map=unmodelled_map,
-        meta={"held_out_scored_on": "odd-checkerboard pixels of held-out frames" if held.any() else
+        meta={"held_out_scored_on": "odd-checkerboard pixels of held-out frames" if ctx.held_out.any() else
               "odd-checkerboard pixels of all frames (no held-out frame)",
               "frame_index": [int(i) for i in ctx.frame_index], **ctx.meta},
     )

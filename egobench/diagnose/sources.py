@@ -200,6 +200,86 @@ def run_context(recording_dir: str | Path, rec, frames, predicted: np.ndarray, v
     return ctx
 
 
+@dataclass
+class _Recast:
+    """What re-casting a simulated recording under the model's assumptions needs (one per recording)."""
+
+    scene: object  # egobench.sim.world.Scene of the recording
+    trajectory: object  # the recording's Trajectory (T_world_device)
+    raw: object  # egobench.sim.capture.RawCamera of the model's camera (hidden effects removed)
+    rect: object  # Rectification raw -> rectified of the measured images
+    formation: object  # FormationModel of the prediction (paper trainer, gamma)
+    simulator: object  # FormationModel drawing the assumed noise (ground truth, gamma)
+    raw_vignette: torch.Tensor  # [H_raw, W_raw] calibrated lens shading in the raw image
+    noise: object | None  # assumed PoissonGaussianNoise (None: the recording is noiseless)
+    generator: torch.Generator  # draws of the assumed noise, seeded from the recording's seed
+    sensitivity: float  # the device's sensitivity (formation units per lux s)
+    readout_stated_s: float  # readout the recording states, s
+    hidden_offset_ns: int  # hidden time offset the model does not know, ns
+
+
+def _recast_setup(root: Path, info: dict, config, rec, gamma: float) -> tuple[_Recast, object]:
+    """The model's re-cast of the recording at ``root`` -> (_Recast, the online CameraCalibration).
+
+    The model's camera is the true one minus the hidden effects (VIBA-size calibration noise is
+    left out: with point-sampled, aliased textures even 0.01 deg moves edge pixels by many levels).
+    ValueError when the online calibration on disk is not the simulator's."""
+    from egobench.data.layout import MPS_SLAM, ONLINE_CALIBRATION_FILE
+    from egobench.data.mps import read_online_calibration
+    from egobench.formation import FormationConfig, FormationModel, PoissonGaussianNoise, radial_vignette
+    from egobench.sim.calibration import make_calibrations
+    from egobench.sim.capture import RawCamera, _rig
+    from egobench.sim.devices import get_device
+    from egobench.sim.world import make_scene
+
+    dev = get_device(config.device_name)
+    cals = make_calibrations(config)
+    cal_online = cals.online
+    stated = read_online_calibration(root / MPS_SLAM / ONLINE_CALIBRATION_FILE)[0].camera(dev.label)
+    if not np.allclose(stated.params, cal_online.params):
+        raise ValueError(f"{root}: the online calibration on disk differs from the simulator's (was the recording edited?)")
+    params = np.asarray(cals.true.params, dtype=np.float64).copy()
+    params[3] -= config.distortion_k0_delta
+    cal_model = replace(cals.true, params=params)
+    # the measured frames' pixel-area integration (recordings from before `pixel_samples` existed: 1)
+    raw = RawCamera.build(cal_model, int(info["sim_config"].get("pixel_samples", 1)))
+    rect, _pin = _rig(cal_online, config.rectified_size, dev)  # the measured images' rectification
+    # the calibrated lens shading in the raw image (what vignette.png is rectified from)
+    raw_vignette = radial_vignette((cal_model.height, cal_model.width), 1.0 - dev.vignette_corner,
+                                   dev.vignette_power, centre=(float(cal_model.params[1]), float(cal_model.params[2])))
+    return _Recast(
+        scene=make_scene(config.kind, config.seed), trajectory=rec.trajectory, raw=raw, rect=rect,
+        formation=FormationModel(FormationConfig.paper_trainer(gamma=gamma)),
+        simulator=FormationModel(FormationConfig.ground_truth(gamma=gamma)), raw_vignette=raw_vignette,
+        noise=PoissonGaussianNoise(dev.noise.full_well_e, dev.noise.read_noise_e) if config.noise else None,
+        generator=torch.Generator().manual_seed(int(config.seed) * 7 + 3), sensitivity=dev.sensitivity,
+        readout_stated_s=config.stated_readout_s(), hidden_offset_ns=int(round(config.time_offset_s * 1e9)),
+    ), cal_online
+
+
+def _recast_frame(rc: _Recast, frame, read_start_true_ns: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """One frame re-cast with what the model assumes -> (predicted display [H, W, 3] float32,
+    rectified like the captured image; one draw of the assumed noise through the same pipeline
+    (8-bit raw, rectify, 8-bit) minus the prediction [H, W, 3], or None without noise)."""
+    from egobench.sim.capture import capture_irradiance
+
+    read_start_model = read_start_true_ns - rc.hidden_offset_ns
+    irr = capture_irradiance(rc.scene, rc.trajectory, rc.raw, read_start_model, frame.exposure_s,
+                             rc.readout_stated_s, 1)
+    lin = irr * float(frame.exposure_s * frame.gain * rc.sensitivity)
+    display_raw = rc.formation.predict(lin, scale_k=1.0, vignette=rc.raw_vignette, scene_gamma=False)
+    display_raw = display_raw * rc.raw.valid[..., None].to(display_raw.dtype)
+    pred_rect = rc.rect.warp(display_raw).to(torch.float32)
+    if rc.noise is None:
+        return pred_rect.numpy(), None
+    noisy = rc.simulator.simulate(irr, exposure_s=frame.exposure_s, gain=frame.gain, sensitivity=rc.sensitivity,
+                                  vignette=rc.raw_vignette, white_balance=(1.0, 1.0, 1.0), noise=rc.noise,
+                                  generator=rc.generator)
+    noisy = noisy * rc.raw.valid[..., None].to(noisy.dtype)
+    noisy_rect = torch.round(rc.rect.warp(noisy).clamp(0, 1) * 255.0) / 255.0
+    return pred_rect.numpy(), (noisy_rect - pred_rect).numpy()
+
+
 def ground_truth_source(recording_dir: str | Path, max_frames: int | None = None, gamma: float = 2.2,
                         progress: bool = True) -> Sources:
     """Prediction = the simulator's world re-cast with the recording's own metadata and calibration.
@@ -216,15 +296,8 @@ def ground_truth_source(recording_dir: str | Path, max_frames: int | None = None
     from tqdm import tqdm
 
     from egobench.data import load_recording
-    from egobench.data.mps import read_online_calibration
-    from egobench.formation import FormationConfig, FormationModel
-    from egobench.sim.capture import RawCamera, _rig, capture_irradiance, device_trajectory  # noqa: F401
-    from egobench.sim.calibration import make_calibrations
+    from egobench.data.layout import recording_root
     from egobench.sim.config import SimConfig
-    from egobench.sim.devices import get_device
-    from egobench.sim.world import make_scene
-
-    from egobench.data.layout import MPS_SLAM, ONLINE_CALIBRATION_FILE, recording_root
 
     root = recording_root(recording_dir)
     info = read_json(root / "recording.json")
@@ -232,65 +305,25 @@ def ground_truth_source(recording_dir: str | Path, max_frames: int | None = None
     if "sim_config" not in info:
         raise ValueError(f"{root / 'recording.json'}: field 'sim_config' missing (not a simulated recording?)")
     config = SimConfig.from_dict(info["sim_config"])
-    dev = get_device(config.device_name)
     rec = load_recording(root, calibration="online")
     frames = _select(rec.frames, max_frames)
-    cals = make_calibrations(config)
-    cal_online = cals.online
-    calib_lines = read_online_calibration(root / MPS_SLAM / ONLINE_CALIBRATION_FILE)
-    stated = calib_lines[0].camera(dev.label)
-    if not np.allclose(stated.params, cal_online.params):
-        raise ValueError(f"{root}: the online calibration on disk differs from the simulator's (was the recording edited?)")
-    # The model's camera: the true one minus the hidden effects (VIBA-size calibration noise is left
-    # out: with point-sampled, aliased textures even 0.01 deg moves edge pixels by many levels).
-    params = np.asarray(cals.true.params, dtype=np.float64).copy()
-    params[3] -= config.distortion_k0_delta
-    cal_model = replace(cals.true, params=params)
-    hidden_offset_ns = int(round(config.time_offset_s * 1e9))
-    readout_stated_s = config.stated_readout_s()
+    rc, cal_online = _recast_setup(root, info, config, rec, gamma)
     truth_frames = {int(t["index"]): t for t in truth.get("frames", [])}
-    # the measured frames' pixel-area integration (recordings from before `pixel_samples` existed: 1)
-    raw = RawCamera.build(cal_model, int(info["sim_config"].get("pixel_samples", 1)))
-    rect, _pin = _rig(cal_online, config.rectified_size, dev)  # the measured images' rectification
-    scene = make_scene(config.kind, config.seed)
-    traj = rec.trajectory
-    formation = FormationModel(FormationConfig.paper_trainer(gamma=gamma))
-    vignette = rec.vignette.to(torch.float32)
-    from egobench.formation import radial_vignette
-
-    # the calibrated lens shading in the raw image (what vignette.png is rectified from)
-    raw_vignette = radial_vignette((cal_model.height, cal_model.width), 1.0 - dev.vignette_corner,
-                                   dev.vignette_power, centre=(float(cal_model.params[1]), float(cal_model.params[2])))
-    from egobench.formation import PoissonGaussianNoise
-
-    noise = PoissonGaussianNoise(dev.noise.full_well_e, dev.noise.read_noise_e) if config.noise else None
-    simulator = FormationModel(FormationConfig.ground_truth(gamma=gamma))
-    generator = torch.Generator().manual_seed(int(config.seed) * 7 + 3)
     measured, predicted, velocity, noise_ref = [], [], [], []
     iterator = tqdm(frames, desc="re-cast prediction", unit="frame") if progress else frames
     for f in iterator:
-        read_start_model = int(truth_frames[f.index]["read_start_true_ns"]) - hidden_offset_ns
-        irr = capture_irradiance(scene, traj, raw, read_start_model, f.exposure_s, readout_stated_s, 1)
-        lin = irr * float(f.exposure_s * f.gain * dev.sensitivity)
-        display_raw = formation.predict(lin, scale_k=1.0, vignette=raw_vignette, scene_gamma=False)
-        display_raw = display_raw * raw.valid[..., None].to(display_raw.dtype)
-        pred_rect = rect.warp(display_raw).to(torch.float32)
-        predicted.append(pred_rect.numpy())  # rectified like the captured image
-        if noise is not None:  # the assumed noise through the same pipeline (8-bit raw, rectify, 8-bit)
-            noisy = simulator.simulate(irr, exposure_s=f.exposure_s, gain=f.gain, sensitivity=dev.sensitivity,
-                                       vignette=raw_vignette, white_balance=(1.0, 1.0, 1.0), noise=noise,
-                                       generator=generator)
-            noisy = noisy * raw.valid[..., None].to(noisy.dtype)
-            noisy_rect = torch.round(rect.warp(noisy).clamp(0, 1) * 255.0) / 255.0
-            noise_ref.append((noisy_rect - pred_rect).numpy())
+        pred, ref = _recast_frame(rc, f, int(truth_frames[f.index]["read_start_true_ns"]))
+        predicted.append(pred)
+        if ref is not None:
+            noise_ref.append(ref)
         measured.append(rec.load_image(f).numpy())
         depth_file = root / "ground_truth" / "depth" / f"{f.index:05d}.npy"
-        depth = np.load(depth_file).astype(np.float64) if depth_file.is_file() else np.zeros(vignette.shape)
+        depth = np.load(depth_file).astype(np.float64) if depth_file.is_file() else np.zeros(rec.vignette.shape)
         velocity.append(pixel_velocity(rec, f, depth))
     lens_k = tuple(float(x) for x in cal_online.params[3:9])
     meta = {"recording": str(root), "source": "ground_truth re-cast (simulator world, model's assumptions)",
             "hidden_effects": truth.get("hidden_effects", {})}
-    ctx = _context(rec, frames, np.stack(velocity), gamma, noise, lens_k, meta)
+    ctx = _context(rec, frames, np.stack(velocity), gamma, rc.noise, lens_k, meta)
     ctx.noise_reference = np.stack(noise_ref) if noise_ref else None
     return Sources(np.stack(measured), np.stack(predicted), ctx, meta["source"])
 

@@ -59,6 +59,63 @@ def _texture(rng: np.random.Generator, n_components: int = 14):
     return evaluate
 
 
+def _image_motion(rng: np.random.Generator, rel: np.ndarray, F: int,
+                  speed_px_s: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frame affine image velocity [F, H, W, 2] px/s (translation + rotation + zoom about the
+    centre; rel [H, W, 2] pixel offsets from it) and texture offsets [F, 2] px."""
+    speed = rng.uniform(*speed_px_s, F)
+    heading = rng.uniform(0, 2 * math.pi, F)
+    trans = np.stack([np.cos(heading), np.sin(heading)], 1) * speed[:, None]
+    omega = rng.uniform(-1.5, 1.5, F)
+    zoom = rng.uniform(-0.5, 0.5, F)
+    rot = np.stack([-rel[..., 1], rel[..., 0]], -1)
+    vel = trans[:, None, None, :] + omega[:, None, None, None] * rot[None] + zoom[:, None, None, None] * rel[None]
+    return vel, rng.uniform(-500, 500, (F, 2))
+
+
+def _exposure_scales(rng: np.random.Generator, F: int, effect: str | None, value,
+                     metadata_fraction: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int]]:
+    """(true exposure x gain scale [F], analog gain [F], recorded scale [F], frames whose metadata is
+    wrong): with the exposure_metadata effect the recorded scale of those frames is x (1 + value)."""
+    k_true = rng.uniform(0.7, 1.4, F)
+    gain = rng.uniform(1.0, 4.0, F)
+    k_recorded = k_true.copy()
+    affected: list[int] = []
+    if effect == "exposure_metadata":
+        n_aff = max(2, int(round(metadata_fraction * F)))
+        pool = [f for f in range(F) if f != 8]
+        affected = sorted([8] + rng.choice(pool, n_aff - 1, replace=False).tolist()) if F > 8 else sorted(
+            rng.choice(F, n_aff, replace=False).tolist())
+        k_recorded[affected] *= 1.0 + float(value)
+    return k_true, gain, k_recorded, affected
+
+
+def _row_times(R: np.ndarray, effect: str | None, value) -> tuple[np.ndarray, np.ndarray]:
+    """Row times (model [H, W], true [H, W]) in s from the frame's pose time, R [H, W] the row time ratio."""
+    t_model = (R - 0.5) * READOUT_S  # centre row at the frame's pose time
+    t_true = t_model.copy()
+    if effect == "readout":  # read start is right, the readout is (1 + e) times longer
+        t_true = -0.5 * READOUT_S + R * READOUT_S * (1.0 + float(value))
+    if effect == "time_offset":
+        t_true = t_model + float(value)
+    return t_model, t_true
+
+
+def _photometric_truth(effect: str | None, value, H: int, W: int, gamma_assumed: float):
+    """(modelled vignette [H, W], true vignette [H, W], true white balance [3], true noise, true gamma)."""
+    vig_model = radial_vignette((H, W), MODELLED_VIGNETTE).numpy().astype(np.float64)
+    vig_true = vig_model.copy()
+    if effect == "vignette":
+        vig_true = vig_true * radial_vignette((H, W), float(value), power=4.0).numpy()
+    wb = np.ones(3)
+    if effect == "white_balance":
+        wb = np.asarray(value, dtype=np.float64)
+    noise = PoissonGaussianNoise(FULL_WELL_E, READ_NOISE_E)
+    noise_true = noise.scaled(float(value)) if effect == "noise" else noise
+    gamma_true = float(value) if effect == "response" else gamma_assumed
+    return vig_model, vig_true, wb, noise_true, gamma_true
+
+
 def make_case(
     effect: str | None,
     value=None,
@@ -85,33 +142,10 @@ def make_case(
     v_img, u_img = np.meshgrid(np.arange(H, dtype=np.float64), np.arange(W, dtype=np.float64), indexing="ij")
     rel = np.stack([u_img - cx, v_img - cy], -1)  # [H, W, 2]
     R = v_img / (H - 1)  # row time ratio (identity rectification)
-    # per-frame affine image velocity: translation + rotation + zoom (px/s)
-    speed = rng.uniform(*speed_px_s, F)
-    heading = rng.uniform(0, 2 * math.pi, F)
-    trans = np.stack([np.cos(heading), np.sin(heading)], 1) * speed[:, None]
-    omega = rng.uniform(-1.5, 1.5, F)
-    zoom = rng.uniform(-0.5, 0.5, F)
-    rot = np.stack([-rel[..., 1], rel[..., 0]], -1)
-    vel = trans[:, None, None, :] + omega[:, None, None, None] * rot[None] + zoom[:, None, None, None] * rel[None]
-    offsets = rng.uniform(-500, 500, (F, 2))
+    vel, offsets = _image_motion(rng, rel, F, speed_px_s)
     # exposure * gain normaliser the model uses (recorded), true scale, gains for noise
-    k_true = rng.uniform(0.7, 1.4, F)
-    gain = rng.uniform(1.0, 4.0, F)
-    k_recorded = k_true.copy()
-    affected: list[int] = []
-    if effect == "exposure_metadata":
-        n_aff = max(2, int(round(metadata_fraction * F)))
-        pool = [f for f in range(F) if f != 8]
-        affected = sorted([8] + rng.choice(pool, n_aff - 1, replace=False).tolist()) if F > 8 else sorted(
-            rng.choice(F, n_aff, replace=False).tolist())
-        k_recorded[affected] *= 1.0 + float(value)
-
-    t_model = (R - 0.5) * READOUT_S  # centre row at the frame's pose time
-    t_true = t_model.copy()
-    if effect == "readout":  # read start is right, the readout is (1 + e) times longer
-        t_true = -0.5 * READOUT_S + R * READOUT_S * (1.0 + float(value))
-    if effect == "time_offset":
-        t_true = t_model + float(value)
+    k_true, gain, k_recorded, affected = _exposure_scales(rng, F, effect, value, metadata_fraction)
+    t_model, t_true = _row_times(R, effect, value)
     disp_true = np.zeros((H, W, 2))
     if effect == "distortion":
         radius, direction, _ = radial_coordinates(H, W, (cx, cy))
@@ -128,17 +162,7 @@ def make_case(
     else:
         irr_true = image(t_true, disp_true)
     irr_model = image(t_model, np.zeros((H, W, 2)))
-
-    vig_model = radial_vignette((H, W), MODELLED_VIGNETTE).numpy().astype(np.float64)
-    vig_true = vig_model.copy()
-    if effect == "vignette":
-        vig_true = vig_true * radial_vignette((H, W), float(value), power=4.0).numpy()
-    wb = np.ones(3)
-    if effect == "white_balance":
-        wb = np.asarray(value, dtype=np.float64)
-    noise = PoissonGaussianNoise(FULL_WELL_E, READ_NOISE_E)
-    noise_true = noise.scaled(float(value)) if effect == "noise" else noise
-    gamma_true = float(value) if effect == "response" else gamma_assumed
+    vig_model, vig_true, wb, noise_true, gamma_true = _photometric_truth(effect, value, H, W, gamma_assumed)
 
     lin_true = np.clip(irr_true * k_true[:, None, None, None] * vig_true[None, :, :, None] * wb, 0.0, 1.0)
     gen = torch.Generator().manual_seed(int(seed) * 1000 + 17)

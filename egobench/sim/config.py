@@ -129,92 +129,14 @@ class SimConfig:
 
     def validate(self) -> "SimConfig":
         """Raise ValueError naming the first bad field and the expected form; return self."""
-
-        def bad(name: str, expected: str) -> None:
-            raise ValueError(f"SimConfig.{name}: expected {expected}, got {getattr(self, name)!r}")
-
-        def finite(name: str, lo: float | None = None, hi: float | None = None, strict_lo: bool = False,
-                   allow_none: bool = False) -> None:
-            v = getattr(self, name)
-            if v is None and allow_none:
-                return
-            rng = f"in [{lo}, {hi}]" if hi is not None else (f"> {lo}" if strict_lo else f">= {lo}")
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-                bad(name, f"a finite number {rng if lo is not None else ''}".strip())
-            if lo is not None and (v < lo or (strict_lo and v <= lo)):
-                bad(name, f"a number {rng}")
-            if hi is not None and v > hi:
-                bad(name, f"a number {rng}")
-
-        if self.kind not in SCENE_KINDS:
-            bad("kind", f"one of {list(SCENE_KINDS)}")
-        if self.device is not None and self.device not in DEVICES:
-            bad("device", f"one of {sorted(DEVICES)} or None")
-        if self.motion not in MOTION_SETTINGS:
-            bad("motion", f"one of {list(MOTION_SETTINGS)}")
-        if not isinstance(self.compute_device, str) or not re.fullmatch(r"cpu|auto|cuda(:\d+)?", self.compute_device):
-            bad("compute_device", "cpu, cuda, cuda:N or auto")
-        if self.exposure_protocol is not None and self.exposure_protocol not in EXPOSURE_PROTOCOLS:
-            bad("exposure_protocol", f"one of {list(EXPOSURE_PROTOCOLS)} or None")
-        for name, lo in (("seed", 0), ("n_frames", 1), ("rectified_size", 8), ("n_semidense_points", 0),
-                         ("max_temporal_samples", 1)):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < lo:
-                bad(name, f"an integer >= {lo}")
-        if self.raw_size is not None and (isinstance(self.raw_size, bool) or not isinstance(self.raw_size, int)
-                                          or self.raw_size < 8):
-            bad("raw_size", "an integer >= 8 or None")
-        if self.temporal_samples is not None and (not isinstance(self.temporal_samples, int)
-                                                  or isinstance(self.temporal_samples, bool)
-                                                  or self.temporal_samples < 1):
-            bad("temporal_samples", "an integer >= 1 or None (adaptive)")
-        finite("max_sample_step_px", 0, strict_lo=True)
-        ps = self.pixel_samples
-        if (isinstance(ps, bool) or not isinstance(ps, int) or ps < 1 or ps > 64
-                or int(round(math.sqrt(ps))) ** 2 != ps):
-            bad("pixel_samples", "a perfect square in [1, 64] (1 = point sampling, 4 = 2x2, 9 = 3x3, ...)")
-        if not isinstance(self.jpeg_quality, int) or not 1 <= self.jpeg_quality <= 100:
-            bad("jpeg_quality", "an integer in [1, 100]")
-        finite("readout_s", 0, allow_none=True)
-        finite("readout_scale", 0, strict_lo=True)
-        finite("time_offset_s", -0.05, 0.05)
-        finite("exposure_s", 0, strict_lo=True, allow_none=True)
-        finite("gain", 0, strict_lo=True, allow_none=True)
-        if self.gain is not None and self.exposure_s is None:
-            bad("gain", "None unless exposure_s is also set")
-        finite("vignette_strength", 0.0, 0.95)
-        finite("response_gamma", 0, strict_lo=True, allow_none=True)
-        wb = self.white_balance
-        if (not isinstance(wb, (tuple, list)) or len(wb) != 3
-                or not all(isinstance(x, (int, float)) and math.isfinite(x) and x > 0 for x in wb)):
-            bad("white_balance", "three positive finite channel gains (r, g, b)")
-        finite("exposure_metadata_error", -0.9, 0.9)
-        finite("noise_std_factor", 0, strict_lo=True)
-        finite("exposure_metadata_fraction", 0.0, 1.0)
-        finite("full_well_e", 0, strict_lo=True, allow_none=True)
-        finite("read_noise_e", 0, allow_none=True)
-        finite("distortion_k0_delta", -1.0, 1.0)
+        _check_choices(self)
+        _check_sampling(self)
+        _check_effects(self)
         for name in ("online_rotation_deg", "online_translation_mm", "online_focal_frac", "online_principal_px",
                      "online_time_offset_s", "factory_rotation_deg", "factory_translation_mm",
                      "factory_focal_frac", "factory_principal_px", "factory_time_offset_s"):
-            finite(name, 0)
-        # Physical consistency with the device.
-        dev = get_device(self.device_name)
-        try:
-            self.raw_shape()
-        except ValueError as exc:
-            raise ValueError(f"SimConfig.raw_size: {exc}") from exc
-        readout = self.true_readout_s()
-        if readout >= dev.frame_interval_s:
-            raise ValueError(
-                f"SimConfig.readout_s/readout_scale: the true readout {readout * 1e3:.3f} ms must be shorter "
-                f"than the frame interval {dev.frame_interval_s * 1e3:.3f} ms of {dev.name} ({dev.fps} fps)"
-            )
-        if self.exposure_s is not None and self.exposure_s + readout >= dev.frame_interval_s:
-            raise ValueError(
-                f"SimConfig.exposure_s: exposure {self.exposure_s * 1e3:.3f} ms + readout {readout * 1e3:.3f} ms "
-                f"must fit in the frame interval {dev.frame_interval_s * 1e3:.3f} ms"
-            )
+            _check_number(self, name, 0)
+        _check_device_timing(self)
         return self
 
     def to_dict(self) -> dict[str, Any]:
@@ -297,3 +219,104 @@ def hidden_effect_overrides(name: str, value: Any, affected_fraction: float = 0.
     if name not in table:
         raise ValueError(f"hidden effect: unknown name {name!r}; expected one of {sorted(table)}")
     return table[name](value)
+
+
+# ----------------------------------------------------------------------------- validation steps
+def _bad(cfg: SimConfig, name: str, expected: str) -> None:
+    """ValueError naming field ``name`` of cfg, what was expected and its value."""
+    raise ValueError(f"SimConfig.{name}: expected {expected}, got {getattr(cfg, name)!r}")
+
+
+def _check_number(cfg: SimConfig, name: str, lo: float | None = None, hi: float | None = None,
+                  strict_lo: bool = False, allow_none: bool = False) -> None:
+    """Field ``name`` is a finite number (not a bool) in [lo, hi] (> lo when strict_lo), or None when allowed."""
+    v = getattr(cfg, name)
+    if v is None and allow_none:
+        return
+    rng = f"in [{lo}, {hi}]" if hi is not None else (f"> {lo}" if strict_lo else f">= {lo}")
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        _bad(cfg, name, f"a finite number {rng if lo is not None else ''}".strip())
+    if lo is not None and (v < lo or (strict_lo and v <= lo)):
+        _bad(cfg, name, f"a number {rng}")
+    if hi is not None and v > hi:
+        _bad(cfg, name, f"a number {rng}")
+
+
+def _check_choices(cfg: SimConfig) -> None:
+    """kind, device, motion, compute_device and exposure_protocol name known choices."""
+    if cfg.kind not in SCENE_KINDS:
+        _bad(cfg, "kind", f"one of {list(SCENE_KINDS)}")
+    if cfg.device is not None and cfg.device not in DEVICES:
+        _bad(cfg, "device", f"one of {sorted(DEVICES)} or None")
+    if cfg.motion not in MOTION_SETTINGS:
+        _bad(cfg, "motion", f"one of {list(MOTION_SETTINGS)}")
+    if not isinstance(cfg.compute_device, str) or not re.fullmatch(r"cpu|auto|cuda(:\d+)?", cfg.compute_device):
+        _bad(cfg, "compute_device", "cpu, cuda, cuda:N or auto")
+    if cfg.exposure_protocol is not None and cfg.exposure_protocol not in EXPOSURE_PROTOCOLS:
+        _bad(cfg, "exposure_protocol", f"one of {list(EXPOSURE_PROTOCOLS)} or None")
+
+
+def _check_sampling(cfg: SimConfig) -> None:
+    """Counts and sizes (seed, frames, image sizes, temporal and pixel samples, JPEG quality)."""
+    for name, lo in (("seed", 0), ("n_frames", 1), ("rectified_size", 8), ("n_semidense_points", 0),
+                     ("max_temporal_samples", 1)):
+        v = getattr(cfg, name)
+        if isinstance(v, bool) or not isinstance(v, int) or v < lo:
+            _bad(cfg, name, f"an integer >= {lo}")
+    if cfg.raw_size is not None and (isinstance(cfg.raw_size, bool) or not isinstance(cfg.raw_size, int)
+                                     or cfg.raw_size < 8):
+        _bad(cfg, "raw_size", "an integer >= 8 or None")
+    if cfg.temporal_samples is not None and (not isinstance(cfg.temporal_samples, int)
+                                             or isinstance(cfg.temporal_samples, bool)
+                                             or cfg.temporal_samples < 1):
+        _bad(cfg, "temporal_samples", "an integer >= 1 or None (adaptive)")
+    _check_number(cfg, "max_sample_step_px", 0, strict_lo=True)
+    ps = cfg.pixel_samples
+    if (isinstance(ps, bool) or not isinstance(ps, int) or ps < 1 or ps > 64
+            or int(round(math.sqrt(ps))) ** 2 != ps):
+        _bad(cfg, "pixel_samples", "a perfect square in [1, 64] (1 = point sampling, 4 = 2x2, 9 = 3x3, ...)")
+    if not isinstance(cfg.jpeg_quality, int) or not 1 <= cfg.jpeg_quality <= 100:
+        _bad(cfg, "jpeg_quality", "an integer in [1, 100]")
+
+
+def _check_effects(cfg: SimConfig) -> None:
+    """Readout, exposure and the hidden effects' magnitudes are in their ranges."""
+    _check_number(cfg, "readout_s", 0, allow_none=True)
+    _check_number(cfg, "readout_scale", 0, strict_lo=True)
+    _check_number(cfg, "time_offset_s", -0.05, 0.05)
+    _check_number(cfg, "exposure_s", 0, strict_lo=True, allow_none=True)
+    _check_number(cfg, "gain", 0, strict_lo=True, allow_none=True)
+    if cfg.gain is not None and cfg.exposure_s is None:
+        _bad(cfg, "gain", "None unless exposure_s is also set")
+    _check_number(cfg, "vignette_strength", 0.0, 0.95)
+    _check_number(cfg, "response_gamma", 0, strict_lo=True, allow_none=True)
+    wb = cfg.white_balance
+    if (not isinstance(wb, (tuple, list)) or len(wb) != 3
+            or not all(isinstance(x, (int, float)) and math.isfinite(x) and x > 0 for x in wb)):
+        _bad(cfg, "white_balance", "three positive finite channel gains (r, g, b)")
+    _check_number(cfg, "exposure_metadata_error", -0.9, 0.9)
+    _check_number(cfg, "noise_std_factor", 0, strict_lo=True)
+    _check_number(cfg, "exposure_metadata_fraction", 0.0, 1.0)
+    _check_number(cfg, "full_well_e", 0, strict_lo=True, allow_none=True)
+    _check_number(cfg, "read_noise_e", 0, allow_none=True)
+    _check_number(cfg, "distortion_k0_delta", -1.0, 1.0)
+
+
+def _check_device_timing(cfg: SimConfig) -> None:
+    """Physical consistency with the device: the raw size, and readout (+ exposure) within a frame interval."""
+    dev = get_device(cfg.device_name)
+    try:
+        cfg.raw_shape()
+    except ValueError as exc:
+        raise ValueError(f"SimConfig.raw_size: {exc}") from exc
+    readout = cfg.true_readout_s()
+    if readout >= dev.frame_interval_s:
+        raise ValueError(
+            f"SimConfig.readout_s/readout_scale: the true readout {readout * 1e3:.3f} ms must be shorter "
+            f"than the frame interval {dev.frame_interval_s * 1e3:.3f} ms of {dev.name} ({dev.fps} fps)"
+        )
+    if cfg.exposure_s is not None and cfg.exposure_s + readout >= dev.frame_interval_s:
+        raise ValueError(
+            f"SimConfig.exposure_s: exposure {cfg.exposure_s * 1e3:.3f} ms + readout {readout * 1e3:.3f} ms "
+            f"must fit in the frame interval {dev.frame_interval_s * 1e3:.3f} ms"
+        )

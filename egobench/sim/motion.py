@@ -222,6 +222,182 @@ def _wrap(a: np.ndarray) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- simulation
+_DEG = np.pi / 180.0  # radians per degree
+
+
+def _gaussian_smooth(x: np.ndarray, window_s: float, rate: float) -> np.ndarray:
+    """x [M] convolved with a Gaussian kernel spanning +-2 sigma over window_s seconds (edges padded)."""
+    k = int(window_s * rate) | 1
+    kern = np.exp(-0.5 * (np.linspace(-2, 2, k)) ** 2)
+    kern /= kern.sum()
+    return np.convolve(np.pad(x, k // 2, mode="edge"), kern, mode="valid")
+
+
+def _standing_path(config: HeadMotionConfig, region: "WalkRegion", targets: np.ndarray, rng: np.random.Generator,
+                   t: np.ndarray, rate: float) -> tuple[np.ndarray, np.ndarray]:
+    """static: eye position [M, 3] (m) at one point with a few mm of postural sway, and the body
+    heading [M] (rad, about world z) towards the first look target (random without targets)."""
+    M = len(t)
+    base = region.sample_xy(rng, 1)[0] if region.kind == "box" else region.center_point[:2]
+    xy = base + 0.004 * np.stack([band_limited_noise(rng, M, rate, 0.3), band_limited_noise(rng, M, rate, 0.3)], 1)
+    z = region.eye_height_m + 0.002 * band_limited_noise(rng, M, rate, 0.3)
+    heading = np.full(M, rng.uniform(0, 2 * np.pi))
+    if len(targets):  # face the scene: the first target
+        d0 = targets[0, :2] - base
+        heading[:] = math.atan2(d0[1], d0[0])
+    return np.concatenate([xy, z[:, None]], 1), heading
+
+
+def _walking_effort(config: HeadMotionConfig, rng: np.random.Generator, t: np.ndarray, rate: float,
+                    step_phase: float) -> np.ndarray:
+    """Arc length [M] (m) walked by time t [M] at full speed: slow speed changes, a 1 s start-up
+    ramp and a pulse at the step frequency (bends slow this down: `_bend_slowed_arc_length`)."""
+    M = len(t)
+    ramp = 0.5 + 0.5 * min_jerk(t / 1.0)
+    slow = 1.0 + config.speed_variation * band_limited_noise(rng, M, rate, 0.15)
+    v = (config.walk_speed_m_s * np.clip(slow, 0.3, 2.0) * ramp
+         * (1.0 + 0.12 * np.sin(2 * np.pi * config.step_frequency_hz * t + step_phase)))
+    return np.concatenate([[0.0], np.cumsum(0.5 * (v[1:] + v[:-1]) / rate)])
+
+
+def _bend_slowed_arc_length(config: HeadMotionConfig, poly: np.ndarray,
+                            effort: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where the walker is on the path polyline poly [S, 2] at each time -> (s [M] arc length, m;
+    arc [S] arc length of the polyline vertices, m; tang [S-1] segment directions, rad).
+
+    Walkers slow down in bends: speed factor g(s) = min(1, omega_max / (v0 kappa(s))); with
+    ds/dt = v(t) g(s), the arc length reached at time t solves A(s) = effort(t), A = int ds / g.
+    """
+    seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
+    arc = np.concatenate([[0.0], np.cumsum(seg)])
+    tang = np.arctan2(np.diff(poly[:, 1]), np.diff(poly[:, 0]))
+    kappa = np.abs(_wrap(np.diff(tang))) / np.maximum(0.5 * (seg[1:] + seg[:-1]), 1e-9)
+    kappa = np.concatenate([[kappa[0]], kappa, [kappa[-1]]])  # per polyline vertex
+    ks = max(1, int(0.3 / max(float(np.median(seg)), 1e-6)))  # smooth curvature over ~0.3 m
+    kappa = np.convolve(np.pad(kappa, ks, mode="edge"), np.ones(2 * ks + 1) / (2 * ks + 1), mode="valid")
+    g = np.clip(config.max_turn_rate_deg_s * _DEG / (config.walk_speed_m_s * np.maximum(kappa, 1e-9)), 0.1, 1.0)
+    A = np.concatenate([[0.0], np.cumsum(seg / (0.5 * (g[1:] + g[:-1])))])
+    return np.interp(effort, A, arc), arc, tang
+
+
+def _walking_heading(config: HeadMotionConfig, s: np.ndarray, arc: np.ndarray, tang: np.ndarray,
+                     rate: float) -> np.ndarray:
+    """Body heading [M] (rad, about world z) at arc lengths s [M] of the path (vertex arc lengths
+    arc [S], segment directions tang [S-1])."""
+    # the path tangent at s (its rate is v kappa, bounded by the bend slow-down), smoothed over
+    # ~1 s of time (a symmetric window: the head anticipates turns)
+    tang_v = _unwrap_angle(np.concatenate([tang, tang[-1:]]))  # per polyline vertex
+    heading = _gaussian_smooth(np.interp(s, arc, tang_v), 1.0, rate)
+    # sharp corners (walk-region edges) would still turn the head faster than people turn
+    # while walking: slew-rate limit, then smooth the corners of the limited signal (0.1 s)
+    heading = _slew_limit(heading, config.max_turn_rate_deg_s * _DEG / rate)
+    return _gaussian_smooth(heading, 0.4, rate)
+
+
+def _walking_path(config: HeadMotionConfig, region: "WalkRegion", rng: np.random.Generator, t: np.ndarray,
+                  rate: float, phase: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """normal/fast: eye position [M, 3] (m) along a spline through random waypoints of the walk
+    region, with head bob and lateral sway, and the body heading [M] (rad, about world z)."""
+    f_step = config.step_frequency_hz
+    effort = _walking_effort(config, rng, t, rate, phase[0])
+    poly = _catmull_rom(_waypoints(region, rng, float(effort[-1])))
+    s, arc, tang = _bend_slowed_arc_length(config, poly, effort)
+    centre = np.stack([np.interp(s, arc, poly[:, 0]), np.interp(s, arc, poly[:, 1])], 1)
+    heading = _walking_heading(config, s, arc, tang, rate)
+    lateral = np.stack([-np.sin(heading), np.cos(heading)], 1)
+    xy = centre + config.sway_amplitude_m * np.sin(np.pi * f_step * t + phase[1])[:, None] * lateral
+    z = region.eye_height_m + config.bob_amplitude_m * np.cos(2 * np.pi * f_step * t + phase[2])
+    return np.concatenate([xy, z[:, None]], 1), heading
+
+
+def _attention(config: HeadMotionConfig, region: "WalkRegion", n_targets: int, rng: np.random.Generator,
+               t: np.ndarray, rate: float) -> tuple[np.ndarray, np.ndarray]:
+    """Attention weight w [M] in [0, 1] (0 = along the path, 1 = at a look target) and the index
+    [M] of the target attended to. Ring regions (object captures) always look at target 0."""
+    M = len(t)
+    target_of_t = np.zeros(M, dtype=np.int64)
+    if region.kind == "ring" and n_targets:
+        return np.ones(M), target_of_t
+    w = np.zeros(M)
+    tt = rng.exponential(config.attention_interval_s) * 0.5
+    cur_w, cur_target = 0.0, 0
+    shift = config.attention_shift_s
+    while tt < t[-1]:
+        go_target = n_targets > 0 and rng.uniform() < config.attention_probability
+        new_w = 1.0 if go_target else 0.0
+        i0 = int(tt * rate)
+        if go_target and cur_w == 0.0:
+            cur_target = int(rng.integers(n_targets))
+            target_of_t[i0:] = cur_target
+        elif go_target:  # from one target to another: go through "ahead"
+            new_w = 0.0
+        prof = cur_w + (new_w - cur_w) * min_jerk((t[i0:] - tt) / shift)
+        w[i0:] = prof
+        cur_w = new_w
+        tt += shift + rng.exponential(config.attention_interval_s)
+    return w, target_of_t
+
+
+def _gaze_angles(config: HeadMotionConfig, region: "WalkRegion", targets: np.ndarray, pos: np.ndarray,
+                 heading: np.ndarray, w: np.ndarray, target_of_t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Gaze (yaw [M], pitch [M]) in radians: the heading pitched by gaze_pitch_deg, blended with
+    weight w [M] towards look target target_of_t [M] seen from the eye positions pos [M, 3]."""
+    to_t = targets[target_of_t] - pos if len(targets) else np.zeros_like(pos)
+    yaw_t = np.arctan2(to_t[:, 1], to_t[:, 0])
+    pitch_t = np.arctan2(to_t[:, 2], np.hypot(to_t[:, 0], to_t[:, 1]))
+    off = _wrap(yaw_t - heading)
+    # targets behind the walker are not looked at (fades out between 100 and 150 deg), which
+    # also hides the +-180 deg wrap of `off`; the head turns at most 80 deg from the path
+    w = w * np.clip((150 * _DEG - np.abs(off)) / (50 * _DEG), 0.0, 1.0) if region.kind != "ring" else w
+    off = (np.clip(off, -config.attention_max_deg * _DEG, config.attention_max_deg * _DEG)
+           if region.kind != "ring" else off)
+    yaw = heading + w * off
+    pitch = (1 - w) * (config.gaze_pitch_deg * _DEG) + w * pitch_t
+    return yaw, pitch
+
+
+def _add_gait_and_look_around(config: HeadMotionConfig, rng: np.random.Generator, t: np.ndarray, rate: float,
+                              phase: np.ndarray, walking: float, yaw: np.ndarray,
+                              pitch: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(yaw, pitch, roll) [M] in radians: gaze plus band-limited look-around noise and, when
+    walking (1.0; 0.0 standing), the gait's head oscillations at the step and stride frequencies."""
+    M = len(t)
+    f_step = config.step_frequency_hz
+    la = config.look_around_deg * _DEG * (0.5 if config.setting == "static" else 1.0)
+    yaw = yaw + la * band_limited_noise(rng, M, rate, config.look_around_rate_hz)
+    pitch = pitch + 0.6 * la * band_limited_noise(rng, M, rate, config.look_around_rate_hz)
+    roll = 0.3 * la * band_limited_noise(rng, M, rate, config.look_around_rate_hz)
+    yaw = yaw + walking * config.gait_yaw_deg * _DEG * np.sin(np.pi * f_step * t + phase[1] + 0.5)
+    roll = roll + walking * config.gait_roll_deg * _DEG * np.sin(np.pi * f_step * t + phase[3])
+    pitch = pitch + walking * config.gait_pitch_deg * _DEG * np.sin(2 * np.pi * f_step * t + phase[2] + 1.0)
+    return yaw, pitch, roll
+
+
+def _add_quick_turns(config: HeadMotionConfig, rng: np.random.Generator, t: np.ndarray, yaw: np.ndarray,
+                     pitch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """fast: (yaw, pitch) [M] (rad) plus minimum-jerk head turns out and back, peak speed turn_rate_deg_s."""
+    tt = rng.exponential(1.0 / config.turns_per_s) * 0.5
+    while tt < t[-1]:
+        amp = rng.uniform(*config.turn_amplitude_deg) * _DEG * (1 if rng.uniform() < 0.5 else -1)
+        dur = 1.875 * abs(amp) / (config.turn_rate_deg_s * _DEG)  # min-jerk peak speed = 1.875 A / T
+        dwell = rng.uniform(*config.turn_dwell_s)
+        back = tt + dur + dwell
+        yaw = yaw + amp * (min_jerk((t - tt) / dur) - min_jerk((t - back) / dur))
+        pitch = pitch + 0.15 * amp * (min_jerk((t - tt) / dur) - min_jerk((t - back) / dur))
+        tt = back + dur + rng.exponential(1.0 / config.turns_per_s)
+    return yaw, pitch
+
+
+def _pose_matrices(yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray, pos: np.ndarray) -> np.ndarray:
+    """T_world_look [M, 4, 4] from gaze angles [M] (rad; pitch clamped to +-80 deg) and eye positions [M, 3]."""
+    R = rotation_from_yaw_pitch_roll(yaw, np.clip(pitch, -80 * _DEG, 80 * _DEG), roll)
+    T = np.zeros((len(yaw), 4, 4))
+    T[:, :3, :3] = R
+    T[:, :3, 3] = pos
+    T[:, 3, 3] = 1.0
+    return T
+
+
 def head_motion_arrays(config: HeadMotionConfig, scene: "Scene", seed: int) -> tuple[np.ndarray, np.ndarray]:
     """The motion model without the Trajectory wrapper -> (t_ns int64 [M], T_world_look float64 [M, 4, 4])."""
     config.validate()
@@ -231,123 +407,21 @@ def head_motion_arrays(config: HeadMotionConfig, scene: "Scene", seed: int) -> t
     M = int(round(config.duration_s * rate)) + 1
     t = np.arange(M) / rate
     t_ns = int(config.start_ns) + np.round(np.arange(M) * (1e9 / rate)).astype(np.int64)
-    f_step = config.step_frequency_hz
-    deg = np.pi / 180.0
     phase = rng.uniform(0, 2 * np.pi, 4)
     targets = np.asarray(scene.look_targets, dtype=np.float64).reshape(-1, 3)
-
-    # ---------------- position
+    # every step draws from rng in this order: position, attention, look-around, quick turns
     if config.setting == "static":
-        base = region.sample_xy(rng, 1)[0] if region.kind == "box" else region.center_point[:2]
-        xy = base + 0.004 * np.stack([band_limited_noise(rng, M, rate, 0.3), band_limited_noise(rng, M, rate, 0.3)], 1)
-        z = region.eye_height_m + 0.002 * band_limited_noise(rng, M, rate, 0.3)
-        heading = np.full(M, rng.uniform(0, 2 * np.pi))
-        if len(targets):  # face the scene: the first target
-            d0 = targets[0, :2] - base
-            heading[:] = math.atan2(d0[1], d0[0])
+        pos, heading = _standing_path(config, region, targets, rng, t, rate)
         walking = 0.0
     else:
-        ramp = 0.5 + 0.5 * min_jerk(t / 1.0)
-        slow = 1.0 + config.speed_variation * band_limited_noise(rng, M, rate, 0.15)
-        v = config.walk_speed_m_s * np.clip(slow, 0.3, 2.0) * ramp * (1.0 + 0.12 * np.sin(2 * np.pi * f_step * t + phase[0]))
-        effort = np.concatenate([[0.0], np.cumsum(0.5 * (v[1:] + v[:-1]) / rate)])  # arc length at full speed
-        wp = _waypoints(region, rng, float(effort[-1]))
-        poly = _catmull_rom(wp)
-        seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
-        arc = np.concatenate([[0.0], np.cumsum(seg)])
-        # slow down in bends: speed factor g(s) = min(1, omega_max / (v0 kappa(s))); with
-        # ds/dt = v(t) g(s), the arc length reached at time t solves A(s) = effort(t), A = int ds / g
-        tang = np.arctan2(np.diff(poly[:, 1]), np.diff(poly[:, 0]))
-        kappa = np.abs(_wrap(np.diff(tang))) / np.maximum(0.5 * (seg[1:] + seg[:-1]), 1e-9)
-        kappa = np.concatenate([[kappa[0]], kappa, [kappa[-1]]])  # per polyline vertex
-        ks = max(1, int(0.3 / max(float(np.median(seg)), 1e-6)))  # smooth curvature over ~0.3 m
-        kappa = np.convolve(np.pad(kappa, ks, mode="edge"), np.ones(2 * ks + 1) / (2 * ks + 1), mode="valid")
-        g = np.clip(config.max_turn_rate_deg_s * deg / (config.walk_speed_m_s * np.maximum(kappa, 1e-9)), 0.1, 1.0)
-        A = np.concatenate([[0.0], np.cumsum(seg / (0.5 * (g[1:] + g[:-1])))])
-        s = np.interp(effort, A, arc)
-        centre = np.stack([np.interp(s, arc, poly[:, 0]), np.interp(s, arc, poly[:, 1])], 1)
-        # heading: the path tangent at s (its rate is v kappa, bounded by the bend slow-down),
-        # smoothed over ~1 s of time (a symmetric window: the head anticipates turns)
-        tang_v = _unwrap_angle(np.concatenate([tang, tang[-1:]]))  # per polyline vertex
-        heading = np.interp(s, arc, tang_v)
-        k = int(1.0 * rate) | 1
-        kern = np.exp(-0.5 * (np.linspace(-2, 2, k)) ** 2)
-        kern /= kern.sum()
-        heading = np.convolve(np.pad(heading, k // 2, mode="edge"), kern, mode="valid")
-        # sharp corners (walk-region edges) would still turn the head faster than people turn
-        # while walking: slew-rate limit, then smooth the corners of the limited signal (0.1 s)
-        heading = _slew_limit(heading, config.max_turn_rate_deg_s * deg / rate)
-        k = int(0.4 * rate) | 1
-        kern = np.exp(-0.5 * (np.linspace(-2, 2, k)) ** 2)
-        kern /= kern.sum()
-        heading = np.convolve(np.pad(heading, k // 2, mode="edge"), kern, mode="valid")
-        lateral = np.stack([-np.sin(heading), np.cos(heading)], 1)
-        xy = centre + config.sway_amplitude_m * np.sin(np.pi * f_step * t + phase[1])[:, None] * lateral
-        z = region.eye_height_m + config.bob_amplitude_m * np.cos(2 * np.pi * f_step * t + phase[2])
+        pos, heading = _walking_path(config, region, rng, t, rate, phase)
         walking = 1.0
-    pos = np.concatenate([xy, z[:, None]], 1)
-
-    # ---------------- gaze: attention weight w(t) in [0, 1] towards a target
-    if region.kind == "ring" and len(targets):
-        w = np.ones(M)
-        target_of_t = np.zeros(M, dtype=np.int64)
-    else:
-        w = np.zeros(M)
-        target_of_t = np.zeros(M, dtype=np.int64)
-        tt = rng.exponential(config.attention_interval_s) * 0.5
-        cur_w, cur_target = 0.0, 0
-        shift = config.attention_shift_s
-        while tt < t[-1]:
-            go_target = len(targets) > 0 and rng.uniform() < config.attention_probability
-            new_w = 1.0 if go_target else 0.0
-            i0 = int(tt * rate)
-            if go_target and cur_w == 0.0:
-                cur_target = int(rng.integers(len(targets)))
-                target_of_t[i0:] = cur_target
-            elif go_target:  # from one target to another: go through "ahead"
-                new_w = 0.0
-            prof = cur_w + (new_w - cur_w) * min_jerk((t[i0:] - tt) / shift)
-            w[i0:] = prof
-            cur_w = new_w
-            tt += shift + rng.exponential(config.attention_interval_s)
-    to_t = targets[target_of_t] - pos if len(targets) else np.zeros_like(pos)
-    yaw_t = np.arctan2(to_t[:, 1], to_t[:, 0])
-    pitch_t = np.arctan2(to_t[:, 2], np.hypot(to_t[:, 0], to_t[:, 1]))
-    off = _wrap(yaw_t - heading)
-    # targets behind the walker are not looked at (fades out between 100 and 150 deg), which
-    # also hides the +-180 deg wrap of `off`; the head turns at most 80 deg from the path
-    w = w * np.clip((150 * deg - np.abs(off)) / (50 * deg), 0.0, 1.0) if region.kind != "ring" else w
-    off = np.clip(off, -config.attention_max_deg * deg, config.attention_max_deg * deg) if region.kind != "ring" else off
-    yaw = heading + w * off
-    pitch = (1 - w) * (config.gaze_pitch_deg * deg) + w * pitch_t
-
-    # ---------------- gait oscillations, look-around noise, roll
-    la = config.look_around_deg * deg * (0.5 if config.setting == "static" else 1.0)
-    yaw = yaw + la * band_limited_noise(rng, M, rate, config.look_around_rate_hz)
-    pitch = pitch + 0.6 * la * band_limited_noise(rng, M, rate, config.look_around_rate_hz)
-    roll = 0.3 * la * band_limited_noise(rng, M, rate, config.look_around_rate_hz)
-    yaw = yaw + walking * config.gait_yaw_deg * deg * np.sin(np.pi * f_step * t + phase[1] + 0.5)
-    roll = roll + walking * config.gait_roll_deg * deg * np.sin(np.pi * f_step * t + phase[3])
-    pitch = pitch + walking * config.gait_pitch_deg * deg * np.sin(2 * np.pi * f_step * t + phase[2] + 1.0)
-
-    # ---------------- fast: quick head turns (out and back), peak speed turn_rate_deg_s
+    w, target_of_t = _attention(config, region, len(targets), rng, t, rate)
+    yaw, pitch = _gaze_angles(config, region, targets, pos, heading, w, target_of_t)
+    yaw, pitch, roll = _add_gait_and_look_around(config, rng, t, rate, phase, walking, yaw, pitch)
     if config.setting == "fast" and config.turns_per_s > 0:
-        tt = rng.exponential(1.0 / config.turns_per_s) * 0.5
-        while tt < t[-1]:
-            amp = rng.uniform(*config.turn_amplitude_deg) * deg * (1 if rng.uniform() < 0.5 else -1)
-            dur = 1.875 * abs(amp) / (config.turn_rate_deg_s * deg)  # min-jerk peak speed = 1.875 A / T
-            dwell = rng.uniform(*config.turn_dwell_s)
-            back = tt + dur + dwell
-            yaw = yaw + amp * (min_jerk((t - tt) / dur) - min_jerk((t - back) / dur))
-            pitch = pitch + 0.15 * amp * (min_jerk((t - tt) / dur) - min_jerk((t - back) / dur))
-            tt = back + dur + rng.exponential(1.0 / config.turns_per_s)
-
-    R = rotation_from_yaw_pitch_roll(yaw, np.clip(pitch, -80 * deg, 80 * deg), roll)
-    T = np.zeros((M, 4, 4))
-    T[:, :3, :3] = R
-    T[:, :3, 3] = pos
-    T[:, 3, 3] = 1.0
-    return t_ns, T
+        yaw, pitch = _add_quick_turns(config, rng, t, yaw, pitch)
+    return t_ns, _pose_matrices(yaw, pitch, roll, pos)
 
 
 def simulate_head_motion(config: HeadMotionConfig, scene: "Scene", seed: int) -> "Trajectory":

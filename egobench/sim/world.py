@@ -292,6 +292,70 @@ class RayHit:
 _TYPE_NAMES = ("rect", "box", "sphere", "cylinder")
 
 
+# ----------------------------------------------------------------------------- surface frames
+# Each takes a packed primitive table q (Scene._pack), the points' indices j [n] into it and the
+# points p [n, 3] on those primitives, and returns (uv [n, 2] texture coordinates in metres,
+# outward normal [n, 3], tangent_u [n, 3], tangent_v [n, 3]) in world coordinates.
+def _rect_surface_frame(q: dict, j: Tensor, p: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Rectangles: uv along the rectangle's U and V axes from its centre."""
+    rel = p - q["C"][j]
+    uv = torch.stack([(rel * q["U"][j]).sum(1), (rel * q["V"][j]).sum(1)], 1)
+    return uv, q["N"][j], q["U"][j], q["V"][j]
+
+
+def _sphere_surface_frame(q: dict, j: Tensor, p: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Spheres: uv = (longitude, latitude) x radius; tangent_u points east."""
+    rel = p - q["C"][j]
+    r = q["r"][j]
+    n_ = rel / rel.norm(dim=1, keepdim=True).clamp_min(1e-12)  # exact unit length despite rounding
+    lon = torch.atan2(n_[:, 1], n_[:, 0])
+    lat = torch.asin(torch.clamp(n_[:, 2], -1.0, 1.0))
+    uv = torch.stack([lon * r, lat * r], 1)
+    east = torch.stack([-torch.sin(lon), torch.cos(lon), torch.zeros_like(lon)], 1)
+    return uv, n_, east, torch.cross(n_, east, dim=1)
+
+
+def _box_surface_frame(q: dict, j: Tensor, p: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Oriented boxes: the face is the local axis where |p_local| / half-size is largest; uv in
+    that face's plane, offset per face so that faces do not share texture."""
+    R = q["R"][j]  # [n, 3, 3] columns = local axes
+    loc = torch.einsum("nji,nj->ni", R, p - q["C"][j])
+    h = q["H"][j]
+    k = torch.argmax(torch.abs(loc) / h, dim=1)  # face axis
+    sign = torch.sign(torch.gather(loc, 1, k[:, None]))[:, 0]
+    sign = torch.where(sign == 0, torch.ones_like(sign), sign)
+    # (u, v) axes per face axis: x-face (y, z), y-face (x, z), z-face (x, y)
+    ua = torch.tensor([1, 0, 0], device=p.device)[k]
+    va = torch.tensor([2, 2, 1], device=p.device)[k]
+    ar = torch.arange(len(k), device=p.device)
+    uv = torch.stack([loc[ar, ua] + 3.7 * k.to(p.dtype) + 1.3 * (sign + 1), loc[ar, va]], 1)
+    return uv, R[ar, :, k] * sign[:, None], R[ar, :, ua], R[ar, :, va]
+
+
+def _cylinder_surface_frame(q: dict, j: Tensor, p: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Capped cylinders: side uv = (angle x radius, height); caps uv = local (x, y), offset per cap."""
+    R = q["R"][j]  # [n, 3, 3] columns = local axes
+    loc = torch.einsum("nji,nj->ni", R, p - q["C"][j])
+    r, hh = q["r"][j], q["h"][j]
+    rho = torch.sqrt(loc[:, 0] ** 2 + loc[:, 1] ** 2)
+    cap = (torch.abs(loc[:, 2]) - hh) > (rho - r)  # closer to a cap plane than to the side
+    sgn = torch.sign(loc[:, 2])
+    sgn = torch.where(sgn == 0, torch.ones_like(sgn), sgn)
+    ang = torch.atan2(loc[:, 1], loc[:, 0])
+    side_n = torch.stack([torch.cos(ang), torch.sin(ang), torch.zeros_like(ang)], 1)
+    cap_n = torch.stack([torch.zeros_like(ang), torch.zeros_like(ang), sgn], 1)
+    n_loc = torch.where(cap[:, None], cap_n, side_n)
+    uv_side = torch.stack([ang * r, loc[:, 2]], 1)
+    uv_cap = torch.stack([loc[:, 0] + 5.0 * (sgn + 1), loc[:, 1]], 1)
+    t_side = torch.stack([-torch.sin(ang), torch.cos(ang), torch.zeros_like(ang)], 1)
+    t_cap = torch.zeros_like(t_side)
+    t_cap[:, 0] = 1.0
+    tu_loc = torch.where(cap[:, None], t_cap, t_side)
+    tv_loc = torch.cross(n_loc, tu_loc, dim=1)
+    return (torch.where(cap[:, None], uv_cap, uv_side), torch.einsum("nij,nj->ni", R, n_loc),
+            torch.einsum("nij,nj->ni", R, tu_loc), torch.einsum("nij,nj->ni", R, tv_loc))
+
+
 @dataclass(eq=False)
 class Scene:
     """An analytic world: primitives, materials, lights, and where a head may walk and look."""
@@ -446,68 +510,14 @@ class Scene:
         pid_np = primitive_id.cpu().numpy()
         types = self._type_of[pid_np]
         local_idx = torch.as_tensor(self._index_in_type[pid_np], device=points.device)
-        for t in range(4):
+        frame_of_type = ((_rect_surface_frame, "rect"), (_box_surface_frame, "box_all"),
+                         (_sphere_surface_frame, "sphere"), (_cylinder_surface_frame, "cylinder"))
+        for t, (frame_fn, pack_name) in enumerate(frame_of_type):  # t indexes _TYPE_NAMES
             sel_np = np.nonzero(types == t)[0]
             if len(sel_np) == 0:
                 continue
             sel = torch.as_tensor(sel_np, device=points.device)
-            j = local_idx[sel]
-            p = points[sel]
-            if t == 0:
-                q = pk["rect"]
-                rel = p - q["C"][j]
-                uv[sel] = torch.stack([(rel * q["U"][j]).sum(1), (rel * q["V"][j]).sum(1)], 1)
-                nrm[sel], tu[sel], tv[sel] = q["N"][j], q["U"][j], q["V"][j]
-            elif t == 2:
-                q = pk["sphere"]
-                rel = p - q["C"][j]
-                r = q["r"][j]
-                n_ = rel / rel.norm(dim=1, keepdim=True).clamp_min(1e-12)  # exact unit length despite rounding
-                nrm[sel] = n_
-                lon = torch.atan2(n_[:, 1], n_[:, 0])
-                lat = torch.asin(torch.clamp(n_[:, 2], -1.0, 1.0))
-                uv[sel] = torch.stack([lon * r, lat * r], 1)
-                east = torch.stack([-torch.sin(lon), torch.cos(lon), torch.zeros_like(lon)], 1)
-                tu[sel] = east
-                tv[sel] = torch.cross(n_, east, dim=1)
-            else:
-                q = pk["box_all" if t == 1 else "cylinder"]
-                R = q["R"][j]  # [n, 3, 3] columns = local axes
-                loc = torch.einsum("nji,nj->ni", R, p - q["C"][j])
-                if t == 1:
-                    h = q["H"][j]
-                    k = torch.argmax(torch.abs(loc) / h, dim=1)  # face axis
-                    sign = torch.sign(torch.gather(loc, 1, k[:, None]))[:, 0]
-                    sign = torch.where(sign == 0, torch.ones_like(sign), sign)
-                    # (u, v) axes per face axis: x-face (y, z), y-face (x, z), z-face (x, y)
-                    ua = torch.tensor([1, 0, 0], device=p.device)[k]
-                    va = torch.tensor([2, 2, 1], device=p.device)[k]
-                    ar = torch.arange(len(k), device=p.device)
-                    uv[sel] = torch.stack([loc[ar, ua] + 3.7 * k.to(p.dtype) + 1.3 * (sign + 1), loc[ar, va]], 1)
-                    nrm[sel] = R[ar, :, k] * sign[:, None]
-                    tu[sel] = R[ar, :, ua]
-                    tv[sel] = R[ar, :, va]
-                else:
-                    r, hh = q["r"][j], q["h"][j]
-                    rho = torch.sqrt(loc[:, 0] ** 2 + loc[:, 1] ** 2)
-                    cap = (torch.abs(loc[:, 2]) - hh) > (rho - r)  # closer to a cap plane than to the side
-                    sgn = torch.sign(loc[:, 2])
-                    sgn = torch.where(sgn == 0, torch.ones_like(sgn), sgn)
-                    ang = torch.atan2(loc[:, 1], loc[:, 0])
-                    side_n = torch.stack([torch.cos(ang), torch.sin(ang), torch.zeros_like(ang)], 1)
-                    cap_n = torch.stack([torch.zeros_like(ang), torch.zeros_like(ang), sgn], 1)
-                    n_loc = torch.where(cap[:, None], cap_n, side_n)
-                    uv_side = torch.stack([ang * r, loc[:, 2]], 1)
-                    uv_cap = torch.stack([loc[:, 0] + 5.0 * (sgn + 1), loc[:, 1]], 1)
-                    uv[sel] = torch.where(cap[:, None], uv_cap, uv_side)
-                    t_side = torch.stack([-torch.sin(ang), torch.cos(ang), torch.zeros_like(ang)], 1)
-                    t_cap = torch.zeros_like(t_side)
-                    t_cap[:, 0] = 1.0
-                    tu_loc = torch.where(cap[:, None], t_cap, t_side)
-                    tv_loc = torch.cross(n_loc, tu_loc, dim=1)
-                    nrm[sel] = torch.einsum("nij,nj->ni", R, n_loc)
-                    tu[sel] = torch.einsum("nij,nj->ni", R, tu_loc)
-                    tv[sel] = torch.einsum("nij,nj->ni", R, tv_loc)
+            uv[sel], nrm[sel], tu[sel], tv[sel] = frame_fn(pk[pack_name], local_idx[sel], points[sel])
         # decorrelate primitives sharing a material: shift texture coordinates per primitive
         shift = (primitive_id % 37).to(points.dtype)
         uv = uv + torch.stack([2.9 * shift, 1.7 * shift], 1)
