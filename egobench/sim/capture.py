@@ -37,6 +37,11 @@ and the SimConfig hash. A rerun with `resume="auto"` (the CLI default) continues
 frame with a state file and writes a recording byte-identical to an uninterrupted run
 (recording.json's simulation_time_s aside). On success the partial folder replaces the output
 (os.replace after removing an old output).
+
+Code path: `simulate_recording` -> `build_capture_setup` (once: `CaptureSetup`) and `_restore_run` (the
+`CaptureRun` records and carried state, advanced past resumed frames) -> per frame `capture_raw_frame`
+(steps 1-3), `_write_ground_truth` (5), `visible_semidense` and `_write_stream_frame` per calibration
+(4, 6), the frame's state file -> `_write_recording_files`.
 """
 
 from __future__ import annotations
@@ -52,7 +57,7 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 import torch
@@ -62,6 +67,13 @@ from egobench.camera.pinhole import Pinhole
 from egobench.data.mps import CameraCalibration, SemiDensePoints
 from egobench.sim.config import SimConfig
 from egobench.sim.devices import SEMIDENSE_NOISE, DeviceProfile, get_device
+
+if TYPE_CHECKING:  # annotations only (these modules are imported lazily)
+    from egobench.camera import Rectification
+    from egobench.data.mps import CalibrationRecord
+    from egobench.formation import FormationModel, PoissonGaussianNoise
+    from egobench.geometry import Trajectory
+    from egobench.sim.calibration import CalibrationSet
 
 #: Rays per Scene.cast call (bounds memory) on the CPU, and on a GPU (fewer, larger kernels).
 CAST_CHUNK = 1 << 16
@@ -637,43 +649,67 @@ def simulate_recording(config: SimConfig, out_dir: str | Path, progress: bool = 
         raise
 
 
-def _simulate_into(config: SimConfig, out_dir: Path, partial: Path, chash: str, states: list[dict], resuming: bool,
-                   progress: bool, stop_after: int | None, t_begin: float) -> CaptureResult:
-    """The body of `simulate_recording`: frames len(states).. into `partial`, then the recording files."""
-    import egobench
-    from tqdm import tqdm
+# ----------------------------------------------------------------------------------------
+# what every frame of a recording shares (built once)
+# ----------------------------------------------------------------------------------------
+def calibrated_vignette(cal: CameraCalibration, dev: DeviceProfile) -> Tensor:
+    """[H_raw, W_raw] the device's calibrated lens shading for `cal` (radial about its principal point)."""
+    from egobench.formation import radial_vignette
 
-    from egobench.data.layout import (FACTORY_CALIBRATION_FILE, MPS_SLAM, ONLINE_CALIBRATION_FILE, POINTS_FILE,
-                                      TRAJECTORY_FILE, link_mps_files)
-    from egobench.data.mps import write_calibration_json, write_online_calibration, write_semidense_points
-    from egobench.data.transforms import frame_entry, write_camera_maps, write_png, write_sparse_depth, write_transforms
-    from egobench.formation import FormationConfig, FormationModel, PoissonGaussianNoise, radial_vignette
-    from egobench.geometry import se3_inverse, transform_points
-    from egobench.io_utils import write_json
-    from egobench.sim.calibration import calibration_record, make_calibrations
+    p = cal.params
+    return radial_vignette((cal.height, cal.width), 1.0 - dev.vignette_corner, dev.vignette_power,
+                           centre=(float(p[1]), float(p[2])))
+
+
+@dataclass
+class FrameClocks:
+    """When each frame is read out: camera-clock read starts and the true and stated readout."""
+
+    read_start_cam_ns: np.ndarray  # [N] int64 camera-clock read start of each frame
+    true_offset_ns: int  # true camera time offset: device clock = camera clock + this
+    readout_true_s: float  # true rolling-shutter readout (first to last raw row), s
+    readout_stated_s: float  # readout the recording states, s
+
+    def read_start_true_ns(self, k: int) -> int:
+        """Device-clock read start of frame k under the true time offset."""
+        return int(self.read_start_cam_ns[k] + self.true_offset_ns)
+
+
+def _device_motion(config: SimConfig, dev: DeviceProfile, scene) -> Trajectory:
+    """The device trajectory (T_world_device) over the frames plus TRAJECTORY_MARGIN_S each side."""
     from egobench.sim.motion import HeadMotionConfig, simulate_head_motion
-    from egobench.sim.world import make_scene
 
-    dev = get_device(config.device_name)
-    compute = config.compute_torch_device()  # where rays are cast; formation and files stay on the CPU
-    cals = make_calibrations(config)
-    true_cal = cals.true
-    scene = make_scene(config.kind, config.seed)
-    interval_ns = int(round(1e9 / dev.fps))
     duration_s = 2 * TRAJECTORY_MARGIN_S + config.n_frames / dev.fps
     look = simulate_head_motion(HeadMotionConfig(duration_s=duration_s, setting=config.motion), scene, config.seed)
-    traj = device_trajectory(look, dev)
+    return device_trajectory(look, dev)
 
-    # Frame clocks: camera-clock read starts, mapped to the device clock by each calibration.
+
+def _frame_clocks(config: SimConfig, dev: DeviceProfile, trajectory: Trajectory, true_cal: CameraCalibration) -> FrameClocks:
+    """Frame read starts at the device's fps from the trajectory's start plus the margin (true offset undone)."""
+    interval_ns = int(round(1e9 / dev.fps))
     margin_ns = int(TRAJECTORY_MARGIN_S * 1e9)
     true_offset_ns = int(round(true_cal.time_offset_s * 1e9))
-    t_cam = traj.start_ns + margin_ns - true_offset_ns + interval_ns * np.arange(config.n_frames, dtype=np.int64)
-    readout_true = true_cal.readout_s
-    readout_stated = config.stated_readout_s()
-    raw = RawCamera.build(true_cal, config.pixel_samples)
-    H_raw, W_raw = raw.valid.shape
+    t_cam = trajectory.start_ns + margin_ns - true_offset_ns + interval_ns * np.arange(config.n_frames, dtype=np.int64)
+    return FrameClocks(read_start_cam_ns=t_cam, true_offset_ns=true_offset_ns, readout_true_s=true_cal.readout_s,
+                       readout_stated_s=config.stated_readout_s())
 
-    # Photometric truth.
+
+@dataclass
+class PhotometricTruth:
+    """The true image formation of a recording (its hidden parts are absent from the recorded metadata)."""
+
+    gamma: float  # true response gamma
+    formation: FormationModel  # ground-truth formation config with this gamma
+    noise_model: PoissonGaussianNoise  # after noise_std_factor
+    vignette_raw: Tensor  # [H_raw, W_raw] true lens shading: calibrated x hidden extra shading
+    white_balance: Tensor  # [3] float32 true per-channel gains
+
+
+def _photometric_truth(config: SimConfig, dev: DeviceProfile, true_cal: CameraCalibration,
+                       raw_hw: tuple[int, int]) -> PhotometricTruth:
+    """Response, noise, lens shading and white balance the raw frames are formed with."""
+    from egobench.formation import FormationConfig, FormationModel, PoissonGaussianNoise, radial_vignette
+
     gamma = config.response_gamma if config.response_gamma is not None else dev.response_gamma
     formation = FormationModel(FormationConfig.ground_truth(gamma=gamma, noise=config.noise))
     noise_model = PoissonGaussianNoise(
@@ -682,212 +718,452 @@ def _simulate_into(config: SimConfig, out_dir: Path, partial: Path, chash: str, 
     )
     if config.noise_std_factor != 1.0:
         noise_model = noise_model.scaled(config.noise_std_factor)
-    generator = torch.Generator().manual_seed(int(config.seed) * 7919 + 17)
-
-    def device_vignette(cal: CameraCalibration) -> Tensor:  # [H_raw, W_raw] calibrated lens shading
-        p = cal.params
-        return radial_vignette((cal.height, cal.width), 1.0 - dev.vignette_corner, dev.vignette_power,
-                               centre=(float(p[1]), float(p[2])))
-
-    vignette_true = device_vignette(true_cal)
+    vignette_true = calibrated_vignette(true_cal, dev)
     if config.vignette_strength > 0:
-        vignette_true = vignette_true * radial_vignette((H_raw, W_raw), config.vignette_strength, dev.vignette_power,
+        vignette_true = vignette_true * radial_vignette(raw_hw, config.vignette_strength, dev.vignette_power,
                                                         centre=(float(true_cal.params[1]), float(true_cal.params[2])))
-    wb = torch.tensor(config.white_balance, dtype=torch.float32)
+    return PhotometricTruth(gamma=gamma, formation=formation, noise_model=noise_model, vignette_raw=vignette_true,
+                            white_balance=torch.tensor(config.white_balance, dtype=torch.float32))
 
-    # Rectification rigs (online, factory) and the ground-truth pixel rays in the online camera.
-    rigs = {name: _rig(cal, config.rectified_size, dev) for name, cal in (("online", cals.online), ("factory", cals.factory))}
-    rect_online, pin_online = rigs["online"]
-    rtr_online = rect_online.row_time_ratio().to(torch.float64)  # [h, w]
-    gt_rays = pin_online.unproject(pin_online.pixel_grid(dtype=torch.float64))  # [h, w, 3], z = 1
-    gt_valid = rect_online.valid
 
-    # Exposure metadata errors (hidden): which frames carry the wrong exposure.
+@dataclass
+class OnlineTruthRays:
+    """Per-pixel rays of the online rectified camera, along which depth and normals are cast."""
+
+    row_time_ratio: Tensor  # [h, w] float64 read-out time of the pixel's raw source / readout (0..1)
+    rays_cam: Tensor  # [h, w, 3] float64 camera-frame rays through the pixel centres, z = 1
+    valid: Tensor  # [h, w] bool pixels inside the raw image
+
+
+def _online_truth_rays(rect: Rectification, pin: Pinhole) -> OnlineTruthRays:
+    """The ground-truth rays of the online rig (Rectification, Pinhole)."""
+    return OnlineTruthRays(row_time_ratio=rect.row_time_ratio().to(torch.float64),
+                           rays_cam=pin.unproject(pin.pixel_grid(dtype=torch.float64)), valid=rect.valid)
+
+
+def _metadata_wrong_frames(config: SimConfig) -> set[int]:
+    """Frames whose recorded exposure is wrong (hidden effect `exposure_metadata_error`)."""
     rng_meta = np.random.default_rng([config.seed, 404])
     n_bad = int(round(config.exposure_metadata_fraction * config.n_frames)) if config.exposure_metadata_error else 0
-    bad_frames = set(rng_meta.permutation(config.n_frames)[:n_bad].tolist())
+    return set(rng_meta.permutation(config.n_frames)[:n_bad].tolist())
 
-    ae = AutoExposureState(device=dev, protocol=config.protocol, fixed_exposure_s=config.exposure_s,
-                           fixed_gain=config.gain)
 
-    # Semi-dense points: surface samples seen from the device positions at the frame times.
-    frame_times_true = t_cam + true_offset_ns
-    positions = traj.pose(torch.from_numpy(frame_times_true[:: max(1, config.n_frames // 64)]))[:, :3, 3]
+@dataclass
+class SemiDenseTruth:
+    """The recording's semi-dense points: as written, after the MPS filter, and their clean positions."""
+
+    points: SemiDensePoints  # every point, as written to the MPS points file
+    filtered: SemiDensePoints  # the points passing the MPS filter (noisy positions)
+    clean_world: Tensor  # [M, 3] float64 noise-free world positions of the filtered points
+    noisy_world: Tensor  # [M, 3] float64 recorded (noisy) world positions of the filtered points
+
+
+def _semidense_truth(config: SimConfig, scene, trajectory: Trajectory, clocks: FrameClocks) -> SemiDenseTruth:
+    """Surface samples seen from (up to ~64) device positions at the true frame times, with SLAM noise."""
+    frame_times_true = clocks.read_start_cam_ns + clocks.true_offset_ns
+    positions = trajectory.pose(torch.from_numpy(frame_times_true[:: max(1, config.n_frames // 64)]))[:, :3, 3]
     semidense, clean_points = make_semidense_points(scene, positions, config.n_semidense_points, config.seed)
     sd_filtered = semidense.filtered()
-    keep_mask = (semidense.inv_dist_std < SEMIDENSE_NOISE.max_inv_dist_std) & (semidense.dist_std < SEMIDENSE_NOISE.max_dist_std)
-    clean_filtered = torch.from_numpy(clean_points[keep_mask])
-    noisy_filtered = torch.from_numpy(sd_filtered.points_world)
+    keep_mask = ((semidense.inv_dist_std < SEMIDENSE_NOISE.max_inv_dist_std)
+                 & (semidense.dist_std < SEMIDENSE_NOISE.max_dist_std))
+    return SemiDenseTruth(points=semidense, filtered=sd_filtered, clean_world=torch.from_numpy(clean_points[keep_mask]),
+                          noisy_world=torch.from_numpy(sd_filtered.points_world))
 
-    result = CaptureResult(path=out_dir, n_frames=config.n_frames, time_s=0.0)
-    frames_out: dict[str, list[dict]] = {"online": [], "factory": []}
-    calib_lines = []
-    truth_frames = []
 
-    # Frames already completed by an earlier run: their records and the state after the last one.
-    elapsed_before_s = 0.0
-    if resuming:
-        _drop_frames_from(partial, len(states), frame_dirs(config))
-    online_record = calibration_record(cals.online) if states else None
+@dataclass
+class CaptureSetup:
+    """What every frame of a recording shares, built once by `build_capture_setup`."""
+
+    config: SimConfig
+    device: DeviceProfile
+    compute: torch.device  # where rays are cast; formation and files stay on the CPU
+    cals: CalibrationSet  # true, online, factory
+    scene: object
+    trajectory: Trajectory  # T_world_device(t_ns)
+    clocks: FrameClocks
+    raw: RawCamera  # the true raw fisheye camera
+    photometric: PhotometricTruth
+    rigs: dict[str, tuple[Rectification, Pinhole]]  # calibration name -> its rectified stream's rig
+    truth_rays: OnlineTruthRays
+    metadata_wrong_frames: set[int]  # frames whose recorded exposure is wrong (hidden)
+    semidense: SemiDenseTruth
+    streams: dict[str, str]  # calibration name -> stream folder name
+
+    def calibrations(self) -> tuple[tuple[str, CameraCalibration], ...]:
+        """(("online", online calibration), ("factory", factory calibration)): the recorded streams."""
+        return (("online", self.cals.online), ("factory", self.cals.factory))
+
+
+def build_capture_setup(config: SimConfig) -> CaptureSetup:
+    """Device, calibrations, scene, trajectory, clocks, raw camera, formation, rigs, hidden frames, semi-dense points."""
+    from egobench.sim.calibration import make_calibrations
+    from egobench.sim.world import make_scene
+
+    dev = get_device(config.device_name)
+    compute = config.compute_torch_device()
+    cals = make_calibrations(config)
+    scene = make_scene(config.kind, config.seed)
+    trajectory = _device_motion(config, dev, scene)
+    clocks = _frame_clocks(config, dev, trajectory, cals.true)
+    raw = RawCamera.build(cals.true, config.pixel_samples)
+    H_raw, W_raw = raw.valid.shape
+    photometric = _photometric_truth(config, dev, cals.true, (H_raw, W_raw))
+    rigs = {name: _rig(cal, config.rectified_size, dev) for name, cal in (("online", cals.online), ("factory", cals.factory))}
+    truth_rays = _online_truth_rays(*rigs["online"])
+    wrong = _metadata_wrong_frames(config)
+    semidense = _semidense_truth(config, scene, trajectory, clocks)
+    return CaptureSetup(config=config, device=dev, compute=compute, cals=cals, scene=scene, trajectory=trajectory,
+                        clocks=clocks, raw=raw, photometric=photometric, rigs=rigs, truth_rays=truth_rays,
+                        metadata_wrong_frames=wrong, semidense=semidense, streams=stream_names(config))
+
+
+# ----------------------------------------------------------------------------------------
+# what the frames accumulate and carry over (restored on resume)
+# ----------------------------------------------------------------------------------------
+@dataclass
+class CaptureRun:
+    """The records the frames accumulate and the state each frame hands to the next."""
+
+    result: CaptureResult
+    auto_exposure: AutoExposureState
+    noise_generator: torch.Generator
+    frames_out: dict[str, list[dict]]  # calibration name -> transforms.json frame entries
+    calib_lines: list[CalibrationRecord]  # the online calibration per frame (with its tracking timestamp)
+    truth_frames: list[dict]  # truth.json frame records
+    elapsed_before_s: float = 0.0  # simulation time of the earlier runs of a resumed recording
+
+
+def _noise_generator(config: SimConfig) -> torch.Generator:
+    """The noise generator at the recording's start."""
+    return torch.Generator().manual_seed(int(config.seed) * 7919 + 17)
+
+
+def _restore_run(setup: CaptureSetup, out_dir: Path, states: list[dict]) -> CaptureRun:
+    """A fresh run, advanced past the frames earlier runs completed (`states`: their state records in order)."""
+    from egobench.sim.calibration import calibration_record
+
+    config = setup.config
+    run = CaptureRun(result=CaptureResult(path=out_dir, n_frames=config.n_frames, time_s=0.0),
+                     auto_exposure=AutoExposureState(device=setup.device, protocol=config.protocol,
+                                                     fixed_exposure_s=config.exposure_s, fixed_gain=config.gain),
+                     noise_generator=_noise_generator(config), frames_out={"online": [], "factory": []},
+                     calib_lines=[], truth_frames=[])
+    online_record = calibration_record(setup.cals.online) if states else None
     for st in states:
         for name in ("online", "factory"):
-            frames_out[name].append(st["frames_out"][name])
-        calib_lines.append(dataclasses.replace(online_record, tracking_timestamp_us=st["tracking_timestamp_us"]))
-        truth_frames.append(st["truth"])
-        result.temporal_samples.append(st["truth"]["temporal_samples"])
-        result.exposures_s.append(st["truth"]["exposure_true_s"])
-        result.gains.append(st["truth"]["gain"])
+            run.frames_out[name].append(st["frames_out"][name])
+        run.calib_lines.append(dataclasses.replace(online_record, tracking_timestamp_us=st["tracking_timestamp_us"]))
+        _record_truth(run, st["truth"])
     if states:
         last = states[-1]
-        ae.log_eg = last["auto_exposure"]["log_eg"]
+        run.auto_exposure.log_eg = last["auto_exposure"]["log_eg"]
         held = last["auto_exposure"]["held"]
-        ae.held = None if held is None else (float(held[0]), float(held[1]))
-        _decode_generator(generator, last["noise_generator"])
-        elapsed_before_s = float(last["elapsed_s"])
-    result.resumed_from = len(states)
+        run.auto_exposure.held = None if held is None else (float(held[0]), float(held[1]))
+        _decode_generator(run.noise_generator, last["noise_generator"])
+        run.elapsed_before_s = float(last["elapsed_s"])
+    run.result.resumed_from = len(states)
+    return run
 
-    streams = stream_names(config)  # calibration -> stream folder
-    mps_dir = partial / MPS_SLAM
+
+def _record_truth(run: CaptureRun, truth: dict) -> None:
+    """Append a frame's truth record and its summary (temporal samples, exposure, gain) to the run."""
+    run.truth_frames.append(truth)
+    run.result.temporal_samples.append(truth["temporal_samples"])
+    run.result.exposures_s.append(truth["exposure_true_s"])
+    run.result.gains.append(truth["gain"])
+
+
+def _frame_state(run: CaptureRun, k: int, config_hash: str, t_begin: float) -> dict:
+    """The state file of frame k: what later frames depend on (written last, after the frame's files)."""
+    return {
+        "frame": k, "config_hash": config_hash,
+        "frames_out": {name: run.frames_out[name][-1] for name in ("online", "factory")},
+        "tracking_timestamp_us": run.calib_lines[-1].tracking_timestamp_us, "truth": run.truth_frames[-1],
+        "auto_exposure": {"log_eg": run.auto_exposure.log_eg,
+                          "held": None if run.auto_exposure.held is None else list(run.auto_exposure.held)},
+        "noise_generator": _encode_generator(run.noise_generator),
+        "elapsed_s": run.elapsed_before_s + time.perf_counter() - t_begin,
+    }
+
+
+# ----------------------------------------------------------------------------------------
+# one frame
+# ----------------------------------------------------------------------------------------
+@dataclass
+class FrameExposure:
+    """A frame's exposure as chosen from its preview (auto-exposure and the temporal sample count)."""
+
+    t_mid_ns: int  # device-clock time of the middle raw row's read start (preview and visibility time)
+    median_luminance: float  # median preview luminance (0 without a preview hit)
+    exposure_true_s: float
+    gain: float
+    motion_px: float  # largest raw-pixel motion of preview points during the exposure
+    temporal_samples: int  # S, paired with the raw camera's sub-pixel positions
+
+
+def _expose_frame(setup: CaptureSetup, auto_exposure: AutoExposureState, read_start_true_ns: int) -> FrameExposure:
+    """Preview cast at mid-frame -> auto-exposure step (exposure, gain) and the adaptive temporal samples."""
+    raw, readout_true = setup.raw, setup.clocks.readout_true_s
+    t_mid = read_start_true_ns + int(round(readout_true * 0.5e9))
+    lum, pts, _ = preview(setup.scene, setup.trajectory, raw, t_mid, device=setup.compute)
+    median_lum = float(lum.median()) if lum.numel() else 0.0
+    exposure_true, gain = auto_exposure.step(median_lum)
+    motion_px = motion_during_exposure_px(setup.trajectory, raw, pts, read_start_true_ns, exposure_true, readout_true)
+    S = paired_temporal_samples(choose_temporal_samples(setup.config, motion_px), raw.pixel_samples)
+    return FrameExposure(t_mid_ns=t_mid, median_luminance=median_lum, exposure_true_s=exposure_true, gain=gain,
+                         motion_px=motion_px, temporal_samples=S)
+
+
+def _form_raw_image(setup: CaptureSetup, irradiance: Tensor, exposure_s: float, gain: float,
+                    generator: torch.Generator) -> np.ndarray:
+    """Clean irradiance [H_raw, W_raw, 3] -> the recorded raw image [H_raw, W_raw, 3] uint8 (noise drawn from `generator`)."""
+    config, photometric = setup.config, setup.photometric
+    display = photometric.formation.simulate(irradiance, exposure_s=exposure_s, gain=gain,
+                                             sensitivity=setup.device.sensitivity, vignette=photometric.vignette_raw,
+                                             white_balance=photometric.white_balance,
+                                             noise=photometric.noise_model if config.noise else None,
+                                             generator=generator)
+    raw8 = _to_uint8(display)
+    raw8[~setup.raw.valid.numpy()] = 0
+    if config.jpeg:
+        raw8 = _jpeg(raw8, config.jpeg_quality)
+    return raw8
+
+
+@dataclass
+class RawFrame:
+    """One captured raw frame and how it was exposed."""
+
+    index: int
+    read_start_true_ns: int  # device-clock read start under the true time offset
+    exposure: FrameExposure
+    exposure_recorded_s: float  # what the metadata states (wrong on the hidden metadata-error frames)
+    irradiance_raw: Tensor  # [H_raw, W_raw, 3] float32 clean linear irradiance
+    image_raw_01: Tensor  # [H_raw, W_raw, 3] float32 recorded 8-bit raw image / 255
+
+
+def capture_raw_frame(setup: CaptureSetup, run: CaptureRun, k: int, partial: Path) -> RawFrame:
+    """Frame k's raw capture: preview and auto-exposure, rolling-shutter irradiance, formation (raw/ PNG if asked)."""
+    from egobench.data.transforms import write_png
+
+    config = setup.config
+    read_start_true = setup.clocks.read_start_true_ns(k)
+    exp = _expose_frame(setup, run.auto_exposure, read_start_true)
+    irr = capture_irradiance(setup.scene, setup.trajectory, setup.raw, read_start_true, exp.exposure_true_s,
+                             setup.clocks.readout_true_s, exp.temporal_samples, device=setup.compute)
+    raw8 = _form_raw_image(setup, irr, exp.exposure_true_s, exp.gain, run.noise_generator)
+    if config.write_raw:
+        write_png(partial / "raw" / f"{k:05d}.png", raw8)
+    raw_f = torch.from_numpy(raw8).to(torch.float32) / 255.0
+    exposure_recorded = (exp.exposure_true_s * (1.0 + config.exposure_metadata_error)
+                         if k in setup.metadata_wrong_frames else exp.exposure_true_s)
+    return RawFrame(index=k, read_start_true_ns=read_start_true, exposure=exp, exposure_recorded_s=exposure_recorded,
+                    irradiance_raw=irr, image_raw_01=raw_f)
+
+
+def truth_depth_normal(setup: CaptureSetup, read_start_true_ns: int, exposure_true_s: float) -> tuple[Tensor, Tensor]:
+    """Online rectified camera: depth z [h, w] float64 (m, 0 = none), normals [h, w, 3] (camera frame, 0 = none).
+
+    Each pixel is cast from the true pose at its own mid-exposure time (its raw source row's)."""
+    rays = setup.truth_rays
+    gt_valid = rays.valid
+    t_pix = (read_start_true_ns
+             + torch.round((rays.row_time_ratio * setup.clocks.readout_true_s + exposure_true_s / 2) * 1e9).to(torch.int64))
+    Tp = camera_poses(setup.trajectory, _as_T(setup.cals.online), t_pix[gt_valid])  # [n, 4, 4]
+    d_cam = rays.rays_cam[gt_valid]  # [n, 3] z = 1
+    d_world = torch.einsum("nij,nj->ni", Tp[:, :3, :3], d_cam)
+    norm = d_world.norm(dim=-1, keepdim=True)
+    t_hit, n_world, is_hit = geometry_cast(setup.scene, Tp[:, :3, 3].to(torch.float32).contiguous(),
+                                           (d_world / norm).to(torch.float32).contiguous(), device=setup.compute)
+    z = t_hit / norm[:, 0]
+    z = torch.where(is_hit & torch.isfinite(z), z, torch.zeros_like(z))
+    n_cam = torch.einsum("nji,nj->ni", Tp[:, :3, :3], n_world)
+    n_cam = torch.where(is_hit[:, None], n_cam, torch.zeros_like(n_cam))
+    depth_map = torch.zeros(gt_valid.shape, dtype=torch.float64)
+    depth_map[gt_valid] = z
+    normal_map = torch.zeros(gt_valid.shape + (3,), dtype=torch.float64)
+    normal_map[gt_valid] = n_cam
+    return depth_map, normal_map
+
+
+def _write_ground_truth(setup: CaptureSetup, frame: RawFrame, partial: Path) -> None:
+    """Frame k's ground-truth files (float16): irradiance rectified like the online image, depth, normals."""
+    k = frame.index
+    rect_online = setup.rigs["online"][0]
+    gt_irr = rect_online.warp(frame.irradiance_raw).clamp(0, FLOAT16_MAX)
+    np.save(partial / "ground_truth" / "radiance" / f"{k:05d}.npy", gt_irr.to(torch.float16).numpy())
+    depth_map, normal_map = truth_depth_normal(setup, frame.read_start_true_ns, frame.exposure.exposure_true_s)
+    np.save(partial / "ground_truth" / "depth" / f"{k:05d}.npy", depth_map.to(torch.float16).numpy())
+    np.save(partial / "ground_truth" / "normal" / f"{k:05d}.npy", normal_map.to(torch.float16).numpy())
+
+
+def visible_semidense(setup: CaptureSetup, t_ns: int) -> Tensor:
+    """[M] bool: filtered semi-dense points not occluded from the true camera centre at `t_ns`."""
+    from egobench.geometry import se3_inverse, transform_points
+
+    clean = setup.semidense.clean_world
+    T_mid = camera_poses(setup.trajectory, _as_T(setup.cals.true), [t_ns])[0]
+    visible = torch.zeros(clean.shape[0], dtype=torch.bool)
+    if clean.shape[0]:
+        vec = clean - T_mid[:3, 3]
+        dist = vec.norm(dim=-1)
+        pc = transform_points(se3_inverse(T_mid), clean)
+        front = pc[:, 2] > 0.05
+        if bool(front.any()):
+            t_vis, _, h_vis = geometry_cast(setup.scene,
+                                            T_mid[:3, 3].to(torch.float32).expand(int(front.sum()), 3).contiguous(),
+                                            (vec[front] / dist[front, None]).to(torch.float32).contiguous())
+            ok = h_vis & (t_vis >= dist[front] - (0.02 + 0.01 * dist[front]))
+            visible[front] = ok
+    return visible
+
+
+def stream_frame_times_ns(cal: CameraCalibration, read_start_cam_ns: int, readout_stated_s: float,
+                          exposure_recorded_s: float) -> tuple[int, int, int]:
+    """A stream's (read start, read end, mid-exposure timestamp) of a frame, device clock ns, by its calibration."""
+    offset_ns = int(round(cal.time_offset_s * 1e9))
+    read_start = int(read_start_cam_ns + offset_ns)
+    read_end = read_start + int(round(readout_stated_s * 1e9))
+    timestamp = read_start + int(round((readout_stated_s / 2 + exposure_recorded_s / 2) * 1e9))
+    return read_start, read_end, timestamp
+
+
+def _write_sparse_depth(setup: CaptureSetup, rig: tuple[Rectification, Pinhole], T_world_camera: Tensor, visible: Tensor, path: Path) -> None:
+    """The visible filtered semi-dense points (noisy) projected into a rig's pinhole -> its sparse depth file."""
+    from egobench.data.transforms import write_sparse_depth
+    from egobench.geometry import se3_inverse, transform_points
+
+    rect, pin = rig
+    sd_filtered = setup.semidense.filtered
+    pcam = transform_points(se3_inverse(T_world_camera), setup.semidense.noisy_world[visible])
+    uv, okp = pin.project(pcam)
+    inside = okp & (uv[:, 0] >= 0) & (uv[:, 0] <= pin.width - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= pin.height - 1)
+    iu = uv[:, 0].round().long().clamp(0, pin.width - 1)
+    iv = uv[:, 1].round().long().clamp(0, pin.height - 1)
+    inside &= rect.valid[iv, iu]
+    idx = visible.nonzero()[:, 0][inside]
+    write_sparse_depth(path, uv[inside].numpy(), pcam[inside, 2].numpy(), sd_filtered.inv_dist_std[idx.numpy()],
+                       sd_filtered.dist_std[idx.numpy()])
+
+
+def _write_stream_frame(setup: CaptureSetup, run: CaptureRun, name: str, cal: CameraCalibration, frame: RawFrame,
+                        visible: Tensor, partial: Path) -> None:
+    """Frame k in the stream of calibration `name`: rectified image, transforms entry, sparse depth (online: calibration line)."""
+    from egobench.data.transforms import frame_entry, write_png
+    from egobench.sim.calibration import calibration_record
+
+    k = frame.index
+    rect, pin = setup.rigs[name]
+    stream = partial / setup.streams[name]
+    write_png(stream / "images" / f"{k:05d}.png", _to_uint8(rect.warp(frame.image_raw_01)))
+    read_start, read_end, timestamp = stream_frame_times_ns(cal, setup.clocks.read_start_cam_ns[k],
+                                                            setup.clocks.readout_stated_s, frame.exposure_recorded_s)
+    T_dc = _as_T(cal)
+    T_wc = camera_poses(setup.trajectory, T_dc, [timestamp])[0]
+    run.frames_out[name].append(frame_entry(k, pin, T_dc.numpy(), T_wc.numpy(), timestamp, read_start, read_end,
+                                            frame.exposure_recorded_s, frame.exposure.gain))
+    _write_sparse_depth(setup, (rect, pin), T_wc, visible, stream / "sparse_depth" / f"{k:05d}.json")
+    if name == "online":
+        run.calib_lines.append(calibration_record(cal, tracking_timestamp_us=timestamp // 1000))
+
+
+def _truth_frame_record(setup: CaptureSetup, frame: RawFrame) -> dict:
+    """truth.json's record of frame k: clocks, true and recorded exposure, temporal samples, motion."""
+    k, exp, P = frame.index, frame.exposure, setup.raw.pixel_samples
+    S = exp.temporal_samples
+    return {
+        "index": k, "camera_read_start_ns": int(setup.clocks.read_start_cam_ns[k]),
+        "read_start_true_ns": frame.read_start_true_ns,
+        "exposure_true_s": exp.exposure_true_s, "exposure_recorded_s": frame.exposure_recorded_s, "gain": exp.gain,
+        "exposure_metadata_wrong": k in setup.metadata_wrong_frames, "temporal_samples": S,
+        "rays_per_pixel": S * P if S < P else S,
+        "motion_during_exposure_px": exp.motion_px,
+        "median_luminance": exp.median_luminance,
+    }
+
+
+def _simulate_frame(setup: CaptureSetup, run: CaptureRun, k: int, partial: Path) -> None:
+    """Frame k: raw capture, ground truth, both streams' files, and its records in `run`."""
+    frame = capture_raw_frame(setup, run, k, partial)
+    _write_ground_truth(setup, frame, partial)
+    # visibility of the semi-dense points from the true camera centre at mid-frame
+    visible = visible_semidense(setup, frame.exposure.t_mid_ns)
+    for name, cal in setup.calibrations():
+        _write_stream_frame(setup, run, name, cal, frame, visible, partial)
+    _record_truth(run, _truth_frame_record(setup, frame))
+
+
+# ----------------------------------------------------------------------------------------
+# the recording
+# ----------------------------------------------------------------------------------------
+def _make_folders(config: SimConfig, partial: Path) -> None:
+    """The partial folder's MPS folder and per-frame folders (raw/ only when raw frames are written)."""
+    from egobench.data.layout import MPS_SLAM
+
     for sub in (str(MPS_SLAM),) + frame_dirs(config)[1:]:
         (partial / sub).mkdir(parents=True, exist_ok=True)
     if config.write_raw:
         (partial / "raw").mkdir(exist_ok=True)
-    end = config.n_frames if stop_after is None else min(config.n_frames, stop_after)
-    iterator = range(len(states), end)
+
+
+def _frame_indices(config: SimConfig, first: int, end: int, progress: bool):
+    """Frames first..end-1, with a tqdm bar counting from `first` of n_frames when `progress`."""
+    from tqdm import tqdm
+
+    iterator = range(first, end)
     if progress:
-        iterator = tqdm(iterator, desc=f"simulate {config.recording_name}", unit="frame", initial=len(states),
+        iterator = tqdm(iterator, desc=f"simulate {config.recording_name}", unit="frame", initial=first,
                         total=config.n_frames)
-    for k in iterator:
-        read_start_true = int(t_cam[k] + true_offset_ns)
-        # 1. preview: auto-exposure and motion estimate
-        t_mid = read_start_true + int(round(readout_true * 0.5e9))
-        lum, pts, _ = preview(scene, traj, raw, t_mid, device=compute)
-        exposure_true, gain = ae.step(float(lum.median()) if lum.numel() else 0.0)
-        motion_px = motion_during_exposure_px(traj, raw, pts, read_start_true, exposure_true, readout_true)
-        S = paired_temporal_samples(choose_temporal_samples(config, motion_px), raw.pixel_samples)
-        # 2. raw rolling-shutter capture (clean linear irradiance)
-        irr = capture_irradiance(scene, traj, raw, read_start_true, exposure_true, readout_true, S, device=compute)
-        # 3. formation
-        display = formation.simulate(irr, exposure_s=exposure_true, gain=gain, sensitivity=dev.sensitivity,
-                                     vignette=vignette_true, white_balance=wb,
-                                     noise=noise_model if config.noise else None, generator=generator)
-        raw8 = _to_uint8(display)
-        raw8[~raw.valid.numpy()] = 0
-        if config.jpeg:
-            raw8 = _jpeg(raw8, config.jpeg_quality)
-        if config.write_raw:
-            write_png(partial / "raw" / f"{k:05d}.png", raw8)
-        raw_f = torch.from_numpy(raw8).to(torch.float32) / 255.0
-        exposure_recorded = exposure_true * (1.0 + config.exposure_metadata_error) if k in bad_frames else exposure_true
-        # 5. ground truth in the online camera
-        gt_irr = rect_online.warp(irr).clamp(0, FLOAT16_MAX)
-        np.save(partial / "ground_truth" / "radiance" / f"{k:05d}.npy", gt_irr.to(torch.float16).numpy())
-        t_pix = (read_start_true + torch.round((rtr_online * readout_true + exposure_true / 2) * 1e9).to(torch.int64))
-        Tp = camera_poses(traj, _as_T(cals.online), t_pix[gt_valid])  # [n, 4, 4]
-        d_cam = gt_rays[gt_valid]  # [n, 3] z = 1
-        d_world = torch.einsum("nij,nj->ni", Tp[:, :3, :3], d_cam)
-        norm = d_world.norm(dim=-1, keepdim=True)
-        t_hit, n_world, is_hit = geometry_cast(scene, Tp[:, :3, 3].to(torch.float32).contiguous(),
-                                               (d_world / norm).to(torch.float32).contiguous(), device=compute)
-        z = t_hit / norm[:, 0]
-        z = torch.where(is_hit & torch.isfinite(z), z, torch.zeros_like(z))
-        n_cam = torch.einsum("nji,nj->ni", Tp[:, :3, :3], n_world)
-        n_cam = torch.where(is_hit[:, None], n_cam, torch.zeros_like(n_cam))
-        depth_map = torch.zeros(gt_valid.shape, dtype=torch.float64)
-        depth_map[gt_valid] = z
-        normal_map = torch.zeros(gt_valid.shape + (3,), dtype=torch.float64)
-        normal_map[gt_valid] = n_cam
-        np.save(partial / "ground_truth" / "depth" / f"{k:05d}.npy", depth_map.to(torch.float16).numpy())
-        np.save(partial / "ground_truth" / "normal" / f"{k:05d}.npy", normal_map.to(torch.float16).numpy())
-        # visibility of the semi-dense points from the true camera centre at mid-frame
-        T_mid = camera_poses(traj, _as_T(true_cal), [t_mid])[0]
-        visible = torch.zeros(clean_filtered.shape[0], dtype=torch.bool)
-        if clean_filtered.shape[0]:
-            vec = clean_filtered - T_mid[:3, 3]
-            dist = vec.norm(dim=-1)
-            pc = transform_points(se3_inverse(T_mid), clean_filtered)
-            front = pc[:, 2] > 0.05
-            if bool(front.any()):
-                t_vis, _, h_vis = geometry_cast(scene, T_mid[:3, 3].to(torch.float32).expand(int(front.sum()), 3).contiguous(),
-                                                (vec[front] / dist[front, None]).to(torch.float32).contiguous())
-                ok = h_vis & (t_vis >= dist[front] - (0.02 + 0.01 * dist[front]))
-                visible[front] = ok
-        # 4. rectify with each calibration and write the frame
-        for name, cal in (("online", cals.online), ("factory", cals.factory)):
-            rect, pin = rigs[name]
-            img = _to_uint8(rect.warp(raw_f))
-            write_png(partial / streams[name] / "images" / f"{k:05d}.png", img)
-            offset_ns = int(round(cal.time_offset_s * 1e9))
-            read_start = int(t_cam[k] + offset_ns)
-            read_end = read_start + int(round(readout_stated * 1e9))
-            timestamp = read_start + int(round((readout_stated / 2 + exposure_recorded / 2) * 1e9))
-            T_dc = _as_T(cal)
-            T_wc = camera_poses(traj, T_dc, [timestamp])[0]
-            frames_out[name].append(frame_entry(k, pin, T_dc.numpy(), T_wc.numpy(), timestamp, read_start, read_end,
-                                                exposure_recorded, gain))
-            # sparse depth: visible filtered points projected with this calibration's camera
-            pcam = transform_points(se3_inverse(T_wc), noisy_filtered[visible])
-            uv, okp = pin.project(pcam)
-            inside = okp & (uv[:, 0] >= 0) & (uv[:, 0] <= pin.width - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= pin.height - 1)
-            iu = uv[:, 0].round().long().clamp(0, pin.width - 1)
-            iv = uv[:, 1].round().long().clamp(0, pin.height - 1)
-            inside &= rect.valid[iv, iu]
-            idx = visible.nonzero()[:, 0][inside]
-            write_sparse_depth(partial / streams[name] / "sparse_depth" / f"{k:05d}.json", uv[inside].numpy(), pcam[inside, 2].numpy(),
-                               sd_filtered.inv_dist_std[idx.numpy()], sd_filtered.dist_std[idx.numpy()])
-            if name == "online":
-                calib_lines.append(calibration_record(cal, tracking_timestamp_us=timestamp // 1000))
-        truth_frames.append({
-            "index": k, "camera_read_start_ns": int(t_cam[k]), "read_start_true_ns": read_start_true,
-            "exposure_true_s": exposure_true, "exposure_recorded_s": exposure_recorded, "gain": gain,
-            "exposure_metadata_wrong": k in bad_frames, "temporal_samples": S,
-            "rays_per_pixel": S * raw.pixel_samples if S < raw.pixel_samples else S,
-            "motion_during_exposure_px": motion_px,
-            "median_luminance": float(lum.median()) if lum.numel() else 0.0,
-        })
-        result.temporal_samples.append(S)
-        result.exposures_s.append(exposure_true)
-        result.gains.append(gain)
-        # the frame's state, written last: a frame without it is redone by a resumed run
-        write_json(_frame_state_path(partial, k), {
-            "frame": k, "config_hash": chash,
-            "frames_out": {name: frames_out[name][-1] for name in ("online", "factory")},
-            "tracking_timestamp_us": calib_lines[-1].tracking_timestamp_us, "truth": truth_frames[-1],
-            "auto_exposure": {"log_eg": ae.log_eg, "held": None if ae.held is None else list(ae.held)},
-            "noise_generator": _encode_generator(generator),
-            "elapsed_s": elapsed_before_s + time.perf_counter() - t_begin,
-        }, indent=None)
+    return iterator
 
-    if end < config.n_frames:  # stopped by stop_after: the partial folder stays for a later run
-        result.complete, result.path = False, partial
-        result.time_s = elapsed_before_s + time.perf_counter() - t_begin
-        return result
 
-    # camera-level files
-    for name, cal in (("online", cals.online), ("factory", cals.factory)):
-        rect, pin = rigs[name]
-        write_camera_maps(partial / streams[name], rect.warp_vignette(device_vignette(cal)).numpy(), rect.valid.numpy(),
-                          rect.row_time_ratio().numpy())
-        write_transforms(partial / streams[name], frames_out[name], camera_label=dev.label,
-                         extra={"calibration": name, "readout_s": readout_stated,
+def _write_stream_files(setup: CaptureSetup, frames_out: dict[str, list[dict]], partial: Path) -> None:
+    """Each stream's camera maps (vignette, valid mask, row time ratio) and transforms.json."""
+    from egobench.data.transforms import write_camera_maps, write_transforms
+
+    for name, cal in setup.calibrations():
+        rect, pin = setup.rigs[name]
+        stream = partial / setup.streams[name]
+        write_camera_maps(stream, rect.warp_vignette(calibrated_vignette(cal, setup.device)).numpy(),
+                          rect.valid.numpy(), rect.row_time_ratio().numpy())
+        write_transforms(stream, frames_out[name], camera_label=setup.device.label,
+                         extra={"calibration": name, "readout_s": setup.clocks.readout_stated_s,
                                 "pixel_centre_convention": "integer (projectaria): cx = (W - 1) / 2 is centred"})
-    traj.to_mps_csv(mps_dir / TRAJECTORY_FILE)
-    write_semidense_points(mps_dir / POINTS_FILE, semidense)
+
+
+def _write_mps_files(setup: CaptureSetup, calib_lines: list[CalibrationRecord], partial: Path) -> None:
+    """Trajectory, semi-dense points, online calibration (MPS folder), factory calibration, per-stream links."""
+    from egobench.data.layout import (FACTORY_CALIBRATION_FILE, MPS_SLAM, ONLINE_CALIBRATION_FILE, POINTS_FILE,
+                                      TRAJECTORY_FILE, link_mps_files)
+    from egobench.data.mps import write_calibration_json, write_online_calibration, write_semidense_points
+    from egobench.sim.calibration import calibration_record
+
+    mps_dir = partial / MPS_SLAM
+    setup.trajectory.to_mps_csv(mps_dir / TRAJECTORY_FILE)
+    write_semidense_points(mps_dir / POINTS_FILE, setup.semidense.points)
     write_online_calibration(mps_dir / ONLINE_CALIBRATION_FILE, calib_lines)
-    write_calibration_json(partial / FACTORY_CALIBRATION_FILE, calibration_record(cals.factory))
+    write_calibration_json(partial / FACTORY_CALIBRATION_FILE, calibration_record(setup.cals.factory))
     for name in ("online", "factory"):  # the MPS files inside each stream folder, as relative symlinks
-        link_mps_files(partial / streams[name], mps_dir)
-    result.time_s = elapsed_before_s + time.perf_counter() - t_begin
-    write_json(partial / "ground_truth" / "truth.json", {
-        "true_calibration": calibration_record(true_cal).to_json(),
+        link_mps_files(partial / setup.streams[name], mps_dir)
+
+
+def _truth_json(setup: CaptureSetup, truth_frames: list[dict]) -> dict:
+    """ground_truth/truth.json: the true calibration, calibration errors, hidden effects, units, frame records."""
+    from egobench.sim.calibration import calibration_record
+
+    config, dev, cals, clocks = setup.config, setup.device, setup.cals, setup.clocks
+    noise_model = setup.photometric.noise_model
+    return {
+        "true_calibration": calibration_record(cals.true).to_json(),
         "calibration_errors": cals.perturbations,
         "hidden_effects": {
-            "readout_scale": config.readout_scale, "readout_true_s": readout_true, "readout_stated_s": readout_stated,
-            "time_offset_s": config.time_offset_s, "time_offset_true_s": true_cal.time_offset_s,
+            "readout_scale": config.readout_scale, "readout_true_s": clocks.readout_true_s,
+            "readout_stated_s": clocks.readout_stated_s,
+            "time_offset_s": config.time_offset_s, "time_offset_true_s": cals.true.time_offset_s,
             "exposure_s": config.exposure_s, "vignette_strength": config.vignette_strength,
-            "response_gamma": gamma, "white_balance": list(config.white_balance),
+            "response_gamma": setup.photometric.gamma, "white_balance": list(config.white_balance),
             "exposure_metadata_error": config.exposure_metadata_error,
-            "exposure_metadata_frames": sorted(bad_frames),
+            "exposure_metadata_frames": sorted(setup.metadata_wrong_frames),
             "noise": config.noise, "full_well_e": noise_model.full_well_e, "read_noise_e": noise_model.read_noise_e,
             "noise_std_factor": config.noise_std_factor, "distortion_k0_delta": config.distortion_k0_delta,
         },
@@ -898,14 +1174,55 @@ def _simulate_into(config: SimConfig, out_dir: Path, partial: Path, chash: str, 
                      "depth": "z in the online rectified camera, metres, 0 = no hit / invalid (float16)",
                      "normal": "unit normal in the online camera frame, 0 = none (float16)"},
         "frames": truth_frames,
-    })
-    write_json(partial / "recording.json", {
+    }
+
+
+def _recording_json(setup: CaptureSetup, result: CaptureResult) -> dict:
+    """recording.json: name, kind, device, motion, seed, SimConfig, sizes, fps, time and temporal-sample summary."""
+    import egobench
+
+    config, dev = setup.config, setup.device
+    H_raw, W_raw = setup.raw.valid.shape
+    return {
         "name": config.recording_name, "scene_kind": config.kind, "device": dev.name, "motion": config.motion,
         "seed": config.seed, "sim_config": config.to_dict(), "egobench_version": egobench.__version__,
         "raw_size": [W_raw, H_raw], "rectified_size": [config.rectified_size, config.rectified_size],
         "fps": dev.fps, "simulation_time_s": result.time_s,
         "temporal_samples": {"min": min(result.temporal_samples), "max": max(result.temporal_samples),
                              "mean": float(np.mean(result.temporal_samples))},
-    })
+    }
+
+
+def _write_recording_files(setup: CaptureSetup, run: CaptureRun, partial: Path, t_begin: float) -> None:
+    """The recording-level files once every frame is done: streams, MPS, truth.json, recording.json."""
+    from egobench.io_utils import write_json
+
+    _write_stream_files(setup, run.frames_out, partial)
+    _write_mps_files(setup, run.calib_lines, partial)
+    run.result.time_s = run.elapsed_before_s + time.perf_counter() - t_begin
+    write_json(partial / "ground_truth" / "truth.json", _truth_json(setup, run.truth_frames))
+    write_json(partial / "recording.json", _recording_json(setup, run.result))
+
+
+def _simulate_into(config: SimConfig, out_dir: Path, partial: Path, chash: str, states: list[dict], resuming: bool,
+                   progress: bool, stop_after: int | None, t_begin: float) -> CaptureResult:
+    """The body of `simulate_recording`: frames len(states).. into `partial`, then the recording files."""
+    from egobench.io_utils import write_json
+
+    setup = build_capture_setup(config)
+    if resuming:  # frames already completed by an earlier run: their records and the state after the last one
+        _drop_frames_from(partial, len(states), frame_dirs(config))
+    run = _restore_run(setup, out_dir, states)
+    _make_folders(config, partial)
+    end = config.n_frames if stop_after is None else min(config.n_frames, stop_after)
+    for k in _frame_indices(config, len(states), end, progress):
+        _simulate_frame(setup, run, k, partial)
+        # the frame's state, written last: a frame without it is redone by a resumed run
+        write_json(_frame_state_path(partial, k), _frame_state(run, k, chash, t_begin), indent=None)
+    if end < config.n_frames:  # stopped by stop_after: the partial folder stays for a later run
+        run.result.complete, run.result.path = False, partial
+        run.result.time_s = run.elapsed_before_s + time.perf_counter() - t_begin
+        return run.result
+    _write_recording_files(setup, run, partial, t_begin)
     _finalise(partial, out_dir)
-    return result
+    return run.result
