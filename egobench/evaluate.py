@@ -182,6 +182,10 @@ def evaluate(recording_dir, run_dir, *, scene: str | None = None, paper_scene: s
     with torch.no_grad():
         per_image = [_evaluate_frame(held, f, n, geo_rec, renders_dir, ok_lpips, teaser=f is noisiest)
                      for f, n in zip(held.frames, held.counts)]
+    missing = sum(1 for e in per_image if e.pop("geometry_missing", False))
+    if missing:
+        notes["geometry"] = (f"{missing} of {len(per_image)} held-out frames have no pixel where the model is opaque "
+                             "(alpha > 0.5) and the ground truth valid: their depth/normal are missing from the means")
     record = _run_record(held, per_image, notes, scene, paper_scene, scene_kind)
     write_json(Path(run_dir) / "eval.json", record)
     return record
@@ -269,6 +273,8 @@ def _geometry(run: TrainedRun, geo_rec: Recording, frame: Frame, n: int, scale: 
     o = render_frame(run.gaussians, cam, poses, ppi, run.spec, RenderSettings.of(run.config),
                      want_normal=n_path is not None)[0]
     valid = (resize_map(geo_rec.mask.float(), cam, "nearest") > 0.5) & (o.alpha[0, ..., 0].cpu() > 0.5)
+    if not bool(valid.any()):  # the model is transparent everywhere here: no geometry to score
+        return {"depth_si_l1": None, "normal_l1": None, "geometry_missing": True}
     if d_path is not None:
         gt_d = resize_map(torch.from_numpy(np.load(d_path).astype(np.float32)), cam, "nearest")
         out["depth_si_l1"] = depth_si_l1(o.depth[0, ..., 0].cpu(), gt_d, valid)

@@ -128,3 +128,24 @@ def test_bad_run_and_recording(trained, tmp_path):
     factory = dataclasses.replace(rec, calibration="factory")
     with pytest.raises(ValueError, match="evaluated on the 'online' stream"):
         evaluate(factory, run)
+
+
+def test_transparent_model_has_no_geometry_instead_of_crashing(trained, tmp_path):
+    """A run whose Gaussians are all transparent renders no opaque pixel: depth and normal are
+    recorded as missing, with a note saying why, and PSNR is still measured."""
+    import shutil
+
+    from egobench.checkpoint import read_checkpoint
+
+    rec, run = trained
+    ck = read_checkpoint(run / "checkpoint.pt")
+    ck["params"]["opacities"] = torch.full_like(ck["params"]["opacities"], -20.0)  # sigmoid ~ 2e-9
+    (tmp_path / "run").mkdir()
+    shutil.copy(run / "train.json", tmp_path / "run" / "train.json")
+    torch.save(ck, tmp_path / "run" / "checkpoint.pt")
+    out = evaluate(rec, tmp_path / "run", save_renders=False)
+    n = len(out["per_image"])
+    assert out["metrics"]["depth_si_l1"] is None and out["metrics"]["normal_l1"] is None
+    assert all(e["depth_si_l1"] is None and "geometry_missing" not in e for e in out["per_image"])
+    assert out["notes"]["geometry"].startswith(f"{n} of {n} held-out frames have no pixel where the model is opaque")
+    assert np.isfinite(out["metrics"]["psnr"])
