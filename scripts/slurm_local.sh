@@ -30,6 +30,10 @@ ACCOUNT=egobench
 PARTITION=cpu
 DB_PORT="${EGOBENCH_SLURM_DB_PORT:-3307}"
 WAIT_S="${EGOBENCH_SLURM_WAIT_S:-60}"
+# EGOBENCH_SLURM_GPUS=N declares N GPUs on the node (a count without devices: jobs see no GPU) and a
+# `gpu` partition, to check that GPU requests (--gres=gpu:1, --gpus=1) are accepted and scheduled.
+GPUS="${EGOBENCH_SLURM_GPUS:-0}"
+GRES_CONF=/etc/slurm/gres.conf
 DB_DIR="$STATE_DIR/mariadb"
 DB_SOCK="$DB_DIR/mariadb.sock"
 
@@ -48,7 +52,7 @@ need_binaries() {
         "apt-get install -y slurm-wlm slurmdbd munge mariadb-server"
 }
 
-pid_alive() { [ -f "$1" ] && kill -0 "$(cat "$1")" 2>/dev/null; }
+pid_alive() { [ -f "$1" ] && kill -0 "$(cat "$1" 2>/dev/null)" 2>/dev/null; }
 
 # Poll a command (its arguments) every 0.5 s until it succeeds, for at most $WAIT_S s.
 wait_for() {
@@ -129,6 +133,16 @@ write_conf() {
     host="$(hostname -s)"
     case "$node_line" in NodeName=*RealMemory=*) ;; *) die "slurmd -C gave no node description: $node_line" ;; esac
     own_file_or_die "$CONF"
+    local gres_line="" gpu_partition=""
+    if [ "$GPUS" -gt 0 ]; then
+        own_file_or_die "$GRES_CONF"
+        printf '%s\nNodeName=%s Name=gpu File=/dev/null Count=%s\n' "$MARKER" "$host" "$GPUS" >"$GRES_CONF"
+        gres_line=$'GresTypes=gpu\nAccountingStorageTRES=gres/gpu'
+        node_line="$node_line Gres=gpu:$GPUS"
+        gpu_partition="PartitionName=gpu Nodes=$host MaxTime=INFINITE State=UP"
+    elif [ -f "$GRES_CONF" ] && grep -qF "$MARKER" "$GRES_CONF"; then
+        rm -f "$GRES_CONF"
+    fi
     local tmp="$CONF.tmp.$$"
     cat >"$tmp" <<CONF
 $MARKER; rewritten on every start
@@ -158,9 +172,11 @@ AccountingStorageHost=localhost
 # finished jobs stay visible to squeue for 10 minutes
 MinJobAge=600
 ReturnToService=2
+$gres_line
 SchedulerType=sched/backfill
 $node_line State=UNKNOWN
 PartitionName=$PARTITION Nodes=$host Default=YES MaxTime=INFINITE State=UP
+$gpu_partition
 CONF
     mv "$tmp" "$CONF"
 }
