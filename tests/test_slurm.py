@@ -91,10 +91,13 @@ def slurm_unreachable() -> str:
         return "snakemake-executor-plugin-slurm not installed (pip install -e '.[slurm]')"
     if shutil.which("sbatch") is None or shutil.which("sacct") is None:
         return "no SLURM client commands (sbatch, sacct) on PATH"
-    state = subprocess.run(["sinfo", "-h", "-p", "cpu", "-o", "%T"], capture_output=True, text=True, timeout=30)
-    if state.returncode != 0 or not {"idle", "mixed", "allocated"} & set(state.stdout.split()):
-        return f"no SLURM partition 'cpu' with a usable node (sinfo: {(state.stdout + state.stderr).strip()!r})"
-    acct = subprocess.run(["sacct", "-n", "-X", "-S", "now-1minutes"], capture_output=True, text=True, timeout=30)
+    try:
+        state = subprocess.run(["sinfo", "-h", "-p", "cpu", "-o", "%T"], capture_output=True, text=True, timeout=60)
+        if state.returncode != 0 or not {"idle", "mixed", "allocated"} & set(state.stdout.split()):
+            return f"no SLURM partition 'cpu' with a usable node (sinfo: {(state.stdout + state.stderr).strip()!r})"
+        acct = subprocess.run(["sacct", "-n", "-X", "-S", "now-1minutes"], capture_output=True, text=True, timeout=60)
+    except subprocess.TimeoutExpired as exc:
+        return f"the SLURM controller did not answer {exc.cmd[0]} within {exc.timeout:.0f} s"
     if acct.returncode != 0:
         return f"SLURM accounting unavailable (sacct: {acct.stderr.strip()})"
     return ""
