@@ -185,7 +185,8 @@ register_accounts() {
     sacctmgr -i -n show cluster "$CLUSTER" format=cluster | grep -q "$CLUSTER" \
         || sacctmgr -i add cluster "$CLUSTER" >/dev/null
     sacctmgr -i -n show account "$ACCOUNT" format=account | grep -q "$ACCOUNT" \
-        || sacctmgr -i add account "$ACCOUNT" cluster="$CLUSTER" description="egobench local" organization=egobench >/dev/null
+        || sacctmgr -i add account "$ACCOUNT" cluster="$CLUSTER" description="egobench local" \
+               organization=egobench >/dev/null
     local user
     for user in root ${SUDO_USER:-}; do
         sacctmgr -i -n show assoc where user="$user" account="$ACCOUNT" format=user | grep -q "$user" \
@@ -200,7 +201,9 @@ wait_idle() {
     for i in $(seq 1 "$WAIT_S"); do
         state="$(node_state || true)"
         case "$state" in
-            idle|mixed|allocated) say "node $(hostname -s) is $state (partition $PARTITION, cluster $CLUSTER)"; return ;;
+            idle|mixed|allocated)
+                say "node $(hostname -s) is $state (partition $PARTITION, cluster $CLUSTER)"
+                return ;;
             down*|drain*) scontrol update nodename="$(hostname -s)" state=resume >/dev/null 2>&1 || true ;;
         esac
         sleep 1
