@@ -4,14 +4,15 @@
 #
 #   sudo apt-get install -y slurm-wlm slurmdbd munge mariadb-server   # Debian 12: SLURM 22.05
 #   sudo scripts/slurm_local.sh start      # munge, MariaDB, slurmdbd, slurmctld, slurmd; waits until idle
-#   scripts/slurm_local.sh status         # sinfo of the node
+#   scripts/slurm_local.sh status          # sinfo of the node
 #   sudo scripts/slurm_local.sh stop       # cancels what is queued and stops the daemons again
 #
 # The node is described from the machine itself (`slurmd -C`: CPUs, sockets, cores, RealMemory),
 # with one partition `cpu`. Containers rarely let slurmd manage cgroups, so the configuration is
 # cgroup-free: processes are tracked through /proc (proctrack/linuxproc), and memory is enforced by
-# the accounting poller (jobacct_gather/linux + OverMemoryKill: a step whose RSS exceeds its --mem
-# is killed and the job ends OUT_OF_MEMORY). Accounting is real, as on a cluster: slurmdbd on a
+# the accounting poller (jobacct_gather/linux + OverMemoryKill, every 2 s: a step whose RSS exceeds
+# its --mem is killed; sacct then shows the job FAILED, its step CANCELLED, MaxRSS above ReqMem, and
+# the job log slurmstepd's "exceeded memory limit (used > limit)"). Accounting is real, as on a cluster: slurmdbd on a
 # private MariaDB instance (127.0.0.1 only, its own data directory), so `sacct` reports each job's
 # state, requested memory and peak RSS, which the executor plugin and `egobench slurm-report` read.
 # A cluster `egobench` with an account `egobench` for root and the invoking user is registered.
