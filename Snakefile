@@ -7,6 +7,7 @@
 import os
 import re
 import sys
+import time
 
 from snakemake.exceptions import WorkflowError
 from snakemake.utils import min_version, validate
@@ -14,6 +15,7 @@ from snakemake.utils import min_version, validate
 min_version("9.0")
 
 sys.path.insert(0, workflow.basedir)  # egobench importable without `pip install`
+from egobench import slurm_report
 from egobench import workflow_config as wc
 
 
@@ -33,6 +35,7 @@ validate(config, "workflows/schemas/config.schema.yaml")
 SUITE = wc.Suite(config)
 R = SUITE.root
 EGOBENCH = wc.egobench_command(config["egobench_command"], workflow.basedir)
+RUN_START = time.time()  # on SLURM, this run's job logs are those written since
 
 
 wildcard_constraints:
@@ -58,3 +61,11 @@ rule all:
     input:
         all_outputs(),
     default_target: True
+
+
+onerror:
+    # snakemake-executor-plugin-slurm: name the jobs that went over their memory request, with the
+    # rule, the request and the peak RSS that SLURM measured (egobench slurm-report; '' otherwise)
+    memory = slurm_report.report_failed_run(workflow.executor_settings, workflow.workdir_init, RUN_START)
+    if memory:
+        print(f"SLURM jobs over their memory request:\n{memory}", file=sys.stderr)
