@@ -60,3 +60,15 @@ def test_diagnose_train_uses_the_train_preset_at_full_resolution(tmp_path, monke
     expected = TrainConfig.cpu(max_side=0).scaled_to(40)
     assert run_dir == tmp_path / "d" / "run" and seen["method"] == "no_motion_sampling"
     assert seen["config"] == expected and seen["progress"] is False
+
+
+def test_a_verb_imports_only_its_own_module():
+    """`egobench tables ...` must not pay for matplotlib (plots) or scipy.stats (diagnose): the parser
+    registers only the called verb's arguments; every other verb keeps its name and help."""
+    import subprocess
+
+    code = ("import sys; from egobench import cli; p = cli.build_parser(only='tables'); "
+            "print(sorted(m for m in ('egobench.plots', 'egobench.diagnose.core', 'egobench.tables') if m in sys.modules)); "
+            "print(sorted(next(a for a in p._actions if a.dest == 'verb').choices) == sorted(cli.VERBS))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split("\n")
+    assert out[0] == "['egobench.tables']" and out[1] == "True"
