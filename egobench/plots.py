@@ -74,7 +74,8 @@ def placeholder_figure(title: str, reason: str):
 
 
 def gains_figure(records: Sequence[RunRecord]):
-    """Grouped bars per table: paper's mean PSNR change (matched scenes) versus ours (+- std)."""
+    """Grouped bars per table: paper's mean PSNR change (matched scenes) versus ours (95 % interval over
+    seeds); a row identical to its reference by construction is labelled, not drawn as zero."""
     df = gains_frame(records)
     df = df[df["n_seeds"] > 0] if len(df) else df
     if not len(df):
@@ -87,9 +88,14 @@ def gains_figure(records: Sequence[RunRecord]):
         x = np.arange(len(sub))
         paper = sub["paper_delta_psnr_matched"].astype(float).to_numpy()
         ours = sub["delta_psnr_mean"].astype(float).to_numpy()
-        std = np.nan_to_num(sub["delta_psnr_std"].astype(float).to_numpy(), nan=0.0)
+        low = sub["delta_psnr_ci95_low"].astype(float).to_numpy()
+        high = sub["delta_psnr_ci95_high"].astype(float).to_numpy()
+        yerr = np.nan_to_num(np.stack([ours - low, high - ours]), nan=0.0)  # 95 % interval over seeds
         ax.bar(x - 0.2, np.nan_to_num(paper), 0.4, label="paper", color="#999999")
-        ax.bar(x + 0.2, ours, 0.4, yerr=std, capsize=3, label="egobench", color="#1f77b4")
+        ax.bar(x + 0.2, np.nan_to_num(ours), 0.4, yerr=yerr, capsize=3, label="egobench (95 % CI)", color="#1f77b4")
+        for xi, why in zip(x, sub["identical"].fillna("")):
+            if why:  # no measurement: say why instead of drawing a zero bar
+                ax.text(xi + 0.2, 0.0, why.split(":")[0], rotation=90, fontsize=6, ha="center", va="bottom")
         ax.axhline(0.0, color="black", lw=0.8)
         names = [method_label(m, group) + ("" if ref == "ours" else f"\n(vs. {method_label(ref, group)})")
                  for m, ref in zip(sub["method"], sub["reference"])]

@@ -379,13 +379,50 @@ def _assemble(group, paper, groups, metrics, ours_rows, paper_rows, notes, per_g
 # Gains and Table 4
 
 
+def ci95(values: Sequence[float]) -> tuple[float | None, float | None]:
+    """Two-sided 95 % t-interval of the mean of ``values`` (seed-level paired differences); (None,
+    None) below two values."""
+    n = len(values)
+    if n < 2:
+        return None, None
+    from scipy.stats import t
+
+    mean, sem = float(np.mean(values)), float(np.std(values, ddof=1)) / math.sqrt(n)
+    half = float(t.ppf(0.975, n - 1)) * sem
+    return mean - half, mean + half
+
+
+def identical_by_construction(method: str, pairs: Sequence[tuple[RunRecord, RunRecord]]) -> str:
+    """Why ``method`` cannot differ from its reference on these runs ('' when it can): a motion-sampling
+    ablation whose reference rendered every frame with one pose sample, at training and evaluation, is
+    the same computation. Detected from the records, never assumed: every paired PSNR must be equal too."""
+    if not pairs or any(a.metrics[pn.PSNR] != b.metrics[pn.PSNR] for a, b in pairs):
+        return ""
+    if "no_motion_sampling" in method:
+        one_sample = all((b.raw.get("eval") or {}).get("pose_samples_mean") == 1.0
+                         and all(e.get("pose_samples", 1) == 1 for e in b.raw.get("per_image", [])) for _, b in pairs)
+        if one_sample:
+            return ("identical by construction: every held-out frame of the reference has one rolling-shutter "
+                    "pose sample (motion sampling never switches on at this motion and resolution)")
+    return "identical results: every paired PSNR is equal (this ablation changes nothing on these runs)"
+
+
+def _paired(recs: Sequence[RunRecord], method: str, ref: str) -> list[tuple[RunRecord, RunRecord]]:
+    """(method run, reference run) on the same scene and seed (the same recording)."""
+    ref_by = {(r.scene, r.seed): r for r in recs if r.method == ref}
+    return sorted(((r, ref_by[(r.scene, r.seed)]) for r in recs if r.method == method and (r.scene, r.seed) in ref_by),
+                  key=lambda p: (p[0].scene, p[0].seed))
+
+
 def gains_frame(records: Sequence[RunRecord]) -> pd.DataFrame:
     """Mean PSNR change of each method relative to its reference, ours versus the paper's.
 
-    Only methods run on scenes of the table's kind are listed. Ours: for every seed, the mean over scenes (run with that seed by both methods) of
-    PSNR(method) - PSNR(reference); then the mean and sample std of that over seeds. Paper:
-    the mean difference over the paper columns our scenes stand for (``paper_matched``) and over
-    all of the paper table's columns (``paper_all``).
+    Only methods run on scenes of the table's kind are listed. Ours: the paired difference
+    PSNR(method) - PSNR(reference) on the same scene and seed (the same recording); for every seed
+    the mean over scenes, then the mean, sample std and 95 % t-interval over seeds. A method that
+    cannot differ from its reference on these runs (`identical_by_construction`) carries the reason
+    instead of a Δ. Paper: the mean difference over the paper columns our scenes stand for
+    (``paper_matched``) and over all of the paper table's columns (``paper_all``).
     """
     rows = []
     for group, (kind, paper) in GROUPS.items():
@@ -396,35 +433,39 @@ def gains_frame(records: Sequence[RunRecord]) -> pd.DataFrame:
             ref = GAIN_REFERENCE.get(m, "ours")
             if m == ref or m == "ours":
                 continue
-            by = {(r.scene, r.seed): r.metrics[pn.PSNR] for r in recs if r.method == m}
-            ref_by = {(r.scene, r.seed): r.metrics[pn.PSNR] for r in recs if r.method == ref}
-            pairs = sorted(set(by) & set(ref_by))
+            pairs = _paired(recs, m, ref)
             per_seed: dict[int, list[float]] = {}
-            for scene, seed in pairs:
-                per_seed.setdefault(seed, []).append(by[(scene, seed)] - ref_by[(scene, seed)])
+            for a, b in pairs:
+                per_seed.setdefault(a.seed, []).append(a.metrics[pn.PSNR] - b.metrics[pn.PSNR])
             seed_means = [float(np.mean(v)) for _, v in sorted(per_seed.items())]
             cell = _stats(seed_means)
-            matched = sorted({(r.paper_scene or "").lower() for r in recs} & set(paper.columns))
-            if kind in ("object", "quest3") and recs:
-                matched = list(paper.columns)
-
-            def paper_delta(cols):
-                d = [paper.value(m, c, pn.PSNR) - paper.value(ref, c, pn.PSNR) for c in cols
-                     if paper.value(m, c, pn.PSNR) is not None and paper.value(ref, c, pn.PSNR) is not None]
-                return round(float(np.mean(d)), 6) if d else None
-
+            low, high = ci95(seed_means)
+            identical = identical_by_construction(m, pairs)
             rows.append({
-                "group": group,
-                "method": m,
-                "reference": ref,
-                "n_scenes": len({s for s, _ in pairs}),
+                "group": group, "method": m, "reference": ref, "n_scenes": len({a.scene for a, _ in pairs}),
                 "n_seeds": cell.n,
-                "delta_psnr_mean": cell.mean,
-                "delta_psnr_std": cell.std,
-                "paper_delta_psnr_matched": paper_delta(matched),
-                "paper_delta_psnr_all": paper_delta(paper.columns),
+                "delta_psnr_mean": None if identical else cell.mean,
+                "delta_psnr_std": None if identical else cell.std,
+                "delta_psnr_ci95_low": None if identical else low,
+                "delta_psnr_ci95_high": None if identical else high,
+                "identical": identical,
+                "paper_delta_psnr_matched": _paper_delta(paper, m, ref, _matched_columns(recs, kind, paper)),
+                "paper_delta_psnr_all": _paper_delta(paper, m, ref, paper.columns),
             })
     return pd.DataFrame(rows)
+
+
+def _matched_columns(recs: Sequence[RunRecord], kind: str, paper: pn.PaperTable) -> list[str]:
+    """The paper columns our scenes stand for (object and Quest 3: all of the table's)."""
+    if kind in ("object", "quest3") and recs:
+        return list(paper.columns)
+    return sorted({(r.paper_scene or "").lower() for r in recs} & set(paper.columns))
+
+
+def _paper_delta(paper: pn.PaperTable, method: str, ref: str, cols) -> float | None:
+    d = [paper.value(method, c, pn.PSNR) - paper.value(ref, c, pn.PSNR) for c in cols
+         if paper.value(method, c, pn.PSNR) is not None and paper.value(ref, c, pn.PSNR) is not None]
+    return round(float(np.mean(d)), 6) if d else None
 
 
 def table4_frame(records: Sequence[RunRecord]) -> pd.DataFrame:
@@ -537,8 +578,9 @@ def _num(value: Any, decimals: int, signed: bool = False) -> str:
 
 def gains_to_latex(df: pd.DataFrame) -> str:
     lines = _latex_head(
-        "Mean PSNR change (dB) relative to the reference method: egobench (mean $\\pm$ std over "
-        "seeds) versus the paper (same scenes / all of the table's scenes).", "llcccc",
+        "Mean PSNR change (dB) relative to the reference method on the same recordings: egobench (mean "
+        "over seeds, 95\\,\\% interval over seeds) versus the paper (same scenes / all of the table's scenes).",
+        "llcccc",
     ) + [
         "table & method (vs.\\ reference) & seeds & egobench $\\Delta$PSNR & paper (matched) & paper (all) \\\\",
         "\\midrule",
@@ -548,17 +590,27 @@ def gains_to_latex(df: pd.DataFrame) -> str:
         if prev is not None and r["group"] != prev:
             lines.append("\\midrule")
         prev = r["group"]
-        ours = _num(r["delta_psnr_mean"], 2, True)
-        if r["delta_psnr_std"] is not None and not pd.isna(r["delta_psnr_std"]):
-            ours += f"\\,{{\\scriptsize$\\pm${r['delta_psnr_std']:.2f}}}"
         method = latex_escape(method_label(r["method"], r["group"]))
         ref = latex_escape(method_label(r["reference"], r["group"]))
         lines.append(
-            f"{latex_escape(r['group'])} & {method} (vs.\\ {ref}) & {int(r['n_seeds'])} & {ours} & "
+            f"{latex_escape(r['group'])} & {method} (vs.\\ {ref}) & {int(r['n_seeds'])} & {_gain_cell(r)} & "
             f"{_num(r['paper_delta_psnr_matched'], 2, True)} & {_num(r['paper_delta_psnr_all'], 2, True)} \\\\"
         )
     lines += ["\\bottomrule", "\\end{tabular}", "\\label{tab:egobench_gains}", "\\end{table}", ""]
     return "\n".join(lines)
+
+
+def _gain_cell(r: pd.Series) -> str:
+    """Our Δ with its seed interval, or the reason it is not a measurement."""
+    if isinstance(r.get("identical"), str) and r["identical"]:
+        return "\\emph{" + latex_escape(r["identical"].split(":")[0]) + "}"
+    ours = _num(r["delta_psnr_mean"], 2, True)
+    low, high = r.get("delta_psnr_ci95_low"), r.get("delta_psnr_ci95_high")
+    if low is not None and not pd.isna(low):
+        ours += f"\\,{{\\scriptsize[{low:+.2f}, {high:+.2f}]}}"
+    else:
+        ours += "\\,{\\scriptsize(1 seed)}"
+    return ours
 
 
 def table4_to_latex(df: pd.DataFrame) -> str:

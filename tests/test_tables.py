@@ -290,3 +290,37 @@ def test_record_without_kind_only_in_results(tmp_path):
     for name in ("table1_outdoor", "table1_indoor", "table2", "table3"):
         assert "real" not in (tmp_path / "t" / f"{name}.csv").read_text()
     assert "\\texttt{tab:aria\\_scene}" in (tmp_path / "t" / "table1_outdoor.tex").read_text()
+
+
+# ----------------------------------------------------------------------------- paired deltas, intervals
+def test_gains_carry_a_paired_95_percent_interval_over_seeds():
+    """Seed-level paired Δ of -1, -2, -3 dB: mean -2, sd 1, t(0.975, 2) = 4.302653 -> -2 -+ 2.48414."""
+    recs = []
+    for seed, delta in enumerate((-1.0, -2.0, -3.0)):
+        recs.append(make_record("out_a", "outdoor", "ours", seed, 25.0 + seed))
+        recs.append(make_record("out_a", "outdoor", "no_viba", seed, 25.0 + seed + delta))
+    g = T.gains_frame([T.parse_record(r) for r in recs]).set_index("method").loc["no_viba"]
+    half = 4.302652729911275 * 1.0 / math.sqrt(3)
+    assert g["delta_psnr_mean"] == pytest.approx(-2.0) and g["delta_psnr_std"] == pytest.approx(1.0)
+    assert g["delta_psnr_ci95_low"] == pytest.approx(-2.0 - half) and g["delta_psnr_ci95_high"] == pytest.approx(-2.0 + half)
+    assert g["identical"] == "" and T.ci95([0.5]) == (None, None)
+    assert "[-4.48, +0.48]" in T.gains_to_latex(T.gains_frame([T.parse_record(r) for r in recs]))
+
+
+def test_a_row_identical_by_construction_is_named_not_measured():
+    """Motion sampling that never switched on (one pose sample on every frame of ours) gives the ablation
+    the same computation: the row says so instead of '+0.00'. Once any frame has two samples (and the
+    PSNRs differ), it is a measurement again."""
+    def pair(seed, samples, psnr_ablation):
+        ours = make_record("out_a", "outdoor", "ours", seed, 25.0)
+        ours["per_image"] = [{"frame": 0, "psnr": 25.0, "pose_samples": s} for s in samples]
+        ours["eval"] = {"pose_samples_mean": float(np.mean(samples))}
+        return [ours, make_record("out_a", "outdoor", "no_motion_sampling", seed, psnr_ablation)]
+
+    same = [T.parse_record(r) for s in range(3) for r in pair(s, [1, 1, 1], 25.0)]
+    row = T.gains_frame(same).set_index("method").loc["no_motion_sampling"]
+    assert row["identical"].startswith("identical by construction") and pd.isna(row["delta_psnr_mean"])
+    assert "\\emph{identical by construction}" in T.gains_to_latex(T.gains_frame(same))
+    active = [T.parse_record(r) for s in range(3) for r in pair(s, [1, 3, 2], 24.5)]
+    row = T.gains_frame(active).set_index("method").loc["no_motion_sampling"]
+    assert row["identical"] == "" and row["delta_psnr_mean"] == pytest.approx(-0.5)
