@@ -1,0 +1,519 @@
+"""numba kernels of the compiled CPU backend (3DGS; gsplat 1.5.3 semantics, as torch_backend.py).
+
+Projection (forward and backward, per Gaussian), tile binning (sequential counting sort: the
+intersection order is (bin, depth, Gaussian index), as the torch backend's stable sorts), and
+tile compositing (forward front to back, backward back to front recovering T by division, as
+gsplat's CUDA kernels). Inside a tile the loop runs Gaussian-major over the pixels of the
+Gaussian's opacity-aware bounding box only, with per-pixel state in tile-local arrays, so the
+cost follows the Gaussian-pixel pairs that matter rather than tiles x candidates.
+
+Determinism: parallel loops (``prange``) only write disjoint slices (one tile, one Gaussian, or
+one fixed chunk of Gaussians); every sum over Gaussians or intersections is then reduced
+sequentially in a fixed order, so results do not depend on the number of threads.
+Compiled once per dtype and cached on disk (numba ``cache=True``: ``__pycache__`` beside this
+file, or numba's user-wide cache directory / ``NUMBA_CACHE_DIR`` when that is not writable).
+Pixel coordinates: gsplat's (centre of pixel (u, v) at (u + 0.5, v + 0.5)).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+ALPHA_MIN = 1.0 / 255.0
+ALPHA_MAX = 0.999
+T_STOP = 1e-4
+EXTENT_SIGMAS = 3.33
+SIGMA_SKIP = 5.55  # exp(-5.55) < 1/255: pairs with a larger exponent are skipped without exp()
+CHUNK = 256  # Gaussians per chunk of the projection backward's pose-gradient partial sums
+
+
+@njit(cache=True, inline="always")
+def _rotmat(qw, qx, qy, qz):
+    """Normalised quaternion -> rotation matrix entries (row-major), and 1/|q|."""
+    nrm = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+    inv = 1.0 / max(nrm, 1e-12)
+    w, x, y, z = qw * inv, qx * inv, qy * inv, qz * inv
+    R = np.empty((3, 3))
+    R[0, 0] = 1.0 - 2.0 * (y * y + z * z)
+    R[0, 1] = 2.0 * (x * y - w * z)
+    R[0, 2] = 2.0 * (x * z + w * y)
+    R[1, 0] = 2.0 * (x * y + w * z)
+    R[1, 1] = 1.0 - 2.0 * (x * x + z * z)
+    R[1, 2] = 2.0 * (y * z - w * x)
+    R[2, 0] = 2.0 * (x * z - w * y)
+    R[2, 1] = 2.0 * (y * z + w * x)
+    R[2, 2] = 1.0 - 2.0 * (x * x + y * y)
+    return R, w, x, y, z, inv
+
+
+@njit(cache=True, inline="always")
+def _argmin3(s0, s1, s2):
+    a = 0
+    if s1 < s0:
+        a = 1
+    if s2 < (s1 if a == 1 else s0):
+        a = 2
+    return a
+
+
+@njit(cache=True, parallel=True)
+def project_fwd(means, quats, scales, opac, viewmats, cam, width, height, eps2d, near, far, want_normal,
+                means2d, conics, depths, radii, normals):
+    """means [N,3], quats [N,4], scales [N,3], opac [N], viewmats [I,4,4], cam (fx, fy, cx, cy)
+    -> fills means2d [I,N,2], conics [I,N,3], depths [I,N], radii [I,N,2] int32, normals [I,N,3]."""
+    N = means.shape[0]
+    I = viewmats.shape[0]
+    fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
+    tan_fovx, tan_fovy = 0.5 * width / fx, 0.5 * height / fy
+    lxp = (width - cx) / fx + 0.3 * tan_fovx
+    lxn = cx / fx + 0.3 * tan_fovx
+    lyp = (height - cy) / fy + 0.3 * tan_fovy
+    lyn = cy / fy + 0.3 * tan_fovy
+    for n in prange(N):
+        R, _, _, _, _, _ = _rotmat(quats[n, 0], quats[n, 1], quats[n, 2], quats[n, 3])
+        ax = _argmin3(scales[n, 0], scales[n, 1], scales[n, 2])
+        ext = EXTENT_SIGMAS
+        op = opac[n]
+        if op >= ALPHA_MIN:
+            ext = min(ext, math.sqrt(2.0 * math.log(op / ALPHA_MIN)))
+        for i in range(I):
+            V = viewmats[i]
+            x = V[0, 0] * means[n, 0] + V[0, 1] * means[n, 1] + V[0, 2] * means[n, 2] + V[0, 3]
+            y = V[1, 0] * means[n, 0] + V[1, 1] * means[n, 1] + V[1, 2] * means[n, 2] + V[1, 3]
+            z = V[2, 0] * means[n, 0] + V[2, 1] * means[n, 1] + V[2, 2] * means[n, 2] + V[2, 3]
+            in_depth = z >= near and z <= far
+            zs = z if in_depth else 1.0
+            inv_z = 1.0 / zs
+            tx = min(max(x * inv_z, -lxn), lxp)
+            ty = min(max(y * inv_z, -lyn), lyp)
+            j00, j11 = fx * inv_z, fy * inv_z
+            c00 = eps2d
+            c11 = eps2d
+            c01 = 0.0
+            for c in range(3):
+                # Mc[r, c] = sum_b V[r, b] R[b, c] s[c]
+                m0 = (V[0, 0] * R[0, c] + V[0, 1] * R[1, c] + V[0, 2] * R[2, c]) * scales[n, c]
+                m1 = (V[1, 0] * R[0, c] + V[1, 1] * R[1, c] + V[1, 2] * R[2, c]) * scales[n, c]
+                m2 = (V[2, 0] * R[0, c] + V[2, 1] * R[1, c] + V[2, 2] * R[2, c]) * scales[n, c]
+                a0 = j00 * (m0 - tx * m2)
+                a1 = j11 * (m1 - ty * m2)
+                c00 += a0 * a0
+                c11 += a1 * a1
+                c01 += a0 * a1
+            det = c00 * c11 - c01 * c01
+            valid = in_depth and det > 0
+            det_s = det if valid else 1.0
+            conics[i, n, 0] = c11 / det_s
+            conics[i, n, 1] = -c01 / det_s
+            conics[i, n, 2] = c00 / det_s
+            u = fx * x * inv_z + cx
+            v = fy * y * inv_z + cy
+            means2d[i, n, 0] = u
+            means2d[i, n, 1] = v
+            depths[i, n] = z
+            valid = valid and op >= ALPHA_MIN
+            rx = math.ceil(ext * math.sqrt(max(c00, 0.0)))
+            ry = math.ceil(ext * math.sqrt(max(c11, 0.0)))
+            valid = valid and (rx > 0 or ry > 0)
+            inside = u + rx > 0 and u - rx < width and v + ry > 0 and v - ry < height
+            if valid and inside:
+                radii[i, n, 0] = np.int32(rx)
+                radii[i, n, 1] = np.int32(ry)
+            else:
+                radii[i, n, 0] = 0
+                radii[i, n, 1] = 0
+            if want_normal:
+                nx = V[0, 0] * R[0, ax] + V[0, 1] * R[1, ax] + V[0, 2] * R[2, ax]
+                ny = V[1, 0] * R[0, ax] + V[1, 1] * R[1, ax] + V[1, 2] * R[2, ax]
+                nz = V[2, 0] * R[0, ax] + V[2, 1] * R[1, ax] + V[2, 2] * R[2, ax]
+                sgn = 1.0 if -(nx * x + ny * y + nz * z) > 0 else -1.0
+                normals[i, n, 0] = sgn * nx
+                normals[i, n, 1] = sgn * ny
+                normals[i, n, 2] = sgn * nz
+
+
+@njit(cache=True, parallel=True)
+def project_bwd(means, quats, scales, viewmats, cam, width, height, eps2d, near, far, want_normal,
+                g_means2d, g_conics, g_depths, g_normals,
+                g_means, g_quats, g_scales, g_view_parts):
+    """Backward of `project_fwd` for every entry (culled ones included, as torch's graph).
+    Fills g_means [N,3], g_quats [N,4], g_scales [N,3] and g_view_parts [chunks, I, 12]
+    (per-chunk partial dL/d viewmat[:3, :4], reduced in chunk order by the caller)."""
+    N = means.shape[0]
+    I = viewmats.shape[0]
+    fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
+    tan_fovx, tan_fovy = 0.5 * width / fx, 0.5 * height / fy
+    lxp = (width - cx) / fx + 0.3 * tan_fovx
+    lxn = cx / fx + 0.3 * tan_fovx
+    lyp = (height - cy) / fy + 0.3 * tan_fovy
+    lyn = cy / fy + 0.3 * tan_fovy
+    n_chunks = g_view_parts.shape[0]
+    for ch in prange(n_chunks):
+        for n in range(ch * CHUNK, min(N, (ch + 1) * CHUNK)):
+            R, qw, qx, qy, qz, qinv = _rotmat(quats[n, 0], quats[n, 1], quats[n, 2], quats[n, 3])
+            ax = _argmin3(scales[n, 0], scales[n, 1], scales[n, 2])
+            gR = np.zeros((3, 3))
+            gs = np.zeros(3)
+            gm = np.zeros(3)
+            for i in range(I):
+                V = viewmats[i]
+                x = V[0, 0] * means[n, 0] + V[0, 1] * means[n, 1] + V[0, 2] * means[n, 2] + V[0, 3]
+                y = V[1, 0] * means[n, 0] + V[1, 1] * means[n, 1] + V[1, 2] * means[n, 2] + V[1, 3]
+                z = V[2, 0] * means[n, 0] + V[2, 1] * means[n, 1] + V[2, 2] * means[n, 2] + V[2, 3]
+                in_depth = z >= near and z <= far
+                zs = z if in_depth else 1.0
+                inv_z = 1.0 / zs
+                rtx, rty = x * inv_z, y * inv_z
+                tx = min(max(rtx, -lxn), lxp)
+                ty = min(max(rty, -lyn), lyp)
+                j00, j11 = fx * inv_z, fy * inv_z
+                Mc = np.empty((3, 3))
+                A0 = np.empty(3)
+                A1 = np.empty(3)
+                for c in range(3):
+                    for r in range(3):
+                        Mc[r, c] = (V[r, 0] * R[0, c] + V[r, 1] * R[1, c] + V[r, 2] * R[2, c]) * scales[n, c]
+                    A0[c] = j00 * (Mc[0, c] - tx * Mc[2, c])
+                    A1[c] = j11 * (Mc[1, c] - ty * Mc[2, c])
+                c00 = eps2d + A0[0] * A0[0] + A0[1] * A0[1] + A0[2] * A0[2]
+                c11 = eps2d + A1[0] * A1[0] + A1[1] * A1[1] + A1[2] * A1[2]
+                c01 = A0[0] * A1[0] + A0[1] * A1[1] + A0[2] * A1[2]
+                det = c00 * c11 - c01 * c01
+                valid = in_depth and det > 0
+                gA, gB, gC = g_conics[i, n, 0], g_conics[i, n, 1], g_conics[i, n, 2]
+                if valid:
+                    S = (gA * c11 - gB * c01 + gC * c00) / (det * det)
+                    g00 = gC / det - S * c11
+                    g11 = gA / det - S * c00
+                    g01 = -gB / det + 2.0 * S * c01
+                else:
+                    g00, g11, g01 = gC, gA, -gB
+                # means2d = (fx x / zs + cx, fy y / zs + cy); depth = z
+                gx = g_means2d[i, n, 0] * fx * inv_z
+                gy = g_means2d[i, n, 1] * fy * inv_z
+                g_inv_z = g_means2d[i, n, 0] * fx * x + g_means2d[i, n, 1] * fy * y
+                gz = g_depths[i, n]
+                g_j00 = 0.0
+                g_j11 = 0.0
+                g_tx = 0.0
+                g_ty = 0.0
+                gMc = np.zeros((3, 3))
+                for c in range(3):
+                    ga0 = 2.0 * g00 * A0[c] + g01 * A1[c]
+                    ga1 = 2.0 * g11 * A1[c] + g01 * A0[c]
+                    gMc[0, c] += j00 * ga0
+                    gMc[2, c] -= j00 * tx * ga0 + j11 * ty * ga1
+                    gMc[1, c] += j11 * ga1
+                    g_tx -= j00 * ga0 * Mc[2, c]
+                    g_ty -= j11 * ga1 * Mc[2, c]
+                    g_j00 += ga0 * (Mc[0, c] - tx * Mc[2, c])
+                    g_j11 += ga1 * (Mc[1, c] - ty * Mc[2, c])
+                g_inv_z += fx * g_j00 + fy * g_j11
+                if rtx >= -lxn and rtx <= lxp:
+                    gx += g_tx * inv_z
+                    g_inv_z += g_tx * x
+                if rty >= -lyn and rty <= lyp:
+                    gy += g_ty * inv_z
+                    g_inv_z += g_ty * y
+                if in_depth:
+                    gz -= g_inv_z * inv_z * inv_z
+                gpc = (gx, gy, gz)
+                # normals: sgn * V[:3,:3] R[:, ax]
+                gnw = np.zeros(3)
+                sgn = 0.0
+                if want_normal:
+                    nx = V[0, 0] * R[0, ax] + V[0, 1] * R[1, ax] + V[0, 2] * R[2, ax]
+                    ny = V[1, 0] * R[0, ax] + V[1, 1] * R[1, ax] + V[1, 2] * R[2, ax]
+                    nz = V[2, 0] * R[0, ax] + V[2, 1] * R[1, ax] + V[2, 2] * R[2, ax]
+                    sgn = 1.0 if -(nx * x + ny * y + nz * z) > 0 else -1.0
+                    for r in range(3):
+                        for b in range(3):
+                            gnw[b] += V[r, b] * sgn * g_normals[i, n, r]
+                # p_c = V m + t; Mc = V R diag(s)
+                gv = g_view_parts[ch, i]
+                for r in range(3):
+                    gv[r * 4 + 3] += gpc[r]
+                    for b in range(3):
+                        gm[b] += V[r, b] * gpc[r]
+                        gv[r * 4 + b] += gpc[r] * means[n, b]
+                        acc = 0.0
+                        for c in range(3):
+                            acc += gMc[r, c] * R[b, c] * scales[n, c]
+                        gv[r * 4 + b] += acc
+                        if want_normal:
+                            gv[r * 4 + b] += sgn * g_normals[i, n, r] * R[b, ax]
+                for b in range(3):
+                    for c in range(3):
+                        gM = V[0, b] * gMc[0, c] + V[1, b] * gMc[1, c] + V[2, b] * gMc[2, c]
+                        gR[b, c] += gM * scales[n, c]
+                        gs[c] += gM * R[b, c]
+                    gR[b, ax] += gnw[b]
+            for b in range(3):
+                g_means[n, b] = gm[b]
+                g_scales[n, b] = gs[b]
+            # R(q) with q normalised
+            gw = 2.0 * (qx * (gR[2, 1] - gR[1, 2]) + qy * (gR[0, 2] - gR[2, 0]) + qz * (gR[1, 0] - gR[0, 1]))
+            gxx = (2.0 * qy * (gR[0, 1] + gR[1, 0]) + 2.0 * qz * (gR[0, 2] + gR[2, 0])
+                   - 4.0 * qx * (gR[1, 1] + gR[2, 2]) + 2.0 * qw * (gR[2, 1] - gR[1, 2]))
+            gyy = (2.0 * qx * (gR[0, 1] + gR[1, 0]) + 2.0 * qz * (gR[1, 2] + gR[2, 1])
+                   - 4.0 * qy * (gR[0, 0] + gR[2, 2]) + 2.0 * qw * (gR[0, 2] - gR[2, 0]))
+            gzz = (2.0 * qx * (gR[0, 2] + gR[2, 0]) + 2.0 * qy * (gR[1, 2] + gR[2, 1])
+                   - 4.0 * qz * (gR[0, 0] + gR[1, 1]) + 2.0 * qw * (gR[1, 0] - gR[0, 1]))
+            dot = gw * qw + gxx * qx + gyy * qy + gzz * qz
+            g_quats[n, 0] = (gw - qw * dot) * qinv
+            g_quats[n, 1] = (gxx - qx * dot) * qinv
+            g_quats[n, 2] = (gyy - qy * dot) * qinv
+            g_quats[n, 3] = (gzz - qz * dot) * qinv
+
+
+@njit(cache=True)
+def bin_tiles(means2d, radii, depths, tile_size, tiles_x, tiles_y, bin_needed):
+    """Intersections sorted by (bin, depth, Gaussian index): means2d [I,N,2], radii [I,N,2],
+    depths [I,N], bin_needed [I, tiles] bool -> (flat_ids [M] int64 (image * N + Gaussian),
+    bin_start [I * tiles + 1] int64)."""
+    I, N = depths.shape
+    n_tiles = tiles_x * tiles_y
+    # each image's tile ranges are clipped to the bounding box of its needed bins (as torch_backend)
+    bx0 = np.full(I, tiles_x, np.int64)
+    bx1 = np.zeros(I, np.int64)
+    by0 = np.full(I, tiles_y, np.int64)
+    by1 = np.zeros(I, np.int64)
+    for i in range(I):
+        for t in range(n_tiles):
+            if bin_needed[i, t]:
+                tx, ty = t % tiles_x, t // tiles_x
+                bx0[i] = min(bx0[i], tx)
+                bx1[i] = max(bx1[i], tx + 1)
+                by0[i] = min(by0[i], ty)
+                by1[i] = max(by1[i], ty + 1)
+    rect = np.zeros((I * N, 4), np.int64)
+    vis = np.empty(I * N, np.int64)
+    keys = np.empty(I * N, depths.dtype)
+    nv = 0
+    for i in range(I):
+        for n in range(N):
+            if radii[i, n, 0] <= 0 or radii[i, n, 1] <= 0:
+                continue
+            mx, my = means2d[i, n, 0] / tile_size, means2d[i, n, 1] / tile_size
+            rx, ry = radii[i, n, 0] / tile_size, radii[i, n, 1] / tile_size
+            x0 = max(min(int(math.floor(mx - rx)), tiles_x), 0)
+            x1 = max(min(int(math.ceil(mx + rx)), tiles_x), 0)
+            y0 = max(min(int(math.floor(my - ry)), tiles_y), 0)
+            y1 = max(min(int(math.ceil(my + ry)), tiles_y), 0)
+            x0, x1 = max(x0, bx0[i]), min(x1, bx1[i])
+            y0, y1 = max(y0, by0[i]), min(y1, by1[i])
+            if x1 <= x0 or y1 <= y0:
+                continue
+            k = i * N + n
+            rect[k, 0], rect[k, 1], rect[k, 2], rect[k, 3] = x0, x1, y0, y1
+            vis[nv] = k
+            keys[nv] = depths[i, n]
+            nv += 1
+    order = vis[:nv][np.argsort(keys[:nv], kind="mergesort")]  # stable: ties by (image, Gaussian)
+    counts = np.zeros(I * n_tiles + 1, np.int64)
+    for j in range(nv):
+        k = order[j]
+        i = k // N
+        for ty in range(rect[k, 2], rect[k, 3]):
+            for tx in range(rect[k, 0], rect[k, 1]):
+                b = i * n_tiles + ty * tiles_x + tx
+                if bin_needed[i, b - i * n_tiles]:
+                    counts[b + 1] += 1
+    bin_start = np.cumsum(counts)
+    fill = bin_start[:-1].copy()
+    flat_ids = np.empty(bin_start[-1], np.int64)
+    for j in range(nv):
+        k = order[j]
+        i = k // N
+        for ty in range(rect[k, 2], rect[k, 3]):
+            for tx in range(rect[k, 0], rect[k, 1]):
+                b = i * n_tiles + ty * tiles_x + tx
+                if bin_needed[i, b - i * n_tiles]:
+                    flat_ids[fill[b]] = k
+                    fill[b] += 1
+    return flat_ids, bin_start
+
+
+@njit(cache=True, inline="always")
+def _pixel_box(mx, my, rx, ry, x0, y0, tile_size, width, height):
+    """Pixels of a tile that a Gaussian's screen radius can reach (1-pixel margin): u0, u1, v0, v1."""
+    u0 = max(x0, int(math.floor(mx - rx - 1.0)))
+    u1 = min(min(x0 + tile_size, width), int(math.ceil(mx + rx + 1.0)))
+    v0 = max(y0, int(math.floor(my - ry - 1.0)))
+    v1 = min(min(y0 + tile_size, height), int(math.ceil(my + ry + 1.0)))
+    return u0, u1, v0, v1
+
+
+@njit(cache=True, parallel=True)
+def raster_fwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles_x,
+               out_feat, out_T, out_last):
+    """Front-to-back compositing of each bin (image i, tile t) in ``bins`` into the output pixels
+    whose view is i (pix_view [Iout,H,W]). feats [I*N, Cf] per (image, Gaussian) features.
+    Writes out_feat [Iout,H,W,Cf] (sum w f), out_T [Iout,H,W] (composited transmittance) and
+    out_last [Iout,H,W] (one past the last composited intersection, global index)."""
+    Iout, H, W = pix_view.shape
+    N = log_opac.shape[0]
+    Cf = feats.shape[1]
+    n_tiles = tiles_x * ((H + tile_size - 1) // tile_size)
+    P = tile_size * tile_size
+    for jb in prange(bins.shape[0]):
+        b = bins[jb]
+        i, t = b // n_tiles, b % n_tiles
+        o = 0 if Iout == 1 else i
+        x0, y0 = (t % tiles_x) * tile_size, (t // tiles_x) * tile_size
+        T = np.zeros(P)
+        acc = np.zeros((P, Cf))
+        last = np.zeros(P, np.int64)
+        n_active = 0
+        for v in range(y0, min(y0 + tile_size, H)):
+            for u in range(x0, min(x0 + tile_size, W)):
+                if pix_view[o, v, u] == i:
+                    T[(v - y0) * tile_size + (u - x0)] = 1.0
+                    n_active += 1
+        for k in range(bin_start[b], bin_start[b + 1]):
+            if n_active == 0:
+                break
+            g = flat_ids[k]
+            n = g % N
+            mx, my = means2d[g // N, n, 0], means2d[g // N, n, 1]
+            A, B, C = conics[g // N, n, 0], conics[g // N, n, 1], conics[g // N, n, 2]
+            lo = log_opac[n]
+            u0, u1, v0, v1 = _pixel_box(mx, my, radii[g // N, n, 0], radii[g // N, n, 1], x0, y0, tile_size, W, H)
+            for v in range(v0, v1):
+                dy = v + 0.5 - my
+                for u in range(u0, u1):
+                    p = (v - y0) * tile_size + (u - x0)
+                    if T[p] <= 0.0:
+                        continue
+                    dx = u + 0.5 - mx
+                    s = 0.5 * (A * dx * dx + C * dy * dy) + B * dx * dy - lo
+                    if s > SIGMA_SKIP:
+                        continue
+                    alpha = min(math.exp(-s), ALPHA_MAX)
+                    if alpha <= ALPHA_MIN:
+                        continue
+                    T_next = T[p] * (1.0 - alpha)
+                    if T_next <= T_STOP:
+                        T[p] = -T[p]  # done: the sign marks it, the value is kept
+                        n_active -= 1
+                        continue
+                    w = alpha * T[p]
+                    for c in range(Cf):
+                        acc[p, c] += w * feats[g, c]
+                    T[p] = T_next
+                    last[p] = k + 1
+        for v in range(y0, min(y0 + tile_size, H)):
+            for u in range(x0, min(x0 + tile_size, W)):
+                if pix_view[o, v, u] != i:
+                    continue
+                p = (v - y0) * tile_size + (u - x0)
+                out_T[o, v, u] = abs(T[p])
+                out_last[o, v, u] = last[p]
+                for c in range(Cf):
+                    out_feat[o, v, u, c] = acc[p, c]
+
+
+@njit(cache=True, parallel=True)
+def raster_bwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles_x,
+               out_T, out_last, g_feat, g_T, isect_grad):
+    """Back-to-front backward of `raster_fwd`: isect_grad [M, 6 + Cf] per intersection
+    (dL/d mean x, y; dL/d conic a, b, c; dL/d log opacity; dL/d features)."""
+    Iout, H, W = pix_view.shape
+    N = log_opac.shape[0]
+    Cf = feats.shape[1]
+    n_tiles = tiles_x * ((H + tile_size - 1) // tile_size)
+    P = tile_size * tile_size
+    for jb in prange(bins.shape[0]):
+        b = bins[jb]
+        i, t = b // n_tiles, b % n_tiles
+        o = 0 if Iout == 1 else i
+        x0, y0 = (t % tiles_x) * tile_size, (t // tiles_x) * tile_size
+        T = np.zeros(P)
+        gTT = np.zeros(P)
+        suffix = np.zeros(P)
+        gF = np.zeros((P, Cf))
+        last = np.zeros(P, np.int64)
+        k_end = bin_start[b]
+        for v in range(y0, min(y0 + tile_size, H)):
+            for u in range(x0, min(x0 + tile_size, W)):
+                if pix_view[o, v, u] != i:
+                    continue
+                p = (v - y0) * tile_size + (u - x0)
+                T[p] = out_T[o, v, u]
+                gTT[p] = g_T[o, v, u] * out_T[o, v, u]
+                last[p] = out_last[o, v, u]
+                k_end = max(k_end, last[p])
+                for c in range(Cf):
+                    gF[p, c] = g_feat[o, v, u, c]
+        gf = np.empty(Cf)
+        for k in range(k_end - 1, bin_start[b] - 1, -1):
+            g = flat_ids[k]
+            n = g % N
+            mx, my = means2d[g // N, n, 0], means2d[g // N, n, 1]
+            A, B, C = conics[g // N, n, 0], conics[g // N, n, 1], conics[g // N, n, 2]
+            lo = log_opac[n]
+            u0, u1, v0, v1 = _pixel_box(mx, my, radii[g // N, n, 0], radii[g // N, n, 1], x0, y0, tile_size, W, H)
+            gmx = 0.0
+            gmy = 0.0
+            ga = 0.0
+            gb = 0.0
+            gc = 0.0
+            glo = 0.0
+            gf[:] = 0.0
+            for v in range(v0, v1):
+                dy = v + 0.5 - my
+                for u in range(u0, u1):
+                    p = (v - y0) * tile_size + (u - x0)
+                    if k >= last[p]:
+                        continue
+                    dx = u + 0.5 - mx
+                    s = 0.5 * (A * dx * dx + C * dy * dy) + B * dx * dy - lo
+                    if s > SIGMA_SKIP:
+                        continue
+                    ex = math.exp(-s)
+                    alpha = min(ex, ALPHA_MAX)
+                    if alpha <= ALPHA_MIN:
+                        continue
+                    one_m = 1.0 - alpha
+                    T_exc = T[p] / one_m
+                    w = alpha * T_exc
+                    e = 0.0
+                    for c in range(Cf):
+                        e += gF[p, c] * feats[g, c]
+                        gf[c] += w * gF[p, c]
+                    G = alpha / one_m * (suffix[p] + gTT[p]) - e * w
+                    suffix[p] += e * w
+                    T[p] = T_exc
+                    if ex >= ALPHA_MAX:
+                        continue  # alpha clamped: no gradient through the exponent
+                    gmx -= G * (A * dx + B * dy)
+                    gmy -= G * (B * dx + C * dy)
+                    ga += 0.5 * G * dx * dx
+                    gb += G * dx * dy
+                    gc += 0.5 * G * dy * dy
+                    glo -= G
+            isect_grad[k, 0] = gmx
+            isect_grad[k, 1] = gmy
+            isect_grad[k, 2] = ga
+            isect_grad[k, 3] = gb
+            isect_grad[k, 4] = gc
+            isect_grad[k, 5] = glo
+            for c in range(Cf):
+                isect_grad[k, 6 + c] = gf[c]
+
+
+@njit(cache=True)
+def reduce_isect_grad(isect_grad, flat_ids, M, IN, absgrad):
+    """Per-intersection gradients -> per (image, Gaussian) sums [I*N, 6 + Cf], in intersection
+    order (sequential: deterministic); absgrad [I*N, 2] sums |dL/d mean| per intersection."""
+    out = np.zeros((IN, isect_grad.shape[1]))
+    for k in range(M):
+        g = flat_ids[k]
+        for c in range(isect_grad.shape[1]):
+            out[g, c] += isect_grad[k, c]
+        absgrad[g, 0] += abs(isect_grad[k, 0])
+        absgrad[g, 1] += abs(isect_grad[k, 1])
+    return out
