@@ -12,6 +12,7 @@ one fixed chunk of Gaussians); every sum over Gaussians or intersections is then
 sequentially in a fixed order, so results do not depend on the number of threads.
 Compiled once per dtype and cached on disk (numba ``cache=True``: ``__pycache__`` beside this
 file, or numba's user-wide cache directory / ``NUMBA_CACHE_DIR`` when that is not writable).
+Threads: numba's workqueue layer (see below); the caller sets the count (torch's).
 Pixel coordinates: gsplat's (centre of pixel (u, v) at (u + 0.5, v + 0.5)).
 """
 
@@ -19,8 +20,17 @@ from __future__ import annotations
 
 import math
 
+import os
+
+import numba
 import numpy as np
 from numba import njit, prange
+
+# numba's OpenMP layer keeps its worker threads spinning after each parallel loop, which stalls
+# torch's own OpenMP threads (measured: torch ops 100x slower after one such loop on a 2-core
+# box); the workqueue layer sleeps. An explicit NUMBA_THREADING_LAYER is respected.
+if "NUMBA_THREADING_LAYER" not in os.environ:
+    numba.config.THREADING_LAYER = "workqueue"
 
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.999
@@ -337,169 +347,227 @@ def bin_tiles(means2d, radii, depths, tile_size, tiles_x, tiles_y, bin_needed):
     return flat_ids, bin_start
 
 
+#: fast-math flags of the compositing loops: reassociation and FMA contraction let LLVM vectorize
+#: the per-row loops (results stay deterministic: the compiled order is fixed); no nnan/ninf
+FASTMATH = {"reassoc", "contract", "nsz"}
+SIGMA_ROW = 5.56  # exponent bound of the rows a Gaussian can reach (> SIGMA_SKIP: a safe superset)
+
+
+@njit(cache=True, inline="always", fastmath=FASTMATH)
+def _exp_neg(s):
+    """exp(-s) for s in [0, 6] (s is clamped to <= 6), branch-free so that loops vectorize:
+    Taylor polynomial of exp(x / 16) (degree 13, |x / 16| <= 0.375) squared four times;
+    relative error ~1e-15 (float64)."""
+    x = -min(s, 6.0) * 0.0625
+    p = 1.0 / 6227020800.0
+    p = p * x + 1.0 / 479001600.0
+    p = p * x + 1.0 / 39916800.0
+    p = p * x + 1.0 / 3628800.0
+    p = p * x + 1.0 / 362880.0
+    p = p * x + 1.0 / 40320.0
+    p = p * x + 1.0 / 5040.0
+    p = p * x + 1.0 / 720.0
+    p = p * x + 1.0 / 120.0
+    p = p * x + 1.0 / 24.0
+    p = p * x + 1.0 / 6.0
+    p = p * x + 0.5
+    p = p * x + 1.0
+    p = p * x + 1.0
+    p = p * p
+    p = p * p
+    p = p * p
+    return p * p
+
+
 @njit(cache=True, inline="always")
-def _pixel_box(mx, my, rx, ry, x0, y0, tile_size, width, height):
-    """Pixels of a tile that a Gaussian's screen radius can reach (1-pixel margin): u0, u1, v0, v1."""
-    u0 = max(x0, int(math.floor(mx - rx - 1.0)))
-    u1 = min(min(x0 + tile_size, width), int(math.ceil(mx + rx + 1.0)))
-    v0 = max(y0, int(math.floor(my - ry - 1.0)))
-    v1 = min(min(y0 + tile_size, height), int(math.ceil(my + ry + 1.0)))
-    return u0, u1, v0, v1
+def _row_range(my, A, B, C, lo, ry, y0, y1):
+    """Rows [va, vb) of a tile (rows y0..y1) where the exponent can be <= SIGMA_ROW: the ellipse
+    d^T Q d <= 2 (SIGMA_ROW + log o) spans sqrt(2 (SIGMA_ROW + log o) Sigma_yy) rows around the
+    centre (1-row margin); within the screen radius ry."""
+    ext = ry + 1.0
+    det = A * C - B * B
+    if det > 0.0 and A > 0.0:
+        ext = min(ext, math.sqrt(max(2.0 * (SIGMA_ROW + lo) * A / det, 0.0)) + 1.0)
+    return max(y0, int(math.floor(my - ext))), min(y1, int(math.ceil(my + ext)))
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, fastmath=FASTMATH)
 def raster_fwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles_x,
                out_feat, out_T, out_last):
     """Front-to-back compositing of each bin (image i, tile t) in ``bins`` into the output pixels
     whose view is i (pix_view [Iout,H,W]). feats [I*N, Cf] per (image, Gaussian) features.
     Writes out_feat [Iout,H,W,Cf] (sum w f), out_T [Iout,H,W] (composited transmittance) and
-    out_last [Iout,H,W] (one past the last composited intersection, global index)."""
+    out_last [Iout,H,W] (one past the last composited intersection, global index).
+    Per-pixel state: T > 0 while compositing, -T once stopped, 0 for pixels of other views."""
     Iout, H, W = pix_view.shape
     N = log_opac.shape[0]
     Cf = feats.shape[1]
     n_tiles = tiles_x * ((H + tile_size - 1) // tile_size)
-    P = tile_size * tile_size
+    ts = tile_size
+    P = ts * ts
     for jb in prange(bins.shape[0]):
         b = bins[jb]
         i, t = b // n_tiles, b % n_tiles
         o = 0 if Iout == 1 else i
-        x0, y0 = (t % tiles_x) * tile_size, (t // tiles_x) * tile_size
+        x0, y0 = (t % tiles_x) * ts, (t // tiles_x) * ts
+        x1, y1 = min(x0 + ts, W), min(y0 + ts, H)
         T = np.zeros(P)
-        acc = np.zeros((P, Cf))
+        acc = np.zeros((Cf, P))
         last = np.zeros(P, np.int64)
+        f = np.empty(Cf)
+        wbuf = np.empty(ts)
         n_active = 0
-        for v in range(y0, min(y0 + tile_size, H)):
-            for u in range(x0, min(x0 + tile_size, W)):
+        for v in range(y0, y1):
+            for u in range(x0, x1):
                 if pix_view[o, v, u] == i:
-                    T[(v - y0) * tile_size + (u - x0)] = 1.0
+                    T[(v - y0) * ts + (u - x0)] = 1.0
                     n_active += 1
         for k in range(bin_start[b], bin_start[b + 1]):
             if n_active == 0:
                 break
             g = flat_ids[k]
-            n = g % N
-            mx, my = means2d[g // N, n, 0], means2d[g // N, n, 1]
-            A, B, C = conics[g // N, n, 0], conics[g // N, n, 1], conics[g // N, n, 2]
+            gi, n = g // N, g % N
+            mx, my = means2d[gi, n, 0], means2d[gi, n, 1]
+            A, B, C = conics[gi, n, 0], conics[gi, n, 1], conics[gi, n, 2]
             lo = log_opac[n]
-            u0, u1, v0, v1 = _pixel_box(mx, my, radii[g // N, n, 0], radii[g // N, n, 1], x0, y0, tile_size, W, H)
-            for v in range(v0, v1):
+            for c in range(Cf):
+                f[c] = feats[g, c]
+            va, vb = _row_range(my, A, B, C, lo, radii[gi, n, 1], y0, y1)
+            for v in range(va, vb):
                 dy = v + 0.5 - my
-                for u in range(u0, u1):
-                    p = (v - y0) * tile_size + (u - x0)
-                    if T[p] <= 0.0:
-                        continue
-                    dx = u + 0.5 - mx
+                row = (v - y0) * ts
+                dx0 = x0 + 0.5 - mx
+                stopped = 0
+                for jj in range(ts):  # whole tile rows, branch-free: vectorizes (unsigned indices: no wraparound test)
+                    p = np.uint64(row + jj)
+                    j = np.uint64(jj)
+                    dx = dx0 + jj
                     s = 0.5 * (A * dx * dx + C * dy * dy) + B * dx * dy - lo
-                    if s > SIGMA_SKIP:
-                        continue
-                    alpha = min(math.exp(-s), ALPHA_MAX)
-                    if alpha <= ALPHA_MIN:
-                        continue
-                    T_next = T[p] * (1.0 - alpha)
-                    if T_next <= T_STOP:
-                        T[p] = -T[p]  # done: the sign marks it, the value is kept
-                        n_active -= 1
-                        continue
-                    w = alpha * T[p]
-                    for c in range(Cf):
-                        acc[p, c] += w * feats[g, c]
-                    T[p] = T_next
-                    last[p] = k + 1
-        for v in range(y0, min(y0 + tile_size, H)):
-            for u in range(x0, min(x0 + tile_size, W)):
+                    alpha = min(_exp_neg(s), ALPHA_MAX)
+                    Tp = T[p]
+                    ok = (s <= SIGMA_SKIP) & (alpha > ALPHA_MIN) & (Tp > 0.0)
+                    T_next = Tp * (1.0 - alpha)
+                    stop = ok & (T_next <= T_STOP)
+                    comp = ok & (T_next > T_STOP)
+                    wbuf[j] = alpha * Tp if comp else 0.0
+                    T[p] = T_next if comp else (-Tp if stop else Tp)
+                    last[p] = k + 1 if comp else last[p]
+                    stopped += 1 if stop else 0
+                for c in range(Cf):
+                    fc = f[c]
+                    for jj in range(ts):
+                        acc[c, np.uint64(row + jj)] += wbuf[np.uint64(jj)] * fc
+                n_active -= stopped
+        for v in range(y0, y1):
+            for u in range(x0, x1):
                 if pix_view[o, v, u] != i:
                     continue
-                p = (v - y0) * tile_size + (u - x0)
+                p = (v - y0) * ts + (u - x0)
                 out_T[o, v, u] = abs(T[p])
                 out_last[o, v, u] = last[p]
                 for c in range(Cf):
-                    out_feat[o, v, u, c] = acc[p, c]
+                    out_feat[o, v, u, c] = acc[c, p]
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, fastmath=FASTMATH)
 def raster_bwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles_x,
                out_T, out_last, g_feat, g_T, isect_grad):
-    """Back-to-front backward of `raster_fwd`: isect_grad [M, 6 + Cf] per intersection
-    (dL/d mean x, y; dL/d conic a, b, c; dL/d log opacity; dL/d features)."""
+    """Back-to-front backward of `raster_fwd` (T recovered by division, as gsplat): isect_grad
+    [M, 6 + Cf] per intersection (dL/d mean x, y; dL/d conic a, b, c; dL/d log opacity; dL/d features)."""
     Iout, H, W = pix_view.shape
     N = log_opac.shape[0]
     Cf = feats.shape[1]
     n_tiles = tiles_x * ((H + tile_size - 1) // tile_size)
-    P = tile_size * tile_size
+    ts = tile_size
+    P = ts * ts
     for jb in prange(bins.shape[0]):
         b = bins[jb]
         i, t = b // n_tiles, b % n_tiles
         o = 0 if Iout == 1 else i
-        x0, y0 = (t % tiles_x) * tile_size, (t // tiles_x) * tile_size
+        x0, y0 = (t % tiles_x) * ts, (t // tiles_x) * ts
+        x1, y1 = min(x0 + ts, W), min(y0 + ts, H)
         T = np.zeros(P)
         gTT = np.zeros(P)
         suffix = np.zeros(P)
-        gF = np.zeros((P, Cf))
+        gF = np.zeros((Cf, P))
         last = np.zeros(P, np.int64)
+        f = np.empty(Cf)
+        gf = np.empty(Cf)
+        wbuf = np.empty(ts)
+        ebuf = np.empty(ts)
         k_end = bin_start[b]
-        for v in range(y0, min(y0 + tile_size, H)):
-            for u in range(x0, min(x0 + tile_size, W)):
+        for v in range(y0, y1):
+            for u in range(x0, x1):
                 if pix_view[o, v, u] != i:
                     continue
-                p = (v - y0) * tile_size + (u - x0)
+                p = (v - y0) * ts + (u - x0)
                 T[p] = out_T[o, v, u]
                 gTT[p] = g_T[o, v, u] * out_T[o, v, u]
                 last[p] = out_last[o, v, u]
                 k_end = max(k_end, last[p])
                 for c in range(Cf):
-                    gF[p, c] = g_feat[o, v, u, c]
-        gf = np.empty(Cf)
+                    gF[c, p] = g_feat[o, v, u, c]
         for k in range(k_end - 1, bin_start[b] - 1, -1):
             g = flat_ids[k]
-            n = g % N
-            mx, my = means2d[g // N, n, 0], means2d[g // N, n, 1]
-            A, B, C = conics[g // N, n, 0], conics[g // N, n, 1], conics[g // N, n, 2]
+            gi, n = g // N, g % N
+            mx, my = means2d[gi, n, 0], means2d[gi, n, 1]
+            A, B, C = conics[gi, n, 0], conics[gi, n, 1], conics[gi, n, 2]
             lo = log_opac[n]
-            u0, u1, v0, v1 = _pixel_box(mx, my, radii[g // N, n, 0], radii[g // N, n, 1], x0, y0, tile_size, W, H)
+            for c in range(Cf):
+                f[c] = feats[g, c]
+                gf[c] = 0.0
             gmx = 0.0
             gmy = 0.0
             ga = 0.0
             gb = 0.0
             gc = 0.0
             glo = 0.0
-            gf[:] = 0.0
-            for v in range(v0, v1):
+            va, vb = _row_range(my, A, B, C, lo, radii[gi, n, 1], y0, y1)
+            for v in range(va, vb):
                 dy = v + 0.5 - my
-                for u in range(u0, u1):
-                    p = (v - y0) * tile_size + (u - x0)
-                    if k >= last[p]:
-                        continue
-                    dx = u + 0.5 - mx
+                row = (v - y0) * ts
+                dx0 = x0 + 0.5 - mx
+                for jj in range(ts):
+                    ebuf[np.uint64(jj)] = 0.0
+                for c in range(Cf):
+                    fc = f[c]
+                    for jj in range(ts):
+                        ebuf[np.uint64(jj)] += gF[c, np.uint64(row + jj)] * fc
+                for jj in range(ts):  # whole tile rows, branch-free: vectorizes (unsigned indices: no wraparound test)
+                    p = np.uint64(row + jj)
+                    j = np.uint64(jj)
+                    dx = dx0 + jj
                     s = 0.5 * (A * dx * dx + C * dy * dy) + B * dx * dy - lo
-                    if s > SIGMA_SKIP:
-                        continue
-                    ex = math.exp(-s)
+                    ex = _exp_neg(s)
                     alpha = min(ex, ALPHA_MAX)
-                    if alpha <= ALPHA_MIN:
-                        continue
+                    ok = (s <= SIGMA_SKIP) & (alpha > ALPHA_MIN) & (k < last[p])
                     one_m = 1.0 - alpha
-                    T_exc = T[p] / one_m
-                    w = alpha * T_exc
-                    e = 0.0
-                    for c in range(Cf):
-                        e += gF[p, c] * feats[g, c]
-                        gf[c] += w * gF[p, c]
-                    G = alpha / one_m * (suffix[p] + gTT[p]) - e * w
-                    suffix[p] += e * w
-                    T[p] = T_exc
-                    if ex >= ALPHA_MAX:
-                        continue  # alpha clamped: no gradient through the exponent
+                    Tp = T[p]
+                    T_exc = Tp / one_m
+                    w = alpha * T_exc if ok else 0.0
+                    e = ebuf[j]
+                    wbuf[j] = w
+                    sp = suffix[p]
+                    G = alpha / one_m * (sp + gTT[p]) - e * w
+                    G = G if (ok & (ex < ALPHA_MAX)) else 0.0  # clamped alpha: no gradient through it
+                    suffix[p] = sp + e * w
+                    T[p] = T_exc if ok else Tp
                     gmx -= G * (A * dx + B * dy)
                     gmy -= G * (B * dx + C * dy)
-                    ga += 0.5 * G * dx * dx
+                    ga += G * dx * dx
                     gb += G * dx * dy
-                    gc += 0.5 * G * dy * dy
+                    gc += G * dy * dy
                     glo -= G
+                for c in range(Cf):
+                    sc = 0.0
+                    for jj in range(ts):
+                        sc += wbuf[np.uint64(jj)] * gF[c, np.uint64(row + jj)]
+                    gf[c] += sc
             isect_grad[k, 0] = gmx
             isect_grad[k, 1] = gmy
-            isect_grad[k, 2] = ga
+            isect_grad[k, 2] = 0.5 * ga
             isect_grad[k, 3] = gb
-            isect_grad[k, 4] = gc
+            isect_grad[k, 4] = 0.5 * gc
             isect_grad[k, 5] = glo
             for c in range(Cf):
                 isect_grad[k, 6 + c] = gf[c]
