@@ -351,28 +351,37 @@ def bin_tiles(means2d, radii, depths, tile_size, tiles_x, tiles_y, bin_needed):
 #: the per-row loops (results stay deterministic: the compiled order is fixed); no nnan/ninf
 FASTMATH = {"reassoc", "contract", "nsz"}
 SIGMA_ROW = 5.56  # exponent bound of the rows a Gaussian can reach (> SIGMA_SKIP: a safe superset)
+#: Taylor coefficients of exp, highest degree first (degree 13)
+_EXP_COEFS = tuple(1.0 / math.factorial(d) for d in range(13, -1, -1))
+
+
+def compute_constants(dtype) -> np.ndarray:
+    """Constants of the compositing loops in the compute dtype (float32 inputs are composited in
+    float32, as the torch backend and gsplat do; float64 in float64): numba types each pixel's
+    arithmetic from these, so no float64 literal widens a float32 loop (8 lanes instead of 4)."""
+    return np.array((0.5, 1.0, ALPHA_MAX, 0.0, 0.0625, 6.0) + _EXP_COEFS + (ALPHA_MIN, T_STOP, SIGMA_SKIP), dtype=dtype)
 
 
 @njit(cache=True, inline="always", fastmath=FASTMATH)
-def _exp_neg(s):
-    """exp(-s) for s in [0, 6] (s is clamped to <= 6), branch-free so that loops vectorize:
-    Taylor polynomial of exp(x / 16) (degree 13, |x / 16| <= 0.375) squared four times;
-    relative error ~1e-15 (float64)."""
-    x = -min(s, 6.0) * 0.0625
-    p = 1.0 / 6227020800.0
-    p = p * x + 1.0 / 479001600.0
-    p = p * x + 1.0 / 39916800.0
-    p = p * x + 1.0 / 3628800.0
-    p = p * x + 1.0 / 362880.0
-    p = p * x + 1.0 / 40320.0
-    p = p * x + 1.0 / 5040.0
-    p = p * x + 1.0 / 720.0
-    p = p * x + 1.0 / 120.0
-    p = p * x + 1.0 / 24.0
-    p = p * x + 1.0 / 6.0
-    p = p * x + 0.5
-    p = p * x + 1.0
-    p = p * x + 1.0
+def _exp_neg(s, kc):
+    """exp(-s) for s in [0, 6] (s clamped to <= 6), branch-free so that loops vectorize: Taylor
+    polynomial (degree 13) of exp(x / 16), |x / 16| <= 0.375, squared four times; relative error
+    ~1e-15 in float64, ~1e-7 in float32. kc: `compute_constants`."""
+    x = -min(s, kc[5]) * kc[4]
+    # unrolled by hand: a loop here would be the innermost loop and stop the vectorizer
+    p = kc[6] * x + kc[7]
+    p = p * x + kc[8]
+    p = p * x + kc[9]
+    p = p * x + kc[10]
+    p = p * x + kc[11]
+    p = p * x + kc[12]
+    p = p * x + kc[13]
+    p = p * x + kc[14]
+    p = p * x + kc[15]
+    p = p * x + kc[16]
+    p = p * x + kc[17]
+    p = p * x + kc[18]
+    p = p * x + kc[19]
     p = p * p
     p = p * p
     p = p * p
@@ -393,34 +402,40 @@ def _row_range(my, A, B, C, lo, ry, y0, y1):
 
 @njit(cache=True, parallel=True, fastmath=FASTMATH)
 def raster_fwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles_x,
-               out_feat, out_T, out_last):
+               kc, centres, out_feat, out_T, out_last):
     """Front-to-back compositing of each bin (image i, tile t) in ``bins`` into the output pixels
-    whose view is i (pix_view [Iout,H,W]). feats [I*N, Cf] per (image, Gaussian) features.
+    whose view is i (pix_view [Iout,H,W]). feats [I*N, Cf] per (image, Gaussian) features; kc
+    `compute_constants`; centres [max(W, H) + tile_size] pixel centres (index + 0.5), compute dtype.
     Writes out_feat [Iout,H,W,Cf] (sum w f), out_T [Iout,H,W] (composited transmittance) and
     out_last [Iout,H,W] (one past the last composited intersection, global index).
-    Per-pixel state: T > 0 while compositing, -T once stopped, 0 for pixels of other views."""
+    Per-pixel state: T > 0 while compositing, -T once stopped, 0 for pixels of other views.
+    Each Gaussian updates whole tile rows (branch-free: vectorizes) between its ellipse's rows."""
     Iout, H, W = pix_view.shape
     N = log_opac.shape[0]
     Cf = feats.shape[1]
     n_tiles = tiles_x * ((H + tile_size - 1) // tile_size)
     ts = tile_size
     P = ts * ts
+    one, amax, zero = kc[1], kc[2], kc[3]
+    amin, tstop, sskip = kc[20], kc[21], kc[22]
     for jb in prange(bins.shape[0]):
         b = bins[jb]
         i, t = b // n_tiles, b % n_tiles
         o = 0 if Iout == 1 else i
         x0, y0 = (t % tiles_x) * ts, (t // tiles_x) * ts
         x1, y1 = min(x0 + ts, W), min(y0 + ts, H)
-        T = np.zeros(P)
-        acc = np.zeros((Cf, P))
+        T = np.zeros(P, kc.dtype)
+        acc = np.zeros((Cf, P), kc.dtype)
         last = np.zeros(P, np.int64)
-        f = np.empty(Cf)
-        wbuf = np.empty(ts)
+        f = np.empty(Cf, kc.dtype)
+        wbuf = np.empty(ts, kc.dtype)
+        row_active = np.zeros(ts, np.int64)  # pixels still compositing, per tile row
         n_active = 0
         for v in range(y0, y1):
             for u in range(x0, x1):
                 if pix_view[o, v, u] == i:
-                    T[(v - y0) * ts + (u - x0)] = 1.0
+                    T[(v - y0) * ts + (u - x0)] = one
+                    row_active[v - y0] += 1
                     n_active += 1
         for k in range(bin_start[b], bin_start[b + 1]):
             if n_active == 0:
@@ -430,26 +445,30 @@ def raster_fwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
             mx, my = means2d[gi, n, 0], means2d[gi, n, 1]
             A, B, C = conics[gi, n, 0], conics[gi, n, 1], conics[gi, n, 2]
             lo = log_opac[n]
+            hA, hC = kc[0] * A, kc[0] * C
             for c in range(Cf):
                 f[c] = feats[g, c]
             va, vb = _row_range(my, A, B, C, lo, radii[gi, n, 1], y0, y1)
             for v in range(va, vb):
-                dy = v + 0.5 - my
+                if row_active[v - y0] == 0:
+                    continue
+                dy = centres[v] - my
                 row = (v - y0) * ts
-                dx0 = x0 + 0.5 - mx
+                sy = hC * dy * dy - lo
+                Bdy = B * dy
                 stopped = 0
-                for jj in range(ts):  # whole tile rows, branch-free: vectorizes (unsigned indices: no wraparound test)
+                for jj in range(ts):  # unsigned indices: no wraparound test, the loop vectorizes
                     p = np.uint64(row + jj)
                     j = np.uint64(jj)
-                    dx = dx0 + jj
-                    s = 0.5 * (A * dx * dx + C * dy * dy) + B * dx * dy - lo
-                    alpha = min(_exp_neg(s), ALPHA_MAX)
+                    dx = centres[np.uint64(x0 + jj)] - mx
+                    s = (hA * dx + Bdy) * dx + sy
+                    alpha = min(_exp_neg(s, kc), amax)
                     Tp = T[p]
-                    ok = (s <= SIGMA_SKIP) & (alpha > ALPHA_MIN) & (Tp > 0.0)
-                    T_next = Tp * (1.0 - alpha)
-                    stop = ok & (T_next <= T_STOP)
-                    comp = ok & (T_next > T_STOP)
-                    wbuf[j] = alpha * Tp if comp else 0.0
+                    ok = (s <= sskip) & (alpha > amin) & (Tp > zero)
+                    T_next = Tp * (one - alpha)
+                    stop = ok & (T_next <= tstop)
+                    comp = ok & (T_next > tstop)
+                    wbuf[j] = alpha * Tp if comp else zero
                     T[p] = T_next if comp else (-Tp if stop else Tp)
                     last[p] = k + 1 if comp else last[p]
                     stopped += 1 if stop else 0
@@ -458,6 +477,7 @@ def raster_fwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
                     for jj in range(ts):
                         acc[c, np.uint64(row + jj)] += wbuf[np.uint64(jj)] * fc
                 n_active -= stopped
+                row_active[v - y0] -= stopped
         for v in range(y0, y1):
             for u in range(x0, x1):
                 if pix_view[o, v, u] != i:
@@ -471,7 +491,7 @@ def raster_fwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
 
 @njit(cache=True, parallel=True, fastmath=FASTMATH)
 def raster_bwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles_x,
-               out_T, out_last, g_feat, g_T, isect_grad):
+               kc, centres, out_T, out_last, g_feat, g_T, isect_grad):
     """Back-to-front backward of `raster_fwd` (T recovered by division, as gsplat): isect_grad
     [M, 6 + Cf] per intersection (dL/d mean x, y; dL/d conic a, b, c; dL/d log opacity; dL/d features)."""
     Iout, H, W = pix_view.shape
@@ -480,21 +500,24 @@ def raster_bwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
     n_tiles = tiles_x * ((H + tile_size - 1) // tile_size)
     ts = tile_size
     P = ts * ts
+    one, amax, zero = kc[1], kc[2], kc[3]
+    amin, tstop, sskip = kc[20], kc[21], kc[22]
     for jb in prange(bins.shape[0]):
         b = bins[jb]
         i, t = b // n_tiles, b % n_tiles
         o = 0 if Iout == 1 else i
         x0, y0 = (t % tiles_x) * ts, (t // tiles_x) * ts
         x1, y1 = min(x0 + ts, W), min(y0 + ts, H)
-        T = np.zeros(P)
-        gTT = np.zeros(P)
-        suffix = np.zeros(P)
-        gF = np.zeros((Cf, P))
+        T = np.zeros(P, kc.dtype)
+        gTT = np.zeros(P, kc.dtype)
+        suffix = np.zeros(P, kc.dtype)
+        gF = np.zeros((Cf, P), kc.dtype)
         last = np.zeros(P, np.int64)
-        f = np.empty(Cf)
-        gf = np.empty(Cf)
-        wbuf = np.empty(ts)
-        ebuf = np.empty(ts)
+        f = np.empty(Cf, kc.dtype)
+        gf = np.empty(Cf, kc.dtype)
+        wbuf = np.empty(ts, kc.dtype)
+        ebuf = np.empty(ts, kc.dtype)
+        row_last = np.zeros(ts, np.int64)  # one past the last composited intersection, per tile row
         k_end = bin_start[b]
         for v in range(y0, y1):
             for u in range(x0, x1):
@@ -505,6 +528,7 @@ def raster_bwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
                 gTT[p] = g_T[o, v, u] * out_T[o, v, u]
                 last[p] = out_last[o, v, u]
                 k_end = max(k_end, last[p])
+                row_last[v - y0] = max(row_last[v - y0], last[p])
                 for c in range(Cf):
                     gF[c, p] = g_feat[o, v, u, c]
         for k in range(k_end - 1, bin_start[b] - 1, -1):
@@ -513,61 +537,75 @@ def raster_bwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
             mx, my = means2d[gi, n, 0], means2d[gi, n, 1]
             A, B, C = conics[gi, n, 0], conics[gi, n, 1], conics[gi, n, 2]
             lo = log_opac[n]
+            hA, hC = kc[0] * A, kc[0] * C
             for c in range(Cf):
                 f[c] = feats[g, c]
-                gf[c] = 0.0
-            gmx = 0.0
-            gmy = 0.0
-            ga = 0.0
-            gb = 0.0
-            gc = 0.0
-            glo = 0.0
+                gf[c] = zero
+            gmx = zero
+            gmy = zero
+            ga = zero
+            gb = zero
+            gc = zero
+            glo = zero
             va, vb = _row_range(my, A, B, C, lo, radii[gi, n, 1], y0, y1)
             for v in range(va, vb):
-                dy = v + 0.5 - my
+                if k >= row_last[v - y0]:
+                    continue
+                dy = centres[v] - my
                 row = (v - y0) * ts
-                dx0 = x0 + 0.5 - mx
+                sy = hC * dy * dy - lo
+                Bdy = B * dy
+                Cdy = C * dy
                 for jj in range(ts):
-                    ebuf[np.uint64(jj)] = 0.0
+                    ebuf[np.uint64(jj)] = zero
                 for c in range(Cf):
                     fc = f[c]
                     for jj in range(ts):
                         ebuf[np.uint64(jj)] += gF[c, np.uint64(row + jj)] * fc
-                for jj in range(ts):  # whole tile rows, branch-free: vectorizes (unsigned indices: no wraparound test)
+                gmx_r = zero
+                gdx_r = zero
+                ga_r = zero
+                glo_r = zero
+                for jj in range(ts):  # unsigned indices: no wraparound test, the loop vectorizes
                     p = np.uint64(row + jj)
                     j = np.uint64(jj)
-                    dx = dx0 + jj
-                    s = 0.5 * (A * dx * dx + C * dy * dy) + B * dx * dy - lo
-                    ex = _exp_neg(s)
-                    alpha = min(ex, ALPHA_MAX)
-                    ok = (s <= SIGMA_SKIP) & (alpha > ALPHA_MIN) & (k < last[p])
-                    one_m = 1.0 - alpha
+                    dx = centres[np.uint64(x0 + jj)] - mx
+                    s = (hA * dx + Bdy) * dx + sy
+                    ex = _exp_neg(s, kc)
+                    alpha = min(ex, amax)
+                    ok = (s <= sskip) & (alpha > amin) & (k < last[p])
+                    one_m = one - alpha
                     Tp = T[p]
                     T_exc = Tp / one_m
-                    w = alpha * T_exc if ok else 0.0
+                    w = alpha * T_exc if ok else zero
                     e = ebuf[j]
                     wbuf[j] = w
                     sp = suffix[p]
                     G = alpha / one_m * (sp + gTT[p]) - e * w
-                    G = G if (ok & (ex < ALPHA_MAX)) else 0.0  # clamped alpha: no gradient through it
+                    G = G if (ok & (ex < amax)) else zero  # clamped alpha: no gradient through it
                     suffix[p] = sp + e * w
                     T[p] = T_exc if ok else Tp
-                    gmx -= G * (A * dx + B * dy)
-                    gmy -= G * (B * dx + C * dy)
-                    ga += G * dx * dx
-                    gb += G * dx * dy
-                    gc += G * dy * dy
-                    glo -= G
+                    gmx_r += G * (A * dx + Bdy)
+                    gdx_r += G * dx
+                    ga_r += G * dx * dx
+                    glo_r += G
+                # per-row sums: dsigma/dmy = -(B dx + C dy), dsigma/db = dx dy, dsigma/dc = dy^2 / 2
+                gmx -= gmx_r
+                gmy -= B * gdx_r + Cdy * glo_r
+                ga += ga_r
+                gb += gdx_r * dy
+                gc += glo_r * dy * dy
+                glo -= glo_r
                 for c in range(Cf):
-                    sc = 0.0
+                    sc = zero
                     for jj in range(ts):
                         sc += wbuf[np.uint64(jj)] * gF[c, np.uint64(row + jj)]
                     gf[c] += sc
             isect_grad[k, 0] = gmx
             isect_grad[k, 1] = gmy
-            isect_grad[k, 2] = 0.5 * ga
+            isect_grad[k, 2] = kc[0] * ga
             isect_grad[k, 3] = gb
-            isect_grad[k, 4] = 0.5 * gc
+            isect_grad[k, 4] = kc[0] * gc
             isect_grad[k, 5] = glo
             for c in range(Cf):
                 isect_grad[k, 6 + c] = gf[c]
