@@ -400,6 +400,15 @@ def _row_range(my, A, B, C, lo, ry, y0, y1):
     return max(y0, int(math.floor(my - ext))), min(y1, int(math.ceil(my + ext)))
 
 
+@njit(cache=True, inline="always")
+def _tile_centres(centres, x0, y0, ts, cxt, cyt):
+    """Pixel-centre coordinates of a tile's state entries (row-major, stride ts), compute dtype."""
+    for r in range(ts):
+        for c in range(ts):
+            cxt[r * ts + c] = centres[x0 + c]
+            cyt[r * ts + c] = centres[y0 + r]
+
+
 @njit(cache=True, parallel=True, fastmath=FASTMATH)
 def raster_fwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles_x,
                kc, centres, out_feat, out_T, out_last):
@@ -409,7 +418,8 @@ def raster_fwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
     Writes out_feat [Iout,H,W,Cf] (sum w f), out_T [Iout,H,W] (composited transmittance) and
     out_last [Iout,H,W] (one past the last composited intersection, global index).
     Per-pixel state: T > 0 while compositing, -T once stopped, 0 for pixels of other views.
-    Each Gaussian updates whole tile rows (branch-free: vectorizes) between its ellipse's rows."""
+    Each Gaussian updates the contiguous block of whole tile rows its ellipse reaches, trimmed to
+    rows with pixels still compositing, in one branch-free loop (it vectorizes)."""
     Iout, H, W = pix_view.shape
     N = log_opac.shape[0]
     Cf = feats.shape[1]
@@ -427,8 +437,10 @@ def raster_fwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
         T = np.zeros(P, kc.dtype)
         acc = np.zeros((Cf, P), kc.dtype)
         last = np.zeros(P, np.int64)
-        f = np.empty(Cf, kc.dtype)
-        wbuf = np.empty(ts, kc.dtype)
+        cxt = np.empty(P, kc.dtype)
+        cyt = np.empty(P, kc.dtype)
+        _tile_centres(centres, x0, y0, ts, cxt, cyt)
+        wbuf = np.empty(P, kc.dtype)
         row_active = np.zeros(ts, np.int64)  # pixels still compositing, per tile row
         n_active = 0
         for v in range(y0, y1):
@@ -446,38 +458,41 @@ def raster_fwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
             A, B, C = conics[gi, n, 0], conics[gi, n, 1], conics[gi, n, 2]
             lo = log_opac[n]
             hA, hC = kc[0] * A, kc[0] * C
-            for c in range(Cf):
-                f[c] = feats[g, c]
             va, vb = _row_range(my, A, B, C, lo, radii[gi, n, 1], y0, y1)
-            for v in range(va, vb):
-                if row_active[v - y0] == 0:
-                    continue
-                dy = centres[v] - my
-                row = (v - y0) * ts
-                sy = hC * dy * dy - lo
-                Bdy = B * dy
-                stopped = 0
-                for jj in range(ts):  # unsigned indices: no wraparound test, the loop vectorizes
-                    p = np.uint64(row + jj)
-                    j = np.uint64(jj)
-                    dx = centres[np.uint64(x0 + jj)] - mx
-                    s = (hA * dx + Bdy) * dx + sy
-                    alpha = min(_exp_neg(s, kc), amax)
-                    Tp = T[p]
-                    ok = (s <= sskip) & (alpha > amin) & (Tp > zero)
-                    T_next = Tp * (one - alpha)
-                    stop = ok & (T_next <= tstop)
-                    comp = ok & (T_next > tstop)
-                    wbuf[j] = alpha * Tp if comp else zero
-                    T[p] = T_next if comp else (-Tp if stop else Tp)
-                    last[p] = k + 1 if comp else last[p]
-                    stopped += 1 if stop else 0
-                for c in range(Cf):
-                    fc = f[c]
-                    for jj in range(ts):
-                        acc[c, np.uint64(row + jj)] += wbuf[np.uint64(jj)] * fc
+            while va < vb and row_active[va - y0] == 0:
+                va += 1
+            while vb > va and row_active[vb - 1 - y0] == 0:
+                vb -= 1
+            if va == vb:
+                continue
+            pa, pb = (va - y0) * ts, (vb - y0) * ts
+            stopped = 0
+            for pp in range(pa, pb):  # unsigned index: no wraparound test; branch-free: vectorizes
+                p = np.uint64(pp)
+                dx = cxt[p] - mx
+                dy = cyt[p] - my
+                s = (hA * dx + B * dy) * dx + hC * dy * dy - lo
+                alpha = min(_exp_neg(s, kc), amax)
+                Tp = T[p]
+                ok = (s <= sskip) & (alpha > amin) & (Tp > zero)
+                T_next = Tp * (one - alpha)
+                stop = ok & (T_next <= tstop)
+                comp = ok & (T_next > tstop)
+                wbuf[p] = alpha * Tp if comp else zero
+                T[p] = T_next if comp else (-Tp if stop else Tp)
+                last[p] = k + 1 if comp else last[p]
+                stopped += 1 if stop else 0
+            for c in range(Cf):  # a separate loop per channel: an inner channel loop would stop the vectorizer
+                fc = feats[g, c]
+                for pp in range(pa, pb):
+                    acc[c, np.uint64(pp)] += wbuf[np.uint64(pp)] * fc
+            if stopped:
                 n_active -= stopped
-                row_active[v - y0] -= stopped
+                for r in range(va - y0, vb - y0):
+                    cnt = 0
+                    for q in range(r * ts, (r + 1) * ts):
+                        cnt += 1 if T[q] > zero else 0
+                    row_active[r] = cnt
         for v in range(y0, y1):
             for u in range(x0, x1):
                 if pix_view[o, v, u] != i:
@@ -501,7 +516,7 @@ def raster_bwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
     ts = tile_size
     P = ts * ts
     one, amax, zero = kc[1], kc[2], kc[3]
-    amin, tstop, sskip = kc[20], kc[21], kc[22]
+    amin, sskip = kc[20], kc[22]
     for jb in prange(bins.shape[0]):
         b = bins[jb]
         i, t = b // n_tiles, b % n_tiles
@@ -513,10 +528,12 @@ def raster_bwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
         suffix = np.zeros(P, kc.dtype)
         gF = np.zeros((Cf, P), kc.dtype)
         last = np.zeros(P, np.int64)
+        cxt = np.empty(P, kc.dtype)
+        cyt = np.empty(P, kc.dtype)
+        _tile_centres(centres, x0, y0, ts, cxt, cyt)
+        ebuf = np.empty(P, kc.dtype)
+        wbuf = np.empty(P, kc.dtype)
         f = np.empty(Cf, kc.dtype)
-        gf = np.empty(Cf, kc.dtype)
-        wbuf = np.empty(ts, kc.dtype)
-        ebuf = np.empty(ts, kc.dtype)
         row_last = np.zeros(ts, np.int64)  # one past the last composited intersection, per tile row
         k_end = bin_start[b]
         for v in range(y0, y1):
@@ -538,69 +555,51 @@ def raster_bwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
             A, B, C = conics[gi, n, 0], conics[gi, n, 1], conics[gi, n, 2]
             lo = log_opac[n]
             hA, hC = kc[0] * A, kc[0] * C
+            va, vb = _row_range(my, A, B, C, lo, radii[gi, n, 1], y0, y1)
+            while va < vb and k >= row_last[va - y0]:
+                va += 1
+            while vb > va and k >= row_last[vb - 1 - y0]:
+                vb -= 1
+            pa, pb = (va - y0) * ts, (vb - y0) * ts
             for c in range(Cf):
                 f[c] = feats[g, c]
-                gf[c] = zero
+            for pp in range(pa, pb):
+                ebuf[np.uint64(pp)] = zero
+            for c in range(Cf):
+                fc = f[c]
+                for pp in range(pa, pb):
+                    ebuf[np.uint64(pp)] += gF[c, np.uint64(pp)] * fc
             gmx = zero
             gmy = zero
             ga = zero
             gb = zero
             gc = zero
             glo = zero
-            va, vb = _row_range(my, A, B, C, lo, radii[gi, n, 1], y0, y1)
-            for v in range(va, vb):
-                if k >= row_last[v - y0]:
-                    continue
-                dy = centres[v] - my
-                row = (v - y0) * ts
-                sy = hC * dy * dy - lo
-                Bdy = B * dy
-                Cdy = C * dy
-                for jj in range(ts):
-                    ebuf[np.uint64(jj)] = zero
-                for c in range(Cf):
-                    fc = f[c]
-                    for jj in range(ts):
-                        ebuf[np.uint64(jj)] += gF[c, np.uint64(row + jj)] * fc
-                gmx_r = zero
-                gdx_r = zero
-                ga_r = zero
-                glo_r = zero
-                for jj in range(ts):  # unsigned indices: no wraparound test, the loop vectorizes
-                    p = np.uint64(row + jj)
-                    j = np.uint64(jj)
-                    dx = centres[np.uint64(x0 + jj)] - mx
-                    s = (hA * dx + Bdy) * dx + sy
-                    ex = _exp_neg(s, kc)
-                    alpha = min(ex, amax)
-                    ok = (s <= sskip) & (alpha > amin) & (k < last[p])
-                    one_m = one - alpha
-                    Tp = T[p]
-                    T_exc = Tp / one_m
-                    w = alpha * T_exc if ok else zero
-                    e = ebuf[j]
-                    wbuf[j] = w
-                    sp = suffix[p]
-                    G = alpha / one_m * (sp + gTT[p]) - e * w
-                    G = G if (ok & (ex < amax)) else zero  # clamped alpha: no gradient through it
-                    suffix[p] = sp + e * w
-                    T[p] = T_exc if ok else Tp
-                    gmx_r += G * (A * dx + Bdy)
-                    gdx_r += G * dx
-                    ga_r += G * dx * dx
-                    glo_r += G
-                # per-row sums: dsigma/dmy = -(B dx + C dy), dsigma/db = dx dy, dsigma/dc = dy^2 / 2
-                gmx -= gmx_r
-                gmy -= B * gdx_r + Cdy * glo_r
-                ga += ga_r
-                gb += gdx_r * dy
-                gc += glo_r * dy * dy
-                glo -= glo_r
-                for c in range(Cf):
-                    sc = zero
-                    for jj in range(ts):
-                        sc += wbuf[np.uint64(jj)] * gF[c, np.uint64(row + jj)]
-                    gf[c] += sc
+            for pp in range(pa, pb):  # unsigned index: no wraparound test; branch-free: vectorizes
+                p = np.uint64(pp)
+                dx = cxt[p] - mx
+                dy = cyt[p] - my
+                s = (hA * dx + B * dy) * dx + hC * dy * dy - lo
+                ex = _exp_neg(s, kc)
+                alpha = min(ex, amax)
+                ok = (s <= sskip) & (alpha > amin) & (k < last[p])
+                inv_one_m = one / (one - alpha)
+                Tp = T[p]
+                T_exc = Tp * inv_one_m
+                w = alpha * T_exc if ok else zero
+                e = ebuf[p]
+                wbuf[p] = w
+                sp = suffix[p]
+                G = alpha * inv_one_m * (sp + gTT[p]) - e * w
+                G = G if (ok & (ex < amax)) else zero  # clamped alpha: no gradient through it
+                suffix[p] = sp + e * w
+                T[p] = T_exc if ok else Tp
+                gmx -= G * (A * dx + B * dy)
+                gmy -= G * (B * dx + C * dy)
+                ga += G * dx * dx
+                gb += G * dx * dy
+                gc += G * dy * dy
+                glo -= G
             isect_grad[k, 0] = gmx
             isect_grad[k, 1] = gmy
             isect_grad[k, 2] = kc[0] * ga
@@ -608,7 +607,10 @@ def raster_bwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
             isect_grad[k, 4] = kc[0] * gc
             isect_grad[k, 5] = glo
             for c in range(Cf):
-                isect_grad[k, 6 + c] = gf[c]
+                sc = zero
+                for pp in range(pa, pb):
+                    sc += wbuf[np.uint64(pp)] * gF[c, np.uint64(pp)]
+                isect_grad[k, 6 + c] = sc
 
 
 @njit(cache=True)
