@@ -207,3 +207,24 @@ def test_no_visible_gaussian_gives_background_and_zero_gradients():
     torch.testing.assert_close(out.rgb, bg.expand_as(out.rgb))
     for k in NAMES:
         assert bool((grads[k] == 0).all()), k
+
+
+def test_one_thread_per_worker_from_omp_num_threads():
+    """Snakemake exports OMP_NUM_THREADS={threads} to each job: torch and the compiled kernels
+    then use that many threads (numba's pool is capped at import, its count follows torch)."""
+    import os
+    import subprocess
+    import sys
+
+    code = ("import torch\n"
+            "from egobench.render import render\n"
+            "from tests.test_render_cpu import make_scene, CAM, pose\n"
+            "out = render(make_scene(20, CAM, 0), CAM, pose(), backend='cpu')\n"
+            "import numba\n"
+            "print(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS, numba.get_num_threads())\n")
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_NUM_THREADS"}
+    env["OMP_NUM_THREADS"] = "1"
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")
+    res = subprocess.run([sys.executable, "-c", code], env=env, cwd=root, capture_output=True, text=True, check=True)
+    assert res.stdout.split() == ["1", "1", "1"]

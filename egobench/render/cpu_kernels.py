@@ -22,9 +22,17 @@ import math
 
 import os
 
-import numba
-import numpy as np
-from numba import njit, prange
+# Workers run one thread each when Snakemake runs jobs side by side: Snakemake exports
+# OMP_NUM_THREADS={threads} to every shell job (config resources.<step>.threads, default 1); torch
+# reads it, `cpu_backend` sets numba's count to torch's on every call, and here numba's pool is
+# capped to it as well (numba reads NUMBA_NUM_THREADS when first imported).
+if "NUMBA_NUM_THREADS" not in os.environ and os.environ.get("OMP_NUM_THREADS", "").isdigit():
+    if int(os.environ["OMP_NUM_THREADS"]) > 0:
+        os.environ["NUMBA_NUM_THREADS"] = os.environ["OMP_NUM_THREADS"]
+
+import numba  # noqa: E402
+import numpy as np  # noqa: E402
+from numba import njit, prange  # noqa: E402
 
 # numba's OpenMP layer keeps its worker threads spinning after each parallel loop, which stalls
 # torch's own OpenMP threads (measured: torch ops 100x slower after one such loop on a 2-core
