@@ -146,10 +146,11 @@ class _Rasterize(torch.autograd.Function):
         kc = ck.compute_constants(m2.dtype)
         centres = (np.arange(max(W, H) + tile_size) + 0.5).astype(m2.dtype)
         _set_threads()
+        cw = ck.column_group(tile_size)
         ck.raster_fwd(m2, con, rad, lo, feats_np, flat_ids, bin_start, bins, pix_view, tile_size, tiles_x,
-                      kc, centres, out_feat, out_T, out_last)
+                      cw, kc, centres, out_feat, out_T, out_last)
         ctx.state = (m2, con, rad, lo, feats_np, flat_ids, bin_start, bins, pix_view, tile_size, tiles_x,
-                     kc, centres, out_T, out_last, absgrad_target)
+                     cw, kc, centres, out_T, out_last, absgrad_target)
         ctx.has_normals = bool(normals.shape[1])
         ctx.shapes = (I, N, colors.dtype)
         ctx.n_isect = int(flat_ids.shape[0])
@@ -159,7 +160,7 @@ class _Rasterize(torch.autograd.Function):
     def backward(ctx, g_feat, g_T):
         from egobench.render import cpu_kernels as ck
 
-        (m2, con, rad, lo, feats, flat_ids, bin_start, bins, pix_view, ts, tiles_x, kc, centres, out_T, out_last,
+        (m2, con, rad, lo, feats, flat_ids, bin_start, bins, pix_view, ts, tiles_x, cw, kc, centres, out_T, out_last,
          ab) = ctx.state
         I, N, dt = ctx.shapes
         Cf = feats.shape[1]
@@ -167,8 +168,8 @@ class _Rasterize(torch.autograd.Function):
         gT = np.zeros(out_T.shape, out_T.dtype) if g_T is None else _np(g_T)
         isect = np.zeros((flat_ids.shape[0], 6 + Cf), kc.dtype)
         _set_threads()
-        ck.raster_bwd(m2, con, rad, lo, feats, flat_ids, bin_start, bins, pix_view, ts, tiles_x, kc, centres, out_T,
-                      out_last, gF, gT, isect)
+        ck.raster_bwd(m2, con, rad, lo, feats, flat_ids, bin_start, bins, pix_view, ts, tiles_x, cw, kc, centres,
+                      out_T, out_last, gF, gT, isect)
         absg = np.zeros((I * N, 2))
         per = ck.reduce_isect_grad(isect, flat_ids, flat_ids.shape[0], I * N, absg)
         per = torch.from_numpy(per).reshape(I, N, 6 + Cf).to(dt)

@@ -358,6 +358,7 @@ def bin_tiles(means2d, radii, depths, tile_size, tiles_x, tiles_y, bin_needed):
 #: fast-math flags of the compositing loops: reassociation and FMA contraction let LLVM vectorize
 #: the per-row loops (results stay deterministic: the compiled order is fixed); no nnan/ninf
 FASTMATH = {"reassoc", "contract", "nsz"}
+COLUMN_GROUP = 8  # columns per contiguous block of a tile's state (tile sizes that are multiples of 8)
 SIGMA_ROW = 5.56  # exponent bound of the rows a Gaussian can reach (> SIGMA_SKIP: a safe superset)
 #: Taylor coefficients of exp, highest degree first (degree 13)
 _EXP_COEFS = tuple(1.0 / math.factorial(d) for d in range(13, -1, -1))
@@ -397,37 +398,66 @@ def _exp_neg(s, kc):
 
 
 @njit(cache=True, inline="always")
-def _row_range(my, A, B, C, lo, ry, y0, y1):
-    """Rows [va, vb) of a tile (rows y0..y1) where the exponent can be <= SIGMA_ROW: the ellipse
-    d^T Q d <= 2 (SIGMA_ROW + log o) spans sqrt(2 (SIGMA_ROW + log o) Sigma_yy) rows around the
-    centre (1-row margin); within the screen radius ry."""
-    ext = ry + 1.0
+def _extent(A, B, C, lo, r_axis, along_x):
+    """Half-extent in pixels (1-pixel margin) of the ellipse d^T Q d <= 2 (SIGMA_ROW + log o) along x
+    or y (Q = [[A, B], [B, C]]: Sigma_xx = C / det, Sigma_yy = A / det), at most the screen radius + 1."""
+    ext = r_axis + 1.0
     det = A * C - B * B
-    if det > 0.0 and A > 0.0:
-        ext = min(ext, math.sqrt(max(2.0 * (SIGMA_ROW + lo) * A / det, 0.0)) + 1.0)
-    return max(y0, int(math.floor(my - ext))), min(y1, int(math.ceil(my + ext)))
+    if det > 0.0 and A > 0.0 and C > 0.0:
+        var = (C if along_x else A) / det
+        ext = min(ext, math.sqrt(max(2.0 * (SIGMA_ROW + lo) * var, 0.0)) + 1.0)
+    return ext
+
+
+def column_group(tile_size: int) -> int:
+    """Width of the column groups of a tile's state (see `raster_fwd`)."""
+    for cw in (COLUMN_GROUP, 4):
+        if tile_size % cw == 0:
+            return cw
+    return tile_size
 
 
 @njit(cache=True, inline="always")
-def _tile_centres(centres, x0, y0, ts, cxt, cyt):
-    """Pixel-centre coordinates of a tile's state entries (row-major, stride ts), compute dtype."""
+def _state_index(r, c, ts, cw):
+    """State index of tile-local pixel (row r, column c): column groups of cw columns, each a
+    contiguous [ts rows, cw] block."""
+    return (c // cw) * (ts * cw) + r * cw + (c % cw)
+
+
+@njit(cache=True, inline="always")
+def _tile_centres(centres, x0, y0, ts, cw, cxt, cyt):
+    """Pixel-centre coordinates of a tile's state entries, compute dtype."""
     for r in range(ts):
         for c in range(ts):
-            cxt[r * ts + c] = centres[x0 + c]
-            cyt[r * ts + c] = centres[y0 + r]
+            q = _state_index(r, c, ts, cw)
+            cxt[q] = centres[x0 + c]
+            cyt[q] = centres[y0 + r]
+
+
+@njit(cache=True, inline="always")
+def _footprint(mx, my, A, B, C, lo, rx, ry, x0, y0, ts, W, H):
+    """Tile-local rows [ra, rb) and columns [ca, cb) a Gaussian's ellipse can reach."""
+    ey = _extent(A, B, C, lo, ry, False)
+    ex = _extent(A, B, C, lo, rx, True)
+    ra = max(0, int(math.floor(my - ey)) - y0)
+    rb = min(min(ts, H - y0), int(math.ceil(my + ey)) - y0)
+    ca = max(0, int(math.floor(mx - ex)) - x0)
+    cb = min(min(ts, W - x0), int(math.ceil(mx + ex)) - x0)
+    return ra, rb, ca, cb
 
 
 @njit(cache=True, parallel=True, fastmath=FASTMATH)
 def raster_fwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles_x,
-               kc, centres, out_feat, out_T, out_last):
+               cw, kc, centres, out_feat, out_T, out_last):
     """Front-to-back compositing of each bin (image i, tile t) in ``bins`` into the output pixels
-    whose view is i (pix_view [Iout,H,W]). feats [I*N, Cf] per (image, Gaussian) features; kc
-    `compute_constants`; centres [max(W, H) + tile_size] pixel centres (index + 0.5), compute dtype.
-    Writes out_feat [Iout,H,W,Cf] (sum w f), out_T [Iout,H,W] (composited transmittance) and
-    out_last [Iout,H,W] (one past the last composited intersection, global index).
-    Per-pixel state: T > 0 while compositing, -T once stopped, 0 for pixels of other views.
-    Each Gaussian updates the contiguous block of whole tile rows its ellipse reaches, trimmed to
-    rows with pixels still compositing, in one branch-free loop (it vectorizes)."""
+    whose view is i (pix_view [Iout,H,W]). feats [I*N, Cf] per (image, Gaussian) features; cw
+    `column_group`; kc `compute_constants`; centres [max(W, H) + tile_size] pixel centres
+    (index + 0.5), compute dtype. Writes out_feat [Iout,H,W,Cf] (sum w f), out_T [Iout,H,W]
+    (composited transmittance) and out_last [Iout,H,W] (one past the last composited intersection).
+    Per-pixel state: T > 0 while compositing, -T once stopped, 0 for pixels of other views; stored
+    in column groups (`_state_index`) so that the pixels a Gaussian can reach in a group (its
+    ellipse's rows, trimmed to rows still compositing) are one contiguous range, updated by one
+    branch-free loop (it vectorizes)."""
     Iout, H, W = pix_view.shape
     N = log_opac.shape[0]
     Cf = feats.shape[1]
@@ -447,14 +477,14 @@ def raster_fwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
         last = np.zeros(P, np.int64)
         cxt = np.empty(P, kc.dtype)
         cyt = np.empty(P, kc.dtype)
-        _tile_centres(centres, x0, y0, ts, cxt, cyt)
+        _tile_centres(centres, x0, y0, ts, cw, cxt, cyt)
         wbuf = np.empty(P, kc.dtype)
         row_active = np.zeros(ts, np.int64)  # pixels still compositing, per tile row
         n_active = 0
         for v in range(y0, y1):
             for u in range(x0, x1):
                 if pix_view[o, v, u] == i:
-                    T[(v - y0) * ts + (u - x0)] = one
+                    T[_state_index(v - y0, u - x0, ts, cw)] = one
                     row_active[v - y0] += 1
                     n_active += 1
         for k in range(bin_start[b], bin_start[b + 1]):
@@ -466,46 +496,47 @@ def raster_fwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
             A, B, C = conics[gi, n, 0], conics[gi, n, 1], conics[gi, n, 2]
             lo = log_opac[n]
             hA, hC = kc[0] * A, kc[0] * C
-            va, vb = _row_range(my, A, B, C, lo, radii[gi, n, 1], y0, y1)
-            while va < vb and row_active[va - y0] == 0:
-                va += 1
-            while vb > va and row_active[vb - 1 - y0] == 0:
-                vb -= 1
-            if va == vb:
+            ra, rb, ca, cb = _footprint(mx, my, A, B, C, lo, radii[gi, n, 0], radii[gi, n, 1], x0, y0, ts, W, H)
+            while ra < rb and row_active[ra] == 0:
+                ra += 1
+            while rb > ra and row_active[rb - 1] == 0:
+                rb -= 1
+            if ra >= rb or ca >= cb:
                 continue
-            pa, pb = (va - y0) * ts, (vb - y0) * ts
             stopped = 0
-            for pp in range(pa, pb):  # unsigned index: no wraparound test; branch-free: vectorizes
-                p = np.uint64(pp)
-                dx = cxt[p] - mx
-                dy = cyt[p] - my
-                s = (hA * dx + B * dy) * dx + hC * dy * dy - lo
-                alpha = min(_exp_neg(s, kc), amax)
-                Tp = T[p]
-                ok = (s <= sskip) & (alpha > amin) & (Tp > zero)
-                T_next = Tp * (one - alpha)
-                stop = ok & (T_next <= tstop)
-                comp = ok & (T_next > tstop)
-                wbuf[p] = alpha * Tp if comp else zero
-                T[p] = T_next if comp else (-Tp if stop else Tp)
-                last[p] = k + 1 if comp else last[p]
-                stopped += 1 if stop else 0
-            for c in range(Cf):  # a separate loop per channel: an inner channel loop would stop the vectorizer
-                fc = feats[g, c]
-                for pp in range(pa, pb):
-                    acc[c, np.uint64(pp)] += wbuf[np.uint64(pp)] * fc
+            for q in range(ca // cw, (cb - 1) // cw + 1):
+                pa, pb = q * ts * cw + ra * cw, q * ts * cw + rb * cw
+                for pp in range(pa, pb):  # unsigned index: no wraparound test; branch-free: vectorizes
+                    p = np.uint64(pp)
+                    dx = cxt[p] - mx
+                    dy = cyt[p] - my
+                    s = (hA * dx + B * dy) * dx + hC * dy * dy - lo
+                    alpha = min(_exp_neg(s, kc), amax)
+                    Tp = T[p]
+                    ok = (s <= sskip) & (alpha > amin) & (Tp > zero)
+                    T_next = Tp * (one - alpha)
+                    stop = ok & (T_next <= tstop)
+                    comp = ok & (T_next > tstop)
+                    wbuf[p] = alpha * Tp if comp else zero
+                    T[p] = T_next if comp else (-Tp if stop else Tp)
+                    last[p] = k + 1 if comp else last[p]
+                    stopped += 1 if stop else 0
+                for c in range(Cf):  # one loop per channel: an inner channel loop would stop the vectorizer
+                    fc = feats[g, c]
+                    for pp in range(pa, pb):
+                        acc[c, np.uint64(pp)] += wbuf[np.uint64(pp)] * fc
             if stopped:
                 n_active -= stopped
-                for r in range(va - y0, vb - y0):
+                for r in range(ra, rb):
                     cnt = 0
-                    for q in range(r * ts, (r + 1) * ts):
-                        cnt += 1 if T[q] > zero else 0
+                    for cc in range(ts):
+                        cnt += 1 if T[_state_index(r, cc, ts, cw)] > zero else 0
                     row_active[r] = cnt
         for v in range(y0, y1):
             for u in range(x0, x1):
                 if pix_view[o, v, u] != i:
                     continue
-                p = (v - y0) * ts + (u - x0)
+                p = _state_index(v - y0, u - x0, ts, cw)
                 out_T[o, v, u] = abs(T[p])
                 out_last[o, v, u] = last[p]
                 for c in range(Cf):
@@ -514,7 +545,7 @@ def raster_fwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
 
 @njit(cache=True, parallel=True, fastmath=FASTMATH)
 def raster_bwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles_x,
-               kc, centres, out_T, out_last, g_feat, g_T, isect_grad):
+               cw, kc, centres, out_T, out_last, g_feat, g_T, isect_grad):
     """Back-to-front backward of `raster_fwd` (T recovered by division, as gsplat): isect_grad
     [M, 6 + Cf] per intersection (dL/d mean x, y; dL/d conic a, b, c; dL/d log opacity; dL/d features)."""
     Iout, H, W = pix_view.shape
@@ -538,17 +569,17 @@ def raster_bwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
         last = np.zeros(P, np.int64)
         cxt = np.empty(P, kc.dtype)
         cyt = np.empty(P, kc.dtype)
-        _tile_centres(centres, x0, y0, ts, cxt, cyt)
+        _tile_centres(centres, x0, y0, ts, cw, cxt, cyt)
         ebuf = np.empty(P, kc.dtype)
         wbuf = np.empty(P, kc.dtype)
-        f = np.empty(Cf, kc.dtype)
+        gf = np.empty(Cf, kc.dtype)
         row_last = np.zeros(ts, np.int64)  # one past the last composited intersection, per tile row
         k_end = bin_start[b]
         for v in range(y0, y1):
             for u in range(x0, x1):
                 if pix_view[o, v, u] != i:
                     continue
-                p = (v - y0) * ts + (u - x0)
+                p = _state_index(v - y0, u - x0, ts, cw)
                 T[p] = out_T[o, v, u]
                 gTT[p] = g_T[o, v, u] * out_T[o, v, u]
                 last[p] = out_last[o, v, u]
@@ -563,51 +594,59 @@ def raster_bwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
             A, B, C = conics[gi, n, 0], conics[gi, n, 1], conics[gi, n, 2]
             lo = log_opac[n]
             hA, hC = kc[0] * A, kc[0] * C
-            va, vb = _row_range(my, A, B, C, lo, radii[gi, n, 1], y0, y1)
-            while va < vb and k >= row_last[va - y0]:
-                va += 1
-            while vb > va and k >= row_last[vb - 1 - y0]:
-                vb -= 1
-            pa, pb = (va - y0) * ts, (vb - y0) * ts
-            for c in range(Cf):
-                f[c] = feats[g, c]
-            for pp in range(pa, pb):
-                ebuf[np.uint64(pp)] = zero
-            for c in range(Cf):
-                fc = f[c]
-                for pp in range(pa, pb):
-                    ebuf[np.uint64(pp)] += gF[c, np.uint64(pp)] * fc
+            ra, rb, ca, cb = _footprint(mx, my, A, B, C, lo, radii[gi, n, 0], radii[gi, n, 1], x0, y0, ts, W, H)
+            while ra < rb and k >= row_last[ra]:
+                ra += 1
+            while rb > ra and k >= row_last[rb - 1]:
+                rb -= 1
             gmx = zero
             gmy = zero
             ga = zero
             gb = zero
             gc = zero
             glo = zero
-            for pp in range(pa, pb):  # unsigned index: no wraparound test; branch-free: vectorizes
-                p = np.uint64(pp)
-                dx = cxt[p] - mx
-                dy = cyt[p] - my
-                s = (hA * dx + B * dy) * dx + hC * dy * dy - lo
-                ex = _exp_neg(s, kc)
-                alpha = min(ex, amax)
-                ok = (s <= sskip) & (alpha > amin) & (k < last[p])
-                inv_one_m = one / (one - alpha)
-                Tp = T[p]
-                T_exc = Tp * inv_one_m
-                w = alpha * T_exc if ok else zero
-                e = ebuf[p]
-                wbuf[p] = w
-                sp = suffix[p]
-                G = alpha * inv_one_m * (sp + gTT[p]) - e * w
-                G = G if (ok & (ex < amax)) else zero  # clamped alpha: no gradient through it
-                suffix[p] = sp + e * w
-                T[p] = T_exc if ok else Tp
-                gmx -= G * (A * dx + B * dy)
-                gmy -= G * (B * dx + C * dy)
-                ga += G * dx * dx
-                gb += G * dx * dy
-                gc += G * dy * dy
-                glo -= G
+            for c in range(Cf):
+                gf[c] = zero
+            if ra >= rb or ca >= cb:
+                ca, cb = 0, 0
+            for q in range(ca // cw, (cb - 1) // cw + 1 if cb > ca else 0):
+                pa, pb = q * ts * cw + ra * cw, q * ts * cw + rb * cw
+                for pp in range(pa, pb):
+                    ebuf[np.uint64(pp)] = zero
+                for c in range(Cf):
+                    fc = feats[g, c]
+                    for pp in range(pa, pb):
+                        ebuf[np.uint64(pp)] += gF[c, np.uint64(pp)] * fc
+                for pp in range(pa, pb):  # unsigned index: no wraparound test; branch-free: vectorizes
+                    p = np.uint64(pp)
+                    dx = cxt[p] - mx
+                    dy = cyt[p] - my
+                    s = (hA * dx + B * dy) * dx + hC * dy * dy - lo
+                    ex = _exp_neg(s, kc)
+                    alpha = min(ex, amax)
+                    ok = (s <= sskip) & (alpha > amin) & (k < last[p])
+                    inv_one_m = one / (one - alpha)
+                    Tp = T[p]
+                    T_exc = Tp * inv_one_m
+                    w = alpha * T_exc if ok else zero
+                    e = ebuf[p]
+                    wbuf[p] = w
+                    sp = suffix[p]
+                    G = alpha * inv_one_m * (sp + gTT[p]) - e * w
+                    G = G if (ok & (ex < amax)) else zero  # clamped alpha: no gradient through it
+                    suffix[p] = sp + e * w
+                    T[p] = T_exc if ok else Tp
+                    gmx -= G * (A * dx + B * dy)
+                    gmy -= G * (B * dx + C * dy)
+                    ga += G * dx * dx
+                    gb += G * dx * dy
+                    gc += G * dy * dy
+                    glo -= G
+                for c in range(Cf):
+                    sc = zero
+                    for pp in range(pa, pb):
+                        sc += wbuf[np.uint64(pp)] * gF[c, np.uint64(pp)]
+                    gf[c] += sc
             isect_grad[k, 0] = gmx
             isect_grad[k, 1] = gmy
             isect_grad[k, 2] = kc[0] * ga
@@ -615,10 +654,7 @@ def raster_bwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
             isect_grad[k, 4] = kc[0] * gc
             isect_grad[k, 5] = glo
             for c in range(Cf):
-                sc = zero
-                for pp in range(pa, pb):
-                    sc += wbuf[np.uint64(pp)] * gF[c, np.uint64(pp)]
-                isect_grad[k, 6 + c] = sc
+                isect_grad[k, 6 + c] = gf[c]
 
 
 @njit(cache=True)
