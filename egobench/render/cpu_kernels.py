@@ -177,6 +177,14 @@ def project_bwd(means, quats, scales, viewmats, cam, width, height, eps2d, near,
             gs = np.zeros(3)
             gm = np.zeros(3)
             for i in range(I):
+                # every term below is linear in the upstream gradients: skip exact zeros (most
+                # (pose, Gaussian) pairs of a rolling-shutter render reach no pixel)
+                live = (g_means2d[i, n, 0] != 0.0 or g_means2d[i, n, 1] != 0.0 or g_depths[i, n] != 0.0
+                        or g_conics[i, n, 0] != 0.0 or g_conics[i, n, 1] != 0.0 or g_conics[i, n, 2] != 0.0)
+                if want_normal:
+                    live = live or g_normals[i, n, 0] != 0.0 or g_normals[i, n, 1] != 0.0 or g_normals[i, n, 2] != 0.0
+                if not live:
+                    continue
                 V = viewmats[i]
                 x = V[0, 0] * means[n, 0] + V[0, 1] * means[n, 1] + V[0, 2] * means[n, 2] + V[0, 3]
                 y = V[1, 0] * means[n, 0] + V[1, 1] * means[n, 1] + V[1, 2] * means[n, 2] + V[1, 3]
@@ -287,11 +295,27 @@ def project_bwd(means, quats, scales, viewmats, cam, width, height, eps2d, near,
             g_quats[n, 3] = (gzz - qz * dot) * qinv
 
 
-@njit(cache=True)
 def bin_tiles(means2d, radii, depths, tile_size, tiles_x, tiles_y, bin_needed):
     """Intersections sorted by (bin, depth, Gaussian index): means2d [I,N,2], radii [I,N,2],
     depths [I,N], bin_needed [I, tiles] bool -> (flat_ids [M] int64 (image * N + Gaussian),
-    bin_start [I * tiles + 1] int64)."""
+    bin_start [I * tiles + 1] int64). The depth order is a stable LSD radix sort of the depths'
+    bit patterns (positive floats order like their bits), ties by (image, Gaussian)."""
+    rect, vis, keys = _tile_rects(means2d, radii, depths, tile_size, tiles_x, tiles_y, bin_needed)
+    bits = 32 if keys.dtype == np.float32 else 64
+    ukeys = keys.view(np.uint32 if bits == 32 else np.uint64)
+    perm = None
+    for shift in range(0, bits, 16):
+        digit = ((ukeys >> shift) & 0xFFFF).astype(np.uint16)
+        p = np.argsort(digit if perm is None else digit[perm], kind="stable")
+        perm = p if perm is None else perm[p]
+    order = vis if perm is None else vis[perm]
+    return _fill_bins(rect, order, depths.shape[1], tiles_x, tiles_y, bin_needed)
+
+
+@njit(cache=True)
+def _tile_rects(means2d, radii, depths, tile_size, tiles_x, tiles_y, bin_needed):
+    """Tile rectangles [I*N, 4] (x0, x1, y0, y1) of the visible (image, Gaussian) pairs, their flat
+    ids (ascending) and depths."""
     I, N = depths.shape
     n_tiles = tiles_x * tiles_y
     # each image's tile ranges are clipped to the bounding box of its needed bins (as torch_backend)
@@ -307,7 +331,7 @@ def bin_tiles(means2d, radii, depths, tile_size, tiles_x, tiles_y, bin_needed):
                 bx1[i] = max(bx1[i], tx + 1)
                 by0[i] = min(by0[i], ty)
                 by1[i] = max(by1[i], ty + 1)
-    rect = np.zeros((I * N, 4), np.int64)
+    rect = np.empty((I * N, 4), np.int64)  # rows of visible pairs only are written and read
     vis = np.empty(I * N, np.int64)
     keys = np.empty(I * N, depths.dtype)
     nv = 0
@@ -330,7 +354,15 @@ def bin_tiles(means2d, radii, depths, tile_size, tiles_x, tiles_y, bin_needed):
             vis[nv] = k
             keys[nv] = depths[i, n]
             nv += 1
-    order = vis[:nv][np.argsort(keys[:nv], kind="mergesort")]  # stable: ties by (image, Gaussian)
+    return rect, vis[:nv].copy(), keys[:nv].copy()
+
+
+@njit(cache=True)
+def _fill_bins(rect, order, N, tiles_x, tiles_y, bin_needed):
+    """Counting sort of the intersections of the pairs in ``order`` (front to back) by bin."""
+    I = bin_needed.shape[0]
+    n_tiles = tiles_x * tiles_y
+    nv = order.shape[0]
     counts = np.zeros(I * n_tiles + 1, np.int64)
     for j in range(nv):
         k = order[j]
