@@ -32,7 +32,8 @@ if "NUMBA_NUM_THREADS" not in os.environ and os.environ.get("OMP_NUM_THREADS", "
 
 import numba  # noqa: E402
 import numpy as np  # noqa: E402
-from numba import njit, prange  # noqa: E402
+from numba import njit, prange, types  # noqa: E402
+from numba.extending import overload  # noqa: E402
 
 # numba's OpenMP layer keeps its worker threads spinning after each parallel loop, which stalls
 # torch's own OpenMP threads (measured: torch ops 100x slower after one such loop on a 2-core
@@ -403,30 +404,54 @@ def compute_constants(dtype) -> np.ndarray:
     return np.array((0.5, 1.0, ALPHA_MAX, 0.0, 0.0625, 6.0) + _EXP_COEFS + (ALPHA_MIN, T_STOP, SIGMA_SKIP), dtype=dtype)
 
 
-@njit(cache=True, inline="always", fastmath=FASTMATH)
 def _exp_neg(s, kc):
-    """exp(-s) for s in [0, 6] (s clamped to <= 6), branch-free so that loops vectorize: Taylor
-    polynomial (degree 13) of exp(x / 16), |x / 16| <= 0.375, squared four times; relative error
-    ~1e-15 in float64, ~1e-7 in float32. kc: `compute_constants`."""
-    x = -min(s, kc[5]) * kc[4]
-    # unrolled by hand: a loop here would be the innermost loop and stop the vectorizer
-    p = kc[6] * x + kc[7]
-    p = p * x + kc[8]
-    p = p * x + kc[9]
-    p = p * x + kc[10]
-    p = p * x + kc[11]
-    p = p * x + kc[12]
-    p = p * x + kc[13]
-    p = p * x + kc[14]
-    p = p * x + kc[15]
-    p = p * x + kc[16]
-    p = p * x + kc[17]
-    p = p * x + kc[18]
-    p = p * x + kc[19]
-    p = p * p
-    p = p * p
-    p = p * p
-    return p * p
+    """exp(-s) for s in [0, 6] (s clamped to <= 6), branch-free so that loops vectorize: a Taylor
+    polynomial of exp(x / 16), |x / 16| <= 0.375, squared four times; degree 13 in float64
+    (relative error ~1e-15), degree 8 in float32 (~1e-8, below float32 rounding). kc:
+    `compute_constants` (its dtype picks the degree at compile time)."""
+    raise NotImplementedError("numba-only: called from the compiled kernels")
+
+
+@overload(_exp_neg, inline="always", fastmath=FASTMATH)
+def _exp_neg_impl(s, kc):
+    if kc.dtype == types.float32:
+        def impl32(s, kc):
+            x = -min(s, kc[5]) * kc[4]
+            # unrolled by hand: a loop here would be the innermost loop and stop the vectorizer
+            p = kc[11] * x + kc[12]
+            p = p * x + kc[13]
+            p = p * x + kc[14]
+            p = p * x + kc[15]
+            p = p * x + kc[16]
+            p = p * x + kc[17]
+            p = p * x + kc[18]
+            p = p * x + kc[19]
+            p = p * p
+            p = p * p
+            p = p * p
+            return p * p
+        return impl32
+
+    def impl64(s, kc):
+        x = -min(s, kc[5]) * kc[4]
+        p = kc[6] * x + kc[7]
+        p = p * x + kc[8]
+        p = p * x + kc[9]
+        p = p * x + kc[10]
+        p = p * x + kc[11]
+        p = p * x + kc[12]
+        p = p * x + kc[13]
+        p = p * x + kc[14]
+        p = p * x + kc[15]
+        p = p * x + kc[16]
+        p = p * x + kc[17]
+        p = p * x + kc[18]
+        p = p * x + kc[19]
+        p = p * p
+        p = p * p
+        p = p * p
+        return p * p
+    return impl64
 
 
 @njit(cache=True, inline="always")
