@@ -134,6 +134,9 @@ class _Rasterize(torch.autograd.Function):
         tiles_x, tiles_y = math.ceil(W / tile_size), math.ceil(H / tile_size)
         m2, con, rad = _np(means2d), _np(conics), _np(radii)
         flat_ids, bin_start = ck.bin_tiles(m2, rad, _np(depths), tile_size, tiles_x, tiles_y, bin_needed)
+        if flat_ids.shape[0] >= 2**31 - 1:  # per-pixel indices are int32
+            raise ValueError(f"render(backend='cpu'): {flat_ids.shape[0]} tile intersections exceed 2^31 - 1; "
+                             "use a larger tile_size or backend='torch'")
         bins = np.nonzero(bin_needed.reshape(-1))[0].astype(np.int64)
         feats = torch.cat([colors.detach()[None].expand(I, N, 3), depths.detach()[..., None]]
                           + ([normals.detach()] if normals.shape[1] else []), -1).reshape(I * N, -1)
@@ -141,7 +144,7 @@ class _Rasterize(torch.autograd.Function):
         Cf = feats_np.shape[1]
         out_feat = np.zeros((Iout, H, W, Cf), dtype=m2.dtype)
         out_T = np.zeros((Iout, H, W), dtype=m2.dtype)
-        out_last = np.zeros((Iout, H, W), dtype=np.int64)
+        out_last = np.zeros((Iout, H, W), dtype=np.int32)
         lo = _np(log_opac)
         kc = ck.compute_constants(m2.dtype)
         centres = (np.arange(max(W, H) + tile_size) + 0.5).astype(m2.dtype)

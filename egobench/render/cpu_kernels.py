@@ -531,7 +531,7 @@ def raster_fwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
         x1, y1 = min(x0 + ts, W), min(y0 + ts, H)
         T = np.zeros(P, kc.dtype)
         acc = np.zeros((Cf, P), kc.dtype)
-        last = np.zeros(P, np.int64)
+        last = np.zeros(P, np.int32)  # int32: as many SIMD lanes as float32
         cxt = np.empty(P, kc.dtype)
         cyt = np.empty(P, kc.dtype)
         _tile_centres(centres, x0, y0, ts, cw, cxt, cyt)
@@ -561,6 +561,7 @@ def raster_fwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
             if ra >= rb or ca >= cb:
                 continue
             stopped = 0
+            k1 = np.int32(k + 1)
             for q in range(ca // cw, (cb - 1) // cw + 1):
                 pa, pb = q * ts * cw + ra * cw, q * ts * cw + rb * cw
                 for pp in range(pa, pb):  # unsigned index: no wraparound test; branch-free: vectorizes
@@ -576,7 +577,7 @@ def raster_fwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
                     comp = ok & (T_next > tstop)
                     wbuf[p] = alpha * Tp if comp else zero
                     T[p] = T_next if comp else (-Tp if stop else Tp)
-                    last[p] = k + 1 if comp else last[p]
+                    last[p] = k1 if comp else last[p]
                     stopped += 1 if stop else 0
                 for c in range(Cf):  # one loop per channel: an inner channel loop would stop the vectorizer
                     fc = feats[g, c]
@@ -623,7 +624,7 @@ def raster_bwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
         gTT = np.zeros(P, kc.dtype)
         suffix = np.zeros(P, kc.dtype)
         gF = np.zeros((Cf, P), kc.dtype)
-        last = np.zeros(P, np.int64)
+        last = np.zeros(P, np.int32)  # int32: as many SIMD lanes as float32
         cxt = np.empty(P, kc.dtype)
         cyt = np.empty(P, kc.dtype)
         _tile_centres(centres, x0, y0, ts, cw, cxt, cyt)
@@ -662,6 +663,7 @@ def raster_bwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
             gb = zero
             gc = zero
             glo = zero
+            k32 = np.int32(k)
             for c in range(Cf):
                 gf[c] = zero
             if ra >= rb or ca >= cb:
@@ -681,7 +683,7 @@ def raster_bwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
                     s = (hA * dx + B * dy) * dx + hC * dy * dy - lo
                     ex = _exp_neg(s, kc)
                     alpha = min(ex, amax)
-                    ok = (s <= sskip) & (alpha > amin) & (k < last[p])
+                    ok = (s <= sskip) & (alpha > amin) & (k32 < last[p])
                     inv_one_m = one / (one - alpha)
                     Tp = T[p]
                     T_exc = Tp * inv_one_m
