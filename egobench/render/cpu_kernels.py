@@ -536,6 +536,7 @@ def raster_fwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
         cyt = np.empty(P, kc.dtype)
         _tile_centres(centres, x0, y0, ts, cw, cxt, cyt)
         wbuf = np.empty(P, kc.dtype)
+        sbuf = np.zeros(P, np.int32)  # 1 where the last Gaussian stopped the pixel
         row_active = np.zeros(ts, np.int64)  # pixels still compositing, per tile row
         n_active = 0
         for v in range(y0, y1):
@@ -578,6 +579,7 @@ def raster_fwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
                     wbuf[p] = alpha * Tp if comp else zero
                     T[p] = T_next if comp else (-Tp if stop else Tp)
                     last[p] = k1 if comp else last[p]
+                    sbuf[p] = 1 if stop else 0
                     stopped += 1 if stop else 0
                 for c in range(Cf):  # one loop per channel: an inner channel loop would stop the vectorizer
                     fc = feats[g, c]
@@ -585,11 +587,11 @@ def raster_fwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
                         acc[c, np.uint64(pp)] += wbuf[np.uint64(pp)] * fc
             if stopped:
                 n_active -= stopped
-                for r in range(ra, rb):
-                    cnt = 0
-                    for cc in range(ts):
-                        cnt += 1 if T[_state_index(r, cc, ts, cw)] > zero else 0
-                    row_active[r] = cnt
+                for q in range(ca // cw, (cb - 1) // cw + 1):
+                    for r in range(ra, rb):
+                        base = q * ts * cw + r * cw
+                        for j in range(cw):
+                            row_active[r] -= sbuf[base + j]
         for v in range(y0, y1):
             for u in range(x0, x1):
                 if pix_view[o, v, u] != i:
