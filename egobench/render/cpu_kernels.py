@@ -50,12 +50,12 @@ CHUNK = 256  # Gaussians per chunk of the projection backward's pose-gradient pa
 
 
 @njit(cache=True, inline="always")
-def _rotmat(qw, qx, qy, qz):
-    """Normalised quaternion -> rotation matrix entries (row-major), and 1/|q|."""
+def _rotmat(qw, qx, qy, qz, R):
+    """Normalised quaternion -> rotation matrix R [3, 3] (filled in place; scratch reused: no
+    allocation per Gaussian), the normalised components and 1/|q|."""
     nrm = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
     inv = 1.0 / max(nrm, 1e-12)
     w, x, y, z = qw * inv, qx * inv, qy * inv, qz * inv
-    R = np.empty((3, 3))
     R[0, 0] = 1.0 - 2.0 * (y * y + z * z)
     R[0, 1] = 2.0 * (x * y - w * z)
     R[0, 2] = 2.0 * (x * z + w * y)
@@ -91,67 +91,70 @@ def project_fwd(means, quats, scales, opac, viewmats, cam, width, height, eps2d,
     lxn = cx / fx + 0.3 * tan_fovx
     lyp = (height - cy) / fy + 0.3 * tan_fovy
     lyn = cy / fy + 0.3 * tan_fovy
-    for n in prange(N):
-        R, _, _, _, _, _ = _rotmat(quats[n, 0], quats[n, 1], quats[n, 2], quats[n, 3])
-        ax = _argmin3(scales[n, 0], scales[n, 1], scales[n, 2])
-        ext = EXTENT_SIGMAS
-        op = opac[n]
-        if op >= ALPHA_MIN:
-            ext = min(ext, math.sqrt(2.0 * math.log(op / ALPHA_MIN)))
-        for i in range(I):
-            V = viewmats[i]
-            x = V[0, 0] * means[n, 0] + V[0, 1] * means[n, 1] + V[0, 2] * means[n, 2] + V[0, 3]
-            y = V[1, 0] * means[n, 0] + V[1, 1] * means[n, 1] + V[1, 2] * means[n, 2] + V[1, 3]
-            z = V[2, 0] * means[n, 0] + V[2, 1] * means[n, 1] + V[2, 2] * means[n, 2] + V[2, 3]
-            in_depth = z >= near and z <= far
-            zs = z if in_depth else 1.0
-            inv_z = 1.0 / zs
-            tx = min(max(x * inv_z, -lxn), lxp)
-            ty = min(max(y * inv_z, -lyn), lyp)
-            j00, j11 = fx * inv_z, fy * inv_z
-            c00 = eps2d
-            c11 = eps2d
-            c01 = 0.0
-            for c in range(3):
-                # Mc[r, c] = sum_b V[r, b] R[b, c] s[c]
-                m0 = (V[0, 0] * R[0, c] + V[0, 1] * R[1, c] + V[0, 2] * R[2, c]) * scales[n, c]
-                m1 = (V[1, 0] * R[0, c] + V[1, 1] * R[1, c] + V[1, 2] * R[2, c]) * scales[n, c]
-                m2 = (V[2, 0] * R[0, c] + V[2, 1] * R[1, c] + V[2, 2] * R[2, c]) * scales[n, c]
-                a0 = j00 * (m0 - tx * m2)
-                a1 = j11 * (m1 - ty * m2)
-                c00 += a0 * a0
-                c11 += a1 * a1
-                c01 += a0 * a1
-            det = c00 * c11 - c01 * c01
-            valid = in_depth and det > 0
-            det_s = det if valid else 1.0
-            conics[i, n, 0] = c11 / det_s
-            conics[i, n, 1] = -c01 / det_s
-            conics[i, n, 2] = c00 / det_s
-            u = fx * x * inv_z + cx
-            v = fy * y * inv_z + cy
-            means2d[i, n, 0] = u
-            means2d[i, n, 1] = v
-            depths[i, n] = z
-            valid = valid and op >= ALPHA_MIN
-            rx = math.ceil(ext * math.sqrt(max(c00, 0.0)))
-            ry = math.ceil(ext * math.sqrt(max(c11, 0.0)))
-            valid = valid and (rx > 0 or ry > 0)
-            inside = u + rx > 0 and u - rx < width and v + ry > 0 and v - ry < height
-            if valid and inside:
-                radii[i, n, 0] = np.int32(rx)
-                radii[i, n, 1] = np.int32(ry)
-            else:
-                radii[i, n, 0] = 0
-                radii[i, n, 1] = 0
-            if want_normal:
-                nx = V[0, 0] * R[0, ax] + V[0, 1] * R[1, ax] + V[0, 2] * R[2, ax]
-                ny = V[1, 0] * R[0, ax] + V[1, 1] * R[1, ax] + V[1, 2] * R[2, ax]
-                nz = V[2, 0] * R[0, ax] + V[2, 1] * R[1, ax] + V[2, 2] * R[2, ax]
-                sgn = 1.0 if -(nx * x + ny * y + nz * z) > 0 else -1.0
-                normals[i, n, 0] = sgn * nx
-                normals[i, n, 1] = sgn * ny
-                normals[i, n, 2] = sgn * nz
+    n_chunks = (N + CHUNK - 1) // CHUNK
+    for ch in prange(n_chunks):
+        R = np.empty((3, 3))  # scratch, reused for every Gaussian of the chunk
+        for n in range(ch * CHUNK, min(N, (ch + 1) * CHUNK)):
+            R, _, _, _, _, _ = _rotmat(quats[n, 0], quats[n, 1], quats[n, 2], quats[n, 3], R)
+            ax = _argmin3(scales[n, 0], scales[n, 1], scales[n, 2])
+            ext = EXTENT_SIGMAS
+            op = opac[n]
+            if op >= ALPHA_MIN:
+                ext = min(ext, math.sqrt(2.0 * math.log(op / ALPHA_MIN)))
+            for i in range(I):
+                V = viewmats[i]
+                x = V[0, 0] * means[n, 0] + V[0, 1] * means[n, 1] + V[0, 2] * means[n, 2] + V[0, 3]
+                y = V[1, 0] * means[n, 0] + V[1, 1] * means[n, 1] + V[1, 2] * means[n, 2] + V[1, 3]
+                z = V[2, 0] * means[n, 0] + V[2, 1] * means[n, 1] + V[2, 2] * means[n, 2] + V[2, 3]
+                in_depth = z >= near and z <= far
+                zs = z if in_depth else 1.0
+                inv_z = 1.0 / zs
+                tx = min(max(x * inv_z, -lxn), lxp)
+                ty = min(max(y * inv_z, -lyn), lyp)
+                j00, j11 = fx * inv_z, fy * inv_z
+                c00 = eps2d
+                c11 = eps2d
+                c01 = 0.0
+                for c in range(3):
+                    # Mc[r, c] = sum_b V[r, b] R[b, c] s[c]
+                    m0 = (V[0, 0] * R[0, c] + V[0, 1] * R[1, c] + V[0, 2] * R[2, c]) * scales[n, c]
+                    m1 = (V[1, 0] * R[0, c] + V[1, 1] * R[1, c] + V[1, 2] * R[2, c]) * scales[n, c]
+                    m2 = (V[2, 0] * R[0, c] + V[2, 1] * R[1, c] + V[2, 2] * R[2, c]) * scales[n, c]
+                    a0 = j00 * (m0 - tx * m2)
+                    a1 = j11 * (m1 - ty * m2)
+                    c00 += a0 * a0
+                    c11 += a1 * a1
+                    c01 += a0 * a1
+                det = c00 * c11 - c01 * c01
+                valid = in_depth and det > 0
+                det_s = det if valid else 1.0
+                conics[i, n, 0] = c11 / det_s
+                conics[i, n, 1] = -c01 / det_s
+                conics[i, n, 2] = c00 / det_s
+                u = fx * x * inv_z + cx
+                v = fy * y * inv_z + cy
+                means2d[i, n, 0] = u
+                means2d[i, n, 1] = v
+                depths[i, n] = z
+                valid = valid and op >= ALPHA_MIN
+                rx = math.ceil(ext * math.sqrt(max(c00, 0.0)))
+                ry = math.ceil(ext * math.sqrt(max(c11, 0.0)))
+                valid = valid and (rx > 0 or ry > 0)
+                inside = u + rx > 0 and u - rx < width and v + ry > 0 and v - ry < height
+                if valid and inside:
+                    radii[i, n, 0] = np.int32(rx)
+                    radii[i, n, 1] = np.int32(ry)
+                else:
+                    radii[i, n, 0] = 0
+                    radii[i, n, 1] = 0
+                if want_normal:
+                    nx = V[0, 0] * R[0, ax] + V[0, 1] * R[1, ax] + V[0, 2] * R[2, ax]
+                    ny = V[1, 0] * R[0, ax] + V[1, 1] * R[1, ax] + V[1, 2] * R[2, ax]
+                    nz = V[2, 0] * R[0, ax] + V[2, 1] * R[1, ax] + V[2, 2] * R[2, ax]
+                    sgn = 1.0 if -(nx * x + ny * y + nz * z) > 0 else -1.0
+                    normals[i, n, 0] = sgn * nx
+                    normals[i, n, 1] = sgn * ny
+                    normals[i, n, 2] = sgn * nz
 
 
 @njit(cache=True, parallel=True)
@@ -171,12 +174,21 @@ def project_bwd(means, quats, scales, viewmats, cam, width, height, eps2d, near,
     lyn = cy / fy + 0.3 * tan_fovy
     n_chunks = g_view_parts.shape[0]
     for ch in prange(n_chunks):
+        R = np.empty((3, 3))  # scratch, reused for every Gaussian of the chunk
+        gR = np.empty((3, 3))
+        gs = np.empty(3)
+        gm = np.empty(3)
+        Mc = np.empty((3, 3))
+        A0 = np.empty(3)
+        A1 = np.empty(3)
+        gMc = np.empty((3, 3))
+        gnw = np.empty(3)
         for n in range(ch * CHUNK, min(N, (ch + 1) * CHUNK)):
-            R, qw, qx, qy, qz, qinv = _rotmat(quats[n, 0], quats[n, 1], quats[n, 2], quats[n, 3])
+            R, qw, qx, qy, qz, qinv = _rotmat(quats[n, 0], quats[n, 1], quats[n, 2], quats[n, 3], R)
             ax = _argmin3(scales[n, 0], scales[n, 1], scales[n, 2])
-            gR = np.zeros((3, 3))
-            gs = np.zeros(3)
-            gm = np.zeros(3)
+            gR[:] = 0.0
+            gs[:] = 0.0
+            gm[:] = 0.0
             for i in range(I):
                 # every term below is linear in the upstream gradients: skip exact zeros (most
                 # (pose, Gaussian) pairs of a rolling-shutter render reach no pixel)
@@ -197,9 +209,6 @@ def project_bwd(means, quats, scales, viewmats, cam, width, height, eps2d, near,
                 tx = min(max(rtx, -lxn), lxp)
                 ty = min(max(rty, -lyn), lyp)
                 j00, j11 = fx * inv_z, fy * inv_z
-                Mc = np.empty((3, 3))
-                A0 = np.empty(3)
-                A1 = np.empty(3)
                 for c in range(3):
                     for r in range(3):
                         Mc[r, c] = (V[r, 0] * R[0, c] + V[r, 1] * R[1, c] + V[r, 2] * R[2, c]) * scales[n, c]
@@ -227,7 +236,7 @@ def project_bwd(means, quats, scales, viewmats, cam, width, height, eps2d, near,
                 g_j11 = 0.0
                 g_tx = 0.0
                 g_ty = 0.0
-                gMc = np.zeros((3, 3))
+                gMc[:] = 0.0
                 for c in range(3):
                     ga0 = 2.0 * g00 * A0[c] + g01 * A1[c]
                     ga1 = 2.0 * g11 * A1[c] + g01 * A0[c]
@@ -249,7 +258,7 @@ def project_bwd(means, quats, scales, viewmats, cam, width, height, eps2d, near,
                     gz -= g_inv_z * inv_z * inv_z
                 gpc = (gx, gy, gz)
                 # normals: sgn * V[:3,:3] R[:, ax]
-                gnw = np.zeros(3)
+                gnw[:] = 0.0
                 sgn = 0.0
                 if want_normal:
                     nx = V[0, 0] * R[0, ax] + V[0, 1] * R[1, ax] + V[0, 2] * R[2, ax]
