@@ -182,6 +182,14 @@ def test_2dgs_is_handed_to_torch_backend_explicitly():
     torch.testing.assert_close(a.extras["distortion"], b.extras["distortion"], atol=0, rtol=0)
 
 
+def test_other_dtypes_are_handed_to_torch_backend_explicitly():
+    g = Gaussians(**{k: v.to(torch.bfloat16) for k, v in make_scene(20, CAM, 2).tensors().items()})
+    a = render(g, CAM, pose(), backend="cpu")
+    b = render(g, CAM, pose(), backend="torch")
+    assert a.extras["backend"] == "torch" and "bfloat16" in a.extras["cpu_fallback"]
+    torch.testing.assert_close(a.rgb, b.rgb, atol=0, rtol=0)
+
+
 def test_backend_choice_and_fallback(monkeypatch, capsys):
     from egobench.render import cpu_backend
 

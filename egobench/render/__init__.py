@@ -151,20 +151,19 @@ def render(
         raise ValueError(f"render: mode must be '3dgs' or '2dgs', got {mode!r}")
     if not isinstance(camera, Pinhole):
         raise ValueError(f"render: camera must be an egobench.camera.pinhole.Pinhole, got {type(camera).__name__}")
-    device = gaussians.means.device if isinstance(gaussians, Gaussians) and isinstance(gaussians.means, Tensor) else "cpu"
-    chosen = resolve_backend(backend, device)
+    n = _check_gaussians(gaussians)
+    chosen = resolve_backend(backend, gaussians.means.device)
     cpu_fallback = None
     if chosen == "cpu":
         from egobench.render import cpu_backend
 
-        cpu_fallback = cpu_backend.unsupported_reason(mode)
+        cpu_fallback = cpu_backend.unsupported_reason(mode, gaussians.means.dtype)
         if cpu_fallback is not None:
             chosen = "torch"
     if tile_size is None:
         tile_size = 16 if (gaussians.means.is_cuda or chosen == "cpu") else 4
     if int(tile_size) != tile_size or tile_size <= 0:
         raise ValueError(f"render: tile_size must be a positive integer, got {tile_size}")
-    n = _check_gaussians(gaussians)
     means = gaussians.means
     T = _check_poses(T_world_camera, means)
     B = T.shape[0]

@@ -5,8 +5,9 @@ semantics (checked against the torch backend in tests/test_render_cpu.py).
 Supported: 3DGS colour, alpha, depth, normals (``want_normal``), means2d (densification carrier,
 ``absgrad``), radii, rolling shutter (``pixel_pose_index`` with K pose samples), gradients of
 every Gaussian parameter and of the poses. Not supported: 2DGS (surfel intersection and
-distortion kernels are not written yet): `unsupported_reason` says so and `render` then uses the
-torch backend for that call, recording the reason in ``extras["cpu_fallback"]``.
+distortion kernels are not written yet) and dtypes other than float32/float64: `unsupported_reason`
+says so and `render` then uses the torch backend for that call, recording the reason in
+``extras["cpu_fallback"]``.
 """
 
 from __future__ import annotations
@@ -45,10 +46,12 @@ def warn_fallback(reason: str) -> None:
     print(f"egobench render: compiled CPU backend unavailable ({reason}); using the torch backend", file=sys.stderr)
 
 
-def unsupported_reason(mode: str) -> str | None:
+def unsupported_reason(mode: str, dtype: torch.dtype = torch.float32) -> str | None:
     """Why this backend cannot render a call (None: it can)."""
     if mode != "3dgs":
         return "2DGS is not implemented in the compiled CPU backend yet"
+    if dtype not in (torch.float32, torch.float64):
+        return f"the compiled CPU backend renders float32 and float64, not {dtype}"
     return None
 
 
