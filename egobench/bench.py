@@ -1,7 +1,9 @@
 """`egobench bench raster|train|cast`: micro-benchmarks printed as JSON.
 
 ``raster``: forward+backward time of `egobench.render.render` (median of repeats after warm-up)
-on random but realistic scenes, and the cost of a rolling-shutter render (K pose samples)
+on random but realistic scenes (sub-pixel and several-pixel Gaussians), for each backend asked
+(on the CPU by default the compiled ``cpu`` backend beside the ``torch`` oracle), the first
+backend's scaling from 1 to 2 threads, and the cost of a rolling-shutter render (K pose samples)
 relative to a global-shutter render of the same image.
 ``train``: iterations/s, rasterizer time share and peak memory of `egobench.train.train` with and
 without motion sampling on the synthetic `egobench.sim.plane.plane_recording` (or a given recording), at one or more
@@ -113,49 +115,92 @@ def _step(g: Gaussians, cam: Pinhole, T: torch.Tensor, weights: torch.Tensor, **
     return fn
 
 
-#: (image width = height, number of Gaussians) of the timed cases
-RASTER_CASES = ((64, 2000), (128, 20000))
+#: (image width = height, number of Gaussians, median screen sigma in pixels) of the timed cases:
+#: sub-pixel Gaussians and realistic several-pixel ones (the cost grows with the covered area)
+RASTER_CASES = ((64, 2000, 0.8), (128, 20000, 0.8), (128, 20000, 2.5))
 
 
-def bench_raster(device: str = "cpu", repeats: int = 7, backend: str = "auto", tile_size: int = 4,
-                 cases: tuple[tuple[int, int], ...] = RASTER_CASES) -> dict:
-    """The rasterizer benchmark record (see module docstring); the rolling-shutter comparison
-    uses the last case's scene."""
+def default_backends(backend: str, device: str) -> tuple[str, ...]:
+    """Backends a raster benchmark times: "auto" on the CPU compares the compiled backend with the
+    torch oracle; otherwise the one asked for."""
+    if backend == "auto" and not device.startswith("cuda"):
+        return ("cpu", "torch")
+    return (backend,)
+
+
+def _case_spec(case: tuple) -> SceneSpec:
+    width, n = case[0], case[1]
+    sigma = case[2] if len(case) > 2 else 0.8
+    return SceneSpec(width=width, num_gaussians=n, focal_px=0.6 * width, depth_range_m=(2.0, 8.0), margin=0.1,
+                     sigma_px_median=sigma, sigma_log_std=0.3, opacity_logit_mean=0.0, seed=0)
+
+
+def _time_backends(g, cam, T, w, backends, tile_size, device, repeats, **kw) -> dict:
+    out = {}
+    for b in backends:
+        out[b] = time_fwd_bwd(_step(g, cam, T, w, backend=b, tile_size=tile_size, **kw), device, repeats)
+    return out
+
+
+def bench_raster(device: str = "cpu", repeats: int = 7, backend: str = "auto", tile_size: int | None = None,
+                 cases: tuple[tuple, ...] = RASTER_CASES, backends: tuple[str, ...] | None = None,
+                 scaling_threads: tuple[int, ...] = (1, 2)) -> dict:
+    """The rasterizer benchmark record (see module docstring). Every case is timed for each backend
+    (top-level timings: the first); the first backend's thread scaling (CPU) and the rolling-shutter
+    comparison use the last case's scene. tile_size None: each backend's default."""
     from egobench.render import render
 
+    backends = tuple(backends or default_backends(backend, device))
     result: dict = {
         "benchmark": "raster", "torch": torch.__version__, "threads": torch.get_num_threads(), "device": device,
-        "backend": backend, "tile_size": tile_size, "cases": [],
-        "note": "wall time of forward+backward, median of repeats after 2 warm-up runs (cpu_median_ms: "
-                "process CPU time, all threads); noisy on a shared machine",
+        "backend": backends[0], "backends": list(backends), "tile_size": tile_size, "cases": [],
+        "note": "wall time of forward+backward (colour and depth losses), median of repeats after 2 warm-up runs "
+                "(cpu_median_ms: process CPU time, all threads); noisy on a shared machine",
     }
     T = torch.eye(4, device=device)
-    for width, n in cases:
-        spec = SceneSpec(width=width, num_gaussians=n, focal_px=0.6 * width, depth_range_m=(2.0, 8.0), margin=0.1,
-                         sigma_px_median=0.8, sigma_log_std=0.3, opacity_logit_mean=0.0, seed=0)
+    for c in cases:
+        spec = _case_spec(c)
         cam = bench_camera(spec)
         g = bench_scene(spec, device)
-        w = torch.randn(1, width, width, 3, generator=torch.Generator().manual_seed(1)).to(device)
+        w = torch.randn(1, spec.width, spec.width, 3, generator=torch.Generator().manual_seed(1)).to(device)
         with torch.no_grad():
-            probe = render(g, cam, T, backend=backend, tile_size=tile_size)
+            probe = render(g, cam, T, backend=backends[0], tile_size=tile_size)
         r = probe.radii[probe.radii > 0].float()
-        case = {"image": f"{width}x{width}", "scene": asdict(spec),
+        case = {"image": f"{spec.width}x{spec.width}", "scene": asdict(spec),
                 "visible_gaussians": int(r.numel()), "mean_screen_radius_px": round(float(r.mean()), 2),
                 "mean_alpha": round(float(probe.alpha.mean()), 3)}
-        case.update(time_fwd_bwd(_step(g, cam, T, w, backend=backend, tile_size=tile_size), device, repeats))
+        timed = _time_backends(g, cam, T, w, backends, tile_size, device, repeats)
+        case.update(timed[backends[0]])
+        case["by_backend"] = timed
+        if len(backends) > 1:
+            case["speedup_vs_" + backends[1]] = round(timed[backends[1]]["median_ms"] / timed[backends[0]]["median_ms"], 2)
         result["cases"].append(case)
+
+    if not device.startswith("cuda") and scaling_threads:
+        before = torch.get_num_threads()
+        scaling = {}
+        try:
+            for n_threads in scaling_threads:
+                torch.set_num_threads(n_threads)
+                scaling[str(n_threads)] = time_fwd_bwd(_step(g, cam, T, w, backend=backends[0], tile_size=tile_size),
+                                                       device, repeats)
+        finally:
+            torch.set_num_threads(before)
+        result["thread_scaling"] = {"backend": backends[0], "image": case["image"],
+                                    "sigma_px_median": spec.sigma_px_median, "by_threads": scaling}
 
     # rolling shutter: K = 8 samples over a 16 ms readout at 300 deg/s, on the last scene
     K, readout_s, speed = 8, 0.016, 300.0
     Ts = rolling_shutter_poses(K, readout_s, speed, device)
     idx = row_index_image(K, cam.height, cam.width, device)
-    gs = time_fwd_bwd(_step(g, cam, Ts[K // 2], w, backend=backend, tile_size=tile_size), device, repeats)
-    rs = time_fwd_bwd(_step(g, cam, Ts, w, backend=backend, tile_size=tile_size, pixel_pose_index=idx), device, repeats)
-    ref = time_fwd_bwd(_step(g, cam, Ts, w[:1].expand(K, -1, -1, -1), backend=backend, tile_size=tile_size),
+    b0 = backends[0]
+    gs = time_fwd_bwd(_step(g, cam, Ts[K // 2], w, backend=b0, tile_size=tile_size), device, repeats)
+    rs = time_fwd_bwd(_step(g, cam, Ts, w, backend=b0, tile_size=tile_size, pixel_pose_index=idx), device, repeats)
+    ref = time_fwd_bwd(_step(g, cam, Ts, w[:1].expand(K, -1, -1, -1), backend=b0, tile_size=tile_size),
                        device, max(1, repeats // 2), warmup=1)
     result["rolling_shutter"] = {
-        "image": f"{cam.width}x{cam.height}", "pose_samples": K, "readout_s": readout_s, "yaw_deg_per_s": speed,
-        "global_shutter_ms": gs["median_ms"], "rolling_shutter_ms": rs["median_ms"],
+        "backend": b0, "image": f"{cam.width}x{cam.height}", "pose_samples": K, "readout_s": readout_s,
+        "yaw_deg_per_s": speed, "global_shutter_ms": gs["median_ms"], "rolling_shutter_ms": rs["median_ms"],
         "ratio": round(rs["median_ms"] / gs["median_ms"], 3),
         "cpu_ratio": round(rs["cpu_median_ms"] / max(gs["cpu_median_ms"], 1e-9), 3),
         "render_K_images_ms": ref["median_ms"],
@@ -232,9 +277,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("what", choices=["raster", "train", "cast"], help="which benchmark")
     parser.add_argument("--device", default="cpu", help="cpu or cuda")
     parser.add_argument("--repeats", type=int, default=7, help="timed repeats (median reported)")
-    parser.add_argument("--backend", default="auto", choices=["auto", "torch", "gsplat"], help="rasterizer backend")
-    parser.add_argument("--tile-size", type=int, default=4,
-                        help="tile size in pixels (4: fastest for the torch backend on CPU; gsplat's default is 16)")
+    parser.add_argument("--backend", action="append", choices=["auto", "torch", "gsplat", "cpu"],
+                        help="rasterizer backend (repeatable: raster times each; default: cpu and torch on the CPU, "
+                             "auto elsewhere; train uses the first)")
+    parser.add_argument("--tile-size", type=int, default=None,
+                        help="tile size in pixels (default: each backend's, see egobench.render.render)")
     parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
     train = parser.add_argument_group("train benchmark")
     train.add_argument("--resolution", type=int, action="append",
@@ -252,8 +299,12 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("--device cuda: CUDA is not available on this machine")
     if args.repeats < 1:
         raise ValueError(f"--repeats: expected a positive integer, got {args.repeats}")
+    chosen = args.backend if isinstance(args.backend, (list, tuple)) else [args.backend or "auto"]
+    chosen = chosen or ["auto"]
     if args.what == "raster":
-        print(json.dumps(bench_raster(args.device, args.repeats, args.backend, args.tile_size), indent=2))
+        backends = default_backends(chosen[0], args.device) if len(chosen) == 1 else tuple(chosen)
+        print(json.dumps(bench_raster(args.device, args.repeats, chosen[0], args.tile_size, backends=backends),
+                         indent=2))
         return 0
     if args.what == "cast":
         print(json.dumps(bench_cast(args.device, args.repeats), indent=2))
@@ -264,6 +315,6 @@ def run(args: argparse.Namespace) -> int:
     sides = tuple(args.resolution or (64, 128))
     if min(sides) < 8:
         raise ValueError(f"--resolution: expected at least 8 pixels, got {min(sides)}")
-    print(json.dumps(bench_train(args.device, args.backend, sides, args.iterations, args.recording, args.points),
+    print(json.dumps(bench_train(args.device, chosen[0], sides, args.iterations, args.recording, args.points),
                      indent=2))
     return 0

@@ -48,6 +48,17 @@ def test_bench_raster_record_small():
     assert rs["pose_samples"] == 8 and rs["ratio"] > 0
 
 
+def test_bench_raster_compares_backends_and_threads():
+    rec = bench.bench_raster("cpu", repeats=1, cases=((16, 40, 2.5),))
+    assert rec["backends"] == ["cpu", "torch"]  # on the CPU, auto compares the compiled backend with torch
+    case = rec["cases"][0]
+    assert set(case["by_backend"]) == {"cpu", "torch"} and case["scene"]["sigma_px_median"] == 2.5
+    assert case["median_ms"] == case["by_backend"]["cpu"]["median_ms"]
+    assert case["speedup_vs_torch"] == pytest.approx(
+        case["by_backend"]["torch"]["median_ms"] / case["by_backend"]["cpu"]["median_ms"], abs=0.01)
+    assert set(rec["thread_scaling"]["by_threads"]) == {"1", "2"} and rec["rolling_shutter"]["backend"] == "cpu"
+
+
 def test_bench_cli_rejects_bad_repeats():
     args = argparse.Namespace(what="raster", device="cpu", repeats=0, backend="torch", tile_size=8, threads=0)
     with pytest.raises(ValueError, match="--repeats"):

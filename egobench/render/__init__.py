@@ -1,8 +1,10 @@
 """Differentiable Gaussian rasterization behind one function, `render`.
 
 Backends: ``torch`` (egobench/render/torch_backend.py, pure torch, CPU or CUDA, gsplat 1.5.3
-semantics) and ``gsplat`` (gsplat 1.5.3 CUDA kernels, egobench/render/gsplat_backend.py).
-``backend="auto"`` picks gsplat when the inputs are on CUDA and gsplat's CUDA extension loads.
+semantics: the oracle), ``gsplat`` (gsplat 1.5.3 CUDA kernels, egobench/render/gsplat_backend.py)
+and ``cpu`` (compiled numba kernels, egobench/render/cpu_backend.py; 3DGS, 2DGS calls go to torch).
+``backend="auto"`` picks gsplat when the inputs are on CUDA and gsplat's CUDA extension loads, and
+cpu for CPU tensors when numba loads (else torch, with a one-line reason on stderr).
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from egobench.render.types import Gaussians, RenderOutput, SplatMode
 __all__ = ["render", "render_rolling_shutter_reference", "Gaussians", "RenderOutput", "gsplat_cuda_available",
            "resolve_backend"]
 
-Backend = Literal["auto", "torch", "gsplat"]
+Backend = Literal["auto", "torch", "gsplat", "cpu"]
 
 
 @functools.lru_cache(maxsize=1)
@@ -37,13 +39,25 @@ def gsplat_cuda_available() -> bool:
 
 
 def resolve_backend(backend: str, device: torch.device | str) -> str:
-    """The backend `render(backend=...)` uses for tensors on ``device``: "gsplat" or "torch".
-    (Loading gsplat's CUDA extension the first time may JIT-compile it: minutes.)"""
-    if backend not in ("auto", "torch", "gsplat"):
-        raise ValueError(f"render: backend must be 'auto', 'torch' or 'gsplat', got {backend!r}")
-    gsplat_ok = torch.device(device).type == "cuda" and gsplat_cuda_available()
+    """The backend `render(backend=...)` uses for tensors on ``device``: "gsplat", "cpu" or "torch".
+    (Loading gsplat's CUDA extension the first time may JIT-compile it: minutes.) "cpu" (or "auto" on
+    the CPU) falls back to "torch" with a one-line reason on stderr when numba cannot be loaded."""
+    if backend not in ("auto", "torch", "gsplat", "cpu"):
+        raise ValueError(f"render: backend must be 'auto', 'torch', 'gsplat' or 'cpu', got {backend!r}")
+    on_cpu = torch.device(device).type == "cpu"
+    gsplat_ok = not on_cpu and torch.device(device).type == "cuda" and gsplat_cuda_available()
     if backend == "gsplat" and not gsplat_ok:
         raise ValueError("render: backend='gsplat' needs CUDA tensors and gsplat 1.5.3's CUDA extension")
+    if backend == "cpu" and not on_cpu:
+        raise ValueError(f"render: backend='cpu' needs CPU tensors, got device {torch.device(device)}")
+    if backend == "cpu" or (backend == "auto" and on_cpu):
+        from egobench.render import cpu_backend
+
+        reason = cpu_backend.load_error()
+        if reason is None:
+            return "cpu"
+        cpu_backend.warn_fallback(reason)
+        return "torch"
     if backend == "auto":
         return "gsplat" if gsplat_ok else "torch"
     return backend
@@ -129,17 +143,27 @@ def render(
     ``extras["distortion"]`` ([B, H, W, 1]).
     ``tile_size`` does not change 3DGS results (the opacity-aware radius bounds every pixel with
     alpha >= 1/255). None picks the fastest measured size: 16 on CUDA (gsplat's), 4 for the torch
-    backend on CPU (about 2x faster there than 16).
+    backend on CPU (about 2x faster there than 16), 16 for the compiled cpu backend.
+    The cpu backend renders 3DGS only; for 2DGS it hands the call to the torch backend and says so
+    in ``extras["cpu_fallback"]``.
     """
     if mode not in ("3dgs", "2dgs"):
         raise ValueError(f"render: mode must be '3dgs' or '2dgs', got {mode!r}")
     if not isinstance(camera, Pinhole):
         raise ValueError(f"render: camera must be an egobench.camera.pinhole.Pinhole, got {type(camera).__name__}")
+    n = _check_gaussians(gaussians)
+    chosen = resolve_backend(backend, gaussians.means.device)
+    cpu_fallback = None
+    if chosen == "cpu":
+        from egobench.render import cpu_backend
+
+        cpu_fallback = cpu_backend.unsupported_reason(mode, gaussians.means.dtype)
+        if cpu_fallback is not None:
+            chosen = "torch"
     if tile_size is None:
-        tile_size = 16 if gaussians.means.is_cuda else 4
+        tile_size = 16 if (gaussians.means.is_cuda or chosen == "cpu") else 4
     if int(tile_size) != tile_size or tile_size <= 0:
         raise ValueError(f"render: tile_size must be a positive integer, got {tile_size}")
-    n = _check_gaussians(gaussians)
     means = gaussians.means
     T = _check_poses(T_world_camera, means)
     B = T.shape[0]
@@ -163,7 +187,7 @@ def render(
                              f"got range {int(idx.min())}..{int(idx.max())}")
         pixel_pose_index = idx.to(device=means.device, dtype=torch.long)
 
-    use_gsplat = resolve_backend(backend, means.device) == "gsplat"
+    use_gsplat = chosen == "gsplat"
     if n == 0:
         return _empty_output(B if pixel_pose_index is None else 1, H, W, means, background, mode, want_normal)
     viewmats = _viewmats(T)
@@ -173,6 +197,12 @@ def render(
         return gsplat_backend.render_gsplat(gaussians, camera, viewmats, pixel_pose_index=pixel_pose_index,
                                             mode=mode, background=background, want_normal=want_normal,
                                             tile_size=int(tile_size), absgrad=absgrad)
+    if chosen == "cpu":
+        from egobench.render import cpu_backend
+
+        return cpu_backend.render_cpu(gaussians, camera, viewmats, pixel_pose_index=pixel_pose_index,
+                                      background=background, want_normal=want_normal, tile_size=int(tile_size),
+                                      absgrad=absgrad)
     from egobench.render import torch_backend
 
     res = torch_backend.rasterize(
@@ -189,6 +219,8 @@ def render(
     normal = feats[..., 4:7] if feats.shape[-1] >= 7 else None
     radii = res.projection.radii.amax(-1)
     extras = {"backend": "torch", "tile_size": int(tile_size)}
+    if cpu_fallback is not None:
+        extras["cpu_fallback"] = cpu_fallback
     means2d = res.means2d
     if mode == "2dgs":
         extras["distortion"] = res.distortion[..., None]

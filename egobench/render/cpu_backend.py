@@ -1,0 +1,226 @@
+"""Compiled CPU backend of `render` (``backend="cpu"``): numba kernels (egobench/render/cpu_kernels.py)
+behind two autograd functions, projection and rasterization, with gsplat 1.5.3 / torch_backend.py
+semantics (checked against the torch backend in tests/test_render_cpu.py).
+
+Supported: 3DGS colour, alpha, depth, normals (``want_normal``), means2d (densification carrier,
+``absgrad``), radii, rolling shutter (``pixel_pose_index`` with K pose samples), gradients of
+every Gaussian parameter and of the poses. Not supported: 2DGS (surfel intersection and
+distortion kernels are not written yet) and dtypes other than float32/float64: `unsupported_reason`
+says so and `render` then uses the torch backend for that call, recording the reason in
+``extras["cpu_fallback"]``.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import sys
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from egobench.camera.pinhole import Pinhole
+from egobench.render.types import Gaussians, RenderOutput
+
+#: gsplat 1.5.3 projection constants (as torch_backend)
+EPS2D, NEAR_PLANE, FAR_PLANE = 0.3, 0.01, 1e10
+#: default tile size of this backend (measured: docs/cpu-rasterizer.md)
+DEFAULT_TILE = 16
+
+
+@functools.lru_cache(maxsize=1)
+def load_error() -> str | None:
+    """None when the numba kernels import (and so can compile); else a one-line reason."""
+    try:
+        from egobench.render import cpu_kernels  # noqa: F401
+    except Exception as exc:  # ImportError (numba missing), llvmlite load failure
+        return f"{type(exc).__name__}: {exc}".splitlines()[0]
+    return None
+
+
+@functools.lru_cache(maxsize=None)
+def warn_fallback(reason: str) -> None:
+    """Print a fallback reason once per process."""
+    print(f"egobench render: compiled CPU backend unavailable ({reason}); using the torch backend", file=sys.stderr)
+
+
+def unsupported_reason(mode: str, dtype: torch.dtype = torch.float32) -> str | None:
+    """Why this backend cannot render a call (None: it can)."""
+    if mode != "3dgs":
+        return "2DGS is not implemented in the compiled CPU backend yet"
+    if dtype not in (torch.float32, torch.float64):
+        return f"the compiled CPU backend renders float32 and float64, not {dtype}"
+    return None
+
+
+def _np(t: Tensor) -> np.ndarray:
+    return t.detach().contiguous().numpy()
+
+
+def _set_threads() -> None:
+    """numba follows torch's thread count (OMP_NUM_THREADS / torch.set_num_threads)."""
+    import numba
+
+    numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
+
+
+class _Project(torch.autograd.Function):
+    """(means, quats, scales, viewmats) -> means2d [I,N,2] (gsplat pixels), conics [I,N,3],
+    depths [I,N], normals [I,N,3]; radii [I,N,2] int32 (not differentiable)."""
+
+    @staticmethod
+    def forward(ctx, means, quats, scales, viewmats, opac, cam, width, height, want_normal):
+        from egobench.render import cpu_kernels as ck
+
+        I, N = viewmats.shape[0], means.shape[0]
+        dt = means.dtype
+        m2 = np.empty((I, N, 2), dtype=_np(means).dtype)
+        con = np.empty((I, N, 3), dtype=m2.dtype)
+        dep = np.empty((I, N), dtype=m2.dtype)
+        rad = np.empty((I, N, 2), dtype=np.int32)
+        nrm = np.zeros((I, N, 3) if want_normal else (I, 0, 3), dtype=m2.dtype)
+        ck.project_fwd(_np(means), _np(quats), _np(scales), _np(opac), _np(viewmats), cam, width, height,
+                       EPS2D, NEAR_PLANE, FAR_PLANE, want_normal, m2, con, dep, rad, nrm)
+        ctx.save_for_backward(means, quats, scales, viewmats)
+        ctx.args = (cam, width, height, want_normal)
+        radii = torch.from_numpy(rad)
+        ctx.mark_non_differentiable(radii)
+        outs = [torch.from_numpy(a).to(dt) for a in (m2, con, dep, nrm)]
+        return (*outs, radii)
+
+    @staticmethod
+    def backward(ctx, g_m2, g_con, g_dep, g_nrm, _g_radii):
+        from egobench.render import cpu_kernels as ck
+
+        means, quats, scales, viewmats = ctx.saved_tensors
+        cam, width, height, want_normal = ctx.args
+        I, N = viewmats.shape[0], means.shape[0]
+
+        def z(g, shape):
+            return np.zeros(shape, dtype=np.float64) if g is None else _np(g).astype(np.float64, copy=False)
+
+        g_m2, g_con = z(g_m2, (I, N, 2)), z(g_con, (I, N, 3))
+        g_dep = z(g_dep, (I, N))
+        g_nrm = z(g_nrm, (I, N, 3)) if want_normal else np.zeros((I, 0, 3))
+        gm, gq, gs = np.empty((N, 3)), np.empty((N, 4)), np.empty((N, 3))
+        n_chunks = max(1, math.ceil(N / ck.CHUNK))
+        gv_parts = np.zeros((n_chunks, I, 12))
+        _set_threads()
+        ck.project_bwd(_np(means).astype(np.float64), _np(quats).astype(np.float64),
+                       _np(scales).astype(np.float64), _np(viewmats).astype(np.float64), cam, width, height,
+                       EPS2D, NEAR_PLANE, FAR_PLANE, want_normal, g_m2, g_con, g_dep, g_nrm, gm, gq, gs, gv_parts)
+        dt = means.dtype
+        gv = None
+        if ctx.needs_input_grad[3]:
+            part = gv_parts[0].copy()
+            for c in range(1, n_chunks):  # fixed order: deterministic for any thread count
+                part += gv_parts[c]
+            gv = torch.zeros(I, 4, 4, dtype=dt)
+            gv[:, :3, :] = torch.from_numpy(part.reshape(I, 3, 4)).to(dt)
+        return (torch.from_numpy(gm).to(dt), torch.from_numpy(gq).to(dt), torch.from_numpy(gs).to(dt), gv,
+                None, None, None, None, None)
+
+
+class _Rasterize(torch.autograd.Function):
+    """(means2d, conics, log_opacity, colors, depths, normals) -> features [Iout,H,W,Cf]
+    (sum w (rgb, depth, normal)), transmittance [Iout,H,W]."""
+
+    @staticmethod
+    def forward(ctx, means2d, conics, log_opac, colors, depths, normals, radii, pix_view, bin_needed, tile_size,
+                absgrad_target):
+        from egobench.render import cpu_kernels as ck
+
+        I, N = depths.shape
+        Iout, H, W = pix_view.shape
+        tiles_x, tiles_y = math.ceil(W / tile_size), math.ceil(H / tile_size)
+        m2, con, rad = _np(means2d), _np(conics), _np(radii)
+        flat_ids, bin_start = ck.bin_tiles(m2, rad, _np(depths), tile_size, tiles_x, tiles_y, bin_needed)
+        if flat_ids.shape[0] >= 2**31 - 1:  # per-pixel indices are int32
+            raise ValueError(f"render(backend='cpu'): {flat_ids.shape[0]} tile intersections exceed 2^31 - 1; "
+                             "use a larger tile_size or backend='torch'")
+        bins = np.nonzero(bin_needed.reshape(-1))[0].astype(np.int64)
+        feats = torch.cat([colors.detach()[None].expand(I, N, 3), depths.detach()[..., None]]
+                          + ([normals.detach()] if normals.shape[1] else []), -1).reshape(I * N, -1)
+        feats_np = _np(feats)
+        Cf = feats_np.shape[1]
+        out_feat = np.zeros((Iout, H, W, Cf), dtype=m2.dtype)
+        out_T = np.zeros((Iout, H, W), dtype=m2.dtype)
+        out_last = np.zeros((Iout, H, W), dtype=np.int32)
+        lo = _np(log_opac)
+        kc = ck.compute_constants(m2.dtype)
+        centres = (np.arange(max(W, H) + tile_size) + 0.5).astype(m2.dtype)
+        _set_threads()
+        cw = ck.column_group(tile_size)
+        ck.raster_fwd(m2, con, rad, lo, feats_np, flat_ids, bin_start, bins, pix_view, tile_size, tiles_x,
+                      cw, kc, centres, out_feat, out_T, out_last)
+        ctx.state = (m2, con, rad, lo, feats_np, flat_ids, bin_start, bins, pix_view, tile_size, tiles_x,
+                     cw, kc, centres, out_T, out_last, absgrad_target)
+        ctx.has_normals = bool(normals.shape[1])
+        ctx.shapes = (I, N, colors.dtype)
+        ctx.n_isect = int(flat_ids.shape[0])
+        return torch.from_numpy(out_feat), torch.from_numpy(out_T)
+
+    @staticmethod
+    def backward(ctx, g_feat, g_T):
+        from egobench.render import cpu_kernels as ck
+
+        (m2, con, rad, lo, feats, flat_ids, bin_start, bins, pix_view, ts, tiles_x, cw, kc, centres, out_T, out_last,
+         ab) = ctx.state
+        I, N, dt = ctx.shapes
+        Cf = feats.shape[1]
+        gF = np.zeros(out_T.shape + (Cf,), out_T.dtype) if g_feat is None else _np(g_feat)
+        gT = np.zeros(out_T.shape, out_T.dtype) if g_T is None else _np(g_T)
+        isect = np.zeros((flat_ids.shape[0], 6 + Cf), kc.dtype)
+        _set_threads()
+        ck.raster_bwd(m2, con, rad, lo, feats, flat_ids, bin_start, bins, pix_view, ts, tiles_x, cw, kc, centres,
+                      out_T, out_last, gF, gT, isect)
+        absg = np.zeros((I * N, 2))
+        per = ck.reduce_isect_grad(isect, flat_ids, flat_ids.shape[0], I * N, absg)
+        per = torch.from_numpy(per).reshape(I, N, 6 + Cf).to(dt)
+        if ab is not None:  # holder [means2d_out]: gsplat's absgrad attribute
+            ab[0].absgrad = torch.from_numpy(absg).reshape(I, N, 2).to(dt)
+        g_normals = per[..., 10:13] if ctx.has_normals else None
+        return (per[..., 0:2], per[..., 2:5], per[..., 5].sum(0), per[..., 6:9].sum(0), per[..., 9],
+                g_normals, None, None, None, None, None)
+
+
+def render_cpu(gaussians: Gaussians, camera: Pinhole, viewmats: Tensor, *, pixel_pose_index: Tensor | None,
+               background: Tensor | None, want_normal: bool, tile_size: int, absgrad: bool) -> RenderOutput:
+    """3DGS render with the compiled kernels; same contract as the torch path of `render`.
+    viewmats [I, 4, 4] world-to-camera; pixel_pose_index [H, W] or None."""
+    means = gaussians.means
+    dtype = means.dtype
+    H, W = camera.height, camera.width
+    I = viewmats.shape[0]
+    cam = np.array([camera.fx, camera.fy, camera.cx + 0.5, camera.cy + 0.5], dtype=np.float64)
+    log_opac = F.logsigmoid(gaussians.opacity_logits)
+    m2g, conics, depths, normals, radii = _Project.apply(
+        means, gaussians.quats, gaussians.scales, viewmats, log_opac.detach().exp(), cam, W, H, bool(want_normal))
+    means2d_out = m2g - 0.5  # egobench pixel convention, retained for densification statistics
+    if means2d_out.requires_grad:
+        means2d_out.retain_grad()
+    ts = int(tile_size)
+    tiles_x, tiles_y = math.ceil(W / ts), math.ceil(H / ts)
+    if pixel_pose_index is None:
+        pix_view = np.ascontiguousarray(np.broadcast_to(np.arange(I, dtype=np.int64)[:, None, None], (I, H, W)))
+        bin_needed = np.ones((I, tiles_y * tiles_x), dtype=np.bool_)
+    else:
+        ppi = pixel_pose_index.detach().cpu().long().numpy()
+        pix_view = np.ascontiguousarray(ppi[None])
+        tile_of = (np.arange(H)[:, None] // ts) * tiles_x + (np.arange(W)[None, :] // ts)
+        bin_needed = np.zeros((I, tiles_y * tiles_x), dtype=np.bool_)
+        bin_needed[ppi.reshape(-1), np.broadcast_to(tile_of, (H, W)).reshape(-1)] = True
+    holder = [means2d_out] if absgrad and means2d_out.requires_grad else None
+    feats, trans = _Rasterize.apply(means2d_out + 0.5, conics, log_opac, gaussians.colors, depths, normals, radii,
+                                    pix_view, bin_needed, ts, holder)
+    trans = trans[..., None]
+    alpha = 1.0 - trans
+    rgb = feats[..., :3]
+    if background is not None:
+        rgb = rgb + trans * background
+    depth = feats[..., 3:4] / alpha.clamp(min=1e-10)
+    normal = feats[..., 4:7] if want_normal else None
+    return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, normal=normal, means2d=means2d_out,
+                        radii=radii.amax(-1), extras={"backend": "cpu", "tile_size": ts})

@@ -1,0 +1,238 @@
+"""The compiled CPU backend (egobench/render/cpu_backend.py) against the torch backend (the oracle,
+itself checked against a per-pixel gsplat oracle in test_render.py): outputs and gradients of every
+input, on random scenes with edge cases, global and rolling shutter; determinism; fallbacks."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from egobench.camera.pinhole import Pinhole
+from egobench.render import render, resolve_backend
+from egobench.render.types import Gaussians
+from tests.test_render import make_scene, pose
+
+CAM = Pinhole(fx=20.0, fy=21.0, cx=17.3, cy=10.6, width=37, height=22)  # partial tiles at 8 and 16
+NAMES = ("means", "quats", "log_scales", "opacity_logits", "colors")
+
+
+def edge_case_scene(seed: int, dtype=torch.float64) -> Gaussians:
+    """Random Gaussians plus: behind the camera, at the camera centre, on the near plane, off-screen
+    beyond the border, huge (covering the image), degenerate (flat / needle / point-like), opaque
+    (alpha at the 0.999 clamp, early stop), nearly transparent (opacity < 1/255)."""
+    g = make_scene(70, CAM, seed, dtype=torch.float64, sigma_px=(0.5, 4.0), opacity_logit=0.5)
+    means, ls, ol = g.means.clone(), g.log_scales.clone(), g.opacity_logits.clone()
+    means[0:4, 2] = -means[0:4, 2]  # behind
+    means[4] = 0.0  # at the camera centre
+    means[5, 2] = 0.0100001  # just beyond the near plane
+    means[6:9, 0] = means[6:9, 2] * 1.2  # off-screen to the right (still within the Jacobian clamp)
+    means[9:11, 1] = -means[9:11, 2] * 3.0  # far off-screen: clamp of the EWA Jacobian
+    ls[11:13] = math.log(1.5)  # huge: sigma of 10-20 pixels, the whole image
+    ol[11:13] = -3.0
+    ls[13, 2] = -30.0  # flat
+    ls[14, 1:] = -30.0  # needle
+    ls[15] = -30.0  # point-like: only the eps2d dilation remains
+    ol[16:30] = 12.0  # opaque: alpha clamps at 0.999, pixels stop early
+    ol[30:34] = -7.0  # below 1/255: culled by the opacity-aware radius
+    out = Gaussians(means=means, quats=g.quats, log_scales=ls, opacity_logits=ol, colors=g.colors)
+    return Gaussians(**{k: v.to(dtype) for k, v in out.tensors().items()})
+
+
+def run(g: Gaussians, cam: Pinhole, T: torch.Tensor, backend: str, weights_seed: int = 0, **kw):
+    """Render, backpropagate a random weighting of every output map; -> (maps, gradients, output)."""
+    inputs = {k: v.clone().requires_grad_(True) for k, v in g.tensors().items()}
+    Tg = T.clone().requires_grad_(True)
+    out = render(Gaussians(**inputs), cam, Tg, backend=backend, **kw)
+    maps = [out.rgb, out.alpha, out.depth] + ([out.normal] if out.normal is not None else [])
+    m = torch.cat(maps, -1)
+    w = torch.randn(m.shape, generator=torch.Generator().manual_seed(weights_seed), dtype=torch.float64).to(m.dtype)
+    loss = (m * w).sum() + (out.means2d * 0.0).sum()
+    loss.backward()
+    grads = {k: v.grad for k, v in inputs.items()}
+    grads["T_world_camera"] = Tg.grad
+    grads["means2d"] = out.means2d.grad
+    return m.detach(), grads, out
+
+
+def assert_same(a, b, atol_map=1e-10, rtol=1e-8, atol_grad=1e-9):
+    (ma, ga, oa), (mb, gb, ob) = a, b
+    torch.testing.assert_close(ma, mb, atol=atol_map, rtol=rtol)
+    torch.testing.assert_close(oa.radii, ob.radii, atol=0, rtol=0)
+    torch.testing.assert_close(oa.means2d.detach(), ob.means2d.detach(), atol=atol_map, rtol=rtol)
+    for k in ga:
+        assert ga[k] is not None and gb[k] is not None, k
+        scale = float(gb[k].abs().max()) + 1.0
+        torch.testing.assert_close(ga[k], gb[k], atol=atol_grad * scale, rtol=rtol, msg=lambda s, k=k: f"{k}: {s}")
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("want_normal", [False, True])
+def test_3dgs_matches_torch_backend(seed, want_normal):
+    g = edge_case_scene(seed)
+    T = pose(0.04, -0.03, (0.02, -0.01, 0.05))
+    bg = torch.tensor([0.2, 0.5, 0.9], dtype=torch.float64)
+    kw = dict(background=bg, want_normal=want_normal, tile_size=8)
+    cpu = run(g, CAM, T, "cpu", seed, **kw)
+    ref = run(g, CAM, T, "torch", seed, **kw)
+    assert cpu[2].extras["backend"] == "cpu" and ref[2].extras["backend"] == "torch"
+    alpha = cpu[2].alpha.detach()
+    assert float(alpha.max()) > 0.999 and float(alpha.min()) < 0.5  # early-stopped and translucent pixels
+    assert int((cpu[2].radii > 0).sum()) < g.means.shape[0]  # some Gaussians culled
+    assert_same(cpu, ref)
+
+
+@pytest.mark.parametrize("tile_size", [4, 16, 32])
+def test_batch_of_poses_and_tile_sizes(tile_size):
+    g = edge_case_scene(3)
+    Ts = torch.stack([pose(0.0, 0.0), pose(0.05, 0.02, (0.1, 0, 0)), pose(-0.03, 0.06, (0.0, 0.05, -0.1))])
+    cpu = run(g, CAM, Ts, "cpu", 1, tile_size=tile_size, want_normal=True)
+    ref = run(g, CAM, Ts, "torch", 1, tile_size=8, want_normal=True)  # 3DGS results do not depend on tiles
+    assert cpu[0].shape == (3, CAM.height, CAM.width, 8)
+    assert_same(cpu, ref)
+
+
+@pytest.mark.parametrize("index_kind", ["random", "bands", "columns"])
+def test_rolling_shutter_matches_torch_backend(index_kind):
+    g = edge_case_scene(4)
+    K = 3
+    Ts = torch.stack([pose(0.0, 0.02 * k, (0.01 * k, 0, 0)) for k in range(K)])
+    H, W = CAM.height, CAM.width
+    if index_kind == "random":
+        idx = torch.randint(0, K, (H, W), generator=torch.Generator().manual_seed(1))
+    elif index_kind == "bands":  # rows ordered by readout, bands not aligned with tiles
+        idx = torch.round(torch.arange(H) / (H - 1) * (K - 1)).long()[:, None].expand(H, W).contiguous()
+    else:
+        idx = torch.round(torch.arange(W) / (W - 1) * (K - 1)).long()[None, :].expand(H, W).contiguous()
+    cpu = run(g, CAM, Ts, "cpu", 2, pixel_pose_index=idx, tile_size=16)
+    ref = run(g, CAM, Ts, "torch", 2, pixel_pose_index=idx, tile_size=8)
+    assert cpu[0].shape == (1, H, W, 5) and cpu[2].means2d.shape == (K, g.means.shape[0], 2)
+    assert_same(cpu, ref)
+
+
+def test_gradcheck_against_finite_differences():
+    """An independent check of the hand-written backward (projection and compositing)."""
+    cam = Pinhole(fx=9.0, fy=9.0, cx=4.0, cy=3.5, width=9, height=8)
+    g = make_scene(5, cam, 11, sigma_px=(1.0, 2.5), opacity_logit=0.0)
+    bg = torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64)
+    weights = torch.randn(1, 8, 9, 8, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+
+    def f(means, quats, log_scales, opacity_logits, colors, T):
+        out = render(Gaussians(means, quats, log_scales, opacity_logits, colors), cam, T, background=bg,
+                     backend="cpu", want_normal=True, tile_size=4)
+        return (torch.cat([out.rgb, out.alpha, out.depth, out.normal], -1) * weights).sum()
+
+    inputs = tuple(t.clone().requires_grad_(True) for t in g.tensors().values()) + (pose(0.03, 0.02).requires_grad_(True),)
+    assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-5, rtol=1e-4)
+
+
+def test_float32_close_to_float64_oracle():
+    g64 = edge_case_scene(5)
+    g32 = Gaussians(**{k: v.float() for k, v in g64.tensors().items()})
+    T = pose(0.01, 0.02)
+    a = run(g32, CAM, T.float(), "cpu", 3, tile_size=16)
+    b = run(g64, CAM, T, "torch", 3, tile_size=8)
+    assert a[0].dtype == torch.float32 and a[1]["means"].dtype == torch.float32
+    torch.testing.assert_close(a[0].double(), b[0], atol=2e-4, rtol=1e-4)
+    for k in ("colors", "opacity_logits", "means2d"):
+        scale = float(b[1][k].abs().max())
+        torch.testing.assert_close(a[1][k].double(), b[1][k], atol=2e-4 * scale, rtol=1e-3)
+
+
+def test_absgrad_matches_torch_backend_at_equal_tile_size():
+    g = edge_case_scene(6)
+    T = pose(0.02, 0.01)
+    outs = []
+    for backend in ("cpu", "torch"):
+        inputs = {k: v.clone().requires_grad_(True) for k, v in g.tensors().items()}
+        out = render(Gaussians(**inputs), CAM, T, backend=backend, absgrad=True, tile_size=8)
+        (out.rgb.sum() * 0.5 + (out.rgb ** 2).sum()).backward()
+        outs.append(out.means2d.absgrad)
+    assert float(outs[0].abs().sum()) > 0
+    torch.testing.assert_close(outs[0], outs[1], atol=1e-10, rtol=1e-8)
+
+
+def test_deterministic_across_runs_and_threads():
+    g = Gaussians(**{k: v.float() for k, v in make_scene(3000, Pinhole(fx=60.0, fy=60.0, cx=63.5, cy=47.5, width=128,
+                                                                             height=96), 8).tensors().items()})
+    cam = Pinhole(fx=60.0, fy=60.0, cx=63.5, cy=47.5, width=128, height=96)
+    T = pose(0.01, 0.0).float()
+    before = torch.get_num_threads()
+    try:
+        results = []
+        for threads in (1, 2, 2):
+            torch.set_num_threads(threads)
+            results.append(run(g, cam, T, "cpu", 4))
+    finally:
+        torch.set_num_threads(before)
+    for other in results[1:]:
+        assert torch.equal(results[0][0], other[0])
+        for k in results[0][1]:
+            assert torch.equal(results[0][1][k], other[1][k]), k
+
+
+def test_2dgs_is_handed_to_torch_backend_explicitly():
+    g = make_scene(40, CAM, 9)
+    T = pose(0.01, 0.02)
+    a = render(g, CAM, T, mode="2dgs", backend="cpu", tile_size=8)
+    b = render(g, CAM, T, mode="2dgs", backend="torch", tile_size=8)
+    assert a.extras["backend"] == "torch" and "2DGS" in a.extras["cpu_fallback"]
+    torch.testing.assert_close(a.rgb, b.rgb, atol=0, rtol=0)
+    torch.testing.assert_close(a.extras["distortion"], b.extras["distortion"], atol=0, rtol=0)
+
+
+def test_other_dtypes_are_handed_to_torch_backend_explicitly():
+    g = Gaussians(**{k: v.to(torch.bfloat16) for k, v in make_scene(20, CAM, 2).tensors().items()})
+    a = render(g, CAM, pose(), backend="cpu")
+    b = render(g, CAM, pose(), backend="torch")
+    assert a.extras["backend"] == "torch" and "bfloat16" in a.extras["cpu_fallback"]
+    torch.testing.assert_close(a.rgb, b.rgb, atol=0, rtol=0)
+
+
+def test_backend_choice_and_fallback(monkeypatch, capsys):
+    from egobench.render import cpu_backend
+
+    assert resolve_backend("auto", "cpu") == "cpu" and resolve_backend("cpu", "cpu") == "cpu"
+    with pytest.raises(ValueError, match="needs CPU tensors"):
+        resolve_backend("cpu", "cuda")
+    monkeypatch.setattr(cpu_backend, "load_error", lambda: "ImportError: No module named 'numba'")
+    cpu_backend.warn_fallback.cache_clear()
+    assert resolve_backend("auto", "cpu") == "torch" and resolve_backend("cpu", "cpu") == "torch"
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "No module named 'numba'" in err[0] and "torch backend" in err[0]
+    g = make_scene(10, CAM, 1)
+    assert render(g, CAM, pose(), backend="cpu").extras["backend"] == "torch"
+
+
+def test_no_visible_gaussian_gives_background_and_zero_gradients():
+    g = make_scene(20, CAM, 10)
+    g = Gaussians(g.means * torch.tensor([1.0, 1.0, -1.0], dtype=torch.float64), g.quats, g.log_scales,
+                  g.opacity_logits, g.colors)  # all behind the camera
+    bg = torch.tensor([0.3, 0.6, 0.9], dtype=torch.float64)
+    m, grads, out = run(g, CAM, pose(), "cpu", 0, background=bg)
+    assert bool((out.radii == 0).all()) and bool((out.alpha == 0).all())
+    torch.testing.assert_close(out.rgb, bg.expand_as(out.rgb))
+    for k in NAMES:
+        assert bool((grads[k] == 0).all()), k
+
+
+def test_one_thread_per_worker_from_omp_num_threads():
+    """Snakemake exports OMP_NUM_THREADS={threads} to each job: torch and the compiled kernels
+    then use that many threads (numba's pool is capped at import, its count follows torch)."""
+    import os
+    import subprocess
+    import sys
+
+    code = ("import torch\n"
+            "from egobench.render import render\n"
+            "from tests.test_render_cpu import make_scene, CAM, pose\n"
+            "out = render(make_scene(20, CAM, 0), CAM, pose(), backend='cpu')\n"
+            "import numba\n"
+            "print(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS, numba.get_num_threads())\n")
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_NUM_THREADS"}
+    env["OMP_NUM_THREADS"] = "1"
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")
+    res = subprocess.run([sys.executable, "-c", code], env=env, cwd=root, capture_output=True, text=True, check=True)
+    assert res.stdout.split() == ["1", "1", "1"]
