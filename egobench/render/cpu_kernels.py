@@ -231,23 +231,23 @@ def _cov2d_rows_grad(g00, g11, g01, A0, A1, Mc, j00, j11, tx, ty, gMc):
 
 
 @njit(cache=True, inline="always")
-def _normal_grad(V, R, ax, x, y, z, g_normal, gnw):
+def _normal_grad(V, R, ax, x, y, z, g_normals, i, n, gnw):
     """Normal sgn * V[:3, :3] R[:, ax] (facing the camera at (x, y, z)): fills gnw [3] = dL/dR[:, ax]
-    from g_normal [3] -> sgn."""
+    from g_normals[i, n] [3] -> sgn."""
     nx = V[0, 0] * R[0, ax] + V[0, 1] * R[1, ax] + V[0, 2] * R[2, ax]
     ny = V[1, 0] * R[0, ax] + V[1, 1] * R[1, ax] + V[1, 2] * R[2, ax]
     nz = V[2, 0] * R[0, ax] + V[2, 1] * R[1, ax] + V[2, 2] * R[2, ax]
     sgn = 1.0 if -(nx * x + ny * y + nz * z) > 0 else -1.0
     for r in range(3):
         for b in range(3):
-            gnw[b] += V[r, b] * sgn * g_normal[r]
+            gnw[b] += V[r, b] * sgn * g_normals[i, n, r]
     return sgn
 
 
 @njit(cache=True, inline="always")
-def _add_view_and_mean_grads(V, R, scales, means, n, gpc, gMc, sgn, g_normal, ax, want_normal, gv, gm):
+def _add_view_and_mean_grads(V, R, scales, means, n, gpc, gMc, sgn, g_normals, i, ax, want_normal, gv, gm):
     """p_c = V m + t, Mc = V R diag(s), normal = sgn V R[:, ax]: adds dL/dV[:3, :4] (row-major) to
-    gv [12] and dL/dm to gm [3], from gpc = dL/dp_c, gMc [3, 3], g_normal [3]."""
+    gv [12] and dL/dm to gm [3], from gpc = dL/dp_c, gMc [3, 3], g_normals[i, n] [3]."""
     for r in range(3):
         gv[r * 4 + 3] += gpc[r]
         for b in range(3):
@@ -258,7 +258,7 @@ def _add_view_and_mean_grads(V, R, scales, means, n, gpc, gMc, sgn, g_normal, ax
                 acc += gMc[r, c] * R[b, c] * scales[n, c]
             gv[r * 4 + b] += acc
             if want_normal:
-                gv[r * 4 + b] += sgn * g_normal[r] * R[b, ax]
+                gv[r * 4 + b] += sgn * g_normals[i, n, r] * R[b, ax]
 
 
 @njit(cache=True, inline="always")
@@ -349,8 +349,8 @@ def project_bwd(means, quats, scales, viewmats, cam, width, height, eps2d, near,
                 if in_depth:
                     gz -= g_inv_z * inv_z * inv_z
                 gnw[:] = 0.0
-                sgn = _normal_grad(V, R, ax, x, y, z, g_normals[i, n], gnw) if want_normal else 0.0
-                _add_view_and_mean_grads(V, R, scales, means, n, (gx, gy, gz), gMc, sgn, g_normals[i, n], ax,
+                sgn = _normal_grad(V, R, ax, x, y, z, g_normals, i, n, gnw) if want_normal else 0.0
+                _add_view_and_mean_grads(V, R, scales, means, n, (gx, gy, gz), gMc, sgn, g_normals, i, ax,
                                          want_normal, g_view_parts[ch, i], gm)
                 _add_rot_scale_grads(V, R, scales, n, gMc, gnw, ax, gR, gs)
             for b in range(3):
