@@ -152,64 +152,84 @@ def render(
     if not isinstance(camera, Pinhole):
         raise ValueError(f"render: camera must be an egobench.camera.pinhole.Pinhole, got {type(camera).__name__}")
     n = _check_gaussians(gaussians)
-    chosen = resolve_backend(backend, gaussians.means.device)
-    cpu_fallback = None
-    if chosen == "cpu":
-        from egobench.render import cpu_backend
-
-        cpu_fallback = cpu_backend.unsupported_reason(mode, gaussians.means.dtype)
-        if cpu_fallback is not None:
-            chosen = "torch"
-    if tile_size is None:
-        tile_size = 16 if (gaussians.means.is_cuda or chosen == "cpu") else 4
-    if int(tile_size) != tile_size or tile_size <= 0:
-        raise ValueError(f"render: tile_size must be a positive integer, got {tile_size}")
     means = gaussians.means
+    chosen, cpu_fallback, tile_size = _choose_backend(backend, mode, means, tile_size)
     T = _check_poses(T_world_camera, means)
     B = T.shape[0]
     H, W = camera.height, camera.width
-    if background is not None:
-        if not isinstance(background, Tensor) or tuple(background.shape) != (3,):
-            raise ValueError(f"render: background must be a tensor of shape [3], got "
-                             f"{tuple(background.shape) if isinstance(background, Tensor) else type(background).__name__}")
-        if not bool(torch.isfinite(background).all()):
-            raise ValueError("render: background must be finite")
-        background = background.to(device=means.device, dtype=means.dtype)
+    background = _check_background(background, means)
     if pixel_pose_index is not None:
-        idx = pixel_pose_index
-        if not isinstance(idx, Tensor) or tuple(idx.shape) != (H, W):
-            raise ValueError(f"render: pixel_pose_index must have shape [H, W] = [{H}, {W}], got "
-                             f"{tuple(idx.shape) if isinstance(idx, Tensor) else type(idx).__name__}")
-        if idx.dtype.is_floating_point or idx.dtype == torch.bool or idx.is_complex():
-            raise ValueError(f"render: pixel_pose_index must be an integer tensor (int64), got {idx.dtype}")
-        if idx.numel() and (int(idx.min()) < 0 or int(idx.max()) >= B):
-            raise ValueError(f"render: pixel_pose_index values must lie in 0..{B - 1} (B = {B} poses), "
-                             f"got range {int(idx.min())}..{int(idx.max())}")
-        pixel_pose_index = idx.to(device=means.device, dtype=torch.long)
+        pixel_pose_index = _check_pixel_pose_index(pixel_pose_index, H, W, B, means.device)
 
-    use_gsplat = chosen == "gsplat"
     if n == 0:
         return _empty_output(B if pixel_pose_index is None else 1, H, W, means, background, mode, want_normal)
     viewmats = _viewmats(T)
-    if use_gsplat:
+    if chosen == "gsplat":
         from egobench.render import gsplat_backend
 
         return gsplat_backend.render_gsplat(gaussians, camera, viewmats, pixel_pose_index=pixel_pose_index,
                                             mode=mode, background=background, want_normal=want_normal,
-                                            tile_size=int(tile_size), absgrad=absgrad)
+                                            tile_size=tile_size, absgrad=absgrad)
     if chosen == "cpu":
         from egobench.render import cpu_backend
 
         return cpu_backend.render_cpu(gaussians, camera, viewmats, pixel_pose_index=pixel_pose_index,
-                                      background=background, want_normal=want_normal, tile_size=int(tile_size),
+                                      background=background, want_normal=want_normal, tile_size=tile_size,
                                       absgrad=absgrad)
     from egobench.render import torch_backend
 
     res = torch_backend.rasterize(
         means, gaussians.quats, gaussians.scales, F.logsigmoid(gaussians.opacity_logits), gaussians.colors,
         viewmats, camera, mode=mode, pixel_pose_index=pixel_pose_index, want_normal=want_normal,
-        tile_size=int(tile_size), absgrad=absgrad,
+        tile_size=tile_size, absgrad=absgrad,
     )
+    return _torch_output(res, background, mode, tile_size, cpu_fallback)
+
+
+def _choose_backend(backend: str, mode: str, means: Tensor, tile_size: int | None) -> tuple[str, str | None, int]:
+    """-> (backend that renders, why the cpu backend handed over to torch or None, tile size in pixels)."""
+    chosen = resolve_backend(backend, means.device)
+    cpu_fallback = None
+    if chosen == "cpu":
+        from egobench.render import cpu_backend
+
+        cpu_fallback = cpu_backend.unsupported_reason(mode, means.dtype)
+        if cpu_fallback is not None:
+            chosen = "torch"
+    if tile_size is None:
+        tile_size = 16 if (means.is_cuda or chosen == "cpu") else 4
+    if int(tile_size) != tile_size or tile_size <= 0:
+        raise ValueError(f"render: tile_size must be a positive integer, got {tile_size}")
+    return chosen, cpu_fallback, int(tile_size)
+
+
+def _check_background(background: Tensor | None, means: Tensor) -> Tensor | None:
+    """background [3] (or None) -> on the dtype/device of means."""
+    if background is None:
+        return None
+    if not isinstance(background, Tensor) or tuple(background.shape) != (3,):
+        raise ValueError(f"render: background must be a tensor of shape [3], got "
+                         f"{tuple(background.shape) if isinstance(background, Tensor) else type(background).__name__}")
+    if not bool(torch.isfinite(background).all()):
+        raise ValueError("render: background must be finite")
+    return background.to(device=means.device, dtype=means.dtype)
+
+
+def _check_pixel_pose_index(idx: Tensor, H: int, W: int, B: int, device: torch.device) -> Tensor:
+    """pixel_pose_index [H, W] integers in 0..B-1 -> int64 on `device`."""
+    if not isinstance(idx, Tensor) or tuple(idx.shape) != (H, W):
+        raise ValueError(f"render: pixel_pose_index must have shape [H, W] = [{H}, {W}], got "
+                         f"{tuple(idx.shape) if isinstance(idx, Tensor) else type(idx).__name__}")
+    if idx.dtype.is_floating_point or idx.dtype == torch.bool or idx.is_complex():
+        raise ValueError(f"render: pixel_pose_index must be an integer tensor (int64), got {idx.dtype}")
+    if idx.numel() and (int(idx.min()) < 0 or int(idx.max()) >= B):
+        raise ValueError(f"render: pixel_pose_index values must lie in 0..{B - 1} (B = {B} poses), "
+                         f"got range {int(idx.min())}..{int(idx.max())}")
+    return idx.to(device=device, dtype=torch.long)
+
+
+def _torch_output(res, background: Tensor | None, mode: str, tile_size: int, cpu_fallback: str | None) -> RenderOutput:
+    """torch_backend.RasterResult -> RenderOutput (background, normalised depth, 2DGS extras)."""
     feats, trans = res.features, res.transmittance[..., None]
     alpha = 1.0 - trans
     rgb = feats[..., :3]
@@ -218,7 +238,7 @@ def render(
     depth = feats[..., 3:4] / alpha.clamp(min=1e-10)
     normal = feats[..., 4:7] if feats.shape[-1] >= 7 else None
     radii = res.projection.radii.amax(-1)
-    extras = {"backend": "torch", "tile_size": int(tile_size)}
+    extras = {"backend": "torch", "tile_size": tile_size}
     if cpu_fallback is not None:
         extras["cpu_fallback"] = cpu_fallback
     means2d = res.means2d

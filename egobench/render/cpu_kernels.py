@@ -78,6 +78,28 @@ def _argmin3(s0, s1, s2):
     return a
 
 
+@njit(cache=True, inline="always")
+def _clip_limits(cam, width, height):
+    """Bounds of x/z (right, left) and y/z (down, up) beyond which the EWA Jacobian is evaluated at
+    the bound (gsplat: the image plus 30 % of the half field of view) -> (lxp, lxn, lyp, lyn)."""
+    fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
+    tan_fovx, tan_fovy = 0.5 * width / fx, 0.5 * height / fy
+    lxp = (width - cx) / fx + 0.3 * tan_fovx
+    lxn = cx / fx + 0.3 * tan_fovx
+    lyp = (height - cy) / fy + 0.3 * tan_fovy
+    lyn = cy / fy + 0.3 * tan_fovy
+    return lxp, lxn, lyp, lyn
+
+
+@njit(cache=True, inline="always")
+def _camera_point(V, means, n):
+    """Camera-frame centre (x, y, z) of Gaussian n under world-to-camera V [4, 4]."""
+    x = V[0, 0] * means[n, 0] + V[0, 1] * means[n, 1] + V[0, 2] * means[n, 2] + V[0, 3]
+    y = V[1, 0] * means[n, 0] + V[1, 1] * means[n, 1] + V[1, 2] * means[n, 2] + V[1, 3]
+    z = V[2, 0] * means[n, 0] + V[2, 1] * means[n, 1] + V[2, 2] * means[n, 2] + V[2, 3]
+    return x, y, z
+
+
 @njit(cache=True, parallel=True)
 def project_fwd(means, quats, scales, opac, viewmats, cam, width, height, eps2d, near, far, want_normal,
                 means2d, conics, depths, radii, normals):
@@ -86,11 +108,7 @@ def project_fwd(means, quats, scales, opac, viewmats, cam, width, height, eps2d,
     N = means.shape[0]
     I = viewmats.shape[0]
     fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
-    tan_fovx, tan_fovy = 0.5 * width / fx, 0.5 * height / fy
-    lxp = (width - cx) / fx + 0.3 * tan_fovx
-    lxn = cx / fx + 0.3 * tan_fovx
-    lyp = (height - cy) / fy + 0.3 * tan_fovy
-    lyn = cy / fy + 0.3 * tan_fovy
+    lxp, lxn, lyp, lyn = _clip_limits(cam, width, height)
     n_chunks = (N + CHUNK - 1) // CHUNK
     for ch in prange(n_chunks):
         R = np.empty((3, 3))  # scratch, reused for every Gaussian of the chunk
@@ -103,9 +121,7 @@ def project_fwd(means, quats, scales, opac, viewmats, cam, width, height, eps2d,
                 ext = min(ext, math.sqrt(2.0 * math.log(op / ALPHA_MIN)))
             for i in range(I):
                 V = viewmats[i]
-                x = V[0, 0] * means[n, 0] + V[0, 1] * means[n, 1] + V[0, 2] * means[n, 2] + V[0, 3]
-                y = V[1, 0] * means[n, 0] + V[1, 1] * means[n, 1] + V[1, 2] * means[n, 2] + V[1, 3]
-                z = V[2, 0] * means[n, 0] + V[2, 1] * means[n, 1] + V[2, 2] * means[n, 2] + V[2, 3]
+                x, y, z = _camera_point(V, means, n)
                 in_depth = z >= near and z <= far
                 zs = z if in_depth else 1.0
                 inv_z = 1.0 / zs
@@ -157,6 +173,122 @@ def project_fwd(means, quats, scales, opac, viewmats, cam, width, height, eps2d,
                     normals[i, n, 2] = sgn * nz
 
 
+@njit(cache=True, inline="always")
+def _has_upstream_grad(g_means2d, g_conics, g_depths, g_normals, i, n, want_normal):
+    """Whether any upstream gradient of (pose i, Gaussian n) is non-zero (every backward term is
+    linear in them: most pairs of a rolling-shutter render reach no pixel and are skipped)."""
+    live = (g_means2d[i, n, 0] != 0.0 or g_means2d[i, n, 1] != 0.0 or g_depths[i, n] != 0.0
+            or g_conics[i, n, 0] != 0.0 or g_conics[i, n, 1] != 0.0 or g_conics[i, n, 2] != 0.0)
+    if want_normal:
+        live = live or g_normals[i, n, 0] != 0.0 or g_normals[i, n, 1] != 0.0 or g_normals[i, n, 2] != 0.0
+    return live
+
+
+@njit(cache=True, inline="always")
+def _cov2d_rows(V, R, scales, n, j00, j11, tx, ty, eps2d, Mc, A0, A1):
+    """Fills Mc [3, 3] = V[:3, :3] R diag(s) and the rows A0, A1 [3] of J Mc (J: EWA Jacobian with
+    j00, j11, tx, ty) -> 2D covariance (c00, c11, c01) with the eps2d dilation."""
+    for c in range(3):
+        for r in range(3):
+            Mc[r, c] = (V[r, 0] * R[0, c] + V[r, 1] * R[1, c] + V[r, 2] * R[2, c]) * scales[n, c]
+        A0[c] = j00 * (Mc[0, c] - tx * Mc[2, c])
+        A1[c] = j11 * (Mc[1, c] - ty * Mc[2, c])
+    c00 = eps2d + A0[0] * A0[0] + A0[1] * A0[1] + A0[2] * A0[2]
+    c11 = eps2d + A1[0] * A1[0] + A1[1] * A1[1] + A1[2] * A1[2]
+    c01 = A0[0] * A1[0] + A0[1] * A1[1] + A0[2] * A1[2]
+    return c00, c11, c01
+
+
+@njit(cache=True, inline="always")
+def _conic_grad(gA, gB, gC, c00, c11, c01, det, valid):
+    """dL/d conic (a, b, c) = inverse covariance -> dL/d covariance (g00, g11, g01); culled entries
+    pass the gradient of torch's det = 1 substitute."""
+    if valid:
+        S = (gA * c11 - gB * c01 + gC * c00) / (det * det)
+        return gC / det - S * c11, gA / det - S * c00, -gB / det + 2.0 * S * c01
+    return gC, gA, -gB
+
+
+@njit(cache=True, inline="always")
+def _cov2d_rows_grad(g00, g11, g01, A0, A1, Mc, j00, j11, tx, ty, gMc):
+    """Backward of `_cov2d_rows`: fills gMc [3, 3] -> (dL/dj00, dL/dj11, dL/dtx, dL/dty)."""
+    g_j00 = 0.0
+    g_j11 = 0.0
+    g_tx = 0.0
+    g_ty = 0.0
+    gMc[:] = 0.0
+    for c in range(3):
+        ga0 = 2.0 * g00 * A0[c] + g01 * A1[c]
+        ga1 = 2.0 * g11 * A1[c] + g01 * A0[c]
+        gMc[0, c] += j00 * ga0
+        gMc[2, c] -= j00 * tx * ga0 + j11 * ty * ga1
+        gMc[1, c] += j11 * ga1
+        g_tx -= j00 * ga0 * Mc[2, c]
+        g_ty -= j11 * ga1 * Mc[2, c]
+        g_j00 += ga0 * (Mc[0, c] - tx * Mc[2, c])
+        g_j11 += ga1 * (Mc[1, c] - ty * Mc[2, c])
+    return g_j00, g_j11, g_tx, g_ty
+
+
+@njit(cache=True, inline="always")
+def _normal_grad(V, R, ax, x, y, z, g_normals, i, n, gnw):
+    """Normal sgn * V[:3, :3] R[:, ax] (facing the camera at (x, y, z)): fills gnw [3] = dL/dR[:, ax]
+    from g_normals[i, n] [3] -> sgn."""
+    nx = V[0, 0] * R[0, ax] + V[0, 1] * R[1, ax] + V[0, 2] * R[2, ax]
+    ny = V[1, 0] * R[0, ax] + V[1, 1] * R[1, ax] + V[1, 2] * R[2, ax]
+    nz = V[2, 0] * R[0, ax] + V[2, 1] * R[1, ax] + V[2, 2] * R[2, ax]
+    sgn = 1.0 if -(nx * x + ny * y + nz * z) > 0 else -1.0
+    for r in range(3):
+        for b in range(3):
+            gnw[b] += V[r, b] * sgn * g_normals[i, n, r]
+    return sgn
+
+
+@njit(cache=True, inline="always")
+def _add_view_and_mean_grads(V, R, scales, means, n, gpc, gMc, sgn, g_normals, i, ax, want_normal, gv, gm):
+    """p_c = V m + t, Mc = V R diag(s), normal = sgn V R[:, ax]: adds dL/dV[:3, :4] (row-major) to
+    gv [12] and dL/dm to gm [3], from gpc = dL/dp_c, gMc [3, 3], g_normals[i, n] [3]."""
+    for r in range(3):
+        gv[r * 4 + 3] += gpc[r]
+        for b in range(3):
+            gm[b] += V[r, b] * gpc[r]
+            gv[r * 4 + b] += gpc[r] * means[n, b]
+            acc = 0.0
+            for c in range(3):
+                acc += gMc[r, c] * R[b, c] * scales[n, c]
+            gv[r * 4 + b] += acc
+            if want_normal:
+                gv[r * 4 + b] += sgn * g_normals[i, n, r] * R[b, ax]
+
+
+@njit(cache=True, inline="always")
+def _add_rot_scale_grads(V, R, scales, n, gMc, gnw, ax, gR, gs):
+    """Mc = V R diag(s): adds dL/dR to gR [3, 3] (with the normal's gnw on column ax) and dL/ds to gs [3]."""
+    for b in range(3):
+        for c in range(3):
+            gM = V[0, b] * gMc[0, c] + V[1, b] * gMc[1, c] + V[2, b] * gMc[2, c]
+            gR[b, c] += gM * scales[n, c]
+            gs[c] += gM * R[b, c]
+        gR[b, ax] += gnw[b]
+
+
+@njit(cache=True, inline="always")
+def _quat_grad(gR, qw, qx, qy, qz, qinv, g_quats, n):
+    """dL/dR [3, 3] -> g_quats[n] = dL/dq through R(q / |q|) (qw..qz normalised, qinv = 1/|q|)."""
+    gw = 2.0 * (qx * (gR[2, 1] - gR[1, 2]) + qy * (gR[0, 2] - gR[2, 0]) + qz * (gR[1, 0] - gR[0, 1]))
+    gxx = (2.0 * qy * (gR[0, 1] + gR[1, 0]) + 2.0 * qz * (gR[0, 2] + gR[2, 0])
+           - 4.0 * qx * (gR[1, 1] + gR[2, 2]) + 2.0 * qw * (gR[2, 1] - gR[1, 2]))
+    gyy = (2.0 * qx * (gR[0, 1] + gR[1, 0]) + 2.0 * qz * (gR[1, 2] + gR[2, 1])
+           - 4.0 * qy * (gR[0, 0] + gR[2, 2]) + 2.0 * qw * (gR[0, 2] - gR[2, 0]))
+    gzz = (2.0 * qx * (gR[0, 2] + gR[2, 0]) + 2.0 * qy * (gR[1, 2] + gR[2, 1])
+           - 4.0 * qz * (gR[0, 0] + gR[1, 1]) + 2.0 * qw * (gR[1, 0] - gR[0, 1]))
+    dot = gw * qw + gxx * qx + gyy * qy + gzz * qz
+    g_quats[n, 0] = (gw - qw * dot) * qinv
+    g_quats[n, 1] = (gxx - qx * dot) * qinv
+    g_quats[n, 2] = (gyy - qy * dot) * qinv
+    g_quats[n, 3] = (gzz - qz * dot) * qinv
+
+
 @njit(cache=True, parallel=True)
 def project_bwd(means, quats, scales, viewmats, cam, width, height, eps2d, near, far, want_normal,
                 g_means2d, g_conics, g_depths, g_normals,
@@ -166,12 +298,8 @@ def project_bwd(means, quats, scales, viewmats, cam, width, height, eps2d, near,
     (per-chunk partial dL/d viewmat[:3, :4], reduced in chunk order by the caller)."""
     N = means.shape[0]
     I = viewmats.shape[0]
-    fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
-    tan_fovx, tan_fovy = 0.5 * width / fx, 0.5 * height / fy
-    lxp = (width - cx) / fx + 0.3 * tan_fovx
-    lxn = cx / fx + 0.3 * tan_fovx
-    lyp = (height - cy) / fy + 0.3 * tan_fovy
-    lyn = cy / fy + 0.3 * tan_fovy
+    fx, fy = cam[0], cam[1]
+    lxp, lxn, lyp, lyn = _clip_limits(cam, width, height)
     n_chunks = g_view_parts.shape[0]
     for ch in prange(n_chunks):
         R = np.empty((3, 3))  # scratch, reused for every Gaussian of the chunk
@@ -190,18 +318,10 @@ def project_bwd(means, quats, scales, viewmats, cam, width, height, eps2d, near,
             gs[:] = 0.0
             gm[:] = 0.0
             for i in range(I):
-                # every term below is linear in the upstream gradients: skip exact zeros (most
-                # (pose, Gaussian) pairs of a rolling-shutter render reach no pixel)
-                live = (g_means2d[i, n, 0] != 0.0 or g_means2d[i, n, 1] != 0.0 or g_depths[i, n] != 0.0
-                        or g_conics[i, n, 0] != 0.0 or g_conics[i, n, 1] != 0.0 or g_conics[i, n, 2] != 0.0)
-                if want_normal:
-                    live = live or g_normals[i, n, 0] != 0.0 or g_normals[i, n, 1] != 0.0 or g_normals[i, n, 2] != 0.0
-                if not live:
+                if not _has_upstream_grad(g_means2d, g_conics, g_depths, g_normals, i, n, want_normal):
                     continue
                 V = viewmats[i]
-                x = V[0, 0] * means[n, 0] + V[0, 1] * means[n, 1] + V[0, 2] * means[n, 2] + V[0, 3]
-                y = V[1, 0] * means[n, 0] + V[1, 1] * means[n, 1] + V[1, 2] * means[n, 2] + V[1, 3]
-                z = V[2, 0] * means[n, 0] + V[2, 1] * means[n, 1] + V[2, 2] * means[n, 2] + V[2, 3]
+                x, y, z = _camera_point(V, means, n)
                 in_depth = z >= near and z <= far
                 zs = z if in_depth else 1.0
                 inv_z = 1.0 / zs
@@ -209,44 +329,16 @@ def project_bwd(means, quats, scales, viewmats, cam, width, height, eps2d, near,
                 tx = min(max(rtx, -lxn), lxp)
                 ty = min(max(rty, -lyn), lyp)
                 j00, j11 = fx * inv_z, fy * inv_z
-                for c in range(3):
-                    for r in range(3):
-                        Mc[r, c] = (V[r, 0] * R[0, c] + V[r, 1] * R[1, c] + V[r, 2] * R[2, c]) * scales[n, c]
-                    A0[c] = j00 * (Mc[0, c] - tx * Mc[2, c])
-                    A1[c] = j11 * (Mc[1, c] - ty * Mc[2, c])
-                c00 = eps2d + A0[0] * A0[0] + A0[1] * A0[1] + A0[2] * A0[2]
-                c11 = eps2d + A1[0] * A1[0] + A1[1] * A1[1] + A1[2] * A1[2]
-                c01 = A0[0] * A1[0] + A0[1] * A1[1] + A0[2] * A1[2]
+                c00, c11, c01 = _cov2d_rows(V, R, scales, n, j00, j11, tx, ty, eps2d, Mc, A0, A1)
                 det = c00 * c11 - c01 * c01
-                valid = in_depth and det > 0
-                gA, gB, gC = g_conics[i, n, 0], g_conics[i, n, 1], g_conics[i, n, 2]
-                if valid:
-                    S = (gA * c11 - gB * c01 + gC * c00) / (det * det)
-                    g00 = gC / det - S * c11
-                    g11 = gA / det - S * c00
-                    g01 = -gB / det + 2.0 * S * c01
-                else:
-                    g00, g11, g01 = gC, gA, -gB
+                g00, g11, g01 = _conic_grad(g_conics[i, n, 0], g_conics[i, n, 1], g_conics[i, n, 2], c00, c11, c01,
+                                            det, in_depth and det > 0)
                 # means2d = (fx x / zs + cx, fy y / zs + cy); depth = z
                 gx = g_means2d[i, n, 0] * fx * inv_z
                 gy = g_means2d[i, n, 1] * fy * inv_z
                 g_inv_z = g_means2d[i, n, 0] * fx * x + g_means2d[i, n, 1] * fy * y
                 gz = g_depths[i, n]
-                g_j00 = 0.0
-                g_j11 = 0.0
-                g_tx = 0.0
-                g_ty = 0.0
-                gMc[:] = 0.0
-                for c in range(3):
-                    ga0 = 2.0 * g00 * A0[c] + g01 * A1[c]
-                    ga1 = 2.0 * g11 * A1[c] + g01 * A0[c]
-                    gMc[0, c] += j00 * ga0
-                    gMc[2, c] -= j00 * tx * ga0 + j11 * ty * ga1
-                    gMc[1, c] += j11 * ga1
-                    g_tx -= j00 * ga0 * Mc[2, c]
-                    g_ty -= j11 * ga1 * Mc[2, c]
-                    g_j00 += ga0 * (Mc[0, c] - tx * Mc[2, c])
-                    g_j11 += ga1 * (Mc[1, c] - ty * Mc[2, c])
+                g_j00, g_j11, g_tx, g_ty = _cov2d_rows_grad(g00, g11, g01, A0, A1, Mc, j00, j11, tx, ty, gMc)
                 g_inv_z += fx * g_j00 + fy * g_j11
                 if rtx >= -lxn and rtx <= lxp:
                     gx += g_tx * inv_z
@@ -256,53 +348,15 @@ def project_bwd(means, quats, scales, viewmats, cam, width, height, eps2d, near,
                     g_inv_z += g_ty * y
                 if in_depth:
                     gz -= g_inv_z * inv_z * inv_z
-                gpc = (gx, gy, gz)
-                # normals: sgn * V[:3,:3] R[:, ax]
                 gnw[:] = 0.0
-                sgn = 0.0
-                if want_normal:
-                    nx = V[0, 0] * R[0, ax] + V[0, 1] * R[1, ax] + V[0, 2] * R[2, ax]
-                    ny = V[1, 0] * R[0, ax] + V[1, 1] * R[1, ax] + V[1, 2] * R[2, ax]
-                    nz = V[2, 0] * R[0, ax] + V[2, 1] * R[1, ax] + V[2, 2] * R[2, ax]
-                    sgn = 1.0 if -(nx * x + ny * y + nz * z) > 0 else -1.0
-                    for r in range(3):
-                        for b in range(3):
-                            gnw[b] += V[r, b] * sgn * g_normals[i, n, r]
-                # p_c = V m + t; Mc = V R diag(s)
-                gv = g_view_parts[ch, i]
-                for r in range(3):
-                    gv[r * 4 + 3] += gpc[r]
-                    for b in range(3):
-                        gm[b] += V[r, b] * gpc[r]
-                        gv[r * 4 + b] += gpc[r] * means[n, b]
-                        acc = 0.0
-                        for c in range(3):
-                            acc += gMc[r, c] * R[b, c] * scales[n, c]
-                        gv[r * 4 + b] += acc
-                        if want_normal:
-                            gv[r * 4 + b] += sgn * g_normals[i, n, r] * R[b, ax]
-                for b in range(3):
-                    for c in range(3):
-                        gM = V[0, b] * gMc[0, c] + V[1, b] * gMc[1, c] + V[2, b] * gMc[2, c]
-                        gR[b, c] += gM * scales[n, c]
-                        gs[c] += gM * R[b, c]
-                    gR[b, ax] += gnw[b]
+                sgn = _normal_grad(V, R, ax, x, y, z, g_normals, i, n, gnw) if want_normal else 0.0
+                _add_view_and_mean_grads(V, R, scales, means, n, (gx, gy, gz), gMc, sgn, g_normals, i, ax,
+                                         want_normal, g_view_parts[ch, i], gm)
+                _add_rot_scale_grads(V, R, scales, n, gMc, gnw, ax, gR, gs)
             for b in range(3):
                 g_means[n, b] = gm[b]
                 g_scales[n, b] = gs[b]
-            # R(q) with q normalised
-            gw = 2.0 * (qx * (gR[2, 1] - gR[1, 2]) + qy * (gR[0, 2] - gR[2, 0]) + qz * (gR[1, 0] - gR[0, 1]))
-            gxx = (2.0 * qy * (gR[0, 1] + gR[1, 0]) + 2.0 * qz * (gR[0, 2] + gR[2, 0])
-                   - 4.0 * qx * (gR[1, 1] + gR[2, 2]) + 2.0 * qw * (gR[2, 1] - gR[1, 2]))
-            gyy = (2.0 * qx * (gR[0, 1] + gR[1, 0]) + 2.0 * qz * (gR[1, 2] + gR[2, 1])
-                   - 4.0 * qy * (gR[0, 0] + gR[2, 2]) + 2.0 * qw * (gR[0, 2] - gR[2, 0]))
-            gzz = (2.0 * qx * (gR[0, 2] + gR[2, 0]) + 2.0 * qy * (gR[1, 2] + gR[2, 1])
-                   - 4.0 * qz * (gR[0, 0] + gR[1, 1]) + 2.0 * qw * (gR[1, 0] - gR[0, 1]))
-            dot = gw * qw + gxx * qx + gyy * qy + gzz * qz
-            g_quats[n, 0] = (gw - qw * dot) * qinv
-            g_quats[n, 1] = (gxx - qx * dot) * qinv
-            g_quats[n, 2] = (gyy - qy * dot) * qinv
-            g_quats[n, 3] = (gzz - qz * dot) * qinv
+            _quat_grad(gR, qw, qx, qy, qz, qinv, g_quats, n)
 
 
 def bin_tiles(means2d, radii, depths, tile_size, tiles_x, tiles_y, bin_needed):
@@ -512,6 +566,134 @@ def _footprint(mx, my, A, B, C, lo, rx, ry, x0, y0, ts, W, H):
     return ra, rb, ca, cb
 
 
+@njit(cache=True, inline="always")
+def _bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout):
+    """Bin b (image i, tile t) -> (i, output image o, tile pixel bounds x0, y0, x1, y1)."""
+    i, t = b // n_tiles, b % n_tiles
+    o = 0 if Iout == 1 else i
+    x0, y0 = (t % tiles_x) * ts, (t // tiles_x) * ts
+    return i, o, x0, y0, min(x0 + ts, W), min(y0 + ts, H)
+
+
+@njit(cache=True, inline="always")
+def _gaussian(means2d, conics, log_opac, g, N):
+    """Entry g = image * N + Gaussian -> (image gi, Gaussian n, centre mx, my, conic A, B, C, log opacity)."""
+    gi, n = g // N, g % N
+    return gi, n, means2d[gi, n, 0], means2d[gi, n, 1], conics[gi, n, 0], conics[gi, n, 1], conics[gi, n, 2], \
+        log_opac[n]
+
+
+@njit(cache=True, inline="always")
+def _start_tile_fwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, one, T, row_active):
+    """T = 1 at the tile's pixels whose view is i (counted per row in row_active) -> pixels to composite."""
+    n_active = 0
+    for v in range(y0, y1):
+        for u in range(x0, x1):
+            if pix_view[o, v, u] == i:
+                T[_state_index(v - y0, u - x0, ts, cw)] = one
+                row_active[v - y0] += 1
+                n_active += 1
+    return n_active
+
+
+@njit(cache=True, inline="always")
+def _retire_stopped(row_active, sbuf, ra, rb, ca, cb, ts, cw):
+    """Subtracts the pixels the last Gaussian stopped (sbuf) in rows [ra, rb), columns [ca, cb) from row_active."""
+    for q in range(ca // cw, (cb - 1) // cw + 1):
+        for r in range(ra, rb):
+            base = q * ts * cw + r * cw
+            for j in range(cw):
+                row_active[r] -= sbuf[base + j]
+
+
+@njit(cache=True, inline="always")
+def _finish_tile_fwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, T, last, acc, out_feat, out_T, out_last):
+    """Writes the tile's state (|T|, last, accumulated features) to the output pixels whose view is i."""
+    for v in range(y0, y1):
+        for u in range(x0, x1):
+            if pix_view[o, v, u] != i:
+                continue
+            p = _state_index(v - y0, u - x0, ts, cw)
+            out_T[o, v, u] = abs(T[p])
+            out_last[o, v, u] = last[p]
+            for c in range(acc.shape[0]):
+                out_feat[o, v, u, c] = acc[c, p]
+
+
+@njit(cache=True, inline="always")
+def _start_tile_bwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, out_T, out_last, g_T, g_feat, T, gTT, last, gF,
+                    row_last, k_end):
+    """Loads the forward's final T, last and the output gradients of the tile's pixels whose view is i
+    into the tile state (row_last: per row the largest last) -> one past the last intersection to visit."""
+    for v in range(y0, y1):
+        for u in range(x0, x1):
+            if pix_view[o, v, u] != i:
+                continue
+            p = _state_index(v - y0, u - x0, ts, cw)
+            T[p] = out_T[o, v, u]
+            gTT[p] = g_T[o, v, u] * out_T[o, v, u]
+            last[p] = out_last[o, v, u]
+            k_end = max(k_end, last[p])
+            row_last[v - y0] = max(row_last[v - y0], last[p])
+            for c in range(gF.shape[0]):
+                gF[c, p] = g_feat[o, v, u, c]
+    return k_end
+
+
+@njit(cache=True, inline="always")
+def _write_isect_grad(isect_grad, k, half, gmx, gmy, ga, gb, gc, glo, gf):
+    """Row k of isect_grad: dL/d (mean x, y, conic a, b, c, log opacity, features gf)."""
+    isect_grad[k, 0] = gmx
+    isect_grad[k, 1] = gmy
+    isect_grad[k, 2] = half * ga
+    isect_grad[k, 3] = gb
+    isect_grad[k, 4] = half * gc
+    isect_grad[k, 5] = glo
+    for c in range(gf.shape[0]):
+        isect_grad[k, 6 + c] = gf[c]
+
+
+@njit(cache=True, inline="always")
+def _feature_dot(ebuf, gF, feats, g, pa, pb, zero):
+    """ebuf[p] = sum_c dL/dF[c, p] * feats[g, c] over state entries [pa, pb) (dL/dw through the features)."""
+    for pp in range(pa, pb):
+        ebuf[np.uint64(pp)] = zero
+    for c in range(feats.shape[1]):
+        fc = feats[g, c]
+        for pp in range(pa, pb):
+            ebuf[np.uint64(pp)] += gF[c, np.uint64(pp)] * fc
+
+
+@njit(cache=True, inline="always")
+def _add_feature_grads(gf, wbuf, gF, pa, pb, zero):
+    """gf[c] += sum_p w[p] * dL/dF[c, p] over state entries [pa, pb)."""
+    for c in range(gf.shape[0]):
+        sc = zero
+        for pp in range(pa, pb):
+            sc += wbuf[np.uint64(pp)] * gF[c, np.uint64(pp)]
+        gf[c] += sc
+
+
+@njit(cache=True, inline="always")
+def _trim_rows_active(ra, rb, row_active):
+    """Rows [ra, rb) narrowed to start and end at rows with pixels still compositing."""
+    while ra < rb and row_active[ra] == 0:
+        ra += 1
+    while rb > ra and row_active[rb - 1] == 0:
+        rb -= 1
+    return ra, rb
+
+
+@njit(cache=True, inline="always")
+def _trim_rows_composited(ra, rb, k, row_last):
+    """Rows [ra, rb) narrowed to start and end at rows where intersection k was composited or reached."""
+    while ra < rb and k >= row_last[ra]:
+        ra += 1
+    while rb > ra and k >= row_last[rb - 1]:
+        rb -= 1
+    return ra, rb
+
+
 @njit(cache=True, parallel=True, fastmath=FASTMATH)
 def raster_fwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles_x,
                cw, kc, centres, out_feat, out_T, out_last):
@@ -534,10 +716,7 @@ def raster_fwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
     amin, tstop, sskip = kc[20], kc[21], kc[22]
     for jb in prange(bins.shape[0]):
         b = bins[jb]
-        i, t = b // n_tiles, b % n_tiles
-        o = 0 if Iout == 1 else i
-        x0, y0 = (t % tiles_x) * ts, (t // tiles_x) * ts
-        x1, y1 = min(x0 + ts, W), min(y0 + ts, H)
+        i, o, x0, y0, x1, y1 = _bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout)
         T = np.zeros(P, kc.dtype)
         acc = np.zeros((Cf, P), kc.dtype)
         last = np.zeros(P, np.int32)  # int32: as many SIMD lanes as float32
@@ -547,27 +726,15 @@ def raster_fwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
         wbuf = np.empty(P, kc.dtype)
         sbuf = np.zeros(P, np.int32)  # 1 where the last Gaussian stopped the pixel
         row_active = np.zeros(ts, np.int64)  # pixels still compositing, per tile row
-        n_active = 0
-        for v in range(y0, y1):
-            for u in range(x0, x1):
-                if pix_view[o, v, u] == i:
-                    T[_state_index(v - y0, u - x0, ts, cw)] = one
-                    row_active[v - y0] += 1
-                    n_active += 1
+        n_active = _start_tile_fwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, one, T, row_active)
         for k in range(bin_start[b], bin_start[b + 1]):
             if n_active == 0:
                 break
             g = flat_ids[k]
-            gi, n = g // N, g % N
-            mx, my = means2d[gi, n, 0], means2d[gi, n, 1]
-            A, B, C = conics[gi, n, 0], conics[gi, n, 1], conics[gi, n, 2]
-            lo = log_opac[n]
+            gi, n, mx, my, A, B, C, lo = _gaussian(means2d, conics, log_opac, g, N)
             hA, hC = kc[0] * A, kc[0] * C
             ra, rb, ca, cb = _footprint(mx, my, A, B, C, lo, radii[gi, n, 0], radii[gi, n, 1], x0, y0, ts, W, H)
-            while ra < rb and row_active[ra] == 0:
-                ra += 1
-            while rb > ra and row_active[rb - 1] == 0:
-                rb -= 1
+            ra, rb = _trim_rows_active(ra, rb, row_active)
             if ra >= rb or ca >= cb:
                 continue
             stopped = 0
@@ -596,20 +763,8 @@ def raster_fwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
                         acc[c, np.uint64(pp)] += wbuf[np.uint64(pp)] * fc
             if stopped:
                 n_active -= stopped
-                for q in range(ca // cw, (cb - 1) // cw + 1):
-                    for r in range(ra, rb):
-                        base = q * ts * cw + r * cw
-                        for j in range(cw):
-                            row_active[r] -= sbuf[base + j]
-        for v in range(y0, y1):
-            for u in range(x0, x1):
-                if pix_view[o, v, u] != i:
-                    continue
-                p = _state_index(v - y0, u - x0, ts, cw)
-                out_T[o, v, u] = abs(T[p])
-                out_last[o, v, u] = last[p]
-                for c in range(Cf):
-                    out_feat[o, v, u, c] = acc[c, p]
+                _retire_stopped(row_active, sbuf, ra, rb, ca, cb, ts, cw)
+        _finish_tile_fwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, T, last, acc, out_feat, out_T, out_last)
 
 
 @njit(cache=True, parallel=True, fastmath=FASTMATH)
@@ -627,10 +782,7 @@ def raster_bwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
     amin, sskip = kc[20], kc[22]
     for jb in prange(bins.shape[0]):
         b = bins[jb]
-        i, t = b // n_tiles, b % n_tiles
-        o = 0 if Iout == 1 else i
-        x0, y0 = (t % tiles_x) * ts, (t // tiles_x) * ts
-        x1, y1 = min(x0 + ts, W), min(y0 + ts, H)
+        i, o, x0, y0, x1, y1 = _bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout)
         T = np.zeros(P, kc.dtype)
         gTT = np.zeros(P, kc.dtype)
         suffix = np.zeros(P, kc.dtype)
@@ -643,31 +795,14 @@ def raster_bwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
         wbuf = np.empty(P, kc.dtype)
         gf = np.empty(Cf, kc.dtype)
         row_last = np.zeros(ts, np.int64)  # one past the last composited intersection, per tile row
-        k_end = bin_start[b]
-        for v in range(y0, y1):
-            for u in range(x0, x1):
-                if pix_view[o, v, u] != i:
-                    continue
-                p = _state_index(v - y0, u - x0, ts, cw)
-                T[p] = out_T[o, v, u]
-                gTT[p] = g_T[o, v, u] * out_T[o, v, u]
-                last[p] = out_last[o, v, u]
-                k_end = max(k_end, last[p])
-                row_last[v - y0] = max(row_last[v - y0], last[p])
-                for c in range(Cf):
-                    gF[c, p] = g_feat[o, v, u, c]
+        k_end = _start_tile_bwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, out_T, out_last, g_T, g_feat, T, gTT, last,
+                                gF, row_last, bin_start[b])
         for k in range(k_end - 1, bin_start[b] - 1, -1):
             g = flat_ids[k]
-            gi, n = g // N, g % N
-            mx, my = means2d[gi, n, 0], means2d[gi, n, 1]
-            A, B, C = conics[gi, n, 0], conics[gi, n, 1], conics[gi, n, 2]
-            lo = log_opac[n]
+            gi, n, mx, my, A, B, C, lo = _gaussian(means2d, conics, log_opac, g, N)
             hA, hC = kc[0] * A, kc[0] * C
             ra, rb, ca, cb = _footprint(mx, my, A, B, C, lo, radii[gi, n, 0], radii[gi, n, 1], x0, y0, ts, W, H)
-            while ra < rb and k >= row_last[ra]:
-                ra += 1
-            while rb > ra and k >= row_last[rb - 1]:
-                rb -= 1
+            ra, rb = _trim_rows_composited(ra, rb, k, row_last)
             gmx = zero
             gmy = zero
             ga = zero
@@ -681,12 +816,7 @@ def raster_bwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
                 ca, cb = 0, 0
             for q in range(ca // cw, (cb - 1) // cw + 1 if cb > ca else 0):
                 pa, pb = q * ts * cw + ra * cw, q * ts * cw + rb * cw
-                for pp in range(pa, pb):
-                    ebuf[np.uint64(pp)] = zero
-                for c in range(Cf):
-                    fc = feats[g, c]
-                    for pp in range(pa, pb):
-                        ebuf[np.uint64(pp)] += gF[c, np.uint64(pp)] * fc
+                _feature_dot(ebuf, gF, feats, g, pa, pb, zero)
                 for pp in range(pa, pb):  # unsigned index: no wraparound test; branch-free: vectorizes
                     p = np.uint64(pp)
                     dx = cxt[p] - mx
@@ -712,19 +842,8 @@ def raster_bwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
                     gb += G * dx * dy
                     gc += G * dy * dy
                     glo -= G
-                for c in range(Cf):
-                    sc = zero
-                    for pp in range(pa, pb):
-                        sc += wbuf[np.uint64(pp)] * gF[c, np.uint64(pp)]
-                    gf[c] += sc
-            isect_grad[k, 0] = gmx
-            isect_grad[k, 1] = gmy
-            isect_grad[k, 2] = kc[0] * ga
-            isect_grad[k, 3] = gb
-            isect_grad[k, 4] = kc[0] * gc
-            isect_grad[k, 5] = glo
-            for c in range(Cf):
-                isect_grad[k, 6 + c] = gf[c]
+                _add_feature_grads(gf, wbuf, gF, pa, pb, zero)
+            _write_isect_grad(isect_grad, k, kc[0], gmx, gmy, ga, gb, gc, glo, gf)
 
 
 @njit(cache=True)

@@ -476,6 +476,99 @@ def _store_fits(plan: _Plan) -> bool:
     return NB * P * n_chunks * plan.chunk * per_pair <= plan.store_elems
 
 
+def _padded(coef: Tensor, feat: Tensor, mode: str) -> tuple[Tensor, Tensor]:
+    """coef [M, Kc], feat [M, Cf] -> [M + 1, ...] with a padding row M: exponent +inf-like
+    (alpha = 0), zero features."""
+    Kc, Cf = coef.shape[1], feat.shape[1]
+    pad = torch.zeros(1, Kc, dtype=coef.dtype, device=coef.device)
+    if mode == "3dgs":
+        pad[0, 0] = 1e30
+        pad[0, 6] = -1e30
+    else:
+        pad[0, 13] = -1e30  # log(opacity) -> alpha = 0
+    return torch.cat([coef.detach(), pad], 0), torch.cat([feat.detach(), feat.new_zeros(1, Cf)], 0)
+
+
+def _composite_chunk(step: tuple, Fb: Tensor, T_comp: Tensor, Db: Tensor, want_dist: bool) -> None:
+    """Forward: adds one chunk's weighted features to Fb [NB, P, Cf], its weights' sum off T_comp
+    [NB, P] and (2DGS) its distortion to Db [NB, P], in place."""
+    bins, idx_flat, cf, ft, saved, clamped, T_inc, w, dist_terms = step
+    Fb[bins] += torch.bmm(w, ft)
+    T_comp[bins] -= w.sum(-1)  # telescoping: sum of weights = drop of composited T
+    if want_dist:
+        z, wz, cwz, A_exc, W_exc = dist_terms
+        Db[bins] += 2.0 * (wz * W_exc - w * A_exc).sum(-1)
+
+
+@dataclass
+class _BackwardState:
+    """Output gradients, forward results and the accumulators of `_Composite`'s backward."""
+
+    gF: Tensor  # [NB, P, Cf] dL/dF
+    gT: Tensor  # [NB, P] dL/dT
+    gD: Tensor  # [NB, P] dL/ddist
+    Fb: Tensor  # [NB, P, Cf] forward features
+    T_fin: Tensor  # [NB, P] forward composited transmittance
+    Db: Tensor  # [NB, P] forward distortion
+    gcoef: Tensor  # [M + 1, Kg] (row M: the discarded padding)
+    gfeat: Tensor  # [M + 1, Cf]
+    E_tot: Tensor  # [NB, P] sum_k e_k w_k
+    gTT: Tensor  # [NB, P] dL/dT_final * T_final
+    E_carry: Tensor  # [NB, P] sum of e_k w_k over the chunks done
+
+    @staticmethod
+    def start(grads: tuple, mode: str, Kc: int, Cf: int, M: int) -> "_BackwardState":
+        gF, gT, gD, Fb, T_fin, Db = grads
+        dtype, device = Fb.dtype, Fb.device
+        Kg = 6 if mode == "3dgs" else Kc  # 3DGS: the log(o) column's gradient is zero
+        gcoef = torch.zeros(M + 1, Kg, dtype=dtype, device=device)
+        gfeat = torch.zeros(M + 1, Cf, dtype=dtype, device=device)
+        E_tot = (gF * Fb).sum(-1) + 2.0 * gD * Db  # [NB, P]: sum_k e_k w_k
+        gTT = gT * T_fin  # dL/dT_final * T_final
+        E_carry = torch.zeros(T_fin.shape, dtype=dtype, device=device)
+        return _BackwardState(gF, gT, gD, Fb, T_fin, Db, gcoef, gfeat, E_tot, gTT, E_carry)
+
+    def finish(self, M: int, Kc: int) -> tuple[Tensor, Tensor]:
+        """-> (dL/dcoef [M, Kc], dL/dfeat [M, Cf])."""
+        Kg = self.gcoef.shape[1]
+        if Kg < Kc:
+            return F.pad(self.gcoef[:M], (0, Kc - Kg)), self.gfeat[:M]
+        return self.gcoef[:M], self.gfeat[:M]
+
+
+def _backward_chunk(step: tuple, ev: _ChunkEval, st: _BackwardState, dch: int, want_dist: bool) -> None:
+    """Backward of one chunk: writes its candidates' rows of st.gcoef / st.gfeat and advances st.E_carry."""
+    bins, idx_flat, cf, ft, saved, clamped, T_inc, w, dist_terms = step
+    gFa = st.gF[bins]  # [A, P, Cf]
+    e = torch.bmm(gFa, ft.transpose(1, 2))  # [A, P, S]: dL/dw_k through the features
+    if want_dist:
+        z, wz, cwz, A_exc, W_exc = dist_terms
+        gDa = st.gD[bins][:, :, None]
+        Z_tot = st.Fb[bins][:, :, dch][:, :, None]
+        W_tot = (1.0 - st.T_fin[bins])[:, :, None]
+        W_after = W_tot - W_exc - w  # sum_{j>k} w_j
+        A_after = Z_tot - A_exc - wz  # sum_{j>k} w_j z_j
+        e = e + 2.0 * gDa * ((z * W_exc - A_exc) + (A_after - z * W_after))
+        g_z = (2.0 * gDa * w * (W_exc - W_after)).sum(1)  # [A, S]
+    ew = e * w
+    cum = torch.cumsum(ew, 2) + st.E_carry[bins][:, :, None]
+    st.E_carry[bins] = cum[:, :, -1]
+    suffix = st.E_tot[bins][:, :, None] - cum  # sum_{j>k} e_j w_j
+    # dL/dsigma' = -alpha dL/dalpha, dL/dalpha = e T_exc - (suffix + gT T_final) / (1 - alpha);
+    # for composited pairs alpha / (1 - alpha) = w / T_inc, for the others w = 0
+    ratio = w / T_inc.clamp(min=1e-30)
+    G = ratio.mul_(suffix.add_(st.gTT[bins][:, :, None])).sub_(ew)
+    if clamped is not None:
+        G.masked_fill_(clamped, 0.0)
+    gc = ev.coef_grad(G, cf, saved)  # [A, S, Kg]
+    gf = torch.bmm(w.transpose(1, 2), gFa)  # [A, S, Cf]
+    if want_dist:
+        gf[:, :, dch] += g_z
+    # every intersection is visited once; duplicates are only the discarded padding row
+    st.gcoef.index_copy_(0, idx_flat, gc.reshape(-1, st.gcoef.shape[1]))
+    st.gfeat.index_copy_(0, idx_flat, gf.reshape(-1, st.gfeat.shape[1]))
+
+
 class _Composite(torch.autograd.Function):
     """coef [M, Kc], feat [M, Cf] -> F [NB, P, Cf] (sum w f), T [NB, P] (composited transmittance),
     dist [NB, P] (2DGS depth distortion, zeros for 3DGS)."""
@@ -504,88 +597,37 @@ class _Composite(torch.autograd.Function):
     def _run(coef: Tensor, feat: Tensor, plan: _Plan, grads, steps: list | None = None):
         """Forward (grads None; appends each chunk's intermediates to `steps` if given) or backward
         (grads given; replays `steps` if given, else recomputes every chunk front to back)."""
-        M, Kc = coef.shape
-        Cf = feat.shape[1]
+        M = coef.shape[0]
         NB, P = plan.T_init.shape
         dtype, device = coef.dtype, coef.device
-        mode, dch = plan.mode, plan.depth_channel
-        ev = _ChunkEval(mode, plan.phi.to(dtype))
-        want_dist = mode == "2dgs"
+        ev = _ChunkEval(plan.mode, plan.phi.to(dtype))
+        want_dist = plan.mode == "2dgs"
 
         T_all = plan.T_init.to(dtype).clone()
         if grads is None:
-            Fb = torch.zeros(NB, P, Cf, dtype=dtype, device=device)
+            Fb = torch.zeros(NB, P, feat.shape[1], dtype=dtype, device=device)
             T_comp = T_all.clone()
             Db = torch.zeros(NB, P, dtype=dtype, device=device)
         else:
-            gF, gT, gD, Fb, T_fin, Db = grads
-            Kg = 6 if mode == "3dgs" else Kc  # 3DGS: the log(o) column's gradient is zero
-            gcoef = torch.zeros(M + 1, Kg, dtype=dtype, device=device)
-            gfeat = torch.zeros(M + 1, Cf, dtype=dtype, device=device)
-            E_tot = (gF * Fb).sum(-1) + 2.0 * gD * Db  # [NB, P]: sum_k e_k w_k
-            gTT = gT * T_fin  # dL/dT_final * T_final
-            E_carry = torch.zeros(NB, P, dtype=dtype, device=device)
+            bw = _BackwardState.start(grads, plan.mode, coef.shape[1], feat.shape[1], M)
         A_carry = torch.zeros(NB, P, dtype=dtype, device=device) if want_dist else None
 
         if grads is not None and steps is not None:
             schedule = steps  # replay the forward's chunks: no recomputation
         else:
-            # padding row M: exponent +inf-like (alpha = 0), zero features
-            pad = torch.zeros(1, Kc, dtype=dtype, device=device)
-            if mode == "3dgs":
-                pad[0, 0] = 1e30
-                pad[0, 6] = -1e30
-            else:
-                pad[0, 13] = -1e30  # log(opacity) -> alpha = 0
-            coef_p = torch.cat([coef.detach(), pad], 0)
-            feat_p = torch.cat([feat.detach(), feat.new_zeros(1, Cf)], 0)
+            coef_p, feat_p = _padded(coef, feat, plan.mode)
             schedule = _Composite._schedule(plan, coef_p, feat_p, ev, T_all, M, want_dist, A_carry,
                                             backward=grads is not None or steps is not None)
         for step in schedule:
-            if grads is None and steps is not None:
-                steps.append(step)
-            bins, idx_flat, cf, ft, saved, clamped, T_inc, w, dist_terms = step
-            if want_dist:
-                z, wz, cwz, A_exc, W_exc = dist_terms
             if grads is None:
-                Fb[bins] += torch.bmm(w, ft)
-                T_comp[bins] -= w.sum(-1)  # telescoping: sum of weights = drop of composited T
-                if want_dist:
-                    Db[bins] += 2.0 * (wz * W_exc - w * A_exc).sum(-1)
-                continue
-            # ---- backward for this chunk
-            gFa = gF[bins]  # [A, P, Cf]
-            e = torch.bmm(gFa, ft.transpose(1, 2))  # [A, P, S]: dL/dw_k through the features
-            if want_dist:
-                gDa = gD[bins][:, :, None]
-                Z_tot = Fb[bins][:, :, dch][:, :, None]
-                W_tot = (1.0 - T_fin[bins])[:, :, None]
-                W_after = W_tot - W_exc - w  # sum_{j>k} w_j
-                A_after = Z_tot - A_exc - wz  # sum_{j>k} w_j z_j
-                e = e + 2.0 * gDa * ((z * W_exc - A_exc) + (A_after - z * W_after))
-                g_z = (2.0 * gDa * w * (W_exc - W_after)).sum(1)  # [A, S]
-            ew = e * w
-            cum = torch.cumsum(ew, 2) + E_carry[bins][:, :, None]
-            E_carry[bins] = cum[:, :, -1]
-            suffix = E_tot[bins][:, :, None] - cum  # sum_{j>k} e_j w_j
-            # dL/dsigma' = -alpha dL/dalpha, dL/dalpha = e T_exc - (suffix + gT T_final) / (1 - alpha);
-            # for composited pairs alpha / (1 - alpha) = w / T_inc, for the others w = 0
-            ratio = w / T_inc.clamp(min=1e-30)
-            G = ratio.mul_(suffix.add_(gTT[bins][:, :, None])).sub_(ew)
-            if clamped is not None:
-                G.masked_fill_(clamped, 0.0)
-            gc = ev.coef_grad(G, cf, saved)  # [A, S, Kg]
-            gf = torch.bmm(w.transpose(1, 2), gFa)  # [A, S, Cf]
-            if want_dist:
-                gf[:, :, dch] += g_z
-            # every intersection is visited once; duplicates are only the discarded padding row
-            gcoef.index_copy_(0, idx_flat, gc.reshape(-1, Kg))
-            gfeat.index_copy_(0, idx_flat, gf.reshape(-1, Cf))
+                if steps is not None:
+                    steps.append(step)
+                _composite_chunk(step, Fb, T_comp, Db, want_dist)
+            else:
+                _backward_chunk(step, ev, bw, plan.depth_channel, want_dist)
         if grads is None:
             return Fb, T_comp.clamp_(min=0.0), Db
-        if Kg < Kc:
-            return F.pad(gcoef[:M], (0, Kc - Kg)), gfeat[:M]
-        return gcoef[:M], gfeat[:M]
+        return bw.finish(M, coef.shape[1])
 
     @staticmethod
     def _schedule(plan: _Plan, coef_p: Tensor, feat_p: Tensor, ev: _ChunkEval, T_all: Tensor, M: int,
@@ -732,45 +774,90 @@ def rasterize(
 ) -> RasterResult:
     """Project, bin and composite; returns accumulated features per output pixel."""
     dtype, device = means.dtype, means.device
-    W_img, H_img = camera.width, camera.height
-    I = viewmats.shape[0]
-    N = means.shape[0]
-    K = gsplat_K(camera, dtype, device)
-    if mode == "3dgs":
-        proj = project_3dgs(means, quats, scales, viewmats, K, W_img, H_img,
-                            opacities=log_opacity.detach().exp(), want_normal=want_normal)
-    else:
-        proj = project_2dgs(means, quats, scales, viewmats, K, W_img, H_img)
-    # means2d in egobench's convention, retained for densification statistics
-    means2d_out = proj.means2d - 0.5
-    if means2d_out.requires_grad:
-        means2d_out.retain_grad()
-    means2d_g = means2d_out + 0.5
-
+    I, N = viewmats.shape[0], means.shape[0]
+    proj, means2d_out, means2d_g = _project(mode, means, quats, scales, log_opacity, viewmats, camera, want_normal)
     ts = int(tile_size)
-    tiles_x, tiles_y = math.ceil(W_img / ts), math.ceil(H_img / ts)
-    n_tiles = tiles_x * tiles_y
-    P = ts * ts
-    vv, uu = torch.meshgrid(torch.arange(H_img, device=device), torch.arange(W_img, device=device), indexing="ij")
-    pix_tile = (vv // ts) * tiles_x + (uu // ts)  # [H, W]
-    pix_local = (vv % ts) * ts + (uu % ts)  # [H, W]
-    if pixel_pose_index is None:
-        bin_needed = None
-        out_bins = torch.arange(I, device=device)[:, None, None] * n_tiles + pix_tile[None]  # [I, H, W]
-    else:
-        out_bins = (pixel_pose_index.to(device).long() * n_tiles + pix_tile)[None]  # [1, H, W]
-        bin_needed = torch.zeros(I * n_tiles, dtype=torch.bool, device=device)
-        bin_needed[out_bins.reshape(-1)] = True
-        bin_needed = bin_needed.reshape(I, n_tiles)
-    bins = intersect_tiles(means2d_g, proj.radii, proj.depths, ts, W_img, H_img, bin_needed)
-    pos = bins.bin_pos[out_bins]  # [Iout, H, W]
-    flat_out = pos * P + pix_local  # [Iout, H, W] into [NB * P]
-    T_init = torch.zeros(bins.bin_ids.numel() * P, dtype=dtype, device=device)
-    T_init[flat_out.reshape(-1)] = 1.0
-    T_init = T_init.reshape(-1, P)
+    pix_local, out_bins, bin_needed = _pixel_bins(camera, ts, I, pixel_pose_index, device)
+    bins = intersect_tiles(means2d_g, proj.radii, proj.depths, ts, camera.width, camera.height, bin_needed)
+    flat_out, T_init = _initial_transmittance(bins, out_bins, pix_local, ts * ts, dtype)
 
     ids = bins.flat_ids
     origin = _tile_origins(bins, bins.isect_bins, dtype)
+    m_isect, g_geom, lo, feat, densify_2dgs = _gather_intersections(mode, proj, means2d_g, log_opacity, colors, ids,
+                                                                    I, N, want_normal)
+    if absgrad and m_isect.requires_grad:
+        _track_absgrad(m_isect, ids, means2d_out, I * N)
+    m_local = m_isect - origin
+    lo = lo[:, 0]
+    if mode == "3dgs":
+        coef = coefficients_3dgs(m_local, g_geom, lo)
+    else:
+        coef = coefficients_2dgs(m_local, g_geom.reshape(-1, 3, 3), origin, lo)
+    # feat [M, Cf]: colour, depth (channel 3), normal
+    plan = _Plan(mode=mode, starts=bins.starts, lengths=bins.lengths, T_init=T_init,
+                 phi=_tile_phi(ts, dtype, device), depth_channel=3, chunk=chunk, max_pairs=max_pairs)
+    Fb, Tb, Db = composite(coef, feat, plan)
+    Cf = feat.shape[1]
+    fo = flat_out.reshape(-1)
+    features = Fb.reshape(-1, Cf).index_select(0, fo).reshape(flat_out.shape + (Cf,))  # [Iout, H, W, Cf]
+    trans = Tb.reshape(-1).index_select(0, fo).reshape(flat_out.shape)
+    dist = Db.reshape(-1).index_select(0, fo).reshape(flat_out.shape)
+    return RasterResult(features=features, transmittance=trans, distortion=dist, projection=proj, means2d=means2d_out,
+                        densify_2dgs=densify_2dgs)
+
+
+def _project(mode: str, means: Tensor, quats: Tensor, scales: Tensor, log_opacity: Tensor, viewmats: Tensor,
+             camera: Pinhole, want_normal: bool) -> tuple[Projection, Tensor, Tensor]:
+    """-> (projection, means2d [I, N, 2] in egobench pixels (grad-retaining, for densification
+    statistics), the same in gsplat pixels (+0.5) that the binning and compositing use)."""
+    K = gsplat_K(camera, means.dtype, means.device)
+    if mode == "3dgs":
+        proj = project_3dgs(means, quats, scales, viewmats, K, camera.width, camera.height,
+                            opacities=log_opacity.detach().exp(), want_normal=want_normal)
+    else:
+        proj = project_2dgs(means, quats, scales, viewmats, K, camera.width, camera.height)
+    means2d_out = proj.means2d - 0.5
+    if means2d_out.requires_grad:
+        means2d_out.retain_grad()
+    return proj, means2d_out, means2d_out + 0.5
+
+
+def _pixel_bins(camera: Pinhole, ts: int, I: int, pixel_pose_index: Tensor | None,
+                device) -> tuple[Tensor, Tensor, Tensor | None]:
+    """Where each output pixel is composited: -> (pix_local [H, W] row-major index inside its tile,
+    out_bins [Iout, H, W] bin (image * n_tiles + tile) it reads, bin_needed [I, n_tiles] bool or None
+    for all bins)."""
+    tiles_x, tiles_y = math.ceil(camera.width / ts), math.ceil(camera.height / ts)
+    n_tiles = tiles_x * tiles_y
+    vv, uu = torch.meshgrid(torch.arange(camera.height, device=device), torch.arange(camera.width, device=device),
+                            indexing="ij")
+    pix_tile = (vv // ts) * tiles_x + (uu // ts)  # [H, W]
+    pix_local = (vv % ts) * ts + (uu % ts)  # [H, W]
+    if pixel_pose_index is None:
+        out_bins = torch.arange(I, device=device)[:, None, None] * n_tiles + pix_tile[None]  # [I, H, W]
+        return pix_local, out_bins, None
+    out_bins = (pixel_pose_index.to(device).long() * n_tiles + pix_tile)[None]  # [1, H, W]
+    bin_needed = torch.zeros(I * n_tiles, dtype=torch.bool, device=device)
+    bin_needed[out_bins.reshape(-1)] = True
+    return pix_local, out_bins, bin_needed.reshape(I, n_tiles)
+
+
+def _initial_transmittance(bins: TileBins, out_bins: Tensor, pix_local: Tensor, P: int,
+                           dtype) -> tuple[Tensor, Tensor]:
+    """-> (flat_out [Iout, H, W] index of each output pixel into [NB * P], T_init [NB, P]: 1 for
+    pixels to render, 0 for bin pixels no output pixel reads)."""
+    pos = bins.bin_pos[out_bins]  # [Iout, H, W]
+    flat_out = pos * P + pix_local  # [Iout, H, W] into [NB * P]
+    T_init = torch.zeros(bins.bin_ids.numel() * P, dtype=dtype, device=out_bins.device)
+    T_init[flat_out.reshape(-1)] = 1.0
+    return flat_out, T_init.reshape(-1, P)
+
+
+def _gather_intersections(mode: str, proj: Projection, means2d_g: Tensor, log_opacity: Tensor, colors: Tensor,
+                          ids: Tensor, I: int, N: int, want_normal: bool):
+    """Per-intersection inputs, ids [M] into I * N -> (means2d [M, 2] gsplat pixels, geometry [M, 3]
+    conics (3DGS) or [M, 9] ray transforms (2DGS), log opacity [M, 1], features [M, Cf] (colour,
+    depth, normal), 2DGS densification carrier or None)."""
     # one gather for every per-(image, Gaussian) quantity (index_select: its backward is a single
     # index_add, both far cheaper on CPU than several advanced-indexing gathers)
     densify_2dgs = None
@@ -796,28 +883,15 @@ def rasterize(
         m_isect, g_geom, g_tail = g_view.split([2, n_geom, n_tail], dim=1)
         lo, g_col = torch.cat(per_gaussian, dim=1).index_select(0, ids % N).split([1, colors.shape[1]], dim=1)
         feat = torch.cat([g_col, g_tail], dim=1)
-    if absgrad and m_isect.requires_grad:
-        absgrad_buf = torch.zeros(I * N, 2, dtype=dtype, device=device)
+    return m_isect, g_geom, lo, feat, densify_2dgs
 
-        def _hook(grad, ids=ids, buf=absgrad_buf, out=means2d_out):
-            buf.index_add_(0, ids, grad.abs())
-            out.absgrad = buf.reshape(out.shape)
 
-        m_isect.register_hook(_hook)
-    m_local = m_isect - origin
-    lo = lo[:, 0]
-    if mode == "3dgs":
-        coef = coefficients_3dgs(m_local, g_geom, lo)
-    else:
-        coef = coefficients_2dgs(m_local, g_geom.reshape(-1, 3, 3), origin, lo)
-    # feat [M, Cf]: colour, depth (channel 3), normal
-    plan = _Plan(mode=mode, starts=bins.starts, lengths=bins.lengths, T_init=T_init,
-                 phi=_tile_phi(ts, dtype, device), depth_channel=3, chunk=chunk, max_pairs=max_pairs)
-    Fb, Tb, Db = composite(coef, feat, plan)
-    Cf = feat.shape[1]
-    fo = flat_out.reshape(-1)
-    features = Fb.reshape(-1, Cf).index_select(0, fo).reshape(flat_out.shape + (Cf,))  # [Iout, H, W, Cf]
-    trans = Tb.reshape(-1).index_select(0, fo).reshape(flat_out.shape)
-    dist = Db.reshape(-1).index_select(0, fo).reshape(flat_out.shape)
-    return RasterResult(features=features, transmittance=trans, distortion=dist, projection=proj, means2d=means2d_out,
-                        densify_2dgs=densify_2dgs)
+def _track_absgrad(m_isect: Tensor, ids: Tensor, means2d_out: Tensor, n_rows: int) -> None:
+    """Sets means2d_out.absgrad [I, N, 2] in the backward: sum over intersections of |dL/dmeans2d|."""
+    buf = torch.zeros(n_rows, 2, dtype=m_isect.dtype, device=m_isect.device)
+
+    def _hook(grad, ids=ids, buf=buf, out=means2d_out):
+        buf.index_add_(0, ids, grad.abs())
+        out.absgrad = buf.reshape(out.shape)
+
+    m_isect.register_hook(_hook)
