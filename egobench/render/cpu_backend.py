@@ -191,7 +191,6 @@ def render_cpu(gaussians: Gaussians, camera: Pinhole, viewmats: Tensor, *, pixel
     """3DGS render with the compiled kernels; same contract as the torch path of `render`.
     viewmats [I, 4, 4] world-to-camera; pixel_pose_index [H, W] or None."""
     means = gaussians.means
-    dtype = means.dtype
     H, W = camera.height, camera.width
     I = viewmats.shape[0]
     cam = np.array([camera.fx, camera.fy, camera.cx + 0.5, camera.cy + 0.5], dtype=np.float64)
