@@ -98,6 +98,10 @@ def _diagnose_recording(args: argparse.Namespace, cfg: DiagnosisConfig, out: Pat
         if not (recording_root(rec) / "ground_truth" / "truth.json").is_file():
             raise ValueError(f"{rec}: no ground_truth/truth.json (not simulated): pass --run RUN_DIR or --train")
         src = ground_truth_source(rec, max_frames=args.max_frames, progress=not args.no_progress)
+    if source == "run":  # the null includes the trained model's own error (egobench.diagnose.calibration)
+        from dataclasses import replace
+
+        cfg = replace(cfg, trained_run=True)
     d = diagnose_residuals(src.measured, src.predicted, src.context, cfg)
     record = write_report(out, d, src.measured, src.predicted, title=f"Residual diagnosis of {rec.name} ({src.description})",
                           extra={"method": args.method, "source": src.description})

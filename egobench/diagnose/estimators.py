@@ -520,7 +520,8 @@ class _Geometric(Cause):
         theta0 = self.initial_theta(est, info)
         theta = self.refine(data, theta0)
         res = CauseResult(self.name, self.kind, True, statistic=test.t, statistic_kind=f"t({test.df})",
-                          p_value=test.p_value, internal={"theta": theta, "theta_first_order": theta0})
+                          p_value=test.p_value, internal={"theta": theta, "theta_first_order": theta0,
+                                                          "frame_se": test.se, "frame_df": test.df})
         new_pred, inside = self.warp_prediction(raw_data.p, theta, data.ctx, data.frames)
         res.effect_rms = self._effect(raw_data, np.clip(new_pred, 0, 1), inside[..., None])
         res.params = self.describe(theta, data.ctx)
