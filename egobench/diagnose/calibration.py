@@ -193,9 +193,10 @@ def exposure_split_half(fit: PhotometricFit, cells: _Cells, draws: int, rng: np.
     threshold = max(FLAG_SIGMAS * max(sd_half, mad(a), mad(b)), FLAG_MIN_LOG)
     both = (np.abs(a) > threshold) & (np.abs(b) > threshold) & (np.sign(a) == np.sign(b))
     frames = np.flatnonzero(ok)[both]
+    p_corr = p
     if both.sum() == 0:
         p = 1.0
-    return {"testable": True, "p": p, "corr": observed, "placebo_corr_q99": float(np.quantile(placebo, 0.99)),
+    return {"testable": True, "p": p, "p_placebo_corr": p_corr, "corr": observed, "placebo_corr_q99": float(np.quantile(placebo, 0.99)),
             "flag_threshold_log": threshold, "frames_flagged_in_both_halves": frames.tolist(),
             "robust_sd": threshold / FLAG_SIGMAS, "n_frames": int(a.size)}
 
