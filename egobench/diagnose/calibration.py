@@ -261,6 +261,57 @@ def resolution_matched(data: ResidualData, sigma: float) -> ResidualData:
     return out
 
 
+#: Why white balance is not tested on a trained run.
+WB_UNTESTABLE = ("not identifiable from a trained run: a constant per-channel gain on every frame is absorbed "
+                 "exactly into the scene colours the model learns (render = k x shading x colour)")
+#: Smallest spread (std of log exposure x gain across frames) for the trained-run response test.
+MIN_LOG_EXPOSURE_SPREAD = 0.05
+
+
+def response_from_exposure(fit: PhotometricFit, data: ResidualData, draws: int, rng: np.random.Generator) -> dict:
+    """A response error on a TRAINED run: the model's colours absorb L^a (a = gamma_assumed /
+    gamma_true), so what survives is a per-frame scale k_f^(a - 1) that follows the recorded
+    exposure x gain k_f. Statistic: slope of the frames' log scales on log k_f; placebo: the same
+    slope with the exposure metadata permuted across frames (empirical p)."""
+    k = np.log(np.maximum(data.ctx.exposure_s * data.ctx.gain, 1e-12))
+    x = k[data.frames] - float(np.mean(k[data.frames]))
+    # per-frame log scale: weighted mean of the cell log ratios (no log-intensity column: in an
+    # untrained prediction the response error also shows within the image, which that column
+    # would take from the frames)
+    keep = fit.keep
+    w = np.bincount(fit.fidx[keep], weights=fit.w[keep], minlength=fit.n_frames)
+    beta = np.bincount(fit.fidx[keep], weights=(fit.w * fit.y)[keep], minlength=fit.n_frames) / np.maximum(w, 1e-300)
+    if float(np.std(x)) < MIN_LOG_EXPOSURE_SPREAD:
+        return {"testable": False, "p": 1.0, "reason": (
+            f"exposure x gain varies by {float(np.std(x)):.3f} (std of log) < {MIN_LOG_EXPOSURE_SPREAD} across "
+            "frames: a response error is absorbed into the scene colours of a trained run")}
+    b = beta - float(np.mean(beta))
+
+    def slope(xx):
+        return float(np.sum(xx * b) / np.sum(xx * xx))
+
+    observed = slope(x)
+    placebo = np.array([slope(rng.permutation(x)) for _ in range(int(draws))])
+    p = float((1 + np.sum(np.abs(placebo) >= abs(observed))) / (1 + draws))
+    return {"testable": True, "p": p, "exposure_slope": observed, "slope_sd_placebo": float(placebo.std()),
+            "log_k_mean": float(np.mean(k[data.frames])), "log_exposure_spread": float(np.std(x))}
+
+
+def _response_from_exposure_apply(r: CauseResult, resp: dict, data: ResidualData) -> None:
+    """Make the response cause's estimate and extension the exposure-driven one (in place)."""
+    s = resp["exposure_slope"]
+    g = data.ctx.gamma_assumed
+    r.params["gamma_cells"] = r.params.get("gamma")
+    r.params["gamma"] = g / (1.0 + s) if 1.0 + s > 0.05 else None
+    r.params["signature"] = "trained run: per-frame scale following log(exposure x gain)"
+    r.internal = {"c": 0.0, "log_p0": 0.0, "log_global": 0.0, "exposure_slope": s, "log_k_mean": resp["log_k_mean"]}
+    from egobench.diagnose.estimators import CAUSES
+
+    new = CAUSES["response"].apply(data.p, r, data.ctx, data.frames)
+    m = data.usable
+    r.effect_rms = float(np.sqrt(np.mean((new - data.p)[m] ** 2))) if m.any() else 0.0
+
+
 def calibrate_photometric(data: ResidualData, results: list[CauseResult], draws: int, seed: int) -> dict:
     """Replace the p-values of the photometric causes in ``results`` by calibrated ones (in place);
     the cell-level p-value is kept in params["p_value_cells"]. Returns per-frame standard errors
@@ -288,13 +339,23 @@ def calibrate_photometric(data: ResidualData, results: list[CauseResult], draws:
     tr, tb = _t(est[:, 0], var[:, 0]), _t(est[:, 1], var[:, 1])
     calibrated["white_balance"] = (min(1.0, 2.0 * min(tr.p_value, tb.p_value)),
                                    {"frame_t_r_b": [tr.t, tb.t], "frame_df": tr.df})
-    se["white_balance"] = (max(tr.se, tb.se), tr.df)
     tc = _t(est[:, 3], var[:, 3])
-    calibrated["response"] = (tc.p_value, {"frame_t": tc.t, "frame_df": tc.df})
-    se["response"] = (tc.se, tc.df)
+    resp = response_from_exposure(fit, data, draws, np.random.default_rng([int(seed), 22]))
+    calibrated["response"] = (resp["p"] if resp["testable"] else 1.0,  # within-image slope: absorbed by training
+                              {"frame_t": tc.t, "frame_df": tc.df, **{k: v for k, v in resp.items() if k != "testable"}})
+    se["response"] = (resp.get("slope_sd_placebo", math.nan), max(fit.n_frames - 2, 2))
     split = exposure_split_half(fit, cells, draws, np.random.default_rng([int(seed), 15]))
     calibrated["exposure_metadata"] = (split["p"], {k: v for k, v in split.items() if k != "testable"})
     se["exposure_metadata"] = (split["robust_sd"], split.get("n_frames", 0) - 1)
+    if "white_balance" in by_name:  # (kept in params for the record)
+        wb = by_name["white_balance"]
+        wb.params["calibration"] = {"p_value_placebo": calibrated.pop("white_balance")[0], "render_blur_px": sigma}
+        wb.testable, wb.reason = False, WB_UNTESTABLE
+        photometric.remove("white_balance")
+    if "response" in by_name and resp["testable"]:
+        _response_from_exposure_apply(by_name["response"], resp, data)
+    elif "response" in by_name:
+        by_name["response"].reason = resp["reason"]
     for name in photometric:
         r = by_name[name]
         p_cal, info = calibrated[name]
@@ -302,6 +363,63 @@ def calibrate_photometric(data: ResidualData, results: list[CauseResult], draws:
         r.params["calibration"] = {"p_value_placebo": p_cal, "render_blur_px": sigma, **info}
         r.p_value = max(r.p_value, p_cal)
     return se
+
+
+#: Velocity-field permutations of the geometric placebo.
+GEOMETRIC_PLACEBOS = 19
+
+
+def calibrate_geometric(data: ResidualData, results: list[CauseResult], seed: int,
+                        n_placebo: int = GEOMETRIC_PLACEBOS) -> None:
+    """Placebo p-values of the motion-driven causes (time offset, readout, exposure blur), in place.
+
+    Placebo: each frame's residual regressed on the signature built with ANOTHER frame's image
+    velocity (a random permutation of the frames' velocity fields), tested across frames like the
+    real statistic. Model error not tied to the motion (an isotropically blurry or misplaced
+    render) gives the same statistic under the placebos; a timing error only with the true motion.
+    p_placebo = the normal tail of the real statistic against the placebo statistics' mean and
+    spread; the cause's p-value becomes max(its own, p_placebo)."""
+    import copy
+    from dataclasses import replace as dc_replace
+
+    from egobench.diagnose.estimators import CAUSES
+
+    v = data.ctx.pixel_velocity_px_s
+    if v is None or data.frames.size < 4:
+        return
+    rng = np.random.default_rng([int(seed), 1515])
+    perms = []
+    for _ in range(n_placebo):  # permutations with no fixed frame
+        while True:
+            perm = rng.permutation(data.frames.size)
+            if np.all(perm != np.arange(data.frames.size)):
+                perms.append(perm)
+                break
+    for r in results:
+        if not r.testable or r.name not in ("time_offset", "readout", "exposure_blur"):
+            continue
+        cause = CAUSES[r.name]
+        j, one_sided = cause.tested_index, cause.one_sided
+
+        def t_of(d):
+            est, info = cause.first_order(d)
+            return frame_t_test(est[:, j], info[:, j], one_sided=one_sided).t
+
+        t_real = t_of(data)
+        t_placebo = []
+        for perm in perms:
+            vp = v.copy()
+            vp[data.frames] = v[data.frames[perm]]
+            d = copy.copy(data)
+            d.ctx = dc_replace(data.ctx, pixel_velocity_px_s=vp)
+            t_placebo.append(t_of(d))
+        tp = np.asarray(t_placebo)
+        z = (t_real - tp.mean()) / max(float(tp.std(ddof=1)), 1e-12)
+        p = float(sps.norm.sf(z)) if one_sided else float(2 * sps.norm.sf(abs(z)))
+        r.params["calibration"] = {"p_value_placebo": p, "first_order_t": t_real, "placebo_t_mean": float(tp.mean()),
+                                   "placebo_t_sd": float(tp.std(ddof=1)), "placebo": "velocity fields permuted across frames"}
+        r.params["p_value_frames"] = r.p_value
+        r.p_value = max(r.p_value, p)
 
 
 def geometric_standard_errors(results: list[CauseResult]) -> dict:

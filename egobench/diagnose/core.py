@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from egobench.diagnose.calibration import calibrate_photometric, geometric_standard_errors
+from egobench.diagnose.calibration import calibrate_geometric, calibrate_photometric, geometric_standard_errors
 from egobench.diagnose.estimators import CAUSES, CauseResult, Noise, ResidualData
 from egobench.diagnose.signatures import LEVEL, DiagnosisContext, box3, checkerboard, erode, holm, psnr
 
@@ -46,7 +46,7 @@ class DiagnosisConfig:
     border_px: int = 2  # image border excluded from fits and scores (warps sample outside there)
     # --- a trained run's renders (--source run): the null includes the model's own error (calibration.py)
     trained_run: bool = False  # calibrate photometric statistics with placebos; gain floor; model-error verdict
-    placebo_draws: int = 999  # frame-label shuffles of the exposure split-half placebo
+    placebo_draws: int = 4999  # frame-label shuffles of the exposure placebos (smallest p: 1 / (draws + 1))
     gain_floor_db: float = 0.05  # trained run: a cause is named only if it improves held-out PSNR by more
     placebo_seed: int = 0  # seeds the placebo shuffles
 
@@ -363,6 +363,8 @@ def diagnose_residuals(
         testable = [r for r in results if r.testable]
         if cfg.trained_run:
             se = calibrate_photometric(data, testable, int(cfg.placebo_draws), int(cfg.placebo_seed) + rnd)
+            calibrate_geometric(data, testable, int(cfg.placebo_seed) + rnd)
+            testable = [r for r in testable if r.testable]  # (white balance is not identifiable on a trained run)
             if rnd == 1:
                 round1_se = {**se, **geometric_standard_errors(testable)}
         _adjust_and_rank(testable, cfg)

@@ -40,6 +40,7 @@ class TrainedSweepConfig:
     seeds: int = 1  # cases per (effect, magnitude)
     effects: tuple[str, ...] = PHOTOMETRIC
     kind: str = "indoor"  # scene kind (egobench.sim.world)
+    motion: str = "fast"  # head motion (egobench.sim.motion): image-fixed effects need the scene to move across the image
     size: int = 40  # rectified width = height, px
     n_frames: int = 24
     iterations: int = 300  # CPU preset, schedule scaled
@@ -94,7 +95,7 @@ def _run_case(case: dict, cfg: TrainedSweepConfig, case_dir: Path, diag: Diagnos
     from egobench.sim.config import SimConfig, hidden_effect_overrides
     from egobench.train import preset_config, train
 
-    overrides = {"n_frames": cfg.n_frames, "rectified_size": cfg.size, "readout_s": 0.01626}
+    overrides = {"n_frames": cfg.n_frames, "rectified_size": cfg.size, "readout_s": 0.01626, "motion": cfg.motion}
     if case["effect"] is not None:
         overrides.update(hidden_effect_overrides(case["effect"], case["value"]))
     rec = case_dir / "recording"
