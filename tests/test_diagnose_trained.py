@@ -247,3 +247,23 @@ def test_trained_sweep_is_resumable_per_case(tmp_path, monkeypatch):
     table = (tmp_path / "trained_sweep.md").read_text()
     assert "| vignette | 0.35 | 1 | 1.00 |" in table and "False alarms on null cases: 0/2" in table
     assert json.loads((tmp_path / "trained_sweep.json").read_text())["n_cases"] == 4
+
+
+def test_timing_causes_must_follow_the_true_motion():
+    """Measured frames blurrier than the model in every direction (a sharper render, or focus) give
+    the exposure-blur statistic for ANY velocity field: the velocity-permutation placebo is as large,
+    so it is not named; a real exposure blur follows each frame's own motion and is named."""
+    import cv2
+
+    null = make_case(None, seed=2, speed_px_s=(250.0, 600.0))
+    blurred = np.stack([np.clip(cv2.GaussianBlur(x.astype(np.float32) ** 2.2, (0, 0), 0.6) ** (1 / 2.2), 0, 1)
+                        for x in null.measured])
+    naive = next(r for r in diagnose_residuals(blurred, null.predicted, null.context).rounds[0] if r.name == "exposure_blur")
+    assert naive.p_value < 1e-3  # the frame-level test alone is fooled
+    d = diagnose_residuals(blurred, null.predicted, null.context, TRAINED)
+    blur = next(r for r in d.rounds[0] if r.name == "exposure_blur")
+    assert blur.params["calibration"]["p_value_placebo"] > 0.05 and not blur.significant
+    case = make_case("exposure_blur", 8e-3, seed=2, speed_px_s=(250.0, 600.0))
+    d = diagnose_residuals(case.measured, case.predicted, case.context, TRAINED)
+    assert d.verdict == "exposure_blur" and abs(d.named[0].params["exposure_s"] / 8e-3 - 1) < 0.25
+    assert d.named[0].params["calibration"]["p_value_placebo"] < 1e-6

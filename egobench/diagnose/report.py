@@ -128,10 +128,11 @@ def model_error_markdown(me: dict, config) -> list[str]:
              f"residual {100 * me['non_physical_share']:.1f} %; share of the model error explained by the named causes "
              f"{100 * me['share_explained_by_named_causes']:.1f} %",
              f"- reconstruction error dominates: {'yes' if me['dominates'] else 'no'} ({me['rule']})",
-             f"- naming rules on a trained run: placebo-calibrated p (exposure: split-half frame-label shuffles; "
-             f"vignette: wrong-centre placebos; white balance, response: frames as units), held-out gain > "
-             f"{config.gain_floor_db} dB", "",
-             "| cause | smallest effect testable on this run |", "|---|---|"]
+             f"- naming rules on a trained run: placebo-calibrated p (exposure metadata: split-half frame-label "
+             f"shuffles; response: per-frame scale vs permuted exposure metadata; vignette: frames as units and "
+             f"wrong-centre placebos; timing: permuted velocity fields; white balance: not identifiable, absorbed "
+             f"into the scene colours), held-out gain > {config.gain_floor_db} dB", "",
+             "| cause | smallest effect testable on this run (of what training left in the residual) |", "|---|---|"]
     for name, v in me.get("smallest_testable", {}).items():
         lines.append(f"| {name} | {_summary(v)} |")
     return lines + [""]
