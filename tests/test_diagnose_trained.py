@@ -267,3 +267,24 @@ def test_timing_causes_must_follow_the_true_motion():
     d = diagnose_residuals(case.measured, case.predicted, case.context, TRAINED)
     assert d.verdict == "exposure_blur" and abs(d.named[0].params["exposure_s"] / 8e-3 - 1) < 0.25
     assert d.named[0].params["calibration"]["p_value_placebo"] < 1e-6
+
+
+@pytest.mark.slow
+def test_badly_fitted_trained_run_through_the_cli_says_reconstruction_error_dominates(tmp_path):
+    """`egobench diagnose REC --train` (a 200-iteration run, ~14 dB held out) names no cause; the
+    uncalibrated statistics on the same renders name one (issue 15's failure)."""
+    from egobench.cli import main
+    from egobench.diagnose.sources import run_source
+
+    rec, out = tmp_path / "rec", tmp_path / "diag"
+    sets = ["n_frames=16", "rectified_size=32", "readout_s=0.01626", "motion=fast"]
+    assert main(["simulate", "--kind", "indoor", "--seed", "1", "--out", str(rec), "--no-progress",
+                 *[x for s in sets for x in ("--set", s)]]) == 0
+    assert main(["diagnose", str(rec), "--train", "--iterations", "200", "--out", str(out), "--no-progress"]) == 0
+    record = json.loads((out / "diagnosis.json").read_text())
+    me = record["model_error"]
+    assert record["verdict"] == RECONSTRUCTION_ERROR and record["named"] == []
+    assert me["dominates"] and me["held_out_psnr_db"] < 25 and me["model_error_over_noise_db"] > 10
+    assert "reconstruction error versus physics" in (out / "report.md").read_text()
+    src = run_source(rec, out / "run", progress=False)
+    assert diagnose_residuals(src.measured, src.predicted, src.context).verdict not in (NO_DISCREPANCY, RECONSTRUCTION_ERROR)

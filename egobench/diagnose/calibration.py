@@ -196,7 +196,8 @@ def exposure_split_half(fit: PhotometricFit, cells: _Cells, draws: int, rng: np.
     p_corr = p
     if both.sum() == 0:
         p = 1.0
-    return {"testable": True, "p": p, "p_placebo_corr": p_corr, "corr": observed, "placebo_corr_q99": float(np.quantile(placebo, 0.99)),
+    return {"testable": True, "p": p, "p_placebo_corr": p_corr, "corr": observed,
+            "placebo_corr_q99": float(np.quantile(placebo, 0.99)),
             "flag_threshold_log": threshold, "frames_flagged_in_both_halves": frames.tolist(),
             "robust_sd": threshold / FLAG_SIGMAS, "n_frames": int(a.size)}
 
