@@ -288,3 +288,27 @@ def test_badly_fitted_trained_run_through_the_cli_says_reconstruction_error_domi
     assert "reconstruction error versus physics" in (out / "report.md").read_text()
     src = run_source(rec, out / "run", progress=False)
     assert diagnose_residuals(src.measured, src.predicted, src.context).verdict not in (NO_DISCREPANCY, RECONSTRUCTION_ERROR)
+
+
+def test_per_frame_pose_jitter_along_the_motion_is_not_exposure_blur():
+    """A trained model's per-frame timing/pose errors are shifts along each frame's motion with
+    varying sign; their second-order term mimics blur in every frame (a global shift cannot remove
+    it). Tested given a per-frame shift, exposure blur is not significant; a real blur still is."""
+    from egobench.diagnose.calibration import blur_given_frame_shifts
+    from egobench.diagnose.estimators import CAUSES, ResidualData
+    from egobench.diagnose.signatures import warp
+
+    null = make_case(None, seed=4, speed_px_s=(250.0, 600.0))
+    F = null.measured.shape[0]
+    dt = np.random.default_rng(1).choice([-1.0, 1.0], F) * 4e-3  # +-4 ms per frame
+    jittered, _ = warp(null.predicted, null.context.pixel_velocity_px_s * dt[:, None, None, None])
+    data = ResidualData(null.measured, np.clip(jittered, 0, 1), null.context, np.arange(F))
+    r = CAUSES["exposure_blur"].fit(data)
+    assert r.p_value < 1e-3  # fooled without the per-frame shifts
+    blur_given_frame_shifts(data, r)
+    assert r.params["p_value_given_frame_shifts"] > 0.01 and r.p_value > 0.01
+    case = make_case("exposure_blur", 8e-3, seed=4, speed_px_s=(250.0, 600.0))
+    data = ResidualData(case.measured, case.predicted, case.context, np.arange(F))
+    r = CAUSES["exposure_blur"].fit(data)
+    blur_given_frame_shifts(data, r)
+    assert r.params["p_value_given_frame_shifts"] < 1e-6
