@@ -389,7 +389,7 @@ class Suite:
         t = self.trained_sweep
         out = (f"--sweep-null {int(t.get('null_cases', 6))} --sweep-seeds {int(t.get('seeds', 1))} "
                f"--sweep-kind {t.get('kind', 'indoor')} --sweep-size {int(t.get('size', 40))} "
-               f"--sweep-frames {int(t.get('n_frames', 24))} --iterations {int(t.get('iterations', 300))}")
+               f"--sweep-frames {int(t.get('n_frames', 24))} --iterations {int(t.get('iterations', 800))}")
         effects = t.get("effects")
         return out + (f" --sweep-effects {','.join(effects)}" if effects else "")
 

@@ -312,3 +312,24 @@ def test_per_frame_pose_jitter_along_the_motion_is_not_exposure_blur():
     r = CAUSES["exposure_blur"].fit(data)
     blur_given_frame_shifts(data, r)
     assert r.params["p_value_given_frame_shifts"] < 1e-6
+
+
+def test_distortion_must_beat_wrong_centre_placebos():
+    """A radial displacement about an off-centre point in every frame (model error tied to the
+    image) passes the frame-level distortion test but not the wrong-centre placebos; a real k0
+    error (radial about the principal point) is still named, its estimate within 10 %."""
+    from egobench.diagnose.signatures import warp
+
+    null = make_case(None, seed=3)
+    v, u = np.mgrid[0:48, 0:48].astype(np.float64)
+    disp = np.stack([u - 35.0, v - 30.0], -1) * 0.012  # a 1.2 % zoom about (35, 30)
+    pred, _ = warp(null.predicted, np.ascontiguousarray(np.broadcast_to(disp[None], (16, 48, 48, 2))))
+    pred = np.clip(pred, 0, 1).astype(np.float32)
+    assert diagnose_residuals(null.measured, pred, null.context).verdict == "distortion"
+    d = diagnose_residuals(null.measured, pred, null.context, TRAINED)
+    dist = next(r for r in d.rounds[0] if r.name == "distortion")
+    assert dist.params["calibration"]["placebo_exceed"] > 0 and "distortion" not in [n.name for n in d.named]
+    case = make_case("distortion", 0.008, seed=3)
+    d = diagnose_residuals(case.measured, case.predicted, case.context, TRAINED)
+    assert d.verdict == "distortion" and abs(d.named[0].params["k0_error"] / 0.008 - 1) < 0.1
+    assert d.named[0].params["calibration"]["placebo_exceed"] == 0

@@ -43,7 +43,7 @@ class TrainedSweepConfig:
     motion: str = "fast"  # head motion (egobench.sim.motion): image-fixed effects need the scene to move across the image
     size: int = 40  # rectified width = height, px
     n_frames: int = 24
-    iterations: int = 300  # CPU preset, schedule scaled
+    iterations: int = 800  # CPU preset, schedule scaled (300: 26.6 dB median held out, 800: 31.5 dB at 40 px)
     method: str = "ours"
     magnitudes: dict = field(default_factory=lambda: dict(DEFAULT_MAGNITUDES))
 
