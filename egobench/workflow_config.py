@@ -282,6 +282,7 @@ class Suite:
         self.diagnose_max_frames: int | None = diag.get("max_frames")
         self.sweep_seeds: int = int(diag.get("sweep_seeds", 3))
         self.adt_dir: str | None = diag.get("adt_dir")
+        self.trained_sweep: dict = dict(diag.get("trained_sweep") or {})
         self.qualitative_scene = (config.get("plots") or {}).get("qualitative_scene")
         ms = config.get("motion_stats") or {}
         self.motion_stats = bool(ms.get("enabled", False))
@@ -377,9 +378,20 @@ class Suite:
     def discovery_outputs(self) -> list[str]:
         """Targets of `snakemake discovery`: the hidden-effect sweep, and the ADT diagnosis if configured."""
         out = [f"{self.root}/discovery/sweep"]
+        if self.trained_sweep.get("enabled"):
+            out.append(f"{self.root}/discovery/trained_sweep/trained_sweep.json")
         if self.adt_dir:
             out.append(f"{self.root}/discovery/adt")
         return out
+
+    def trained_sweep_args(self) -> str:
+        """Arguments of `egobench diagnose --sweep --trained` from config.diagnose.trained_sweep."""
+        t = self.trained_sweep
+        out = (f"--sweep-null {int(t.get('null_cases', 6))} --sweep-seeds {int(t.get('seeds', 1))} "
+               f"--sweep-kind {t.get('kind', 'indoor')} --sweep-size {int(t.get('size', 40))} "
+               f"--sweep-frames {int(t.get('n_frames', 24))} --iterations {int(t.get('iterations', 800))}")
+        effects = t.get("effects")
+        return out + (f" --sweep-effects {','.join(effects)}" if effects else "")
 
     def motion_stats_args(self) -> str:
         out = f"--kind {self.motion_stats_kind}"

@@ -132,6 +132,23 @@ def test_discovery_targets(tmp_path):
     assert suite.sweep_seeds == 3
 
 
+def test_trained_sweep_is_a_discovery_target_only_when_enabled():
+    """config.diagnose.trained_sweep: off by default; on, `snakemake discovery` also builds the
+    trained-run sweep's table with the configured arguments; an unknown effect is a config error."""
+    config = load("ci.yaml")
+    assert "results/ci/discovery/trained_sweep/trained_sweep.json" not in wc.Suite(wc.fill_defaults(config)).discovery_outputs()
+    config["diagnose"]["trained_sweep"] = {"enabled": True, "null_cases": 10, "effects": ["vignette", "response"],
+                                           "size": 32, "iterations": 200}
+    wc.check_config(config)
+    suite = wc.Suite(wc.fill_defaults(config))
+    assert suite.discovery_outputs() == ["results/ci/discovery/sweep", "results/ci/discovery/trained_sweep/trained_sweep.json"]
+    assert suite.trained_sweep_args() == ("--sweep-null 10 --sweep-seeds 1 --sweep-kind indoor --sweep-size 32 "
+                                          "--sweep-frames 24 --iterations 200 --sweep-effects vignette,response")
+    config["diagnose"]["trained_sweep"]["effects"] = ["vignetting"]
+    with pytest.raises(wc.ConfigError, match="trained_sweep"):
+        wc.check_config(config)
+
+
 def test_egobench_command():
     assert wc.egobench_command("egobench --verbose") == "egobench --verbose"
     auto = wc.egobench_command("auto")

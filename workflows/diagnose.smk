@@ -83,6 +83,30 @@ rule diagnose_sweep:
         "{EGOBENCH} diagnose --sweep --sweep-seeds {params.seeds} --out {output} --no-progress > {log} 2>&1"
 
 
+# config.diagnose.trained_sweep.enabled: the sweep on trained runs. The outputs are the tables only,
+# so the per-case folders (cases/: recording, run, diagnosis) survive a failed or interrupted job
+# and a rerun redoes only the unfinished cases.
+rule diagnose_trained_sweep:
+    output:
+        json=f"{R}/discovery/trained_sweep/trained_sweep.json",
+        csv=f"{R}/discovery/trained_sweep/trained_sweep.csv",
+        md=report(f"{R}/discovery/trained_sweep/trained_sweep.md", caption="report/diagnose.rst", category="Diagnosis"),
+    conda:
+        "envs/egobench.yaml"
+    log:
+        f"{R}/logs/discovery/trained_sweep.log",
+    benchmark:
+        f"{R}/benchmarks/discovery/trained_sweep.tsv"
+    params:
+        args=SUITE.trained_sweep_args(),
+        out_dir=lambda wildcards, output: os.path.dirname(output.json),
+    threads: res("diagnose", "threads")
+    resources:
+        mem_mb=res("diagnose", "mem_mb"),
+    shell:
+        "{EGOBENCH} diagnose --sweep --trained {params.args} --out {params.out_dir} --no-progress > {log} 2>&1"
+
+
 rule diagnose_adt:
     output:
         report(

@@ -25,6 +25,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sweep", action="store_true", help="run the hidden-case sweep (synthetic textures)")
     parser.add_argument("--sweep-seeds", type=int, default=3, help="seeds per effect and magnitude in --sweep")
     parser.add_argument("--sweep-null", type=int, default=20, help="null cases in --sweep")
+    parser.add_argument("--trained", action="store_true",
+                        help="with --sweep: the trained-run sweep (simulate hidden effects, train --method with the "
+                             "CPU preset, diagnose the run's renders; resumable per case in OUT/cases/)")
+    parser.add_argument("--sweep-effects", default=None,
+                        help="with --sweep --trained: comma-separated effects (default: the photometric ones)")
+    parser.add_argument("--sweep-size", type=int, default=40, help="with --sweep --trained: image size, px")
+    parser.add_argument("--sweep-frames", type=int, default=24, help="with --sweep --trained: frames per recording")
+    parser.add_argument("--sweep-kind", default="indoor", help="with --sweep --trained: scene kind")
     parser.add_argument("--adt", default=None, help="Aria Digital Twin sample folder: real (video.vrs) vs twin (synthetic_video.vrs)")
     parser.add_argument("--real-trajectory", default=None,
                         help="with --adt: a real Aria closed_loop_trajectory.csv to compare head-motion statistics with")
@@ -42,6 +50,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     cfg = DiagnosisConfig(alpha=args.alpha, max_causes=args.max_causes).validate()
     out = Path(args.out)
+    if args.sweep and args.trained:
+        return _trained_sweep(args, cfg, out)
     if args.sweep:
         from egobench.diagnose.sweep import SweepConfig, run_sweep
 
@@ -56,6 +66,20 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps({"out": str(out), "verdict": record["verdict"], "named": [n["name"] for n in record["named"]]}))
         return 0
     return _diagnose_recording(args, cfg, out)
+
+
+def _trained_sweep(args: argparse.Namespace, cfg: DiagnosisConfig, out: Path) -> int:
+    """--sweep --trained: the hidden-case sweep on trained runs (egobench.diagnose.trained_sweep)."""
+    from egobench.diagnose.trained_sweep import PHOTOMETRIC, TrainedSweepConfig, run_trained_sweep
+
+    effects = tuple(e.strip() for e in args.sweep_effects.split(",") if e.strip()) if args.sweep_effects else PHOTOMETRIC
+    sc = TrainedSweepConfig(null_cases=args.sweep_null, seeds=args.sweep_seeds, effects=effects, kind=args.sweep_kind,
+                            size=args.sweep_size, n_frames=args.sweep_frames, method=args.method,
+                            iterations=args.iterations if args.iterations is not None else TrainedSweepConfig.iterations)
+    s = run_trained_sweep(out, sc, cfg, progress=not args.no_progress)
+    print(json.dumps({"out": str(out), "false_alarms": s["false_alarms"], "n_null": s["n_null"], "n_cases": s["n_cases"],
+                      "n_failed": s["n_failed"]}))
+    return 0
 
 
 def _train_for_diagnosis(args: argparse.Namespace, rec: Path, out: Path) -> Path:
@@ -98,6 +122,10 @@ def _diagnose_recording(args: argparse.Namespace, cfg: DiagnosisConfig, out: Pat
         if not (recording_root(rec) / "ground_truth" / "truth.json").is_file():
             raise ValueError(f"{rec}: no ground_truth/truth.json (not simulated): pass --run RUN_DIR or --train")
         src = ground_truth_source(rec, max_frames=args.max_frames, progress=not args.no_progress)
+    if source == "run":  # the null includes the trained model's own error (egobench.diagnose.calibration)
+        from dataclasses import replace
+
+        cfg = replace(cfg, trained_run=True)
     d = diagnose_residuals(src.measured, src.predicted, src.context, cfg)
     record = write_report(out, d, src.measured, src.predicted, title=f"Residual diagnosis of {rec.name} ({src.description})",
                           extra={"method": args.method, "source": src.description})

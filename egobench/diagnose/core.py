@@ -24,10 +24,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from egobench.diagnose.calibration import calibrate_geometric, calibrate_photometric, geometric_standard_errors
 from egobench.diagnose.estimators import CAUSES, CauseResult, Noise, ResidualData
 from egobench.diagnose.signatures import LEVEL, DiagnosisContext, box3, checkerboard, erode, holm, psnr
 
 NO_DISCREPANCY = "no significant discrepancy"
+#: Verdict of a trained run whose residual is mostly the model's own error and names no cause.
+RECONSTRUCTION_ERROR = "reconstruction error dominates"
 
 
 @dataclass
@@ -41,12 +44,19 @@ class DiagnosisConfig:
     max_causes: int = 3  # causes named one after another (peeling)
     causes: tuple[str, ...] = tuple(CAUSES)  # the library to test (effect names)
     border_px: int = 2  # image border excluded from fits and scores (warps sample outside there)
+    # --- a trained run's renders (--source run): the null includes the model's own error (calibration.py)
+    trained_run: bool = False  # calibrate photometric statistics with placebos; gain floor; model-error verdict
+    placebo_draws: int = 4999  # frame-label shuffles of the exposure placebos (smallest p: 1 / (draws + 1))
+    gain_floor_db: float = 0.05  # trained run: a cause is named only if it improves held-out PSNR by more
+    placebo_seed: int = 0  # seeds the placebo shuffles
 
     def validate(self) -> "DiagnosisConfig":
         if not (0 < self.alpha < 1):
             raise ValueError(f"DiagnosisConfig.alpha: expected a level in (0, 1), got {self.alpha}")
         if not (self.effect_floor >= 0):
             raise ValueError(f"DiagnosisConfig.effect_floor: expected >= 0, got {self.effect_floor}")
+        if int(self.placebo_draws) < 99:
+            raise ValueError(f"DiagnosisConfig.placebo_draws: expected an integer >= 99, got {self.placebo_draws}")
         if int(self.max_causes) < 1:
             raise ValueError(f"DiagnosisConfig.max_causes: expected an integer >= 1, got {self.max_causes}")
         unknown = [c for c in self.causes if c not in CAUSES]
@@ -84,6 +94,7 @@ class Diagnosis:
     unmodelled_fraction: float = 0.0  # share of photometric cells trimmed as off-model content (round 1)
     unmodelled_map: np.ndarray | None = None  # [f_fit, hb, wb] bool trimmed cells (round 1; not serialised)
     meta: dict = field(default_factory=dict)
+    model_error: dict | None = None  # trained run: reconstruction error vs noise, smallest testable effects
 
     @property
     def psnr_gain_db(self) -> float:
@@ -123,6 +134,7 @@ class Diagnosis:
             "unmodelled_fraction": self.unmodelled_fraction,
             "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.config.__dict__.items()},
             "meta": self.meta,
+            **({"model_error": self.model_error} if self.model_error is not None else {}),
         })
 
 
@@ -242,6 +254,78 @@ def _name_noise(testable: list[CauseResult], rnd: int, measured: np.ndarray, cur
     return None
 
 
+def _name_mean_cause(testable: list[CauseResult], rnd: int, measured: np.ndarray, current: np.ndarray,
+                     ctx: DiagnosisContext, split: _Split, cfg: DiagnosisConfig, score
+                     ) -> tuple[NamedCause, np.ndarray] | None:
+    """The best significant mean-affecting cause -> (NamedCause, extended prediction), or None.
+
+    On a trained run (cfg.trained_run) a candidate is named only if its extension improves the
+    held-out PSNR by more than cfg.gain_floor_db; a candidate that does not is marked not
+    significant (reason given) and the next one by score is tried."""
+    F = measured.shape[0]
+    candidates = sorted((r for r in testable if r.significant and CAUSES[r.name].mean_affecting),
+                        key=lambda r: -r.score)
+    for top in candidates:
+        new = CAUSES[top.name].apply(current, top, ctx, np.arange(F), measured=measured, fit_mask=split.fit_mask)
+        gain = score(new) - score(current)
+        if cfg.trained_run and not gain > cfg.gain_floor_db:
+            top.significant, top.score = False, 0.0
+            top.reason = (f"held-out PSNR gain {gain:+.3f} dB <= {cfg.gain_floor_db} dB "
+                          "(DiagnosisConfig.gain_floor_db): not named")
+            top.params["held_out_gain_db"] = gain
+            continue
+        return NamedCause(top.name, rnd, top.p_adjusted, top.effect_rms, top.params, gain), new
+    return None
+
+
+def _noise_variance(pred: np.ndarray, ctx: DiagnosisContext, idx: np.ndarray) -> np.ndarray:
+    """Residual variance the assumed noise alone gives [f, H, W, 3] (display units): the pipeline
+    reference's squares when the context has one, else the analytic model (0 when noiseless)."""
+    if ctx.noise_reference is not None:
+        ref = ctx.noise_reference[idx]
+        return np.broadcast_to(np.mean(ref**2, axis=(1, 2), keepdims=True), pred.shape)
+    noise: Noise = CAUSES["noise"]  # type: ignore[assignment]
+    if ctx.noise_shot is None:
+        return np.full(pred.shape, ctx.quantisation_level**2 / 12.0)
+    return noise.variance(pred, None, ctx, idx)
+
+
+def model_error_summary(measured: np.ndarray, predicted: np.ndarray, extended: np.ndarray, ctx: DiagnosisContext,
+                        split: _Split, cfg: DiagnosisConfig, se: dict, n_testable: int) -> dict:
+    """How much of a trained run's held-out residual is the model's own error (not noise, not a
+    named cause), in dB, and the smallest effect of each kind still testable on this run."""
+    from egobench.diagnose.calibration import smallest_testable
+
+    def mse(pred, idx):
+        m = np.broadcast_to(split.eval_mask[None, :, :, None], pred[idx].shape)
+        return float(np.mean(((pred[idx] - measured[idx]) ** 2)[m]))
+
+    idx = split.eval_idx
+    m = np.broadcast_to(split.eval_mask[None, :, :, None], predicted[idx].shape)
+    noise_var = float(np.mean(_noise_variance(predicted[idx], ctx, idx)[m]))
+    before, after = mse(predicted, idx), mse(extended, idx)
+    train_idx = split.fit_idx
+    excess_before, excess_after = max(before - noise_var, 1e-12), max(after - noise_var, 1e-12)
+
+    def db(x):
+        return 10.0 * math.log10(max(x, 1e-12))
+
+    return {
+        "held_out_psnr_db": -db(before), "held_out_psnr_extended_db": -db(after),
+        "training_view_psnr_db": -db(mse(predicted, train_idx)),
+        "generalisation_gap_db": db(before) - db(mse(predicted, train_idx)),
+        "noise_only_psnr_db": -db(noise_var),
+        "model_error_psnr_db": -db(excess_after),  # PSNR the unexplained model error alone would give
+        "model_error_over_noise_db": db(excess_after) - db(noise_var),
+        "non_physical_share": float(min(1.0, excess_after / max(after, 1e-12))),
+        "share_explained_by_named_causes": float(max(0.0, 1.0 - excess_after / excess_before)),
+        "dominates": bool(excess_after > noise_var),
+        "smallest_testable": smallest_testable(se, ctx, cfg.alpha, n_testable),
+        "rule": "dominates: the held-out residual variance left after the named causes exceeds the assumed "
+                "noise variance (model error > noise); non_physical_share: that excess / the residual variance",
+    }
+
+
 def diagnose_residuals(
     measured: np.ndarray,  # [F, H, W, 3] display values in [0, 1] (the captured frames)
     predicted: np.ndarray,  # [F, H, W, 3] the model's prediction of the same frames
@@ -264,6 +348,7 @@ def diagnose_residuals(
 
     current = predicted.copy()
     baseline = score(current)
+    round1_se: dict = {}
     named: list[NamedCause] = []
     rounds: list[list[CauseResult]] = []
     unmodelled_fraction, unmodelled_map = 0.0, None
@@ -276,22 +361,32 @@ def diagnose_residuals(
             unmodelled_fraction = float(pf.trimmed.mean()) if pf.n_cells else 0.0
             unmodelled_map = getattr(pf, "trimmed_map", None)
         testable = [r for r in results if r.testable]
+        if cfg.trained_run:
+            se = calibrate_photometric(data, testable, int(cfg.placebo_draws), int(cfg.placebo_seed) + rnd)
+            calibrate_geometric(data, testable, int(cfg.placebo_seed) + rnd)
+            testable = [r for r in testable if r.testable]  # (white balance is not identifiable on a trained run)
+            if rnd == 1:
+                round1_se = {**se, **geometric_standard_errors(testable)}
         _adjust_and_rank(testable, cfg)
         rounds.append(results)
-        mean_sig = [r for r in testable if r.significant and CAUSES[r.name].mean_affecting]
-        if mean_sig:
-            top = max(mean_sig, key=lambda r: r.score)
-            new = CAUSES[top.name].apply(current, top, ctx, np.arange(F), measured=measured, fit_mask=split.fit_mask)
-            gain = score(new) - score(current)
-            named.append(NamedCause(top.name, rnd, top.p_adjusted, top.effect_rms, top.params, gain))
-            current = new
+        picked = _name_mean_cause(testable, rnd, measured, current, ctx, split, cfg, score)
+        if picked is not None:
+            cause, current = picked
+            named.append(cause)
             continue
         noise = _name_noise(testable, rnd, measured, current, ctx, split, cfg)
         if noise is not None:
             named.append(noise)
         break
+    model_error = None
+    if cfg.trained_run:
+        n_testable = sum(r.testable for r in rounds[0]) if rounds else 1
+        model_error = model_error_summary(measured, predicted, current, ctx, split, cfg, round1_se, n_testable)
+    verdict = named[0].name if named else NO_DISCREPANCY
+    if not named and model_error is not None and model_error["dominates"]:
+        verdict = RECONSTRUCTION_ERROR
     return Diagnosis(
-        verdict=named[0].name if named else NO_DISCREPANCY,
+        verdict=verdict, model_error=model_error,
         named=named, rounds=rounds, baseline_psnr_db=baseline, extended_psnr_db=score(current),
         held_out_frames=[int(ctx.frame_index[i]) for i in split.eval_idx], runtime_s=time.perf_counter() - t0,
         config=cfg, extended_prediction=current, unmodelled_fraction=unmodelled_fraction,

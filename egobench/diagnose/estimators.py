@@ -393,8 +393,11 @@ class ResponseGamma(Cause):
 
     def apply(self, predicted, result, ctx, frames, measured=None, fit_mask=None):
         i = result.internal
-        return _photometric_apply(predicted, np.full((1, 1, 1, 1), i["log_global"]), ctx.gamma_assumed,
-                                  power=i["c"], log_p0=i["log_p0"])
+        log_factor = np.full((1, 1, 1, 1), i["log_global"])
+        if "exposure_slope" in i:  # trained run (egobench.diagnose.calibration): k_f^(a - 1) per frame
+            log_k = np.log(np.maximum(ctx.exposure_s * ctx.gain, 1e-12))[np.asarray(frames)]
+            log_factor = log_factor + (i["exposure_slope"] * (log_k - i["log_k_mean"]))[:, None, None, None]
+        return _photometric_apply(predicted, log_factor, ctx.gamma_assumed, power=i["c"], log_p0=i["log_p0"])
 
 
 class WhiteBalance(Cause):
@@ -520,7 +523,8 @@ class _Geometric(Cause):
         theta0 = self.initial_theta(est, info)
         theta = self.refine(data, theta0)
         res = CauseResult(self.name, self.kind, True, statistic=test.t, statistic_kind=f"t({test.df})",
-                          p_value=test.p_value, internal={"theta": theta, "theta_first_order": theta0})
+                          p_value=test.p_value, internal={"theta": theta, "theta_first_order": theta0,
+                                                          "frame_se": test.se, "frame_df": test.df})
         new_pred, inside = self.warp_prediction(raw_data.p, theta, data.ctx, data.frames)
         res.effect_rms = self._effect(raw_data, np.clip(new_pred, 0, 1), inside[..., None])
         res.params = self.describe(theta, data.ctx)

@@ -118,15 +118,36 @@ def signature_plot(path: Path, result: CauseResult) -> None:
     _savefig(fig, path)
 
 
+def model_error_markdown(me: dict, config) -> list[str]:
+    """The trained-run section: how much of the residual is the model's own error, and what is testable."""
+    lines = ["## Trained run: reconstruction error versus physics", "",
+             f"- held-out PSNR {me['held_out_psnr_db']:.2f} dB (training views {me['training_view_psnr_db']:.2f} dB); "
+             f"the assumed sensor noise alone would give {me['noise_only_psnr_db']:.2f} dB",
+             f"- model error left after the named causes: {me['model_error_psnr_db']:.2f} dB PSNR, "
+             f"{me['model_error_over_noise_db']:+.1f} dB relative to the noise; non-physical share of the held-out "
+             f"residual {100 * me['non_physical_share']:.1f} %; share of the model error explained by the named causes "
+             f"{100 * me['share_explained_by_named_causes']:.1f} %",
+             f"- reconstruction error dominates: {'yes' if me['dominates'] else 'no'} ({me['rule']})",
+             f"- naming rules on a trained run: placebo-calibrated p (exposure metadata: split-half frame-label "
+             f"shuffles; response: per-frame scale vs permuted exposure metadata; vignette: frames as units and "
+             f"wrong-centre placebos; timing: permuted velocity fields; white balance: not identifiable, absorbed "
+             f"into the scene colours), held-out gain > {config.gain_floor_db} dB", "",
+             "| cause | smallest effect testable on this run (of what training left in the residual) |", "|---|---|"]
+    for name, v in me.get("smallest_testable", {}).items():
+        lines.append(f"| {name} | {_summary(v)} |")
+    return lines + [""]
+
+
 def markdown(d: Diagnosis, title: str) -> str:
     lines = [f"# {title}", ""]
-    lines.append(f"**Verdict: {d.verdict}**" + ("" if d.verdict == NO_DISCREPANCY else
-                                                  f" (p_adj {d.named[0].p_adjusted:.2g})"))
+    lines.append(f"**Verdict: {d.verdict}**" + (f" (p_adj {d.named[0].p_adjusted:.2g})" if d.named else ""))
     lines += ["", f"- held-out frames {d.held_out_frames}: PSNR {d.baseline_psnr_db:.2f} dB -> "
               f"{d.extended_psnr_db:.2f} dB (gain {d.psnr_gain_db:+.2f} dB, odd-checkerboard pixels)",
               f"- runtime {d.runtime_s:.1f} s; alpha {d.config.alpha} (Holm over {len(d.rounds[0]) if d.rounds else 0} causes); "
               f"effect floor {d.config.effect_floor * LEVELS:.2f} levels",
               f"- photometric cells trimmed as off-model content (round 1): {100 * d.unmodelled_fraction:.1f} %", ""]
+    if d.model_error is not None:
+        lines += model_error_markdown(d.model_error, d.config)
     if d.named:
         lines += ["## Named causes (peeled in order)", "", "| round | cause | p_adj | effect (levels) | estimate | held-out gain |",
                   "|---|---|---|---|---|---|"]

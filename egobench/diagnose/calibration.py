@@ -1,0 +1,525 @@
+"""Trained-run calibration (issue 15): a named cause must be significant against a null that
+includes the trained model's own error, not only the sensor noise.
+
+The cell-level tests of `estimators` treat 4 x 4-pixel blocks as independent units. A trained
+model's error is spatially correlated and differs from frame to frame, so on a trained run those
+tests call almost anything significant (exposure metadata first, every time). Here each
+photometric statistic is recalibrated with placebos built from the run's own residual:
+
+* exposure metadata (per-frame scales): the per-frame log scale is estimated twice, from the left
+  and the right half of every frame; a real metadata error moves both halves of a frame together,
+  model error mostly does not. Statistic: the correlation of the two halves' frame deviations;
+  null: the same correlation with the right halves' frame labels shuffled (placebo), empirical p.
+* vignette, white balance, response (identical in every frame): the cause's coefficient is fitted
+  in every frame separately and tested ACROSS frames (frames are the units: the between-frame
+  spread contains the model error). Vignette also has to beat radial placebos: the same per-frame
+  statistic about wrong centres (a quarter of the image away) must be weaker than about the
+  principal point, otherwise structured model error (e.g. a missed object in one corner) is what
+  the radial term picks up.
+Geometric causes are already tested with frames as units; noise has its own guards (core).
+The calibrated p-value of a cause is the larger of the cell-level and the placebo p-values.
+
+`model_error_summary` measures how much of the held-out residual is reconstruction error and the
+smallest effect of each kind this run could still reveal (minimum detectable effect: (t_{1-a/2m}
++ t_{0.8}) x the cause's between-frame standard error).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.stats as sps
+
+from egobench.diagnose.estimators import BLOCK_PX, CauseResult, PhotometricFit, ResidualData
+from egobench.diagnose.signatures import frame_t_test, weighted_lstsq
+
+#: Offsets of the wrong centres of the vignette placebo, as fractions of (width, height).
+PLACEBO_CENTRE_OFFSETS = ((0.25, 0.0), (-0.25, 0.0), (0.0, 0.25), (0.0, -0.25),
+                          (0.25, 0.25), (-0.25, 0.25), (0.25, -0.25), (-0.25, -0.25))
+#: Exposure metadata on a trained run: a frame is flagged when both halves deviate beyond this many
+#: robust standard deviations of the model's frame-to-frame error, and beyond FLAG_MIN_LOG.
+FLAG_SIGMAS, FLAG_MIN_LOG = 4.0, 0.03
+#: Power of the minimum detectable effect (probability of detecting an effect of that size).
+MDE_POWER = 0.8
+
+
+@dataclass
+class _Cells:
+    """The photometric cells of a fit with their frame, block row/column and channel."""
+
+    frame: np.ndarray  # [n] frame position within the fit
+    row: np.ndarray  # [n] block row
+    col: np.ndarray  # [n] block column
+    n_cols: int  # block columns per frame
+
+
+def _cells(fit: PhotometricFit) -> _Cells:
+    idx = np.flatnonzero(fit.cell_ok.ravel())
+    f, by, bx, _c = np.unravel_index(idx, fit.cell_ok.shape)
+    return _Cells(f, by, bx, fit.cell_ok.shape[2])
+
+
+def _radial(cells: _Cells, centre: tuple[float, float], height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """(r^2, r^4) at the block centres about ``centre`` (px), r normalised by the farthest corner."""
+    u = cells.col * BLOCK_PX + (BLOCK_PX - 1) / 2.0
+    v = cells.row * BLOCK_PX + (BLOCK_PX - 1) / 2.0
+    corners = np.array([[0, 0], [width - 1, 0], [0, height - 1], [width - 1, height - 1]], dtype=np.float64)
+    r_max = np.max(np.hypot(corners[:, 0] - centre[0], corners[:, 1] - centre[1]))
+    r2 = ((u - centre[0]) ** 2 + (v - centre[1]) ** 2) / r_max**2
+    return r2, r2**2
+
+
+def log_measured(fit: PhotometricFit) -> np.ndarray:
+    """Cell log MEASURED linear intensity [n] (centred): the response regressor on a trained run.
+
+    The cell-level fit regresses y = log(m / p) on log p; a model's own multiplicative error e sits in
+    both (y = -e, log p = log L + e), which biases the slope by -var(e) / var(log p): a trained model
+    always looks like a response error (errors in variables). Regressed on log m instead, y is
+    uncorrelated with the regressor when only the model errs, and a response error k (log m = k log L)
+    still gives the slope (k - 1) / k."""
+    log_m = fit.y + fit.log_p  # log(sum m / n) up to the +var/2 bias correction
+    return log_m - float(np.average(log_m, weights=fit.w))
+
+
+def local_contrast(fit: PhotometricFit) -> np.ndarray:
+    """Cell log measured intensity minus the mean over its 3 x 3-cell neighbourhood (same frame and
+    channel) [n]: a nuisance on a trained run. A blurry (under-fitted) model leaks light from bright
+    cells into dark neighbours, so y = log(m / p) grows with LOCAL contrast, which mimics a response
+    error; with this column, the response slope is identified from intensity levels across the
+    image and across frames (exposure changes), which a gamma error changes and blur does not."""
+    grid = np.full(fit.cell_ok.shape, np.nan)
+    grid[fit.cell_ok] = fit.y + fit.log_p
+    pad = np.pad(grid, ((0, 0), (1, 1), (1, 1), (0, 0)), constant_values=np.nan)
+    hb, wb = grid.shape[1:3]
+    stack = np.stack([pad[:, 1 + dy: 1 + dy + hb, 1 + dx: 1 + dx + wb] for dy in (-1, 0, 1) for dx in (-1, 0, 1)])
+    finite = np.isfinite(stack)
+    neigh = np.where(finite, stack, 0.0).sum(axis=0) / np.maximum(finite.sum(axis=0), 1)  # centre finite where ok
+    return (grid - neigh)[fit.cell_ok]
+
+
+def per_frame_photometric(fit: PhotometricFit, cells: _Cells, r2: np.ndarray, r4: np.ndarray
+                          ) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frame weighted fits of the cell log ratios on [1, R, B, r^2, r^4, log m (centred),
+    local contrast (nuisance)]
+    -> (estimates [f, 4]: log R gain, log B gain, corner log shading a2 + a4, slope c' on log m;
+    variances [f, 4] from each frame's own residual scatter; NaN where a frame has too few cells)."""
+    keep = fit.keep
+    X = np.stack([np.ones(fit.n_cells), (fit.cidx == 0).astype(float), (fit.cidx == 2).astype(float),
+                  r2, r4, log_measured(fit), local_contrast(fit)], axis=1)
+    L = np.zeros((4, X.shape[1]))
+    L[0, 1] = L[1, 2] = 1.0
+    L[2, 3] = L[2, 4] = 1.0
+    L[3, 5] = 1.0
+    est = np.full((fit.n_frames, 4), np.nan)
+    var = np.full((fit.n_frames, 4), np.nan)
+    for f in range(fit.n_frames):  # one 6 x 6 solve per frame
+        sel = keep & (cells.frame == f)
+        if sel.sum() < 24:
+            continue
+        Xf, yf, wf = X[sel], fit.y[sel], fit.w[sel]
+        XtWX = (Xf * wf[:, None]).T @ Xf
+        if np.linalg.cond(XtWX) > 1e10:
+            continue
+        coef, rss = weighted_lstsq(Xf, yf, wf)
+        s2 = rss / max(int(sel.sum()) - X.shape[1], 1)  # overdispersion: the frame's own scatter
+        cov = np.linalg.inv(XtWX) * s2
+        est[f] = L @ coef
+        var[f] = np.diag(L @ cov @ L.T)
+    return est, var
+
+
+def _t(est: np.ndarray, var: np.ndarray):
+    ok = np.isfinite(est) & np.isfinite(var) & (var > 0)
+    return frame_t_test(est[ok], 1.0 / var[ok])
+
+
+def _radial_rss(fit: PhotometricFit, cells: _Cells, r2: np.ndarray, r4: np.ndarray) -> float:
+    """Weighted RSS of the pooled cell fit [frame dummies, R, B, r^2, r^4, log m] (kept cells)."""
+    k = fit.keep
+    frame = np.zeros((fit.n_cells, fit.n_frames))
+    frame[np.arange(fit.n_cells), cells.frame] = 1.0
+    X = np.concatenate([frame, np.stack([(fit.cidx == 0).astype(float), (fit.cidx == 2).astype(float), r2, r4,
+                                         log_measured(fit), local_contrast(fit)], axis=1)], axis=1)
+    return weighted_lstsq(X[k], fit.y[k], fit.w[k])[1]
+
+
+def vignette_placebo(fit: PhotometricFit, cells: _Cells, ctx, height: int, width: int) -> dict:
+    """Corner shading about the principal point: its per-frame estimates tested across frames, and
+    the radial fit about the principal point against radial fits about wrong centres (placebos: a
+    shading of the lens is centred on the principal point; structured model error is not)."""
+    cx, cy = ctx.principal_point
+    r2, r4 = _radial(cells, (cx, cy), height, width)
+    est, var = per_frame_photometric(fit, cells, r2, r4)
+    true = _t(est[:, 2], var[:, 2])
+    rss_true = _radial_rss(fit, cells, r2, r4)
+    rss_placebo = [_radial_rss(fit, cells, *_radial(cells, (cx + ox * width, cy + oy * height), height, width))
+                   for ox, oy in PLACEBO_CENTRE_OFFSETS]
+    exceed = int(sum(r <= rss_true for r in rss_placebo))
+    return {"frame_test": true, "rss_true": rss_true, "rss_placebo": rss_placebo, "placebo_exceed": exceed,
+            "placebo_p": (1 + exceed) / (1 + len(rss_placebo)), "est": est, "var": var}
+
+
+def exposure_split_half(fit: PhotometricFit, cells: _Cells, draws: int, rng: np.random.Generator) -> dict:
+    """Agreement of per-frame log scales from the left and right halves of each frame, against
+    the same agreement with the right halves' frame labels shuffled (placebo) -> empirical p."""
+    pr = fit.partial_residual("frame")
+    keep = fit.keep
+    left = cells.col < cells.n_cols / 2.0
+    dev = np.full((2, fit.n_frames), np.nan)
+    for h, side in enumerate((left, ~left)):
+        for f in range(fit.n_frames):  # per-frame weighted means
+            sel = keep & side & (cells.frame == f)
+            if sel.sum() >= 4:
+                dev[h, f] = np.average(pr[sel], weights=fit.w[sel])
+    ok = np.isfinite(dev).all(axis=0)
+    a, b = dev[0, ok], dev[1, ok]
+    if a.size < 4:
+        return {"testable": False, "p": 1.0, "corr": 0.0, "robust_sd": math.nan}
+    a, b = a - np.median(a), b - np.median(b)
+
+    def corr(x, y):
+        return float(np.sum(x * y) / math.sqrt(max(np.sum(x * x) * np.sum(y * y), 1e-300)))
+
+    observed = corr(a, b)
+    placebo = np.array([corr(a, rng.permutation(b)) for _ in range(int(draws))])
+    p = float((1 + np.sum(placebo >= observed)) / (1 + draws))
+    # A metadata error is large on few frames; model error moves every frame a little. Frames are
+    # flagged when BOTH halves deviate, with the same sign, beyond FLAG_SIGMAS x the larger of the
+    # halves' disagreement and the frames' robust scatter (shared model error), and beyond 3 %.
+    mad = lambda x: 1.4826 * float(np.median(np.abs(x - np.median(x))))  # noqa: E731
+    sd_half = mad((a - b) / math.sqrt(2.0))
+    threshold = max(FLAG_SIGMAS * max(sd_half, mad(a), mad(b)), FLAG_MIN_LOG)
+    both = (np.abs(a) > threshold) & (np.abs(b) > threshold) & (np.sign(a) == np.sign(b))
+    frames = np.flatnonzero(ok)[both]
+    p_corr = p
+    if both.sum() == 0:
+        p = 1.0
+    return {"testable": True, "p": p, "p_placebo_corr": p_corr, "corr": observed,
+            "placebo_corr_q99": float(np.quantile(placebo, 0.99)),
+            "flag_threshold_log": threshold, "frames_flagged_in_both_halves": frames.tolist(),
+            "robust_sd": threshold / FLAG_SIGMAS, "n_frames": int(a.size)}
+
+
+#: Gaussian sigmas (px) tried for the render's blur relative to the measured frames.
+BLUR_SIGMAS_PX = tuple(round(0.1 * k, 1) for k in range(21))
+
+
+def _blur_linear(display: np.ndarray, sigma: float, gamma: float) -> np.ndarray:
+    """Gaussian blur of display images [f, H, W, 3] in linear space (light spreads linearly)."""
+    from egobench.diagnose.estimators import _gaussian
+    from egobench.diagnose.signatures import decode, encode
+
+    return np.clip(encode(_gaussian(decode(display, gamma), sigma), gamma), 0.0, 1.0) if sigma > 0 else display
+
+
+def render_blur(data: ResidualData) -> float:
+    """The Gaussian sigma (px, from BLUR_SIGMAS_PX) that, applied to the measured frames, best
+    matches the prediction (least squares on usable pixels): a trained model's renders are blurrier
+    than the frames, which leaks light between neighbouring cells (a response-like signature)."""
+    m = data.usable
+    noise = _noise_after_blur(data)
+    errs = [float(np.mean((_blur_linear(data.m, s, data.ctx.gamma_assumed) - data.p)[m] ** 2)) - noise(s)
+            for s in BLUR_SIGMAS_PX]
+    return BLUR_SIGMAS_PX[int(np.argmin(errs))]
+
+
+def _noise_after_blur(data: ResidualData):
+    """sigma -> expected noise variance left in the blurred measured frames (usable pixels): the
+    blur also averages the measurement noise away, which must not count as a better match. With a
+    pipeline noise reference, that reference blurred; else the analytic variance x sum of squared
+    kernel weights."""
+    from egobench.diagnose.estimators import CAUSES, _gaussian
+
+    m = data.usable
+    if data.ctx.noise_reference is not None:
+        ref = data.ctx.noise_reference[data.frames]
+        return lambda s: float(np.mean((_gaussian(ref, s) if s > 0 else ref)[m] ** 2))
+    if data.ctx.noise_shot is None:
+        var = data.ctx.quantisation_level**2 / 12.0
+    else:
+        var = float(np.mean(CAUSES["noise"].variance(data.p, None, data.ctx, data.frames)[m]))
+    delta = np.zeros((1, 15, 15, 1))
+    delta[0, 7, 7, 0] = 1.0
+    return lambda s: var * (float(np.sum(_gaussian(delta, s) ** 2)) if s > 0 else 1.0)
+
+
+def resolution_matched(data: ResidualData, sigma: float) -> ResidualData:
+    """``data`` with the measured frames blurred by ``sigma`` px (linear space): measured and
+    predicted at the same resolution, so photometric statistics see no leakage between cells."""
+    import copy
+
+    from egobench.diagnose.signatures import decode
+
+    if sigma <= 0:
+        return data
+    out = copy.copy(data)
+    out.m = _blur_linear(data.m, sigma, data.ctx.gamma_assumed)
+    out.m_lin = decode(out.m, data.ctx.gamma_assumed)
+    out.r = out.m - out.p
+    out._photometric = out._grad = out._geometric = None
+    return out
+
+
+#: Why white balance is not tested on a trained run.
+WB_UNTESTABLE = ("not identifiable from a trained run: a constant per-channel gain on every frame is absorbed "
+                 "exactly into the scene colours the model learns (render = k x shading x colour)")
+#: Smallest spread (std of log exposure x gain across frames) for the trained-run response test.
+MIN_LOG_EXPOSURE_SPREAD = 0.05
+
+
+def response_from_exposure(fit: PhotometricFit, data: ResidualData, draws: int, rng: np.random.Generator) -> dict:
+    """A response error on a TRAINED run: the model's colours absorb L^a (a = gamma_assumed /
+    gamma_true), so what survives is a per-frame scale k_f^(a - 1) that follows the recorded
+    exposure x gain k_f. Statistic: slope of the frames' log scales on log k_f; placebo: the same
+    slope with the exposure metadata permuted across frames (empirical p)."""
+    k = np.log(np.maximum(data.ctx.exposure_s * data.ctx.gain, 1e-12))
+    x = k[data.frames] - float(np.mean(k[data.frames]))
+    # per-frame log scale: weighted mean of the cell log ratios (no log-intensity column: in an
+    # untrained prediction the response error also shows within the image, which that column
+    # would take from the frames)
+    keep = fit.keep
+    w = np.bincount(fit.fidx[keep], weights=fit.w[keep], minlength=fit.n_frames)
+    beta = np.bincount(fit.fidx[keep], weights=(fit.w * fit.y)[keep], minlength=fit.n_frames) / np.maximum(w, 1e-300)
+    if float(np.std(x)) < MIN_LOG_EXPOSURE_SPREAD:
+        return {"testable": False, "p": 1.0, "reason": (
+            f"exposure x gain varies by {float(np.std(x)):.3f} (std of log) < {MIN_LOG_EXPOSURE_SPREAD} across "
+            "frames: a response error is absorbed into the scene colours of a trained run")}
+    b = beta - float(np.mean(beta))
+
+    def slope(xx):
+        return float(np.sum(xx * b) / np.sum(xx * xx))
+
+    observed = slope(x)
+    placebo = np.array([slope(rng.permutation(x)) for _ in range(int(draws))])
+    p = float((1 + np.sum(np.abs(placebo) >= abs(observed))) / (1 + draws))
+    return {"testable": True, "p": p, "exposure_slope": observed, "slope_sd_placebo": float(placebo.std()),
+            "log_k_mean": float(np.mean(k[data.frames])), "log_exposure_spread": float(np.std(x))}
+
+
+def _response_from_exposure_apply(r: CauseResult, resp: dict, data: ResidualData) -> None:
+    """Make the response cause's estimate and extension the exposure-driven one (in place)."""
+    s = resp["exposure_slope"]
+    g = data.ctx.gamma_assumed
+    r.params["gamma_cells"] = r.params.get("gamma")
+    r.params["gamma"] = g / (1.0 + s) if 1.0 + s > 0.05 else None
+    r.params["signature"] = "trained run: per-frame scale following log(exposure x gain)"
+    r.internal = {"c": 0.0, "log_p0": 0.0, "log_global": 0.0, "exposure_slope": s, "log_k_mean": resp["log_k_mean"]}
+    from egobench.diagnose.estimators import CAUSES
+
+    new = CAUSES["response"].apply(data.p, r, data.ctx, data.frames)
+    m = data.usable
+    r.effect_rms = float(np.sqrt(np.mean((new - data.p)[m] ** 2))) if m.any() else 0.0
+
+
+def calibrate_photometric(data: ResidualData, results: list[CauseResult], draws: int, seed: int) -> dict:
+    """Replace the p-values of the photometric causes in ``results`` by calibrated ones (in place);
+    the cell-level p-value is kept in params["p_value_cells"]. Returns per-frame standard errors
+    {cause: (se, df)} of each cause's parameter (for the minimum detectable effect)."""
+    by_name = {r.name: r for r in results if r.testable}
+    photometric = [n for n in ("vignette", "white_balance", "response", "exposure_metadata") if n in by_name]
+    if not photometric:
+        return {}
+    sigma = render_blur(data)
+    fit = resolution_matched(data, sigma).photometric()
+    if not fit.testable:
+        return {}
+    cells = _cells(fit)
+    H, W = data.m.shape[1:3]
+    se: dict[str, tuple[float, int]] = {}
+    vig = vignette_placebo(fit, cells, data.ctx, H, W)
+    est, var = vig["est"], vig["var"]
+    calibrated: dict[str, tuple[float, dict]] = {}
+    t = vig["frame_test"]
+    calibrated["vignette"] = (max(t.p_value, vig["placebo_p"] if vig["placebo_exceed"] else 0.0),
+                              {"frame_t": t.t, "frame_df": t.df, "frame_p": t.p_value,
+                               "placebo_centre_rss_ratio": [r / vig["rss_true"] for r in vig["rss_placebo"]],
+                               "placebo_exceed": vig["placebo_exceed"]})
+    se["vignette"] = (t.se, t.df)
+    tr, tb = _t(est[:, 0], var[:, 0]), _t(est[:, 1], var[:, 1])
+    calibrated["white_balance"] = (min(1.0, 2.0 * min(tr.p_value, tb.p_value)),
+                                   {"frame_t_r_b": [tr.t, tb.t], "frame_df": tr.df})
+    tc = _t(est[:, 3], var[:, 3])
+    resp = response_from_exposure(fit, data, draws, np.random.default_rng([int(seed), 22]))
+    calibrated["response"] = (resp["p"] if resp["testable"] else 1.0,  # within-image slope: absorbed by training
+                              {"frame_t": tc.t, "frame_df": tc.df, **{k: v for k, v in resp.items() if k != "testable"}})
+    se["response"] = (resp.get("slope_sd_placebo", math.nan), max(fit.n_frames - 2, 2))
+    split = exposure_split_half(fit, cells, draws, np.random.default_rng([int(seed), 15]))
+    calibrated["exposure_metadata"] = (split["p"], {k: v for k, v in split.items() if k != "testable"})
+    se["exposure_metadata"] = (split["robust_sd"], split.get("n_frames", 0) - 1)
+    if "white_balance" in by_name:  # (kept in params for the record)
+        wb = by_name["white_balance"]
+        wb.params["calibration"] = {"p_value_placebo": calibrated.pop("white_balance")[0], "render_blur_px": sigma}
+        wb.testable, wb.reason = False, WB_UNTESTABLE
+        photometric.remove("white_balance")
+    if "response" in by_name and resp["testable"]:
+        _response_from_exposure_apply(by_name["response"], resp, data)
+    elif "response" in by_name:
+        by_name["response"].reason = resp["reason"]
+    for name in photometric:
+        r = by_name[name]
+        p_cal, info = calibrated[name]
+        r.params["p_value_cells"] = r.p_value
+        r.params["calibration"] = {"p_value_placebo": p_cal, "render_blur_px": sigma, **info}
+        r.p_value = max(r.p_value, p_cal)
+    return se
+
+
+#: Velocity-field permutations of the geometric placebo.
+GEOMETRIC_PLACEBOS = 19
+
+
+def calibrate_geometric(data: ResidualData, results: list[CauseResult], seed: int,
+                        n_placebo: int = GEOMETRIC_PLACEBOS) -> None:
+    """Placebo p-values of the motion-driven causes (time offset, readout, exposure blur), in place.
+
+    Placebo: each frame's residual regressed on the signature built with ANOTHER frame's image
+    velocity (a random permutation of the frames' velocity fields), tested across frames like the
+    real statistic. Model error not tied to the motion (an isotropically blurry or misplaced
+    render) gives the same statistic under the placebos; a timing error only with the true motion.
+    p_placebo = the normal tail of the real statistic against the placebo statistics' mean and
+    spread; the cause's p-value becomes max(its own, p_placebo)."""
+    import copy
+    from dataclasses import replace as dc_replace
+
+    from egobench.diagnose.estimators import CAUSES
+
+    for r in results:
+        if r.name == "distortion":
+            distortion_placebo(data, r)
+    v = data.ctx.pixel_velocity_px_s
+    if v is None or data.frames.size < 4:
+        return
+    rng = np.random.default_rng([int(seed), 1515])
+    perms = []
+    for _ in range(n_placebo):  # permutations with no fixed frame
+        while True:
+            perm = rng.permutation(data.frames.size)
+            if np.all(perm != np.arange(data.frames.size)):
+                perms.append(perm)
+                break
+    for r in results:
+        if not r.testable or r.name not in ("time_offset", "readout", "exposure_blur"):
+            continue
+        cause = CAUSES[r.name]
+        j, one_sided = cause.tested_index, cause.one_sided
+
+        def t_of(d):
+            est, info = cause.first_order(d)
+            return frame_t_test(est[:, j], info[:, j], one_sided=one_sided).t
+
+        t_real = t_of(data)
+        t_placebo = []
+        for perm in perms:
+            vp = v.copy()
+            vp[data.frames] = v[data.frames[perm]]
+            d = copy.copy(data)
+            d.ctx = dc_replace(data.ctx, pixel_velocity_px_s=vp)
+            t_placebo.append(t_of(d))
+        tp = np.asarray(t_placebo)
+        z = (t_real - tp.mean()) / max(float(tp.std(ddof=1)), 1e-12)
+        p = float(sps.norm.sf(z)) if one_sided else float(2 * sps.norm.sf(abs(z)))
+        r.params["calibration"] = {"p_value_placebo": p, "first_order_t": t_real, "placebo_t_mean": float(tp.mean()),
+                                   "placebo_t_sd": float(tp.std(ddof=1)), "placebo": "velocity fields permuted across frames"}
+        r.params["p_value_frames"] = r.p_value
+        r.p_value = max(r.p_value, p)
+        if r.name == "exposure_blur":
+            blur_given_frame_shifts(data, r)
+
+
+def distortion_placebo(data: ResidualData, r: CauseResult) -> None:
+    """Lens distortion on a trained run must beat radial placebos (in place): the same per-frame
+    radial-displacement statistic about wrong centres (PLACEBO_CENTRE_OFFSETS). p_placebo = the
+    larger of the rank p (1 + exceed) / 9 when a placebo is as strong, and the normal tail of |t|
+    against the placebos' |t| (model error near the image border, where the model has less
+    coverage, is radial about any centre and inflates them all)."""
+    import copy
+    from dataclasses import replace as dc_replace
+
+    from egobench.diagnose.estimators import CAUSES
+
+    if not r.testable:
+        return
+    cause = CAUSES["distortion"]
+    H, W = data.m.shape[1:3]
+
+    def t_of(d):
+        est, info = cause.first_order(d)
+        return frame_t_test(est[:, 0], info[:, 0]).t
+
+    t_real = t_of(data)
+    cx, cy = data.ctx.principal_point
+    t_placebo = []
+    for ox, oy in PLACEBO_CENTRE_OFFSETS:
+        d = copy.copy(data)
+        d.ctx = dc_replace(data.ctx, principal_point=(cx + ox * W, cy + oy * H))
+        t_placebo.append(t_of(d))
+    exceed = int(sum(abs(t) >= abs(t_real) for t in t_placebo))
+    a = np.abs(np.asarray(t_placebo))
+    p_tail = float(sps.norm.sf((abs(t_real) - a.mean()) / max(float(a.std(ddof=1)), 1e-12)))
+    p = max((1 + exceed) / (1 + len(t_placebo)) if exceed else 0.0, p_tail)
+    r.params["calibration"] = {"p_value_placebo": p, "first_order_t": t_real, "placebo_centre_t": t_placebo,
+                               "placebo_exceed": exceed, "p_tail": p_tail}
+    r.p_value = max(r.p_value, p)
+
+
+def blur_given_frame_shifts(data: ResidualData, r: CauseResult) -> None:
+    """Exposure blur on a trained run, tested GIVEN a separate shift along the motion in every frame
+    (in place: p-value = the larger of both). A trained model's per-frame pose/timing errors are
+    shifts along each frame's motion with varying sign; their second-order term (1/2) d^T H d is
+    positive whatever the sign, exactly the blur signature, which one global shift cannot remove."""
+    from egobench.diagnose.estimators import CAUSES, ExposureBlur
+    from egobench.diagnose.signatures import warp
+
+    if not r.testable or data.velocity is None:
+        return
+    est, _ = CAUSES["time_offset"].first_order(data)  # per-frame time shift dt_f [f, 1], s
+    shifted, inside = warp(data.p, data.velocity * est[:, 0][:, None, None, None])
+    shifted_data = data.with_prediction(np.clip(shifted, 0.0, 1.0), inside)
+    shifted_data._geometric = None  # (with_prediction keeps the original's cached geometric view)
+    given = super(ExposureBlur, CAUSES["exposure_blur"]).fit(shifted_data)
+    if not given.testable:
+        return
+    r.params["p_value_given_frame_shifts"] = given.p_value
+    r.params["exposure_s_given_frame_shifts"] = given.params.get("exposure_s")
+    r.p_value = max(r.p_value, given.p_value)
+
+
+def geometric_standard_errors(results: list[CauseResult]) -> dict:
+    """{cause: (se, df)} of the geometric causes' tested parameter (between-frame spread)."""
+    return {r.name: (r.internal["frame_se"], r.internal["frame_df"]) for r in results
+            if r.testable and "frame_se" in r.internal}
+
+
+def _mde_multiplier(alpha: float, m: int, df: int) -> float:
+    df = max(int(df), 2)
+    return float(sps.t.ppf(1 - alpha / (2 * max(m, 1)), df) + sps.t.ppf(MDE_POWER, df))
+
+
+def smallest_testable(se: dict, ctx, alpha: float, m: int) -> dict:
+    """Smallest effect of each kind this run could reveal (power MDE_POWER at level alpha / m),
+    in the effect's parameter units (see egobench.effects)."""
+    out = {}
+    for name, (s, df) in se.items():
+        if not (s is not None and math.isfinite(s) and s > 0):
+            continue
+        d = _mde_multiplier(alpha, m, df) * s
+        if name == "vignette":
+            out[name] = {"corner_attenuation": 1.0 - math.exp(-d)}
+        elif name == "white_balance":
+            out[name] = {"channel_gain_relative": math.exp(d) - 1.0}
+        elif name == "response":
+            g = ctx.gamma_assumed
+            out[name] = {"gamma_deviation": max(abs(g / (1.0 - d) - g) if d < 1 else math.inf, abs(g / (1.0 + d) - g))}
+        elif name == "exposure_metadata":
+            out[name] = {"exposure_relative_error": math.exp(max(FLAG_SIGMAS * s, FLAG_MIN_LOG)) - 1.0}
+        elif name == "time_offset":
+            out[name] = {"time_offset_error_s": d}
+        elif name == "readout":
+            out[name] = {"readout_relative_error": d / ctx.readout_s if ctx.readout_s > 0 else math.inf}
+        elif name == "exposure_blur":
+            out[name] = {"exposure_s": math.sqrt(24.0 * d)}
+        elif name == "distortion":
+            out[name] = {"k0_error": d}
+    return out
