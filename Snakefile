@@ -3,7 +3,7 @@
 #
 #   snakemake --cores 2                                # the embedded default suite
 #   snakemake --cores 2 --configfile config/ci.yaml    # the CI smoke suite
-#   snakemake --profile profiles/slurm --configfile config/paper.yaml
+#   snakemake --workflow-profile profiles/slurm --configfile config/paper.yaml
 import os
 import re
 import sys
