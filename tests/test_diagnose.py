@@ -170,3 +170,17 @@ def test_bad_input_names_the_argument():
     case.context.row_time_ratio = case.context.row_time_ratio[:-1]
     with pytest.raises(ValueError, match="row_time_ratio"):
         diagnose_residuals(case.measured, case.predicted, case.context)
+
+
+def test_a_new_prediction_gets_its_own_geometric_view():
+    """`with_prediction` must not carry the old prediction's cached geometric view: the blur test
+    'given the refined shift' fits on the shifted prediction, not on the original one."""
+    from egobench.diagnose.estimators import ResidualData
+
+    case = make_case(None, seed=2)
+    data = ResidualData(case.measured, case.predicted, case.context, np.arange(case.measured.shape[0]))
+    data.geometric()  # fills the cache for the original prediction
+    other = np.clip(case.predicted * 0.9 + 0.05, 0.0, 1.0)
+    view = data.with_prediction(other).geometric()
+    assert not np.array_equal(view.p, data.geometric().p)
+    assert np.allclose(view.m, data.geometric().m)  # the measured frames are the same

@@ -477,7 +477,6 @@ def blur_given_frame_shifts(data: ResidualData, r: CauseResult) -> None:
     est, _ = CAUSES["time_offset"].first_order(data)  # per-frame time shift dt_f [f, 1], s
     shifted, inside = warp(data.p, data.velocity * est[:, 0][:, None, None, None])
     shifted_data = data.with_prediction(np.clip(shifted, 0.0, 1.0), inside)
-    shifted_data._geometric = None  # (with_prediction keeps the original's cached geometric view)
     given = super(ExposureBlur, CAUSES["exposure_blur"]).fit(shifted_data)
     if not given.testable:
         return

@@ -123,6 +123,7 @@ class ResidualData:
         out.usable_all = self.usable_all & in_range
         out._grad = None
         out._photometric = None
+        out._geometric = None  # a cached view of the old prediction would be stale
         return out
 
     def geometric(self) -> "ResidualData":
