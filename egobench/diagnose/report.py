@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from egobench.diagnose.core import NO_DISCREPANCY, Diagnosis
+from egobench.diagnose.core import Diagnosis
 from egobench.diagnose.estimators import CauseResult
 from egobench.io_utils import atomic_path, write_json
 
