@@ -16,7 +16,8 @@ images area-resized). Per recording (keys of `measure_recording`):
   (factory_calibration.json, mps/slam/online_calibration.jsonl) this includes intrinsics; without
   them (a folder holding only the two streams) the streams' extrinsics alone
   (``calib_error_method``). ``calib_error_as_trained_px_*`` also uses each stream's own frame pose
-  (its time offset). ``calib_error_{online,factory}_vs_true_px_*``: against the true calibration.
+  (its time offset; ``calib_time_offset_diff_ms`` is online minus factory).
+  ``calib_error_{online,factory}_vs_true_px_*``: against the true calibration (simulated recordings).
 - ``motion_samples_median``, ``frac_frames_multi_sample``: 'ours'' pose-sample counts on the
   training frames (`egobench.predict.sample_counts`, TrainConfig.cpu()'s cap and rule).
 - ``exposure_ratio`` (max / min of exposure_s x gain), ``scene_dynamic_range_stops``
@@ -60,7 +61,10 @@ METRIC_KEYS = (
     "motion_samples_median", "frac_frames_multi_sample",
     "exposure_ratio", "scene_dynamic_range_stops",
     "texture_hf_fraction", "texture_spectral_slope", "misregistration_1px_psnr_db",
+    "texture_hf_fraction_ideal", "texture_hf_fraction_clean", "texture_spectral_slope_clean",
 )
+#: `ideal_hf_fraction(2400)`, the paper-scale reference (tests recompute it).
+IDEAL_HF_FRACTION_2400 = 0.1066
 
 
 def _median_p90(values: np.ndarray) -> tuple[float | None, float | None]:
@@ -331,42 +335,93 @@ def misregistration_psnr_db(image: np.ndarray, mask: np.ndarray | None = None) -
     return float("inf") if mse == 0 else float(-10.0 * math.log10(mse))
 
 
-def _images_at(recording: Recording, resolution: int, max_frames: int):
-    """(images [H, W, 3] float64 in [0, 1] at ``resolution`` (area filter), mask [H, W]) of up to
-    ``max_frames`` evenly spread frames."""
+def ideal_hf_fraction(n_px: int) -> float:
+    """The expected `texture_hf_fraction` of an ideal natural-image field (power exactly 1/f^2, no
+    DC) on an n x n crop: the 1/f^2 spectrum circularly convolved with the Hann window's power
+    kernel (what the windowed estimator sees on average), then the fraction above `HF_CUTOFF`."""
+    fy, fx = np.fft.fftfreq(n_px)[:, None], np.fft.fftfreq(n_px)[None, :]
+    f = np.sqrt(fx ** 2 + fy ** 2)
+    spectrum = np.where(f > 0, 1.0 / np.where(f > 0, f, 1.0) ** 2, 0.0)
+    kernel = np.abs(np.fft.fft2(np.outer(np.hanning(n_px), np.hanning(n_px)))) ** 2
+    seen = np.real(np.fft.ifft2(np.fft.fft2(spectrum) * np.fft.fft2(kernel)))
+    seen[0, 0] = 0.0
+    return float(seen[f > HF_CUTOFF].sum() / seen.sum())
+
+
+def _resize(img: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     import cv2
 
-    frames = recording.frames
-    pick = np.unique(np.linspace(0, len(frames) - 1, min(max_frames, len(frames))).round().astype(int))
+    if (img.shape[1], img.shape[0]) == size:
+        return img
+    return cv2.resize(img, size, interpolation=cv2.INTER_AREA if size[0] < img.shape[1] else cv2.INTER_LINEAR)
+
+
+def _pick(frames: list[Frame], max_frames: int) -> list[Frame]:
+    idx = np.unique(np.linspace(0, len(frames) - 1, min(max_frames, len(frames))).round().astype(int))
+    return [frames[i] for i in idx]
+
+
+def _training_size(recording: Recording, resolution: int) -> tuple[int, int]:
     W, H = recording.camera.width, recording.camera.height
-    size = (int(resolution), int(round(H * resolution / W)))
+    return int(resolution), int(round(H * resolution / W))
+
+
+def _mask_at(recording: Recording, size: tuple[int, int]) -> np.ndarray:
+    import cv2
+
     mask = recording.mask.numpy().astype(np.uint8)
-    if size != (W, H):
-        mask = cv2.resize(mask, size, interpolation=cv2.INTER_NEAREST)
-    images = []
-    for i in pick:  # one image at a time (full-size frames are large)
-        img = recording.load_image(frames[i]).numpy().astype(np.float64)
-        if size != (W, H):
-            img = cv2.resize(img, size, interpolation=cv2.INTER_AREA if size[0] < W else cv2.INTER_LINEAR)
-        images.append(img)
-    return images, mask.astype(bool)
+    return cv2.resize(mask, size, interpolation=cv2.INTER_NEAREST).astype(bool)
+
+
+def _spectrum_of(lums: list[np.ndarray], crop) -> tuple[float, float]:
+    """(hf fraction, slope) of the mean spectrum of luminance images [H, W] cropped to ``crop``."""
+    mean_power, freq = None, None
+    for lum in lums:
+        freq, power = power_spectrum(lum[crop])
+        mean_power = power if mean_power is None else mean_power + power
+    return spectrum_measures(freq, mean_power / len(lums))
 
 
 def content_measures(recording: Recording, resolution: int, max_frames: int = MAX_IMAGE_FRAMES) -> dict:
-    """texture_hf_fraction, texture_spectral_slope (mean spectrum of the frames' largest valid centred
-    square) and misregistration_1px_psnr_db (median over frames), at ``resolution``."""
-    images, mask = _images_at(recording, resolution, max_frames)
+    """At ``resolution``: texture_hf_fraction and texture_spectral_slope (mean spectrum over the frames'
+    largest valid centred square; ``_ideal``: an ideal 1/f^2 field's hf fraction at that size),
+    misregistration_1px_psnr_db (median over frames); ``_clean`` variants from the ground-truth
+    radiance (noise-free; luminance / its p99, clipped, gamma 1/2.2) when the recording has it."""
+    size = _training_size(recording, resolution)
+    mask = _mask_at(recording, size)
     crop = _valid_square(mask)
     if crop is None:
         raise ValueError(f"{recording.root}: the valid mask holds no centred square of 16 px or more")
-    mean_power, freq = None, None
-    for img in images:
-        freq, power = power_spectrum((img @ np.asarray(LUMA))[crop])
-        mean_power = power if mean_power is None else mean_power + power
-    hf, slope = spectrum_measures(freq, mean_power / len(images))
-    psnr = [misregistration_psnr_db(img, mask) for img in images]
-    return {"texture_hf_fraction": hf, "texture_spectral_slope": slope,
-            "misregistration_1px_psnr_db": float(np.median(psnr)), "texture_crop_px": int(crop[0].stop - crop[0].start)}
+    frames = _pick(recording.frames, max_frames)
+    images = [_resize(recording.load_image(f).numpy().astype(np.float64), size) for f in frames]
+    hf, slope = _spectrum_of([img @ np.asarray(LUMA) for img in images], crop)
+    n = int(crop[0].stop - crop[0].start)
+    out = {"texture_hf_fraction": hf, "texture_spectral_slope": slope, "texture_crop_px": n,
+           "texture_hf_fraction_ideal": ideal_hf_fraction(n),
+           "misregistration_1px_psnr_db": float(np.median([misregistration_psnr_db(img, mask) for img in images])),
+           "texture_hf_fraction_clean": None, "texture_spectral_slope_clean": None}
+    clean = _clean_luminance(recording, frames, size)
+    if clean:
+        out["texture_hf_fraction_clean"], out["texture_spectral_slope_clean"] = _spectrum_of(clean, crop)
+    return out
+
+
+def _clean_luminance(recording: Recording, frames: list[Frame], size: tuple[int, int]) -> list[np.ndarray]:
+    """Display-encoded ground-truth luminance [H, W] of the frames that have a radiance file (may be [])."""
+    if recording.ground_truth is None:
+        return []
+    valid = recording.mask.numpy().astype(bool)
+    out = []
+    for f in frames:  # one float16 file per frame
+        path = Path(recording.ground_truth) / "radiance" / f"{frame_number(f):05d}.npy"
+        if not path.is_file():
+            continue
+        lum = np.load(path, allow_pickle=False).astype(np.float64) @ np.asarray(LUMA)
+        ref = np.percentile(lum[valid], 99) if valid.any() else 0.0
+        if not ref > 0:
+            continue
+        out.append(_resize(np.clip(lum / ref, 0.0, 1.0) ** (1 / 2.2), size))
+    return out
 
 
 # ----------------------------------------------------------------------------------------
@@ -379,16 +434,13 @@ def _read_truth(recording: Recording) -> dict | None:
     return read_json(path) if path is not None and path.is_file() else None
 
 
-def _factory_stream(path: Path) -> Recording | None:
-    """The recording's factory-calibration stream, or None when the folder has none."""
+def _factory_stream(online_stream: Path) -> Recording | None:
+    """The factory-calibration sibling of a rectified online stream folder (authors' naming), or None."""
+    from egobench.data.layout import is_stream, variant_path
     from egobench.data.reader import load_recording
 
-    try:
-        return load_recording(path, "factory")
-    except ValueError as exc:
-        if "factory" in str(exc) and ("no 'factory'" in str(exc) or "is not there" in str(exc)):
-            return None
-        raise
+    folder = variant_path(online_stream, "factory")
+    return load_recording(folder, "factory") if is_stream(folder) else None
 
 
 def measure_recording(path: str | Path, resolution: int | None = None, max_image_frames: int = MAX_IMAGE_FRAMES) -> dict:
@@ -415,7 +467,7 @@ def measure_recording(path: str | Path, resolution: int | None = None, max_image
     result["exposure_ratio"] = exposure_ratio(rec)
     result["scene_dynamic_range_stops"] = scene_dynamic_range_stops(rec)
     result.update(content_measures(rec, resolution, max_image_frames))
-    return {k: v for k, v in result.items()}
+    return result
 
 
 # ----------------------------------------------------------------------------------------
@@ -458,11 +510,11 @@ def paper_operating_point() -> dict:
             "assumption: the paper calls the outdoor scenes 'high dynamic range ... with a minimum of 3K lux' "
             "(Sec. 4) without a number; sun, shade and sky span more than the ~8 stops an 8-bit gamma-2.2 "
             "image holds, which is what scene gamma addresses; 10 stops (p1-p99) is taken as the target")),
-        "texture_hf_fraction": _entry(round(math.log(2) / math.log(2400 / 2), 3), "fraction", (
+        "texture_hf_fraction": _entry(IDEAL_HF_FRACTION_2400, "fraction", (
             "assumption (the paper measures no spectrum): natural images have power ~ 1/f^2 (amplitude 1/f; "
-            "Field 1987, van der Schaaf & van Hateren 1996); for an ideal 1/f^2 spectrum between 1/N and the "
-            "Nyquist frequency the fraction above half-Nyquist is ln 2 / ln(N/2): 0.098 at N = 2400 (0.20 at 64); "
-            "lens blur and JPEG lower a real capture's")),
+            "Field 1987, van der Schaaf & van Hateren 1996); this estimator's expectation on an ideal 1/f^2 "
+            "field is 0.107 at 2400 px (0.207 at 64 px: the fraction depends on the size, compare with "
+            "texture_hf_fraction_ideal at the same size); lens blur and JPEG lower a real capture's, noise raises it")),
         "texture_spectral_slope": _entry(-2.0, "log power / log frequency", (
             "natural-image statistics (assumption that the paper's scenes follow them): power spectrum exponent "
             "about -2 (-1.9..-2.1 in van der Schaaf & van Hateren 1996)")),
@@ -484,7 +536,9 @@ HOW_MEASURED = {
     "frac_frames_multi_sample": "fraction of training frames with more than one pose sample",
     "exposure_ratio": "max / min of exposure x gain over the frames",
     "scene_dynamic_range_stops": "log2(p99 / p1) of the ground-truth linear radiance luminance, valid pixels",
-    "texture_hf_fraction": "fraction of luminance power above half the Nyquist frequency (Hann window, mean spectrum)",
+    "texture_hf_fraction": "fraction of luminance power above half the Nyquist frequency (Hann window, mean spectrum "
+                           "of the captured images; in brackets: an ideal 1/f^2 field at the same size, and the "
+                           "noise-free ground truth)",
     "texture_spectral_slope": "slope of log radially averaged power vs log frequency over 1/16-1/4 cycles/px",
     "misregistration_1px_psnr_db": "median over frames of the PSNR of an image against itself shifted by 1 px",
 }
@@ -496,6 +550,16 @@ def _fmt(value) -> str:
     if isinstance(value, float):
         return f"{value:.3g}" if abs(value) < 100 else f"{value:.0f}"
     return str(value)
+
+
+def _extra(result: dict, key: str) -> str:
+    """The bracketed references of a table cell (ideal and clean texture values)."""
+    if key == "texture_hf_fraction":
+        return (f" (ideal {_fmt(result.get('texture_hf_fraction_ideal'))}, "
+                f"clean {_fmt(result.get('texture_hf_fraction_clean'))})")
+    if key == "texture_spectral_slope":
+        return f" (clean {_fmt(result.get('texture_spectral_slope_clean'))})"
+    return ""
 
 
 def similarity_table(measured: dict | list[dict], paper: dict | None = None) -> str:
@@ -511,7 +575,7 @@ def similarity_table(measured: dict | list[dict], paper: dict | None = None) -> 
     for key in HOW_MEASURED:
         p = paper.get(key, {})
         pv = f"{_fmt(p.get('value'))} {p.get('unit', '')}".strip() if p else "n/a"
-        cell = "; ".join(f"{r.get('name', '?')} {_fmt(r.get(key))}" for r in rows)
+        cell = "; ".join(f"{r.get('name', '?')} {_fmt(r.get(key))}{_extra(r, key)}" for r in rows)
         lines.append(f"| `{key}` | {pv} | {cell} | {HOW_MEASURED[key]} |")
     return "\n".join(lines) + "\n"
 

@@ -187,7 +187,7 @@ def test_smooth_and_one_over_f_images():
     # amplitude 1/f noise (power 1/f^2): the natural-image slope
     rng = np.random.default_rng(1)
     f = np.sqrt(np.fft.fftfreq(256)[:, None] ** 2 + np.fft.fftfreq(256)[None, :] ** 2)
-    f[0, 0] = 1.0
+    f[0, 0] = np.inf  # no DC
     freq = power = None
     for _ in range(4):
         img = np.real(np.fft.ifft2(np.fft.fft2(rng.normal(size=(256, 256))) / f))
@@ -195,8 +195,22 @@ def test_smooth_and_one_over_f_images():
         power = p if power is None else power + p
     hf, slope = sim_measures.spectrum_measures(freq, power)
     assert slope == pytest.approx(-2.0, abs=0.15)
-    # ln 2 / ln(N / 2) for an ideal 1/f^2 spectrum (corners beyond the Nyquist disc add a little)
-    assert hf == pytest.approx(math.log(2) / math.log(128), abs=0.05)
+
+
+def test_ideal_hf_fraction_is_the_mean_over_one_over_f_fields():
+    n = 64
+    f = np.sqrt(np.fft.fftfreq(n)[:, None] ** 2 + np.fft.fftfreq(n)[None, :] ** 2)
+    f[0, 0] = np.inf
+    rng = np.random.default_rng(2)
+    freq = power = None
+    for _ in range(400):  # the total is dominated by a few low-frequency modes: average many fields
+        img = np.real(np.fft.ifft2(np.fft.fft2(rng.normal(size=(n, n))) / f))
+        freq, p = sim_measures.power_spectrum(img)
+        power = p if power is None else power + p
+    hf, _ = sim_measures.spectrum_measures(freq, power)
+    assert hf == pytest.approx(sim_measures.ideal_hf_fraction(n), abs=0.006)
+    assert sim_measures.ideal_hf_fraction(n) > sim_measures.ideal_hf_fraction(4 * n)  # not scale invariant
+    assert sim_measures.ideal_hf_fraction(2400) == pytest.approx(sim_measures.IDEAL_HF_FRACTION_2400, abs=5e-5)
 
 
 def test_misregistration_psnr_of_a_ramp():
@@ -271,9 +285,30 @@ def test_simulated_exposure_truth_and_resolution_scaling(simulated):
     assert res["exposure_ratio"] == pytest.approx(1.0)  # fixed exposure and gain
     assert res["rs_shift_source"].startswith("true clocks") and res["rs_shift_n_points"] > 0
     assert res["scene_dynamic_range_stops"] > 0
+    assert res["texture_hf_fraction_clean"] is not None and res["texture_spectral_slope_clean"] < 0
     for key in ("rs_shift_px_median", "rs_shift_px_p90", "calib_error_px_median", "calib_error_px_p90"):
         assert res64[key] == pytest.approx(2 * res[key], rel=1e-9)  # pixel quantities: x 64 / 32
     assert res64["resolution_px"] == 64 and res64["pixel_scale"] == 2.0
+
+
+def test_without_the_simulators_extra_files_the_measures_fall_back(simulated, tmp_path):
+    # a copy holding only what a real preprocessed recording has: the two streams and the MPS files
+    import shutil
+
+    copy = tmp_path / "rec"
+    shutil.copytree(simulated / "rec", copy, symlinks=True)
+    shutil.rmtree(copy / "ground_truth")
+    (copy / "factory_calibration.json").unlink()
+    (copy / "recording.json").unlink()
+    res = sim_measures.measure_recording(copy)
+    ref = json.loads((simulated / "sim.json").read_text())["recordings"][0]
+    assert res["calib_error_method"] == "rectified streams' extrinsics only"
+    assert res["calib_error_online_vs_true_px_median"] is None and res["scene_dynamic_range_stops"] is None
+    assert res["texture_hf_fraction_clean"] is None and res["rs_shift_source"] == "stream's stated clocks"
+    # the factory calibration differs from the (true) online one by a rotation only, and the online
+    # stream's stated clocks are the true ones: extrinsics alone and stated clocks give the same numbers
+    for key in ("calib_error_px_median", "calib_error_px_p90", "rs_shift_px_median", "rs_shift_px_p90"):
+        assert res[key] == pytest.approx(ref[key], rel=1e-4)
 
 
 def test_verb_outputs_carry_every_key(simulated):
