@@ -466,7 +466,13 @@ def measure_recording(path: str | Path, resolution: int | None = None, max_image
     result.update(motion_samples(rec, scale))
     result["exposure_ratio"] = exposure_ratio(rec)
     result["scene_dynamic_range_stops"] = scene_dynamic_range_stops(rec)
-    result.update(content_measures(rec, resolution, max_image_frames))
+    if resolution <= width:
+        result.update(content_measures(rec, resolution, max_image_frames))
+    else:  # images are never upsampled for training: interpolated pixels would measure the interpolator
+        result.update({k: None for k in ("texture_hf_fraction", "texture_spectral_slope", "misregistration_1px_psnr_db",
+                                         "texture_hf_fraction_ideal", "texture_hf_fraction_clean",
+                                         "texture_spectral_slope_clean")})
+        result["content_note"] = f"image measures skipped: --resolution {resolution} exceeds the rectified width {width}"
     return result
 
 
@@ -599,7 +605,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--csv", type=Path, default=None, help="also write one CSV row per recording")
     parser.add_argument("--table", type=Path, default=None, help="also write the markdown similarity table")
     parser.add_argument("--resolution", type=int, default=None, metavar="PX",
-                        help="training width in pixels (default: each recording's rectified width)")
+                        help="training width in pixels (default: each recording's rectified width); pixel "
+                             "quantities scale by PX / width; above the width the image measures are skipped")
 
 
 def run(args: argparse.Namespace) -> int:

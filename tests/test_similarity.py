@@ -289,6 +289,7 @@ def test_simulated_exposure_truth_and_resolution_scaling(simulated):
     for key in ("rs_shift_px_median", "rs_shift_px_p90", "calib_error_px_median", "calib_error_px_p90"):
         assert res64[key] == pytest.approx(2 * res[key], rel=1e-9)  # pixel quantities: x 64 / 32
     assert res64["resolution_px"] == 64 and res64["pixel_scale"] == 2.0
+    assert res64["texture_hf_fraction"] is None and "exceeds the rectified width" in res64["content_note"]
 
 
 def test_without_the_simulators_extra_files_the_measures_fall_back(simulated, tmp_path):
