@@ -75,6 +75,30 @@ def test_rs_shift_uses_the_true_readout_when_the_truth_has_one(tmp_path):
     np.testing.assert_allclose(shifts, _yaw_shift_px(rec.camera.fx, omega, 2e-3, 18e-3), rtol=1e-6)
 
 
+def test_trajectory_rs_shift_of_a_sideways_translation_is_f_v_readout_over_depth():
+    from egobench.sim.plane import TwistTrajectory
+
+    v, depth, readout, f = 2.0, 4.0, 0.01626, 1200.0
+    traj = TwistTrajectory(torch.eye(4, dtype=torch.float64), torch.tensor([v, 0, 0, 0, 0, 0], dtype=torch.float64), 0)
+    traj.start_ns, traj.end_ns = 0, 1_000_000_000
+    shifts = sim_measures.trajectory_rs_shift_px(traj, np.eye(4), focal_px=f, readout_s=readout, depth_m=depth)
+    assert shifts.size > 0.9 * 10 * 300  # a few points leave the image
+    np.testing.assert_allclose(shifts, f * v * readout / depth, rtol=1e-6)
+
+
+def test_the_paper_scale_rolling_shutter_numbers_come_from_the_real_walk(shared_data):
+    from egobench.data.mps import read_online_calibration
+    from egobench.geometry.trajectory import Trajectory
+
+    folder = shared_data / "aria_mps_sample"
+    traj = Trajectory.from_mps_csv(folder / "closed_loop_trajectory.csv")
+    T_dc = read_online_calibration(folder / "online_calibration.jsonl")[0].camera("camera-rgb").T_device_camera
+    shifts = sim_measures.trajectory_rs_shift_px(traj, T_dc, depth_m=3.0)
+    paper = sim_measures.paper_operating_point()
+    assert float(np.percentile(shifts, 90)) == pytest.approx(paper["rs_shift_px_p90"]["value"], abs=0.05)
+    assert f"gives {np.median(shifts):.1f} px" in paper["rs_shift_px_median"]["source"]
+
+
 def test_motion_samples_follow_the_released_code_rule(tmp_path):
     # 2 ms window shift of a centre-column point: f (tan(w 1ms) + tan(w 1ms)); N = int(R / 2ms * shift)
     omega, readout = 10.0, 0.01626
