@@ -25,7 +25,16 @@ images area-resized). Per recording (keys of `measure_recording`):
 - ``texture_hf_fraction`` (power above half the Nyquist frequency, luminance, Hann window, mean
   spectrum over frames), ``texture_spectral_slope`` (log power vs log radial frequency over
   `MID_BAND`; natural images: about -2), ``misregistration_1px_psnr_db`` (PSNR of an image against
-  itself shifted by one pixel, median over frames).
+  itself shifted by one pixel, median over frames). ``texture_hf_fraction_ideal``: the same estimator's
+  expectation on an ideal 1/f^2 field of the same size (the fraction depends on the size);
+  ``texture_*_clean``: on the noise-free ground-truth radiance (simulated recordings). Images are never
+  upsampled: above the rectified width these are null (``content_note`` says why).
+
+`paper_operating_point` gives the paper-scale value of each quantity with its source (or the
+assumption and why); `similarity_table` renders the docs table; `trajectory_rs_shift_px` measures
+a trajectory's rolling-shutter shift at any camera scale (the real Aria walk at the paper's 2400 px).
+JSON written by the verb: {"schema": SCHEMA, "recordings": [measure_recording(...) ...],
+"paper": paper_operating_point()}; the CSV holds one row per recording (`METRIC_KEYS`).
 """
 
 from __future__ import annotations
