@@ -52,6 +52,7 @@ include: "workflows/evaluate.smk"
 include: "workflows/tables.smk"
 include: "workflows/plots.smk"
 include: "workflows/diagnose.smk"
+include: "workflows/similarity.smk"
 
 
 report: "workflows/report/workflow.rst"

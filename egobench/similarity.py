@@ -526,12 +526,12 @@ def paper_operating_point() -> dict:
     "assumption" in the source where the paper states no number, and why."""
     f_px = 1200.0
     return {
-        "rs_shift_px_median": _entry(13.4, "px", (
-            "issue 13 (stated there for the paper's 2400 px; how it was measured is not recorded). Cross-checks, "
-            "both lower: the paper's 'an average of eight motion samples within the [16 ms] readout' (Sec. 3.2; "
-            "the released rule's N is the median shift over the readout) means ~8 px; the real Aria walk "
+        "rs_shift_px_median": _entry(8.0, "px", (
+            "paper Sec. 3.2: 'an average of eight motion samples within the [16 ms] readout', and the released "
+            "rule's N is the median shift over the readout in px, so ~8 px; cross-check: the real Aria walk "
             "(../shared/data/aria_mps_sample, no fast head turns) through `trajectory_rs_shift_px` at f = 1200 px, "
-            "2400 px, 16.26 ms gives 7.9 px (7.4-9.0 px for points at 1.5-10 m)")),
+            "2400 px, 16.26 ms gives 7.9 px (7.4-9.0 px for points at 1.5-10 m). Issue 13 stated 13.4 px; how that "
+            "was measured is not recorded and neither source reproduces it")),
         "rs_shift_px_p90": _entry(18.5, "px", (
             "measured: the real Aria walk (aria_mps_sample) through `trajectory_rs_shift_px` at f = 1200 px, "
             "16.26 ms, points at 3 m: p90 18.5 px (17.5-20.7 px for 1.5-10 m); a lower bound for the paper's "
@@ -647,6 +647,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--resolution", type=int, default=None, metavar="PX",
                         help="training width in pixels (default: each recording's rectified width); pixel "
                              "quantities scale by PX / width; above the width the image measures are skipped")
+    parser.add_argument("--no-progress", action="store_true", help="no tqdm bar")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -654,7 +655,8 @@ def run(args: argparse.Namespace) -> int:
 
     from egobench.io_utils import atomic_path, write_json
 
-    results = [measure_recording(p, args.resolution) for p in tqdm(args.recordings, desc="similarity", unit="rec")]
+    results = [measure_recording(p, args.resolution)
+               for p in tqdm(args.recordings, desc="similarity", unit="rec", disable=args.no_progress)]
     paper = paper_operating_point()
     write_json(args.out, {"schema": SCHEMA, "recordings": results, "paper": paper})
     if args.csv is not None:
