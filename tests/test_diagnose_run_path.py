@@ -86,3 +86,18 @@ def test_excess_variance_at_some_signal_levels_only_is_not_named_noise():
     true = make_case("noise", 1.6, seed=5)
     d = diagnose_residuals(true.measured, true.predicted, true.context)
     assert d.verdict == "noise" and d.named[0].nll_gain_nats_per_px > 0.01
+
+
+def test_doubled_noise_is_named_with_a_pipeline_reference(null_recording):
+    """Residual noise twice the device's, scored against the pipeline noise reference: the held-out
+    NLL gain is finite and positive and 'noise' is named with a factor near 2 (regression: the
+    scored mask was the eroded checkerboard, which is empty, so the gain was NaN and noise was
+    never named when a reference existed)."""
+    _root, src = null_recording
+    ctx = src.context
+    assert ctx.noise_reference is not None
+    measured = np.clip(src.predicted + 2.0 * (src.measured - src.predicted), 0.0, 1.0).astype(src.measured.dtype)
+    d = diagnose_residuals(measured, src.predicted, ctx, DiagnosisConfig(causes=("noise",)))
+    assert [n.name for n in d.named] == ["noise"], d.verdict
+    noise = d.rounds[0][0]
+    assert 1.6 < noise.params["noise_std_factor"] < 2.4

@@ -171,7 +171,9 @@ def _noise_nll_gain(noise_cause: Noise, noise: CauseResult, measured: np.ndarray
     pe, me = current[eval_idx], measured[eval_idx]
     mask = np.broadcast_to(eval_mask[None, :, :, None], pe.shape)
     if ctx.noise_reference is not None and "transfer" in noise.internal:
-        full = erode(eval_mask, 1)
+        # scored pixels whose 3x3 high-pass window lies inside the valid region (eroding the
+        # checkerboard itself would leave no pixel: every odd pixel has even neighbours)
+        full = eval_mask & erode(ctx.valid, 1)
         mask = np.broadcast_to(full[None, :, :, None], pe.shape)
         ref = ctx.noise_reference[eval_idx]
         hp_r = (me - pe) - box3(me - pe)
