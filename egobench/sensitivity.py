@@ -2,8 +2,9 @@
 
 Input: the run records (``eval.json``) of the sweep (``snakemake sensitivity``: one recording per
 swept value, 'ours' and the ablation trained with several seeds on each) and, per recording, the
-JSON of ``egobench similarity`` (file name ``<scene>.json``; flat keys such as
-``rs_shift_px_median``, ``calib_error_px_median``, ``scene_dynamic_range_stops``).
+JSON of ``egobench similarity`` (file name ``<scene>.json``; schema ``egobench.similarity/1``: one entry
+in ``recordings`` with keys such as ``rs_shift_px_median``, ``calib_error_px_median``,
+``scene_dynamic_range_stops``, and the paper's values in ``paper``; a flat dict of the keys works too).
 
 Per recording (one point of a curve): Δ = PSNR(ablation) − PSNR(ours) paired by training seed on
 that recording, the mean over seeds and its 95 % t-interval (`egobench.tables.ci95`), at x = the
@@ -92,30 +93,59 @@ def parse_sweep(text: str) -> Sweep:
                  str(obj.get("paper_x_source") or ""), obj.get("paper_scene"))
 
 
-def load_similarity(paths: Sequence[str | Path]) -> dict[str, tuple[Path, dict]]:
-    """scene (the file's stem) -> (path, the `egobench similarity` JSON object)."""
-    out: dict[str, tuple[Path, dict]] = {}
+def similarity_measures(obj: object, path: Path) -> tuple[dict, dict]:
+    """(measures, paper operating points) of one `egobench similarity` file: its schema
+    (``{"schema": "egobench.similarity/1", "recordings": [one measure dict], "paper": {key: {"value",
+    "source", ...}}}``) or a flat measure dict (no paper block)."""
+    if not isinstance(obj, dict):
+        raise ValueError(f"{path}: a similarity file is a JSON object, got {type(obj).__name__}")
+    if "recordings" not in obj:
+        return obj, {}
+    recs = obj["recordings"]
+    if not isinstance(recs, list) or len(recs) != 1 or not isinstance(recs[0], dict):
+        raise ValueError(f"{path}: field 'recordings' must list exactly one recording's measures "
+                         f"(one file per recording), got {type(recs).__name__} of {len(recs) if isinstance(recs, list) else '?'}")
+    paper = obj.get("paper") or {}
+    if not isinstance(paper, dict):
+        raise ValueError(f"{path}: field 'paper' is {type(paper).__name__}; expected an object")
+    return recs[0], paper
+
+
+def load_similarity(paths: Sequence[str | Path]) -> dict[str, tuple[Path, dict, dict]]:
+    """scene (the file's stem) -> (path, measures, paper operating points) of `egobench similarity` files."""
+    out: dict[str, tuple[Path, dict, dict]] = {}
     for p in map(Path, paths):
-        obj = read_json(p)
-        if not isinstance(obj, dict):
-            raise ValueError(f"{p}: a similarity file is a JSON object, got {type(obj).__name__}")
+        measures, paper = similarity_measures(read_json(p), p)
         if p.stem in out:
             raise ValueError(f"{p}: a second similarity file for scene {p.stem!r} (also {out[p.stem][0]})")
-        out[p.stem] = (p, obj)
+        out[p.stem] = (p, measures, paper)
     return out
 
 
-def x_value(similarity: Mapping[str, tuple[Path, dict]], scene: str, key: str) -> float:
+def x_value(similarity: Mapping[str, tuple], scene: str, key: str) -> float:
     """The measured effect size ``key`` of one recording; errors name the file and the key."""
     if scene not in similarity:
         raise FileNotFoundError(f"--similarity: no {scene}.json for recording {scene!r} "
                                 f"(have: {', '.join(sorted(similarity)) or 'none'})")
-    path, obj = similarity[scene]
+    path, obj, _ = similarity[scene]
     value = obj.get(key)
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
         raise ValueError(f"{path}: field {key!r} is {value!r}; expected a finite number >= 0 "
                          f"(keys present: {', '.join(sorted(obj))})")
     return float(value)
+
+
+def with_paper_x(sw: Sweep, similarity: Mapping[str, tuple], scenes: Sequence[str]) -> Sweep:
+    """``sw`` with the paper's operating point from the similarity files' paper block where the sweep
+    gives none (the first of ``scenes`` that carries a number for ``sw.x``)."""
+    if sw.paper_x is not None:
+        return sw
+    for scene in scenes:
+        entry = similarity.get(scene, (None, {}, {}))[2].get(sw.x)
+        if isinstance(entry, dict) and isinstance(entry.get("value"), (int, float)) and not isinstance(entry["value"], bool):
+            src = f"egobench similarity: {entry.get('source', '')}".strip()
+            return Sweep(sw.ablation, sw.kind, sw.x, float(entry["value"]), src, sw.paper_scene)
+    return sw
 
 
 def paired_deltas(records: Sequence[RunRecord], ablation: str) -> dict[str, dict[int, float]]:
@@ -244,9 +274,15 @@ def prediction_row(curve: pd.DataFrame, seed_deltas: Mapping[str, Mapping[int, f
 
 
 def prediction_frame(records: Sequence[RunRecord], curve: pd.DataFrame, sweeps: Sequence[Sweep],
-                     n_boot: int = 2000, seed: int = 0) -> pd.DataFrame:
-    """One row per ablation: predicted Δ at the paper's operating point (bootstrap interval), the paper's Δ."""
-    rows = [prediction_row(curve, paired_deltas(records, sw.ablation), sw, n_boot, seed) for sw in sweeps]
+                     similarity: Mapping | None = None, n_boot: int = 2000, seed: int = 0) -> pd.DataFrame:
+    """One row per ablation: predicted Δ at the paper's operating point (bootstrap interval), the paper's Δ.
+    A sweep without ``paper_x`` takes it from the similarity files' paper block (`with_paper_x`)."""
+    similarity = similarity or {}
+    rows = []
+    for sw in sweeps:
+        deltas = paired_deltas(records, sw.ablation)
+        sw = with_paper_x(sw, similarity, sorted(deltas))
+        rows.append(prediction_row(curve, deltas, sw, n_boot, seed))
     return pd.DataFrame(rows, columns=PREDICTION_COLUMNS)
 
 
@@ -307,7 +343,7 @@ def write_outputs(records: Sequence[RunRecord], similarity: Mapping, sweeps: Seq
 
     out = Path(out_dir)
     curve = curve_frame(records, similarity, sweeps)
-    pred = prediction_frame(records, curve, sweeps, n_boot, seed)
+    pred = prediction_frame(records, curve, sweeps, similarity, n_boot, seed)
     written = []
     for name, df in (("sensitivity.csv", curve), ("prediction.csv", pred)):
         with atomic_path(out / name) as tmp:
