@@ -2,15 +2,8 @@
 # recording per swept value (sens-<ablation>-<value>), 'ours' and the ablation trained with every
 # seed by the ordinary simulate / train / evaluate rules, the recording's measured effect size
 # (`egobench similarity`), then ΔPSNR against it, with the paper-scale Δ read off a fitted curve
-# (`egobench sensitivity`; docs/workflow.md). The sweeps' SimConfig overrides are checked here,
-# when this target is asked for.
-
-
-def sensitivity_targets(wildcards):
-    try:
-        return SUITE.sensitivity_outputs()
-    except wc.ConfigError as exc:
-        raise WorkflowError(str(exc))
+# (`egobench sensitivity`; docs/workflow.md). The sweeps' SimConfig overrides are checked when this
+# target is asked for (sensitivity_targets, common.smk).
 
 
 rule sensitivity:
