@@ -296,3 +296,15 @@ def test_dry_run_lists_the_sweep_jobs(tmp_path):
     assert "config.sensitivity.ablations.no_viba (recording sens-no_viba-x1" in res.stderr + res.stdout
     assert "unknown field 'not_a_sim_field'" in res.stderr + res.stdout
     assert not (tmp_path / "results").exists()
+
+
+def test_misregistration_exponent_of_a_sinusoid():
+    """A sinusoid of f cycles/px shifted by δ: mean square difference 1 − cos(2π f δ) (its amplitude 1),
+    so the local exponent → 2 for small shifts and falls as the shift nears half a period."""
+    f = 4 / 64
+    image = np.tile(np.sin(2 * np.pi * f * np.arange(64)), (40, 1))
+    shifts = [0.01, 0.02, 1.0, 2.0, 8.0]
+    mse, p = sens.misregistration_exponents(image, shifts)
+    assert mse == pytest.approx([1 - math.cos(2 * math.pi * f * d) for d in shifts], rel=1e-9)
+    assert p[0] == pytest.approx(2.0, abs=1e-3) and p[-1] < 1.5
+    assert sens.p_bounds("rs_shift_px_median") == (0.5, 2.0) and sens.p_bounds("scene_dynamic_range_stops") == (0.5, 4.0)
