@@ -327,7 +327,8 @@ def _axis_label(key: str) -> str:
 
 def sensitivity_figure(curve: pd.DataFrame, pred: pd.DataFrame):
     """One panel per ablation: points with their 95 % interval, the fitted model, the paper's operating
-    point (dashed line), the prediction there (diamond, bootstrap interval) and the paper's Δ (star)."""
+    point (dashed line), the prediction there (diamond, bootstrap interval) and the paper's Δ (star);
+    a logarithmic x-axis when the values span more than 10x."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -342,9 +343,13 @@ def sensitivity_figure(curve: pd.DataFrame, pred: pd.DataFrame):
         hi = pts["delta_psnr_ci95_high"].to_numpy(float)
         err = np.where(np.isfinite(lo), np.vstack([y - lo, hi - y]), 0.0)
         ax.errorbar(pts["x_value"], y, yerr=err, fmt="o", color="C0", capsize=3, label="egobench (95 % CI)")
+        span = [*pts["x_value"].astype(float), *([float(pr["paper_x"])] if pd.notna(pr["paper_x"]) else [])]
+        log_x = min(span) > 0 and max(span) > 10 * min(span)  # points bunched far below the operating point
+        if log_x:
+            ax.set_xscale("log")
         if pd.notna(pr["fit_x0"]):
-            top = max(float(pts["x_value"].max()), float(pr["paper_x"]) if pd.notna(pr["paper_x"]) else 0.0) * 1.08
-            xx = np.linspace(0.0, top, 200)
+            xx = (np.geomspace(min(span) / 1.2, max(span) * 1.2, 200) if log_x
+                  else np.linspace(0.0, max(span) * 1.08, 200))
             ax.plot(xx, delta_model(xx, pr["fit_x0"], pr["fit_p"]), color="C0", lw=1,
                     label=f"fit: x0={pr['fit_x0']:.3g}, p={pr['fit_p']:.2f}")
         if pd.notna(pr["paper_x"]):
