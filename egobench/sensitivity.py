@@ -113,8 +113,9 @@ def similarity_measures(obj: object, path: Path) -> tuple[dict, dict]:
         return obj, {}
     recs = obj["recordings"]
     if not isinstance(recs, list) or len(recs) != 1 or not isinstance(recs[0], dict):
+        got = f"{len(recs)} entries" if isinstance(recs, list) else type(recs).__name__
         raise ValueError(f"{path}: field 'recordings' must list exactly one recording's measures "
-                         f"(one file per recording), got {type(recs).__name__} of {len(recs) if isinstance(recs, list) else '?'}")
+                         f"(one file per recording), got {got}")
     paper = obj.get("paper") or {}
     if not isinstance(paper, dict):
         raise ValueError(f"{path}: field 'paper' is {type(paper).__name__}; expected an object")
@@ -152,9 +153,10 @@ def with_paper_x(sw: Sweep, similarity: Mapping[str, tuple], scenes: Sequence[st
         return sw
     for scene in scenes:
         entry = similarity.get(scene, (None, {}, {}))[2].get(sw.x)
-        if isinstance(entry, dict) and isinstance(entry.get("value"), (int, float)) and not isinstance(entry["value"], bool):
+        value = entry.get("value") if isinstance(entry, dict) else None
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
             src = f"egobench similarity: {entry.get('source', '')}".strip()
-            return Sweep(sw.ablation, sw.kind, sw.x, float(entry["value"]), src, sw.paper_scene)
+            return Sweep(sw.ablation, sw.kind, sw.x, float(value), src, sw.paper_scene)
     return sw
 
 
@@ -244,14 +246,16 @@ def predict(points: Sequence[tuple[float, np.ndarray]], x_star: float, n_boot: i
     rms = float(np.sqrt(np.mean((delta_model(xs, x0, p) - means) ** 2)))
     rng = np.random.default_rng(seed)
     draws = means + sems * student_t.rvs(dofs, size=(n_boot, len(points)), random_state=rng)
-    boot = np.array([delta_model(np.array([x_star]), *fit_curve(xs, d, start=(x0, p), bounds=bounds))[0] for d in draws])
+    boot = np.array([delta_model(np.array([x_star]), *fit_curve(xs, d, start=(x0, p), bounds=bounds))[0]
+                     for d in draws])
     low, high = np.percentile(boot, [2.5, 97.5])
     return {"predicted_delta_psnr": float(delta_model(np.array([x_star]), x0, p)[0]),
             "predicted_ci95_low": float(low), "predicted_ci95_high": float(high),
             "fit_x0": x0, "fit_p": p, "fit_rms_db": rms}
 
 
-def misregistration_exponents(image: np.ndarray, shifts_px: Sequence[float], margin: int = 8) -> tuple[np.ndarray, np.ndarray]:
+def misregistration_exponents(image: np.ndarray, shifts_px: Sequence[float],
+                              margin: int = 8) -> tuple[np.ndarray, np.ndarray]:
     """Mean square of ``image`` (H, W) minus itself shifted by δ px along x (Fourier shift, a
     ``margin`` px border left out), for each δ of ``shifts_px`` (increasing), and the local exponent
     d log MSE / d log δ between consecutive shifts: the measurement behind the model's p bound."""
@@ -296,9 +300,13 @@ def prediction_row(curve: pd.DataFrame, seed_deltas: Mapping[str, Mapping[int, f
     row.update(predict(points, sw.paper_x, n_boot, seed, p_bounds(sw.x)))
     outside = not (row["x_min"] <= sw.paper_x <= row["x_max"])
     row["extrapolation"] = outside
+    notes = []
     if outside:
-        row["note"] = (f"extrapolation: the paper's x = {sw.paper_x:g} lies outside the measured "
-                       f"{row['x_min']:g}..{row['x_max']:g}; the prediction rests on the model's shape")
+        notes.append(f"extrapolation: the paper's x = {sw.paper_x:g} lies outside the measured "
+                     f"{row['x_min']:g}..{row['x_max']:g}; the prediction rests on the model's shape")
+    if all(len(d) < 2 for _, d in points):
+        notes.append("one seed per point: the interval carries no seed spread")
+    row["note"] = "; ".join(notes)
     return row
 
 

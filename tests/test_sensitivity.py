@@ -251,9 +251,11 @@ def test_sweep_recordings_and_their_overrides():
 
 
 @pytest.mark.parametrize("edit, key", [
-    (lambda c: c["sensitivity"]["ablations"].update(instant_ngp={"kind": "outdoor", "sweep": {"field": "a", "values": [1, 2]}}),
+    (lambda c: c["sensitivity"]["ablations"].update(instant_ngp={"kind": "outdoor",
+                                                                 "sweep": {"field": "a", "values": [1, 2]}}),
      "config.sensitivity.ablations"),
-    (lambda c: c["sensitivity"]["ablations"]["no_viba"]["sweep"].update(field="seed"), "config.sensitivity.ablations.no_viba.sweep"),
+    (lambda c: c["sensitivity"]["ablations"]["no_viba"]["sweep"].update(field="seed"),
+     "config.sensitivity.ablations.no_viba.sweep"),
     (lambda c: c["sensitivity"]["ablations"]["no_motion_sampling"]["sweep"].update(field="seed"),
      "config.sensitivity.ablations.no_motion_sampling.sweep: 'seed'"),
 ])
