@@ -310,3 +310,13 @@ def test_misregistration_exponent_of_a_sinusoid():
     assert mse == pytest.approx([1 - math.cos(2 * math.pi * f * d) for d in shifts], rel=1e-9)
     assert p[0] == pytest.approx(2.0, abs=1e-3) and p[-1] < 1.5
     assert sens.p_bounds("rs_shift_px_median") == (0.5, 2.0) and sens.p_bounds("scene_dynamic_range_stops") == (0.5, 4.0)
+
+
+def test_schema_ablation_names_are_methods():
+    from egobench.methods import METHODS
+
+    schema = wc.load_schema()["properties"]["sensitivity"]["properties"]["ablations"]
+    assert set(schema["propertyNames"]["enum"]) == set(METHODS) - {"ours"}
+    assert set(sw.DEFAULT_X) <= set(schema["propertyNames"]["enum"])
+    x_enum = schema["additionalProperties"]["properties"]["x"]["enum"]
+    assert set(sw.DEFAULT_X.values()) <= set(x_enum) and set(sens.PIXEL_QUANTITIES) <= set(x_enum)
