@@ -53,6 +53,7 @@ include: "workflows/tables.smk"
 include: "workflows/plots.smk"
 include: "workflows/diagnose.smk"
 include: "workflows/sensitivity.smk"
+include: "workflows/similarity.smk"
 
 
 report: "workflows/report/workflow.rst"

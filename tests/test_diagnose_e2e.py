@@ -46,7 +46,7 @@ def test_simulated_null_and_hidden_vignette_through_the_cli(tmp_path):
 
     cfg = SimConfig.from_dict(json.loads((rec / "recording.json").read_text())["sim_config"])
     cal = make_calibrations(cfg).online
-    rect, _ = _rig(cal, cfg.rectified_size, get_device(cfg.device_name))
+    rect, _ = _rig(cal, cfg.rectified_size, cfg.focal_ratio())
     v_raw = radial_vignette((cal.height, cal.width), 0.35, get_device(cfg.device_name).vignette_power,
                             centre=(float(cal.params[1]), float(cal.params[2])))
     corner_true = 1.0 - float(rect.warp_vignette(v_raw)[0, 0])

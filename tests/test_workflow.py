@@ -298,6 +298,12 @@ def test_ci_suite_runs_end_to_end(tmp_path):
     assert all((root / "figures" / f).is_file() for f in __import__("egobench.plots").plots.OUTPUT_FILES)
     assert (root / "diagnosis" / "outdoor_0" / "ours" / "diagnosis.json").is_file()
     assert (root / "motion_stats" / "motion_stats.json").is_file()
+    # The similarity table measures the suite's recording at its own resolution.
+    sim = read_json(root / "similarity" / "similarity.json")["recordings"]
+    sim_csv = pd.read_csv(root / "similarity" / "similarity.csv")
+    assert [r["name"] for r in sim] == ["outdoor_0"] and sim[0]["rectified_size_px"] == 48
+    assert sim[0]["calib_error_px_median"] > 0
+    assert sim_csv["calib_error_px_median"].iloc[0] == pytest.approx(sim[0]["calib_error_px_median"])
     # Rerunning resumes: nothing left to do.
     again = snakemake(["--cores", "2", "--configfile", str(REPO / "config" / "ci.yaml"), "-n"], tmp_path)
     assert again.returncode == 0 and "Nothing to be done" in again.stdout + again.stderr

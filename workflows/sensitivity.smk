@@ -24,14 +24,14 @@ rule sensitivity_similarity:
         "envs/egobench.yaml"
     log:
         f"{R}/logs/sensitivity/similarity/{{scene}}.log",
-    threads: res("evaluate", "threads")
+    threads: res("similarity", "threads")
     resources:
-        mem_mb=res("evaluate", "mem_mb"),
+        mem_mb=res("similarity", "mem_mb"),
     shell:
         "if ! {EGOBENCH} similarity --help > /dev/null 2>&1; then"
         " echo 'egobench has no similarity verb (egobench similarity REC --out FILE.json, issue 13):"
         " the sensitivity curves need the measured effect size of each recording' | tee {log} >&2; exit 1; fi;"
-        " {EGOBENCH} similarity {input.recording} --out {output.json} > {log} 2>&1"
+        " {EGOBENCH} similarity {input.recording} --out {output.json} --no-progress > {log} 2>&1"
 
 
 rule sensitivity_curves:

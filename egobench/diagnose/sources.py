@@ -228,7 +228,7 @@ def _recast_setup(root: Path, info: dict, config, rec, gamma: float) -> tuple[_R
     from egobench.data.mps import read_online_calibration
     from egobench.formation import FormationConfig, FormationModel, PoissonGaussianNoise, radial_vignette
     from egobench.sim.calibration import make_calibrations
-    from egobench.sim.capture import RawCamera, _rig
+    from egobench.sim.capture import RawCamera, _rig, sampled_raw_pixels
     from egobench.sim.devices import get_device
     from egobench.sim.world import make_scene
 
@@ -243,12 +243,14 @@ def _recast_setup(root: Path, info: dict, config, rec, gamma: float) -> tuple[_R
     cal_model = replace(cals.true, params=params)
     # the measured frames' pixel-area integration (recordings from before `pixel_samples` existed: 1)
     raw = RawCamera.build(cal_model, int(info["sim_config"].get("pixel_samples", 1)))
-    rect, _pin = _rig(cal_online, config.rectified_size, dev)  # the measured images' rectification
+    rect, _pin = _rig(cal_online, config.rectified_size, config.focal_ratio())  # the measured images' rectification
+    if config.raw_roi:
+        raw = raw.restricted_to(sampled_raw_pixels([rect], raw.valid.shape))
     # the calibrated lens shading in the raw image (what vignette.png is rectified from)
     raw_vignette = radial_vignette((cal_model.height, cal_model.width), 1.0 - dev.vignette_corner,
                                    dev.vignette_power, centre=(float(cal_model.params[1]), float(cal_model.params[2])))
     return _Recast(
-        scene=make_scene(config.kind, config.seed), trajectory=rec.trajectory, raw=raw, rect=rect,
+        scene=make_scene(config.kind, config.seed, sun_scale=config.sun_scale, grain=config.grain), trajectory=rec.trajectory, raw=raw, rect=rect,
         formation=FormationModel(FormationConfig.paper_trainer(gamma=gamma)),
         simulator=FormationModel(FormationConfig.ground_truth(gamma=gamma)), raw_vignette=raw_vignette,
         noise=PoissonGaussianNoise(dev.noise.full_well_e, dev.noise.read_noise_e) if config.noise else None,

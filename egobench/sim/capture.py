@@ -171,6 +171,7 @@ class RawCamera:
     valid: Tensor  # [H, W] bool: unprojection converged inside the image circle
     pixel_samples: int = 1  # P sub-pixel positions per pixel (k x k jittered stratified grid, P = k^2)
     sub_rays_cam: Tensor | None = None  # [P, H, W, 3] float64 unit rays through the sub-pixel positions
+    box: tuple[int, int, int, int] | None = None  # (row0, row1, col0, col1) holding every cast pixel; None = the frame
 
     @classmethod
     def build(cls, cal: CameraCalibration, pixel_samples: int = 1) -> "RawCamera":
@@ -194,6 +195,29 @@ class RawCamera:
     def sample_rays(self) -> Tensor:
         """[P, H, W, 3] rays of the P sub-pixel positions (P = 1: the pixel centres)."""
         return self.rays_cam[None] if self.sub_rays_cam is None else self.sub_rays_cam
+
+    def restricted_to(self, cast: Tensor) -> "RawCamera":
+        """This camera casting only the pixels of ``cast`` [H, W] bool (the others stay black);
+        ``box`` becomes their bounding box, where the auto-exposure preview meters."""
+        valid = self.valid & cast
+        rows, cols = torch.nonzero(valid.any(1)).flatten(), torch.nonzero(valid.any(0)).flatten()
+        if rows.numel() == 0:
+            raise ValueError("RawCamera.restricted_to: no valid raw pixel is sampled by the rectified view")
+        box = (int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1)
+        return dataclasses.replace(self, valid=valid, box=box)
+
+
+def sampled_raw_pixels(rects: list, raw_shape: tuple[int, int], margin_px: int = 2) -> Tensor:
+    """[H, W] bool: the raw pixels the rectifications' bilinear lookups read, grown by ``margin_px``."""
+    H, W = raw_shape
+    need = torch.zeros(H, W, dtype=torch.bool)
+    for rect in rects:
+        uv = rect.map_uv[rect.valid].to(torch.float64)  # [n, 2] raw (u, v)
+        u0, v0 = uv[:, 0].floor().long(), uv[:, 1].floor().long()
+        for dv in range(-margin_px, margin_px + 2):
+            for du in range(-margin_px, margin_px + 2):
+                need[(v0 + dv).clamp(0, H - 1), (u0 + du).clamp(0, W - 1)] = True
+    return need
 
 
 #: Seed of the sub-pixel jitter pattern: fixed, so that every capture of a recording (and a
@@ -291,20 +315,21 @@ def capture_irradiance(scene, trajectory, raw: RawCamera, read_start_ns: int, ex
     # radians one ray sample's share of a raw pixel subtends at the centre
     pixel_angle = 1.0 / float(raw.calibration.camera().f) / math.sqrt(P)
     out = torch.zeros(H, W, 3, dtype=torch.float32, device=device)
-    rows_per_chunk = max(1, cast_chunk_size(device) // max(1, W * n))
-    for r0 in range(0, H, rows_per_chunk):
-        r1 = min(H, r0 + rows_per_chunk)
-        vmask = valid[r0:r1]  # [h, W]
+    row0, row1, c0, c1 = raw.box if raw.box is not None else (0, H, 0, W)
+    rows_per_chunk = max(1, cast_chunk_size(device) // max(1, (c1 - c0) * n))
+    for r0 in range(row0, row1, rows_per_chunk):
+        r1 = min(row1, r0 + rows_per_chunk)
+        vmask = valid[r0:r1, c0:c1]  # [h, w]
         if not bool(vmask.any()):
             continue
-        d = torch.einsum("hnij,nhwj->hnwi", R[r0:r1], rays[sub_idx, r0:r1])  # [h, n, W, 3]
+        d = torch.einsum("hnij,nhwj->hnwi", R[r0:r1], rays[sub_idx, r0:r1, c0:c1])  # [h, n, w, 3]
         orig = o[r0:r1, :, None, :].expand_as(d)
         m = vmask[:, None, :].expand(d.shape[:3])
         rad = cast_chunked(scene, orig[m].contiguous(), d[m].contiguous(),
                            pixel_angle_rad=pixel_angle)["radiance"].to(torch.float32)
         full = torch.zeros(d.shape[:3] + (3,), dtype=torch.float32, device=device)
         full[m] = rad
-        out[r0:r1] = full.mean(dim=1)
+        out[r0:r1, c0:c1] = full.mean(dim=1)
     return out.cpu()
 
 
@@ -313,8 +338,9 @@ def preview(scene, trajectory, raw: RawCamera, t_ns: int, grid: int = PREVIEW_GR
     """Coarse cast at one time (on ``device``) -> (luminance [n], hit points world [m, 3], their raw
     pixels [m, 2]), on the CPU."""
     H, W = raw.valid.shape
-    iv = torch.linspace(0, H - 1, grid).round().long()
-    iu = torch.linspace(0, W - 1, grid).round().long()
+    r0, r1, c0, c1 = raw.box if raw.box is not None else (0, H, 0, W)
+    iv = torch.linspace(r0, r1 - 1, grid).round().long()
+    iu = torch.linspace(c0, c1 - 1, grid).round().long()
     vv, uu = torch.meshgrid(iv, iu, indexing="ij")
     ok = raw.valid[vv, uu]
     rays = raw.rays_cam[vv, uu][ok]  # [n, 3]
@@ -465,12 +491,12 @@ def _jpeg(img: np.ndarray, quality: int) -> np.ndarray:
     return cv2.cvtColor(cv2.imdecode(buf, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
 
 
-def _rig(cal: CameraCalibration, rect_size: int, device: DeviceProfile):
-    """(Rectification, pinhole) of a calibration: pinhole f = ratio * W, centred, same axes."""
+def _rig(cal: CameraCalibration, rect_size: int, focal_ratio: float):
+    """(Rectification, pinhole) of a calibration: pinhole f = focal_ratio * W, centred, same axes."""
     from egobench.camera import Rectification
 
     W = H = int(rect_size)
-    f = device.rectified_focal_ratio * W
+    f = float(focal_ratio) * W
     pin = Pinhole(fx=f, fy=f, cx=(W - 1) / 2, cy=(H - 1) / 2, width=W, height=H)
     return Rectification.build(cal.camera(), pin), pin
 
@@ -489,7 +515,7 @@ def stream_names(config: SimConfig) -> dict[str, str]:
     from egobench.data.layout import stream_folder_name
 
     dev = get_device(config.device_name)
-    focal = dev.rectified_focal_ratio * config.rectified_size
+    focal = config.focal_ratio() * config.rectified_size
     return {name: stream_folder_name(dev.label, focal, config.rectified_size, factory=name == "factory")
             for name in ("online", "factory")}
 
@@ -802,13 +828,16 @@ def build_capture_setup(config: SimConfig) -> CaptureSetup:
     dev = get_device(config.device_name)
     compute = config.compute_torch_device()
     cals = make_calibrations(config)
-    scene = make_scene(config.kind, config.seed)
+    scene = make_scene(config.kind, config.seed, sun_scale=config.sun_scale, grain=config.grain)
     trajectory = _device_motion(config, dev, scene)
     clocks = _frame_clocks(config, dev, trajectory, cals.true)
+    rigs = {name: _rig(cal, config.rectified_size, config.focal_ratio())
+            for name, cal in (("online", cals.online), ("factory", cals.factory))}
     raw = RawCamera.build(cals.true, config.pixel_samples)
+    if config.raw_roi:
+        raw = raw.restricted_to(sampled_raw_pixels([rect for rect, _ in rigs.values()], raw.valid.shape))
     H_raw, W_raw = raw.valid.shape
     photometric = _photometric_truth(config, dev, cals.true, (H_raw, W_raw))
-    rigs = {name: _rig(cal, config.rectified_size, dev) for name, cal in (("online", cals.online), ("factory", cals.factory))}
     truth_rays = _online_truth_rays(*rigs["online"])
     wrong = _metadata_wrong_frames(config)
     semidense = _semidense_truth(config, scene, trajectory, clocks)

@@ -45,7 +45,9 @@ class SimConfig:
     motion: str = "normal"  # head motion setting: normal | fast | static (egobench.sim.motion)
     n_frames: int = 120  # frames to capture
     rectified_size: int = 128  # rectified pinhole image width = height, pixels (paper: 2400)
-    raw_size: int | None = None  # raw fisheye height in pixels; None = 1.2 x rectified (paper 2880 / 2400)
+    rectified_focal_ratio: float | None = None  # rectified pinhole focal / width; None = the device's (Aria: 0.5, a 90 deg view as the paper's 1200 / 2400). Larger = a narrower view with more pixels per degree (docs/similarity.md)
+    raw_roi: bool = False  # cast only the raw pixels the rectified streams sample (+2 px); the rest of the raw frame stays black and auto-exposure meters that region: same images, far fewer rays when the rectified view is narrow
+    raw_size: int | None = None  # raw fisheye height in pixels; None = 1.2 x rectified x (focal ratio / the device's) (paper 2880 / 2400)
     temporal_samples: int | None = None  # exposure samples S per row; None = adaptive (see max_sample_step_px)
     max_sample_step_px: float = 0.15  # adaptive S: image motion between two temporal samples stays below this
     max_temporal_samples: int = 32  # upper bound of the adaptive S
@@ -66,6 +68,8 @@ class SimConfig:
     white_balance: tuple[float, float, float] = (1.0, 1.0, 1.0)  # true per-channel gains (not recorded)
     exposure_metadata_error: float = 0.0  # recorded exposure = true x (1 + error) on the affected frames (signed)
     exposure_metadata_fraction: float = 0.0  # fraction of frames whose exposure metadata is wrong
+    grain: float = 0.0  # fractal albedo grain on every surface, 0.5 m down to 4 mm, 1/f amplitude spectrum (egobench.sim.world.grain_factor): relative amplitude in [0, 1]
+    sun_scale: float = 1.0  # sun illuminance x this (outdoor scenes; 1 = 60 klux against a 4 klux sky): the scene's sun-to-shade dynamic range
     noise: bool = True  # shot + read noise on
     full_well_e: float | None = None  # electrons at saturation; None = device
     read_noise_e: float | None = None  # read noise electrons; None = device
@@ -100,11 +104,18 @@ class SimConfig:
     def recording_name(self) -> str:
         return self.name if self.name is not None else f"{self.kind}_{self.seed}"
 
+    def focal_ratio(self) -> float:
+        """Rectified pinhole focal length / rectified width (``rectified_focal_ratio`` or the device's)."""
+        dev = get_device(self.device_name)
+        return float(dev.rectified_focal_ratio if self.rectified_focal_ratio is None else self.rectified_focal_ratio)
+
     def raw_shape(self) -> tuple[int, int]:
-        """(width, height) of the raw fisheye frame."""
+        """(width, height) of the raw fisheye frame; by default its focal length keeps the device's
+        raw-to-rectified ratio at the rectified focal length (a narrower view needs a finer raw frame)."""
         dev = get_device(self.device_name)
         if self.raw_size is None:
-            return dev.default_raw_size(self.rectified_size)
+            zoom = self.focal_ratio() / dev.rectified_focal_ratio
+            return dev.default_raw_size(int(round(self.rectified_size * zoom)))
         w = int(round(self.raw_size * dev.native_size[0] / dev.native_size[1]))
         return w, int(self.raw_size)
 
@@ -271,6 +282,9 @@ def _check_sampling(cfg: SimConfig) -> None:
                                              or cfg.temporal_samples < 1):
         _bad(cfg, "temporal_samples", "an integer >= 1 or None (adaptive)")
     _check_number(cfg, "max_sample_step_px", 0, strict_lo=True)
+    _check_number(cfg, "rectified_focal_ratio", 0.1, 20.0, allow_none=True)
+    if not isinstance(cfg.raw_roi, bool):
+        _bad(cfg, "raw_roi", "true or false")
     ps = cfg.pixel_samples
     if (isinstance(ps, bool) or not isinstance(ps, int) or ps < 1 or ps > 64
             or int(round(math.sqrt(ps))) ** 2 != ps):
@@ -296,6 +310,8 @@ def _check_effects(cfg: SimConfig) -> None:
         _bad(cfg, "white_balance", "three positive finite channel gains (r, g, b)")
     _check_number(cfg, "exposure_metadata_error", -0.9, 0.9)
     _check_number(cfg, "noise_std_factor", 0, strict_lo=True)
+    _check_number(cfg, "sun_scale", 0.0)
+    _check_number(cfg, "grain", 0.0, 1.0)
     _check_number(cfg, "exposure_metadata_fraction", 0.0, 1.0)
     _check_number(cfg, "full_well_e", 0, strict_lo=True, allow_none=True)
     _check_number(cfg, "read_noise_e", 0, allow_none=True)

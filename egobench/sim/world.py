@@ -50,7 +50,7 @@ at feature sizes of a few mm or more, and check the illuminance with ``Scene.cas
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal, Sequence, Union
 
 import numpy as np
@@ -369,6 +369,7 @@ class Scene:
     scene_bounds: tuple[tuple[float, float, float], tuple[float, float, float]]  # (min xyz, max xyz), metres
     seed: int = 0  # the seed the scene was built from
     chunk_rays: int = 32768  # rays per internal chunk (bounds memory: ~chunk x primitives x 8 floats)
+    grain: float = 0.0  # amplitude of a fractal albedo grain on every surface (see `grain_factor`); 0 = none
     _packs: dict = field(default_factory=dict, repr=False)
 
     def __post_init__(self) -> None:
@@ -532,6 +533,8 @@ class Scene:
             sel = torch.as_tensor(np.nonzero(mats == m)[0], device=uv.device)
             fp = None if footprint_m is None else footprint_m[sel]
             out[sel] = evaluate_texture(self.materials[self._material_names[m]].albedo, uv[sel], fp)
+        if self.grain > 0:
+            out = (out * grain_factor(uv, primitive_id, self.grain, self.seed, footprint_m)[:, None]).clamp(0.0, 1.0)
         return out
 
     def emission_at(self, uv: Tensor, primitive_id: Tensor, footprint_m: Tensor | None = None) -> Tensor:
@@ -1217,12 +1220,47 @@ def _build_quest3(rng: np.random.Generator, seed: int) -> Scene:
 _BUILDERS = {"outdoor": _build_outdoor, "indoor": _build_indoor, "object": _build_object, "quest3": _build_quest3}
 
 
-def make_scene(kind: SceneKind, seed: int = 0) -> Scene:
+#: Fractal grain: largest feature (m) and octaves (each half the size, half the amplitude, down to 4 mm).
+GRAIN_SCALE_M, GRAIN_OCTAVES = 0.5, 8
+
+
+def grain_factor(uv: Tensor, primitive_id: Tensor, amplitude: float, seed: int,
+                 footprint_m: Tensor | None = None) -> Tensor:
+    """[N] albedo multiplier 1 + amplitude * 2 g, g = sum over octaves o of w_o (value noise - 1/2),
+    lattices from 0.5 m down to 4 mm, w_o = 2^(o/4) / sqrt(sum w^2). Natural images have a 1/f
+    amplitude spectrum, i.e. equal power per octave (Field 1987); value noise rolls off at its own
+    finest scale, and the 2^(o/4) tilt offsets that: the power per octave measured along a line is
+    flat within 2x from 0.5 m to 8 mm features (tests/test_sim_similarity_knobs.py). Octaves finer
+    than the footprint fade to their mean, so distant surfaces do not alias. Each primitive gets
+    its own offset into the field."""
+    from egobench.sim.textures import value_noise
+
+    p = uv + (primitive_id.to(uv.dtype) * 17.31)[:, None]
+    w = [2.0 ** (o / 4.0) for o in range(GRAIN_OCTAVES)]
+    norm = math.sqrt(sum(x * x for x in w))
+    g = torch.zeros(uv.shape[0], dtype=uv.dtype, device=uv.device)
+    for o in range(GRAIN_OCTAVES):
+        g = g + w[o] / norm * (value_noise(p, GRAIN_SCALE_M * 0.5 ** o, int(seed) + 104729 + 7919 * o, footprint_m) - 0.5)
+    return 1.0 + float(amplitude) * 2.0 * g
+
+
+def make_scene(kind: SceneKind, seed: int = 0, sun_scale: float = 1.0, grain: float = 0.0) -> Scene:
     """Build a scene of ``kind`` (outdoor, indoor, object, quest3); the layout jitter,
-    colours and texture patterns follow ``seed`` deterministically."""
+    colours and texture patterns follow ``seed`` deterministically. ``sun_scale`` multiplies
+    the illuminance of every `Sun` (the sun-to-shade dynamic range; scenes without a sun ignore it);
+    ``grain`` adds a fractal albedo grain of that amplitude to every surface (`grain_factor`)."""
+    if not (math.isfinite(grain) and 0.0 <= grain <= 1.0):
+        raise ValueError(f"make_scene: grain must be a number in [0, 1], got {grain!r}")
     if kind not in _BUILDERS:
         raise ValueError(f"make_scene: kind must be one of {list(SCENE_KINDS)}, got {kind!r}")
     if int(seed) != seed:
         raise ValueError(f"make_scene: seed must be an integer, got {seed!r}")
+    if not (math.isfinite(sun_scale) and sun_scale >= 0):
+        raise ValueError(f"make_scene: sun_scale must be a finite number >= 0, got {sun_scale!r}")
     rng = np.random.default_rng([int(seed), SCENE_KINDS.index(kind)])
-    return _BUILDERS[kind](rng, int(seed))
+    scene = _BUILDERS[kind](rng, int(seed))
+    scene.grain = float(grain)
+    if sun_scale != 1.0:
+        scene.lights = [replace(l, illuminance_lux=l.illuminance_lux * sun_scale) if isinstance(l, Sun) else l
+                        for l in scene.lights]
+    return scene

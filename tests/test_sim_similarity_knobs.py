@@ -1,0 +1,101 @@
+"""The simulator knobs of the similarity-designed suite: narrow rectified view, raw ROI casting,
+fractal grain and sun scale (docs/similarity.md)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from egobench.sim.config import SimConfig
+
+
+def _sim(tmp_path, name: str, **overrides):
+    from egobench.sim.capture import simulate_recording
+
+    base = {"n_frames": 3, "rectified_size": 32, "rectified_focal_ratio": 2.0, "exposure_s": 0.002, "gain": 2.0,
+            "n_semidense_points": 500, "motion": "fast", "name": name}
+    cfg = SimConfig.from_overrides("indoor", 4, {**base, **overrides})
+    out = tmp_path / name
+    simulate_recording(cfg, out, progress=False)
+    return out, cfg
+
+
+def test_raw_roi_gives_the_same_images_with_a_fraction_of_the_rays(tmp_path):
+    """With a fixed exposure, fixed temporal samples and no noise (the Poisson draws and the
+    preview-chosen sample count are the only things the ROI changes) the rectified frames of both
+    streams are byte-identical with and without the ROI, while the ROI casts under a quarter of
+    the raw pixels."""
+    from egobench.sim.capture import build_capture_setup
+    from egobench.data.transforms import read_png
+
+    same = {"noise": False, "temporal_samples": 4}
+    full, cfg = _sim(tmp_path, "full", raw_roi=False, **same)
+    roi, cfg_roi = _sim(tmp_path, "roi", raw_roi=True, **same)
+    streams = sorted(p.name for p in full.glob("camera-*"))
+    assert streams == ["camera-rgb-rectified-64-h32", "camera-rgb-rectified-64-h32-factory-calib"]
+    for s in streams:
+        for k in range(3):
+            a = read_png(full / s / "images" / f"{k:05d}.png", "image", grey=False)
+            b = read_png(roi / s / "images" / f"{k:05d}.png", "image", grey=False)
+            assert np.array_equal(a, b), (s, k)
+    n_full = int(build_capture_setup(cfg).raw.valid.sum())
+    setup = build_capture_setup(cfg_roi)
+    assert int(setup.raw.valid.sum()) < 0.25 * n_full
+    r0, r1, c0, c1 = setup.raw.box
+    assert setup.raw.valid[:r0].sum() == 0 and setup.raw.valid[r1:].sum() == 0
+    assert setup.raw.valid[:, :c0].sum() == 0 and setup.raw.valid[:, c1:].sum() == 0
+
+
+def test_focal_ratio_sets_the_pinhole_and_scales_the_raw_frame():
+    from egobench.sim.devices import get_device
+
+    dev = get_device("aria")
+    wide = SimConfig.from_overrides("indoor", 0, {"rectified_size": 64})
+    narrow = SimConfig.from_overrides("indoor", 0, {"rectified_size": 64, "rectified_focal_ratio": 2.0})
+    assert wide.focal_ratio() == dev.rectified_focal_ratio
+    assert narrow.focal_ratio() == 2.0
+    # the raw frame keeps the device's raw-to-rectified focal ratio: 4x the focal, 4x the rows
+    assert narrow.raw_shape() == dev.default_raw_size(256)
+    with pytest.raises(ValueError, match="rectified_focal_ratio"):
+        SimConfig.from_overrides("indoor", 0, {"rectified_focal_ratio": 0.0})
+
+
+def _band_powers(signal: np.ndarray, spacing_m: float, bands: list[float]) -> list[float]:
+    """Power of ``signal`` in each octave [f, 2 f) (cycles per metre)."""
+    spec = np.abs(np.fft.rfft(signal - signal.mean())) ** 2
+    freq = np.fft.rfftfreq(signal.size, spacing_m)
+    return [float(spec[(freq >= f) & (freq < 2 * f)].sum()) for f in bands]
+
+
+def test_grain_has_equal_power_per_octave_and_fades_with_the_footprint():
+    """1/f amplitude spectrum: equal power per octave (within 2x) from 0.5 m to 8 mm features;
+    a footprint wider than the largest feature leaves the albedo untouched."""
+    from egobench.sim.world import grain_factor
+
+    n, dx = 1 << 16, 0.0005  # a 32.8 m line sampled every 0.5 mm
+    x = torch.arange(n, dtype=torch.float64) * dx
+    uv = torch.stack([x, torch.full_like(x, 0.123)], -1)
+    pid = torch.zeros(n, dtype=torch.int64)
+    g = grain_factor(uv, pid, 0.5, seed=3).numpy()
+    assert abs(g.mean() - 1.0) < 0.05  # the 0.5 m octave has only ~65 lattice cells on this line
+    powers = _band_powers(g, dx, [1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0])  # 0.5 m ... 8 mm features
+    assert max(powers) / min(powers) < 2.5, powers
+    # a 1/f^2 amplitude (fbm with halving amplitude) would drop 4x per octave: 256x over these bands
+    blurred = grain_factor(uv, pid, 0.5, seed=3, footprint_m=torch.full((n,), 2.0, dtype=torch.float64))
+    assert torch.allclose(blurred, torch.ones_like(blurred), atol=1e-12)
+    assert not np.allclose(g, grain_factor(uv, pid, 0.5, seed=4).numpy())
+
+
+def test_sun_scale_scales_only_the_sun():
+    from egobench.sim.world import make_scene
+
+    p = torch.tensor([[0.0, 0.0, 0.0]], dtype=torch.float64)  # open ground in the walk region
+    up = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)
+    E = [float(make_scene("outdoor", 0, sun_scale=s).irradiance(p, up).sum()) for s in (0.0, 1.0, 2.0)]
+    assert E[1] - E[0] > 5 * E[0]  # sunlit: the sun is most of the light (60 klux at 50 deg vs 4 klux sky)
+    assert math.isclose(E[2] - E[1], E[1] - E[0], rel_tol=1e-9)
+    indoor = [make_scene("indoor", 0, sun_scale=s).irradiance(p + torch.tensor([[0, 0, 1.0]]), up) for s in (0.5, 2)]
+    assert torch.equal(indoor[0], indoor[1])
