@@ -1,5 +1,5 @@
 # egobench workflow: simulate (or preprocess a real Aria recording) -> train (scene x method x seed) -> evaluate -> tables -> plots,
-# plus diagnose. Every rule calls one `egobench <verb>`; the science lives in the package.
+# plus diagnose and (`snakemake sensitivity`) the sensitivity curves. Every rule calls one `egobench <verb>`; the science lives in the package.
 #
 #   snakemake --cores 2                                # the embedded default suite
 #   snakemake --cores 2 --configfile config/ci.yaml    # the CI smoke suite
@@ -39,7 +39,7 @@ RUN_START = time.time()  # on SLURM, this run's job logs are those written since
 
 
 wildcard_constraints:
-    scene="|".join(re.escape(s) for s in sorted(SUITE.scenes)),
+    scene="|".join(re.escape(s) for s in sorted(SUITE.all_scene_names())),
     method="|".join(re.escape(m) for m in SUITE.methods()),
     seed=r"\d+",
 
@@ -52,6 +52,7 @@ include: "workflows/evaluate.smk"
 include: "workflows/tables.smk"
 include: "workflows/plots.smk"
 include: "workflows/diagnose.smk"
+include: "workflows/sensitivity.smk"
 include: "workflows/similarity.smk"
 
 

@@ -21,6 +21,7 @@ VERBS: dict[str, tuple[str, str]] = {
     "diagnose": ("egobench.diagnose.cli", "find what a model gets wrong about measured data"),
     "bench": ("egobench.bench", "micro-benchmarks (rasterizer, training step)"),
     "motion-stats": ("egobench.sim.motion_stats", "compare simulated and real head-motion statistics"),
+    "sensitivity": ("egobench.sensitivity", "ablation ΔPSNR against the measured size of the effect it ignores"),
     "similarity": ("egobench.similarity", "measure the quantities that decide each paper finding on recordings"),
     "slurm-report": ("egobench.slurm_report", "SLURM jobs of a workflow run: rule, state, memory requested and used"),
 }

@@ -16,6 +16,8 @@ from typing import Any, Mapping
 
 import yaml
 
+from egobench import sensitivity_workflow
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SCHEMA_PATH = REPO_ROOT / "workflows" / "schemas" / "config.schema.yaml"
 #: SimConfig fields the workflow sets itself (from the scene entry), not through `sim:`.
@@ -78,6 +80,7 @@ def check_config(config: Mapping, schema: Mapping | None = None, check_sim: bool
                     messages.append(f"config.scenes[{i}].sim.{key}: set by the workflow from the scene entry "
                                     "(kind, sim_seed, name); remove it from sim")
     messages += _check_paper_scenes(config["scenes"]) + _check_aria_scenes(config)
+    messages += sensitivity_workflow.check_config(config)
     diag = config.get("diagnose") or {}
     for i, name in enumerate(diag.get("scenes") or []):
         if name not in names:
@@ -258,24 +261,10 @@ class Suite:
         self.name: str = config["suite"]
         self.root = f"{config.get('results_dir', 'results').rstrip('/')}/{self.name}"
         d = config.get("defaults") or {}
-        self.scenes: dict[str, Scene] = {}
-        for s in config["scenes"]:
-            self.scenes[s["name"]] = Scene(
-                name=s["name"],
-                kind=s.get("kind"),
-                paper_scene=s.get("paper_scene"),
-                sim_seed=int(s.get("sim_seed", 0)),
-                seeds=tuple(s.get("seeds") or d.get("seeds") or [0]),
-                methods=tuple(s["methods"]),
-                iterations=int(s.get("iterations") or d.get("iterations") or 2000),
-                preset=s.get("preset") or d.get("preset") or "cpu",
-                sim={**(d.get("sim") or {}), **(s.get("sim") or {})},
-                train={**(d.get("train") or {}), **(s.get("train") or {})},
-                aria=aria_inputs(s, config.get("aria_root")),
-                vignette=s.get("vignette"),
-                focal=float(s.get("focal", 1200)),
-                size=int(s.get("size", 2400)),
-            )
+        self.scenes: dict[str, Scene] = {s["name"]: self._entry(s, d) for s in config["scenes"]}
+        # `snakemake sensitivity` recordings (egobench.sensitivity_workflow): not part of `all`
+        self.sensitivity_scenes: dict[str, Scene] = {s["name"]: self._entry(s, d)
+                                                     for s in sensitivity_workflow.scenes(config)}
         diag = config.get("diagnose") or {}
         self.diagnose_jobs = [(s, m) for s in diag.get("scenes", []) for m in diag.get("methods", ["ours"])]
         self.diagnose_source: str = diag.get("source", "run")
@@ -288,6 +277,26 @@ class Suite:
         self.motion_stats = bool(ms.get("enabled", False))
         self.motion_stats_kind: str = ms.get("kind", "indoor")
         self.motion_stats_real: str | None = ms.get("real_trajectory")
+
+    def _entry(self, s: Mapping, d: Mapping) -> Scene:
+        """One scene entry with the suite defaults ``d`` applied."""
+        config = self.config
+        return Scene(
+            name=s["name"],
+            kind=s.get("kind"),
+            paper_scene=s.get("paper_scene"),
+            sim_seed=int(s.get("sim_seed", 0)),
+            seeds=tuple(s.get("seeds") or d.get("seeds") or [0]),
+            methods=tuple(s["methods"]),
+            iterations=int(s.get("iterations") or d.get("iterations") or 2000),
+            preset=s.get("preset") or d.get("preset") or "cpu",
+            sim={**(d.get("sim") or {}), **(s.get("sim") or {})},
+            train={**(d.get("train") or {}), **(s.get("train") or {})},
+            aria=aria_inputs(s, config.get("aria_root")),
+            vignette=s.get("vignette"),
+            focal=float(s.get("focal", 1200)),
+            size=int(s.get("size", 2400)),
+        )
 
     # ---- paths -----------------------------------------------------------------------------
     def recording_dir(self, scene: str) -> str:
@@ -307,10 +316,40 @@ class Suite:
         return [f"{self.root}/diagnosis/{s}/{m}" for s, m in self.diagnose_jobs]
 
     def methods(self) -> list[str]:
-        return sorted({m for s in self.scenes.values() for m in s.methods} | {m for _, m in self.diagnose_jobs})
+        every = [*self.scenes.values(), *self.sensitivity_scenes.values()]
+        return sorted({m for s in every for m in s.methods} | {m for _, m in self.diagnose_jobs})
+
+    def all_scene_names(self) -> list[str]:
+        """The suite's scenes and the sensitivity sweep's recordings (the scene wildcard's values)."""
+        return [*self.scenes, *self.sensitivity_scenes]
+
+    # ---- `snakemake sensitivity` (egobench.sensitivity_workflow) ---------------------------
+    def sensitivity_records(self) -> list[str]:
+        """eval.json of every sweep run ('ours' and the ablation, every seed, every swept value)."""
+        return [f"{self.run_dir(s.name, m, seed)}/eval.json"
+                for s in self.sensitivity_scenes.values() for m in s.methods for seed in s.seeds]
+
+    def sensitivity_similarity(self) -> list[str]:
+        return [sensitivity_workflow.similarity_path(self.root, s) for s in self.sensitivity_scenes]
+
+    def sensitivity_outputs(self) -> list[str]:
+        """Targets of `snakemake sensitivity`; first checks every sweep's SimConfig (ConfigError)."""
+        if not self.sensitivity_scenes:
+            raise ConfigError("config.sensitivity: no ablations configured; `snakemake sensitivity` needs "
+                              "a sensitivity block (see config/config.yaml)")
+        try:
+            sensitivity_workflow.check_sims(self.config)
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from exc
+        return sensitivity_workflow.output_files(self.root)
+
+    def sensitivity_args(self) -> str:
+        return sensitivity_workflow.verb_args(self.config)
 
     # ---- verb arguments --------------------------------------------------------------------
     def _scene(self, scene: str) -> Scene:
+        if scene in self.sensitivity_scenes:
+            return self.sensitivity_scenes[scene]
         if scene not in self.scenes:
             raise ConfigError(f"scene {scene!r} is not in suite {self.name!r} ({', '.join(self.scenes)})")
         return self.scenes[scene]
@@ -323,7 +362,7 @@ class Suite:
         return "|".join(re.escape(n) for n in sorted(names)) or "(?!x)x"
 
     def simulated_scenes(self) -> list[str]:
-        return [s.name for s in self.scenes.values() if s.aria is None]
+        return [s.name for s in self.scenes.values() if s.aria is None] + list(self.sensitivity_scenes)
 
     def aria_scenes(self) -> list[str]:
         return [s.name for s in self.scenes.values() if s.aria is not None]

@@ -27,3 +27,11 @@ def all_outputs():
     if SUITE.motion_stats:
         out.append(f"{R}/motion_stats/motion_stats.json")
     return out
+
+
+def sensitivity_targets(wildcards):
+    """`snakemake sensitivity`'s targets; a sweep's bad SimConfig override fails here, naming its key."""
+    try:
+        return SUITE.sensitivity_outputs()
+    except wc.ConfigError as exc:
+        raise WorkflowError(str(exc))
