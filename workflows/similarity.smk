@@ -9,6 +9,8 @@ rule similarity:
         json=f"{R}/similarity/similarity.json",
         csv=f"{R}/similarity/similarity.csv",
         table=f"{R}/similarity/similarity.md",
+    conda:
+        "envs/egobench.yaml"
     log:
         f"{R}/logs/similarity.log",
     threads: res("similarity", "threads")
