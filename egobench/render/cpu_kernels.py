@@ -695,17 +695,23 @@ def _trim_rows_composited(ra, rb, k, row_last):
 
 
 @njit(cache=True, inline="always")
+def _tile_base(centres, x0, y0, ts, cw, kc):
+    """Tile state every pass uses: T [P] and last [P] int32 (zeros), pixel centres cxt, cyt [P]."""
+    P = ts * ts
+    cxt = np.empty(P, kc.dtype)
+    cyt = np.empty(P, kc.dtype)
+    _tile_centres(centres, x0, y0, ts, cw, cxt, cyt)
+    return np.zeros(P, kc.dtype), np.zeros(P, np.int32), cxt, cyt  # int32 last: as many SIMD lanes as float32
+
+
+@njit(cache=True, inline="always")
 def _tile_state_fwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, Cf, kc, centres):
     """Per-tile state of the forward (compute dtype, `_state_index` layout) -> (T [P] (1 at the pixels
     whose view is i), acc [Cf, P], last [P] int32, pixel centres cxt, cyt [P], weights wbuf [P],
     stop flags sbuf [P] int32, row_active [ts] pixels still compositing per row, their number)."""
     P = ts * ts
-    T = np.zeros(P, kc.dtype)
+    T, last, cxt, cyt = _tile_base(centres, x0, y0, ts, cw, kc)
     acc = np.zeros((Cf, P), kc.dtype)
-    last = np.zeros(P, np.int32)  # int32: as many SIMD lanes as float32
-    cxt = np.empty(P, kc.dtype)
-    cyt = np.empty(P, kc.dtype)
-    _tile_centres(centres, x0, y0, ts, cw, cxt, cyt)
     wbuf = np.empty(P, kc.dtype)
     sbuf = np.zeros(P, np.int32)  # 1 where the last Gaussian stopped the pixel
     row_active = np.zeros(ts, np.int64)
@@ -728,14 +734,10 @@ def _tile_state_bwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, Cf, kc, centres, out
     gTT, suffix, gF [Cf, P], last, cxt, cyt, ebuf, wbuf, gf [Cf], row_last [ts], one past the last
     intersection to visit)."""
     P = ts * ts
-    T = np.zeros(P, kc.dtype)
+    T, last, cxt, cyt = _tile_base(centres, x0, y0, ts, cw, kc)
     gTT = np.zeros(P, kc.dtype)
     suffix = np.zeros(P, kc.dtype)
     gF = np.zeros((Cf, P), kc.dtype)
-    last = np.zeros(P, np.int32)  # int32: as many SIMD lanes as float32
-    cxt = np.empty(P, kc.dtype)
-    cyt = np.empty(P, kc.dtype)
-    _tile_centres(centres, x0, y0, ts, cw, cxt, cyt)
     row_last = np.zeros(ts, np.int64)  # one past the last composited intersection, per tile row
     k_end = _start_tile_bwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, out_T, out_last, g_T, g_feat, T, gTT, last,
                             gF, row_last, k_begin)

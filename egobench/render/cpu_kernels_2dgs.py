@@ -9,24 +9,39 @@ relative to the tile centre as the torch backend), min(3D, 2D low-pass) exponent
 compositing rules, plus the depth distortion 2 sum_{j<k} w_j w_k (z_k - z_j). The tile loop, state
 layout, binning and gradient reduction are `cpu_kernels`' (see there for determinism and threads).
 
-Caching: numba's cache of this file is keyed on this file only; after editing a helper of
-`cpu_kernels.py` that these kernels inline, clear ``egobench/render/__pycache__/*.nbi`` (or touch
-this file) so that they are recompiled.
+Caching: numba keys the cache of these kernels on this file's modification time only, but they
+inline helpers of `cpu_kernels.py`; `_follow_helper_edits` (run at import) therefore touches this
+file when `cpu_kernels.py` is newer, so that an edited helper recompiles these kernels too.
 """
 
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
 from numba import njit, prange
 
+from egobench.render import cpu_kernels as ck
 from egobench.render.cpu_kernels import (CHUNK, EXTENT_SIGMAS, FASTMATH, SIGMA_ROW, _accumulate_features,
                                          _add_feature_grads, _add_rot_scale_grads, _add_view_and_mean_grads,
                                          _bin_tile, _camera_point, _composite_pixel, _exponent_grad, _feature_dot,
                                          _finish_tile_fwd, _normal_grad, _quat_grad, _retire_stopped, _rotmat,
                                          _tile_state_bwd, _tile_state_fwd, _trim_rows_active, _trim_rows_composited,
                                          _uncomposite_pixel)
+
+
+def _follow_helper_edits() -> None:
+    """Marks this file as changed (mtime) when cpu_kernels.py is newer: numba's cache would otherwise
+    keep kernels compiled with an older version of the helpers they inline. No-op where read-only."""
+    try:
+        if os.path.getmtime(ck.__file__) > os.path.getmtime(__file__):
+            os.utime(__file__)
+    except OSError:
+        pass
+
+
+_follow_helper_edits()
 
 FILTER_2D = 2.0  # 2D low-pass filter: exponent FILTER_2D |pixel - centre|^2 / 2 (gsplat's FILTER_INV_SQUARE)
 DEPTH_CH = 3  # feature channel holding the depth (colour 0-2, depth 3, normal 4-6)
