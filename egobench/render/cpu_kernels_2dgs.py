@@ -374,8 +374,9 @@ def raster_bwd_2dgs(means2d, tsl, log_opac, feats, flat_ids, bin_start, bins, pi
     for jb in prange(bins.shape[0]):
         b = bins[jb]
         i, o, x0, y0, x1, y1 = _bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout)
-        T, gTT, suffix, gF, last, cxt, cyt, ebuf, wbuf, gf, row_last, k_end = _tile_state_bwd(
+        T, gTT, suffix, gF, last, cxt, cyt, ebuf, wbuf, _, row_last, k_end = _tile_state_bwd(
             pix_view, o, i, x0, y0, x1, y1, ts, cw, Cf + 2, kc, centres, out_T, out_last, g_T, g_state, bin_start[b])
+        gf = np.empty(Cf, kc.dtype)  # feature gradients only (gF's last two rows are distortion state)
         lxt, lyt, ox, oy = _tile_local(cxt, cyt, x0, y0, ts)
         w_after = np.zeros_like(T)  # sum of w_j over the later j
         z_after = np.zeros_like(T)  # sum of w_j z_j over the later j
