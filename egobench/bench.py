@@ -144,16 +144,17 @@ def _time_backends(g, cam, T, w, backends, tile_size, device, repeats, **kw) -> 
 
 def bench_raster(device: str = "cpu", repeats: int = 7, backend: str = "auto", tile_size: int | None = None,
                  cases: tuple[tuple, ...] = RASTER_CASES, backends: tuple[str, ...] | None = None,
-                 scaling_threads: tuple[int, ...] = (1, 2)) -> dict:
+                 scaling_threads: tuple[int, ...] = (1, 2), mode: str = "3dgs") -> dict:
     """The rasterizer benchmark record (see module docstring). Every case is timed for each backend
     (top-level timings: the first); the first backend's thread scaling (CPU) and the rolling-shutter
-    comparison use the last case's scene. tile_size None: each backend's default."""
+    comparison use the last case's scene. tile_size None: each backend's default. mode: "3dgs" or
+    "2dgs" (the same scenes rendered as surfels: the first two scales are the surfel's axes)."""
     from egobench.render import render
 
     backends = tuple(backends or default_backends(backend, device))
     result: dict = {
         "benchmark": "raster", "torch": torch.__version__, "threads": torch.get_num_threads(), "device": device,
-        "backend": backends[0], "backends": list(backends), "tile_size": tile_size, "cases": [],
+        "backend": backends[0], "backends": list(backends), "tile_size": tile_size, "mode": mode, "cases": [],
         "note": "wall time of forward+backward (colour and depth losses), median of repeats after 2 warm-up runs "
                 "(cpu_median_ms: process CPU time, all threads); noisy on a shared machine",
     }
@@ -164,12 +165,12 @@ def bench_raster(device: str = "cpu", repeats: int = 7, backend: str = "auto", t
         g = bench_scene(spec, device)
         w = torch.randn(1, spec.width, spec.width, 3, generator=torch.Generator().manual_seed(1)).to(device)
         with torch.no_grad():
-            probe = render(g, cam, T, backend=backends[0], tile_size=tile_size)
+            probe = render(g, cam, T, backend=backends[0], tile_size=tile_size, mode=mode)
         r = probe.radii[probe.radii > 0].float()
         case = {"image": f"{spec.width}x{spec.width}", "scene": asdict(spec),
                 "visible_gaussians": int(r.numel()), "mean_screen_radius_px": round(float(r.mean()), 2),
                 "mean_alpha": round(float(probe.alpha.mean()), 3)}
-        timed = _time_backends(g, cam, T, w, backends, tile_size, device, repeats)
+        timed = _time_backends(g, cam, T, w, backends, tile_size, device, repeats, mode=mode)
         case.update(timed[backends[0]])
         case["by_backend"] = timed
         if len(backends) > 1:
@@ -182,8 +183,8 @@ def bench_raster(device: str = "cpu", repeats: int = 7, backend: str = "auto", t
         try:
             for n_threads in scaling_threads:
                 torch.set_num_threads(n_threads)
-                scaling[str(n_threads)] = time_fwd_bwd(_step(g, cam, T, w, backend=backends[0], tile_size=tile_size),
-                                                       device, repeats)
+                scaling[str(n_threads)] = time_fwd_bwd(_step(g, cam, T, w, backend=backends[0], tile_size=tile_size,
+                                                             mode=mode), device, repeats)
         finally:
             torch.set_num_threads(before)
         result["thread_scaling"] = {"backend": backends[0], "image": case["image"],
@@ -194,9 +195,10 @@ def bench_raster(device: str = "cpu", repeats: int = 7, backend: str = "auto", t
     Ts = rolling_shutter_poses(K, readout_s, speed, device)
     idx = row_index_image(K, cam.height, cam.width, device)
     b0 = backends[0]
-    gs = time_fwd_bwd(_step(g, cam, Ts[K // 2], w, backend=b0, tile_size=tile_size), device, repeats)
-    rs = time_fwd_bwd(_step(g, cam, Ts, w, backend=b0, tile_size=tile_size, pixel_pose_index=idx), device, repeats)
-    ref = time_fwd_bwd(_step(g, cam, Ts, w[:1].expand(K, -1, -1, -1), backend=b0, tile_size=tile_size),
+    gs = time_fwd_bwd(_step(g, cam, Ts[K // 2], w, backend=b0, tile_size=tile_size, mode=mode), device, repeats)
+    rs = time_fwd_bwd(_step(g, cam, Ts, w, backend=b0, tile_size=tile_size, pixel_pose_index=idx, mode=mode), device,
+                      repeats)
+    ref = time_fwd_bwd(_step(g, cam, Ts, w[:1].expand(K, -1, -1, -1), backend=b0, tile_size=tile_size, mode=mode),
                        device, max(1, repeats // 2), warmup=1)
     result["rolling_shutter"] = {
         "backend": b0, "image": f"{cam.width}x{cam.height}", "pose_samples": K, "readout_s": readout_s,
@@ -209,7 +211,8 @@ def bench_raster(device: str = "cpu", repeats: int = 7, backend: str = "auto", t
 
 
 def bench_train(device: str = "cpu", backend: str = "auto", sides: tuple[int, ...] = (64, 128),
-                iterations: int = 30, recording: str | None = None, n_points: int = 4000) -> dict:
+                iterations: int = 30, recording: str | None = None, n_points: int = 4000,
+                methods: tuple[str, ...] = ("no_motion_sampling", "ours")) -> dict:
     """The training benchmark record: one row per (resolution, method) with iterations/s, the
     rasterizer's share of the step time, the Gaussian count and peak memory (CUDA: the allocator's
     peak for that run; CPU: the process's max RSS so far). No densification (refine_start_frac=1),
@@ -218,15 +221,19 @@ def bench_train(device: str = "cpu", backend: str = "auto", sides: tuple[int, ..
     import tempfile
     from pathlib import Path
 
+    from egobench.methods import get_method
     from egobench.sim.plane import plane_recording
     from egobench.train import TrainConfig, train
+
+    for method in methods:
+        get_method(method)  # an unknown name fails before any work
 
     results = []
     with tempfile.TemporaryDirectory() as tmp:
         for side in sides:
             rec = recording or plane_recording(Path(tmp) / f"rec{side}", size=side, n_frames=17, angular_speed_rad_s=6.0,
                                              frame_interval_s=0.01, n_points=n_points)
-            for method in ("no_motion_sampling", "ours"):
+            for method in methods:
                 cfg = TrainConfig(iterations=iterations, max_side=side, device=device, backend=backend,
                                   motion_warmup_frac=0.0, refine_start_frac=1.0)
                 if device.startswith("cuda"):
@@ -237,7 +244,8 @@ def bench_train(device: str = "cpu", backend: str = "auto", sides: tuple[int, ..
                 else:
                     peak, kind = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, "process max RSS (cumulative)"
                 results.append({
-                    "method": method, "motion_sampling": method == "ours", "resolution": side,
+                    "method": method, "motion_sampling": get_method(method).motion_sampling == "adaptive",
+                    "splat_mode": get_method(method).splat_mode, "resolution": side,
                     "iterations": iterations, "iters_per_s": round(res.iters_per_s, 3),
                     "raster_time_share": round(res.raster_time_share, 3), "num_gaussians": res.num_gaussians,
                     "pose_samples_mean": res.record["motion_samples"]["mean"],
@@ -283,6 +291,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--tile-size", type=int, default=None,
                         help="tile size in pixels (default: each backend's, see egobench.render.render)")
     parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
+    parser.add_argument("--mode", choices=["3dgs", "2dgs"], default="3dgs", help="raster benchmark: splat type")
     train = parser.add_argument_group("train benchmark")
     train.add_argument("--resolution", type=int, action="append",
                        help="training image side in pixels (repeatable; default 64 and 128; paper: 2400)")
@@ -290,6 +299,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     train.add_argument("--points", type=int, default=4000,
                        help="initial Gaussians of the synthetic recording (kept: no densification)")
     train.add_argument("--recording", default=None, help="a recording folder instead of the synthetic one")
+    train.add_argument("--method", action="append",
+                       help="method to train (repeatable; default no_motion_sampling and ours; e.g. ours_2dgs)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -303,8 +314,8 @@ def run(args: argparse.Namespace) -> int:
     chosen = chosen or ["auto"]
     if args.what == "raster":
         backends = default_backends(chosen[0], args.device) if len(chosen) == 1 else tuple(chosen)
-        print(json.dumps(bench_raster(args.device, args.repeats, chosen[0], args.tile_size, backends=backends),
-                         indent=2))
+        print(json.dumps(bench_raster(args.device, args.repeats, chosen[0], args.tile_size, backends=backends,
+                                      mode=args.mode), indent=2))
         return 0
     if args.what == "cast":
         print(json.dumps(bench_cast(args.device, args.repeats), indent=2))
@@ -315,6 +326,7 @@ def run(args: argparse.Namespace) -> int:
     sides = tuple(args.resolution or (64, 128))
     if min(sides) < 8:
         raise ValueError(f"--resolution: expected at least 8 pixels, got {min(sides)}")
-    print(json.dumps(bench_train(args.device, chosen[0], sides, args.iterations, args.recording, args.points),
-                     indent=2))
+    methods = tuple(args.method or ("no_motion_sampling", "ours"))
+    print(json.dumps(bench_train(args.device, chosen[0], sides, args.iterations, args.recording, args.points,
+                                 methods), indent=2))
     return 0

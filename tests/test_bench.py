@@ -59,6 +59,19 @@ def test_bench_raster_compares_backends_and_threads():
     assert set(rec["thread_scaling"]["by_threads"]) == {"1", "2"} and rec["rolling_shutter"]["backend"] == "cpu"
 
 
+def test_bench_raster_2dgs_renders_surfels():
+    """--mode 2dgs times the same scenes as surfels (a different image than 3DGS) on both backends."""
+    kw = dict(repeats=1, cases=((16, 40, 2.5),), scaling_threads=())
+    rec2, rec3 = bench.bench_raster("cpu", mode="2dgs", **kw), bench.bench_raster("cpu", **kw)
+    assert rec2["mode"] == "2dgs" and set(rec2["cases"][0]["by_backend"]) == {"cpu", "torch"}
+    assert rec2["cases"][0]["mean_alpha"] != rec3["cases"][0]["mean_alpha"]
+
+
+def test_bench_train_rejects_unknown_method():
+    with pytest.raises(ValueError, match="unknown method 'nope'"):
+        bench.bench_train("cpu", sides=(16,), iterations=1, methods=("nope",))
+
+
 def test_bench_cli_rejects_bad_repeats():
     args = argparse.Namespace(what="raster", device="cpu", repeats=0, backend="torch", tile_size=8, threads=0)
     with pytest.raises(ValueError, match="--repeats"):

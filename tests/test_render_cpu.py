@@ -172,16 +172,6 @@ def test_deterministic_across_runs_and_threads():
             assert torch.equal(results[0][1][k], other[1][k]), k
 
 
-def test_2dgs_is_handed_to_torch_backend_explicitly():
-    g = make_scene(40, CAM, 9)
-    T = pose(0.01, 0.02)
-    a = render(g, CAM, T, mode="2dgs", backend="cpu", tile_size=8)
-    b = render(g, CAM, T, mode="2dgs", backend="torch", tile_size=8)
-    assert a.extras["backend"] == "torch" and "2DGS" in a.extras["cpu_fallback"]
-    torch.testing.assert_close(a.rgb, b.rgb, atol=0, rtol=0)
-    torch.testing.assert_close(a.extras["distortion"], b.extras["distortion"], atol=0, rtol=0)
-
-
 def test_other_dtypes_are_handed_to_torch_backend_explicitly():
     g = Gaussians(**{k: v.to(torch.bfloat16) for k, v in make_scene(20, CAM, 2).tensors().items()})
     a = render(g, CAM, pose(), backend="cpu")

@@ -2,7 +2,7 @@
 
 Backends: ``torch`` (egobench/render/torch_backend.py, pure torch, CPU or CUDA, gsplat 1.5.3
 semantics: the oracle), ``gsplat`` (gsplat 1.5.3 CUDA kernels, egobench/render/gsplat_backend.py)
-and ``cpu`` (compiled numba kernels, egobench/render/cpu_backend.py; 3DGS, 2DGS calls go to torch).
+and ``cpu`` (compiled numba kernels, egobench/render/cpu_backend.py; 3DGS and 2DGS).
 ``backend="auto"`` picks gsplat when the inputs are on CUDA and gsplat's CUDA extension loads, and
 cpu for CPU tensors when numba loads (else torch, with a one-line reason on stderr).
 """
@@ -144,8 +144,8 @@ def render(
     ``tile_size`` does not change 3DGS results (the opacity-aware radius bounds every pixel with
     alpha >= 1/255). None picks the fastest measured size: 16 on CUDA (gsplat's), 4 for the torch
     backend on CPU (about 2x faster there than 16), 16 for the compiled cpu backend.
-    The cpu backend renders 3DGS only; for 2DGS it hands the call to the torch backend and says so
-    in ``extras["cpu_fallback"]``.
+    The cpu backend renders float32 and float64; for other dtypes it hands the call to the torch
+    backend and says so in ``extras["cpu_fallback"]``.
     """
     if mode not in ("3dgs", "2dgs"):
         raise ValueError(f"render: mode must be '3dgs' or '2dgs', got {mode!r}")
@@ -175,7 +175,7 @@ def render(
 
         return cpu_backend.render_cpu(gaussians, camera, viewmats, pixel_pose_index=pixel_pose_index,
                                       background=background, want_normal=want_normal, tile_size=tile_size,
-                                      absgrad=absgrad)
+                                      absgrad=absgrad, mode=mode)
     from egobench.render import torch_backend
 
     res = torch_backend.rasterize(

@@ -4,10 +4,10 @@ semantics (checked against the torch backend in tests/test_render_cpu.py).
 
 Supported: 3DGS colour, alpha, depth, normals (``want_normal``), means2d (densification carrier,
 ``absgrad``), radii, rolling shutter (``pixel_pose_index`` with K pose samples), gradients of
-every Gaussian parameter and of the poses. Not supported: 2DGS (surfel intersection and
-distortion kernels are not written yet) and dtypes other than float32/float64: `unsupported_reason`
-says so and `render` then uses the torch backend for that call, recording the reason in
-``extras["cpu_fallback"]``.
+every Gaussian parameter and of the poses; 2DGS likewise plus the distortion map and gsplat's
+``gradient_2dgs`` carrier (egobench/render/cpu_backend_2dgs.py). Not supported: dtypes other than
+float32/float64: `unsupported_reason` says so and `render` then uses the torch backend for that
+call, recording the reason in ``extras["cpu_fallback"]``.
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ from __future__ import annotations
 import functools
 import math
 import sys
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -48,8 +49,8 @@ def warn_fallback(reason: str) -> None:
 
 def unsupported_reason(mode: str, dtype: torch.dtype = torch.float32) -> str | None:
     """Why this backend cannot render a call (None: it can)."""
-    if mode != "3dgs":
-        return "2DGS is not implemented in the compiled CPU backend yet"
+    if mode not in ("3dgs", "2dgs"):
+        return f"the compiled CPU backend renders modes '3dgs' and '2dgs', not {mode!r}"
     if dtype not in (torch.float32, torch.float64):
         return f"the compiled CPU backend renders float32 and float64, not {dtype}"
     return None
@@ -64,6 +65,80 @@ def _set_threads() -> None:
     import numba
 
     numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
+
+
+def _pose_grad(gv_parts: np.ndarray, dt: torch.dtype) -> Tensor:
+    """Per-chunk partial dL/d viewmat[:3, :4] [chunks, I, 12] -> dL/d viewmats [I, 4, 4], summed in
+    chunk order (deterministic for any thread count)."""
+    part = gv_parts[0].copy()
+    for c in range(1, gv_parts.shape[0]):
+        part += gv_parts[c]
+    gv = torch.zeros(gv_parts.shape[1], 4, 4, dtype=dt)
+    gv[:, :3, :] = torch.from_numpy(part.reshape(-1, 3, 4)).to(dt)
+    return gv
+
+
+@dataclass
+class RasterSetup:
+    """Binning and kernel inputs shared by the 3DGS and 2DGS rasterization functions."""
+
+    flat_ids: np.ndarray  # [M] int64 image * N + Gaussian, sorted by (bin, depth)
+    bin_start: np.ndarray  # [I * tiles + 1] int64
+    bins: np.ndarray  # [NB] int64 bins to render
+    feats: np.ndarray  # [I * N, Cf] colour, depth (, normal)
+    tiles_x: int
+    cw: int  # `cpu_kernels.column_group`
+    kc: np.ndarray  # `cpu_kernels.compute_constants`
+    centres: np.ndarray  # pixel centres (index + 0.5), compute dtype
+
+
+def raster_setup(means2d: Tensor, radii: Tensor, depths: Tensor, colors: Tensor, normals: Tensor,
+                 pix_view: np.ndarray, bin_needed: np.ndarray, tile_size: int) -> RasterSetup:
+    """means2d [I,N,2] (gsplat pixels), radii [I,N,2], depths [I,N], colors [N,3], normals [I,N,3] or
+    [I,0,3]; pix_view [Iout,H,W]; bin_needed [I, tiles] -> intersections and kernel constants."""
+    from egobench.render import cpu_kernels as ck
+
+    I, N = depths.shape
+    _, H, W = pix_view.shape
+    tiles_x, tiles_y = math.ceil(W / tile_size), math.ceil(H / tile_size)
+    m2 = _np(means2d)
+    flat_ids, bin_start = ck.bin_tiles(m2, _np(radii), _np(depths), tile_size, tiles_x, tiles_y, bin_needed)
+    if flat_ids.shape[0] >= 2**31 - 1:  # per-pixel indices are int32
+        raise ValueError(f"render(backend='cpu'): {flat_ids.shape[0]} tile intersections exceed 2^31 - 1; "
+                         "use a larger tile_size or backend='torch'")
+    bins = np.nonzero(bin_needed.reshape(-1))[0].astype(np.int64)
+    feats = torch.cat([colors.detach()[None].expand(I, N, 3), depths.detach()[..., None]]
+                      + ([normals.detach()] if normals.shape[1] else []), -1).reshape(I * N, -1)
+    centres = (np.arange(max(W, H) + tile_size) + 0.5).astype(m2.dtype)
+    return RasterSetup(flat_ids, bin_start, bins, _np(feats), tiles_x, ck.column_group(tile_size),
+                       ck.compute_constants(m2.dtype), centres)
+
+
+def reduce_intersections(isect: np.ndarray, flat_ids: np.ndarray, I: int, N: int, dt: torch.dtype,
+                         absgrad_holder: list | None) -> Tensor:
+    """Per-intersection gradient rows [M, C] -> per (image, Gaussian) sums [I, N, C] (intersection
+    order); sets absgrad_holder[0].absgrad [I, N, 2] (sum of |row[:2]|) when a holder is given."""
+    from egobench.render import cpu_kernels as ck
+
+    absg = np.zeros((I * N, 2))
+    per = ck.reduce_isect_grad(isect, flat_ids, flat_ids.shape[0], I * N, absg)
+    if absgrad_holder is not None:  # gsplat's absgrad attribute
+        absgrad_holder[0].absgrad = torch.from_numpy(absg).reshape(I, N, 2).to(dt)
+    return torch.from_numpy(per).reshape(I, N, isect.shape[1]).to(dt)
+
+
+def pixel_views(pixel_pose_index: Tensor | None, I: int, H: int, W: int, ts: int) -> tuple[np.ndarray, np.ndarray]:
+    """-> (pix_view [Iout, H, W] int64: the image (pose) each output pixel is composited under,
+    bin_needed [I, tiles] bool: the (image, tile) bins some output pixel reads)."""
+    tiles_x, tiles_y = math.ceil(W / ts), math.ceil(H / ts)
+    if pixel_pose_index is None:
+        pix_view = np.ascontiguousarray(np.broadcast_to(np.arange(I, dtype=np.int64)[:, None, None], (I, H, W)))
+        return pix_view, np.ones((I, tiles_y * tiles_x), dtype=np.bool_)
+    ppi = pixel_pose_index.detach().cpu().long().numpy()
+    tile_of = (np.arange(H)[:, None] // ts) * tiles_x + (np.arange(W)[None, :] // ts)
+    bin_needed = np.zeros((I, tiles_y * tiles_x), dtype=np.bool_)
+    bin_needed[ppi.reshape(-1), np.broadcast_to(tile_of, (H, W)).reshape(-1)] = True
+    return np.ascontiguousarray(ppi[None]), bin_needed
 
 
 class _Project(torch.autograd.Function):
@@ -112,13 +187,7 @@ class _Project(torch.autograd.Function):
                        _np(scales).astype(np.float64), _np(viewmats).astype(np.float64), cam, width, height,
                        EPS2D, NEAR_PLANE, FAR_PLANE, want_normal, g_m2, g_con, g_dep, g_nrm, gm, gq, gs, gv_parts)
         dt = means.dtype
-        gv = None
-        if ctx.needs_input_grad[3]:
-            part = gv_parts[0].copy()
-            for c in range(1, n_chunks):  # fixed order: deterministic for any thread count
-                part += gv_parts[c]
-            gv = torch.zeros(I, 4, 4, dtype=dt)
-            gv[:, :3, :] = torch.from_numpy(part.reshape(I, 3, 4)).to(dt)
+        gv = _pose_grad(gv_parts, dt) if ctx.needs_input_grad[3] else None
         return (torch.from_numpy(gm).to(dt), torch.from_numpy(gq).to(dt), torch.from_numpy(gs).to(dt), gv,
                 None, None, None, None, None)
 
@@ -134,92 +203,81 @@ class _Rasterize(torch.autograd.Function):
 
         I, N = depths.shape
         Iout, H, W = pix_view.shape
-        tiles_x, tiles_y = math.ceil(W / tile_size), math.ceil(H / tile_size)
-        m2, con, rad = _np(means2d), _np(conics), _np(radii)
-        flat_ids, bin_start = ck.bin_tiles(m2, rad, _np(depths), tile_size, tiles_x, tiles_y, bin_needed)
-        if flat_ids.shape[0] >= 2**31 - 1:  # per-pixel indices are int32
-            raise ValueError(f"render(backend='cpu'): {flat_ids.shape[0]} tile intersections exceed 2^31 - 1; "
-                             "use a larger tile_size or backend='torch'")
-        bins = np.nonzero(bin_needed.reshape(-1))[0].astype(np.int64)
-        feats = torch.cat([colors.detach()[None].expand(I, N, 3), depths.detach()[..., None]]
-                          + ([normals.detach()] if normals.shape[1] else []), -1).reshape(I * N, -1)
-        feats_np = _np(feats)
-        Cf = feats_np.shape[1]
+        st = raster_setup(means2d, radii, depths, colors, normals, pix_view, bin_needed, tile_size)
+        m2, con, rad, lo = _np(means2d), _np(conics), _np(radii), _np(log_opac)
+        Cf = st.feats.shape[1]
         out_feat = np.zeros((Iout, H, W, Cf), dtype=m2.dtype)
         out_T = np.zeros((Iout, H, W), dtype=m2.dtype)
         out_last = np.zeros((Iout, H, W), dtype=np.int32)
-        lo = _np(log_opac)
-        kc = ck.compute_constants(m2.dtype)
-        centres = (np.arange(max(W, H) + tile_size) + 0.5).astype(m2.dtype)
         _set_threads()
-        cw = ck.column_group(tile_size)
-        ck.raster_fwd(m2, con, rad, lo, feats_np, flat_ids, bin_start, bins, pix_view, tile_size, tiles_x,
-                      cw, kc, centres, out_feat, out_T, out_last)
-        ctx.state = (m2, con, rad, lo, feats_np, flat_ids, bin_start, bins, pix_view, tile_size, tiles_x,
-                     cw, kc, centres, out_T, out_last, absgrad_target)
+        ck.raster_fwd(m2, con, rad, lo, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, tile_size,
+                      st.tiles_x, st.cw, st.kc, st.centres, out_feat, out_T, out_last)
+        ctx.state = (m2, con, rad, lo, st, pix_view, tile_size, out_T, out_last, absgrad_target)
         ctx.has_normals = bool(normals.shape[1])
         ctx.shapes = (I, N, colors.dtype)
-        ctx.n_isect = int(flat_ids.shape[0])
         return torch.from_numpy(out_feat), torch.from_numpy(out_T)
 
     @staticmethod
     def backward(ctx, g_feat, g_T):
         from egobench.render import cpu_kernels as ck
 
-        (m2, con, rad, lo, feats, flat_ids, bin_start, bins, pix_view, ts, tiles_x, cw, kc, centres, out_T, out_last,
-         ab) = ctx.state
+        m2, con, rad, lo, st, pix_view, ts, out_T, out_last, ab = ctx.state
         I, N, dt = ctx.shapes
-        Cf = feats.shape[1]
+        Cf = st.feats.shape[1]
         gF = np.zeros(out_T.shape + (Cf,), out_T.dtype) if g_feat is None else _np(g_feat)
         gT = np.zeros(out_T.shape, out_T.dtype) if g_T is None else _np(g_T)
-        isect = np.zeros((flat_ids.shape[0], 6 + Cf), kc.dtype)
+        isect = np.zeros((st.flat_ids.shape[0], 6 + Cf), st.kc.dtype)
         _set_threads()
-        ck.raster_bwd(m2, con, rad, lo, feats, flat_ids, bin_start, bins, pix_view, ts, tiles_x, cw, kc, centres,
-                      out_T, out_last, gF, gT, isect)
-        absg = np.zeros((I * N, 2))
-        per = ck.reduce_isect_grad(isect, flat_ids, flat_ids.shape[0], I * N, absg)
-        per = torch.from_numpy(per).reshape(I, N, 6 + Cf).to(dt)
-        if ab is not None:  # holder [means2d_out]: gsplat's absgrad attribute
-            ab[0].absgrad = torch.from_numpy(absg).reshape(I, N, 2).to(dt)
+        ck.raster_bwd(m2, con, rad, lo, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, ts, st.tiles_x, st.cw,
+                      st.kc, st.centres, out_T, out_last, gF, gT, isect)
+        per = reduce_intersections(isect, st.flat_ids, I, N, dt, ab)
         g_normals = per[..., 10:13] if ctx.has_normals else None
         return (per[..., 0:2], per[..., 2:5], per[..., 5].sum(0), per[..., 6:9].sum(0), per[..., 9],
                 g_normals, None, None, None, None, None)
 
 
 def render_cpu(gaussians: Gaussians, camera: Pinhole, viewmats: Tensor, *, pixel_pose_index: Tensor | None,
-               background: Tensor | None, want_normal: bool, tile_size: int, absgrad: bool) -> RenderOutput:
-    """3DGS render with the compiled kernels; same contract as the torch path of `render`.
-    viewmats [I, 4, 4] world-to-camera; pixel_pose_index [H, W] or None."""
+               background: Tensor | None, want_normal: bool, tile_size: int, absgrad: bool,
+               mode: str = "3dgs") -> RenderOutput:
+    """Render with the compiled kernels; same contract as the torch path of `render`.
+    viewmats [I, 4, 4] world-to-camera; pixel_pose_index [H, W] or None; mode "3dgs" or "2dgs"."""
+    if mode == "2dgs":
+        from egobench.render import cpu_backend_2dgs
+
+        return cpu_backend_2dgs.render_cpu_2dgs(gaussians, camera, viewmats, pixel_pose_index=pixel_pose_index,
+                                                background=background, tile_size=tile_size, absgrad=absgrad)
     means = gaussians.means
     H, W = camera.height, camera.width
     I = viewmats.shape[0]
-    cam = np.array([camera.fx, camera.fy, camera.cx + 0.5, camera.cy + 0.5], dtype=np.float64)
     log_opac = F.logsigmoid(gaussians.opacity_logits)
     m2g, conics, depths, normals, radii = _Project.apply(
-        means, gaussians.quats, gaussians.scales, viewmats, log_opac.detach().exp(), cam, W, H, bool(want_normal))
+        means, gaussians.quats, gaussians.scales, viewmats, log_opac.detach().exp(), camera_array(camera), W, H,
+        bool(want_normal))
     means2d_out = m2g - 0.5  # egobench pixel convention, retained for densification statistics
     if means2d_out.requires_grad:
         means2d_out.retain_grad()
     ts = int(tile_size)
-    tiles_x, tiles_y = math.ceil(W / ts), math.ceil(H / ts)
-    if pixel_pose_index is None:
-        pix_view = np.ascontiguousarray(np.broadcast_to(np.arange(I, dtype=np.int64)[:, None, None], (I, H, W)))
-        bin_needed = np.ones((I, tiles_y * tiles_x), dtype=np.bool_)
-    else:
-        ppi = pixel_pose_index.detach().cpu().long().numpy()
-        pix_view = np.ascontiguousarray(ppi[None])
-        tile_of = (np.arange(H)[:, None] // ts) * tiles_x + (np.arange(W)[None, :] // ts)
-        bin_needed = np.zeros((I, tiles_y * tiles_x), dtype=np.bool_)
-        bin_needed[ppi.reshape(-1), np.broadcast_to(tile_of, (H, W)).reshape(-1)] = True
+    pix_view, bin_needed = pixel_views(pixel_pose_index, I, H, W, ts)
     holder = [means2d_out] if absgrad and means2d_out.requires_grad else None
     feats, trans = _Rasterize.apply(means2d_out + 0.5, conics, log_opac, gaussians.colors, depths, normals, radii,
                                     pix_view, bin_needed, ts, holder)
+    rgb, alpha, depth = composite_output(feats, trans, background)
+    normal = feats[..., 4:7] if want_normal else None
+    return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, normal=normal, means2d=means2d_out,
+                        radii=radii.amax(-1), extras={"backend": "cpu", "tile_size": ts})
+
+
+def camera_array(camera: Pinhole) -> np.ndarray:
+    """(fx, fy, cx, cy) in gsplat's pixel convention (centres at +0.5), float64."""
+    return np.array([camera.fx, camera.fy, camera.cx + 0.5, camera.cy + 0.5], dtype=np.float64)
+
+
+def composite_output(feats: Tensor, trans: Tensor, background: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+    """features [Iout,H,W,Cf] (sum w (rgb, depth, ...)), transmittance [Iout,H,W] -> (rgb with the
+    background, alpha [..., 1], depth normalised by alpha [..., 1]), as the torch path of `render`."""
     trans = trans[..., None]
     alpha = 1.0 - trans
     rgb = feats[..., :3]
     if background is not None:
         rgb = rgb + trans * background
-    depth = feats[..., 3:4] / alpha.clamp(min=1e-10)
-    normal = feats[..., 4:7] if want_normal else None
-    return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, normal=normal, means2d=means2d_out,
-                        radii=radii.amax(-1), extras={"backend": "cpu", "tile_size": ts})
+    return rgb, alpha, feats[..., 3:4] / alpha.clamp(min=1e-10)

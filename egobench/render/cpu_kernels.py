@@ -694,6 +694,95 @@ def _trim_rows_composited(ra, rb, k, row_last):
     return ra, rb
 
 
+@njit(cache=True, inline="always")
+def _tile_base(centres, x0, y0, ts, cw, kc):
+    """Tile state every pass uses: T [P] and last [P] int32 (zeros), pixel centres cxt, cyt [P]."""
+    P = ts * ts
+    cxt = np.empty(P, kc.dtype)
+    cyt = np.empty(P, kc.dtype)
+    _tile_centres(centres, x0, y0, ts, cw, cxt, cyt)
+    return np.zeros(P, kc.dtype), np.zeros(P, np.int32), cxt, cyt  # int32 last: as many SIMD lanes as float32
+
+
+@njit(cache=True, inline="always")
+def _tile_state_fwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, Cf, kc, centres):
+    """Per-tile state of the forward (compute dtype, `_state_index` layout) -> (T [P] (1 at the pixels
+    whose view is i), acc [Cf, P], last [P] int32, pixel centres cxt, cyt [P], weights wbuf [P],
+    stop flags sbuf [P] int32, row_active [ts] pixels still compositing per row, their number)."""
+    P = ts * ts
+    T, last, cxt, cyt = _tile_base(centres, x0, y0, ts, cw, kc)
+    acc = np.zeros((Cf, P), kc.dtype)
+    wbuf = np.empty(P, kc.dtype)
+    sbuf = np.zeros(P, np.int32)  # 1 where the last Gaussian stopped the pixel
+    row_active = np.zeros(ts, np.int64)
+    n_active = _start_tile_fwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, kc[1], T, row_active)
+    return T, acc, last, cxt, cyt, wbuf, sbuf, row_active, n_active
+
+
+@njit(cache=True, inline="always", fastmath=FASTMATH)
+def _accumulate_features(acc, wbuf, feats, g, pa, pb):
+    """acc[c, p] += w[p] * feats[g, c] over state entries [pa, pb)."""
+    for c in range(feats.shape[1]):  # one loop per channel: an inner channel loop would stop the vectorizer
+        fc = feats[g, c]
+        for pp in range(pa, pb):
+            acc[c, np.uint64(pp)] += wbuf[np.uint64(pp)] * fc
+
+
+@njit(cache=True, inline="always")
+def _tile_state_bwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, Cf, kc, centres, out_T, out_last, g_T, g_feat, k_begin):
+    """Per-tile state of the backward, loaded from the forward's results (`_start_tile_bwd`) -> (T,
+    gTT, suffix, gF [Cf, P], last, cxt, cyt, ebuf, wbuf, gf [Cf], row_last [ts], one past the last
+    intersection to visit)."""
+    P = ts * ts
+    T, last, cxt, cyt = _tile_base(centres, x0, y0, ts, cw, kc)
+    gTT = np.zeros(P, kc.dtype)
+    suffix = np.zeros(P, kc.dtype)
+    gF = np.zeros((Cf, P), kc.dtype)
+    row_last = np.zeros(ts, np.int64)  # one past the last composited intersection, per tile row
+    k_end = _start_tile_bwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, out_T, out_last, g_T, g_feat, T, gTT, last,
+                            gF, row_last, k_begin)
+    return (T, gTT, suffix, gF, last, cxt, cyt, np.empty(P, kc.dtype), np.empty(P, kc.dtype), np.empty(Cf, kc.dtype),
+            row_last, k_end)
+
+
+@njit(cache=True, inline="always", fastmath=FASTMATH)
+def _composite_pixel(s, Tp, last_p, k1, kc):
+    """One front-to-back step at a pixel with transmittance Tp (> 0 while compositing, -T once
+    stopped, 0 for pixels of other views) and exponent s = sigma - log o: gsplat's rules (alpha =
+    min(0.999, exp(-s)), skip alpha <= 1/255, stop before T <= 1e-4) -> (weight w, new T, new
+    last (k1 if composited), stopped here). Branch-free (selects), so pixel loops vectorize."""
+    one, zero = kc[1], kc[3]
+    alpha = min(_exp_neg(s, kc), kc[2])
+    ok = (s <= kc[22]) & (alpha > kc[20]) & (Tp > zero)
+    T_next = Tp * (one - alpha)
+    stop = ok & (T_next <= kc[21])
+    comp = ok & (T_next > kc[21])
+    return (alpha * Tp if comp else zero), (T_next if comp else (-Tp if stop else Tp)), \
+        (k1 if comp else last_p), stop
+
+
+@njit(cache=True, inline="always", fastmath=FASTMATH)
+def _uncomposite_pixel(s, Tp, last_p, k32, kc):
+    """Back-to-front step of `raster_bwd`'s pixel loop: T before intersection k32 recovered by division
+    (as gsplat) -> (weight w (0 unless composited), T before, T_exc, alpha / (1 - alpha),
+    whether the exponent gets a gradient (composited and alpha below the clamp))."""
+    one, zero = kc[1], kc[3]
+    ex = _exp_neg(s, kc)
+    alpha = min(ex, kc[2])
+    ok = (s <= kc[22]) & (alpha > kc[20]) & (k32 < last_p)
+    inv_one_m = one / (one - alpha)
+    T_exc = Tp * inv_one_m
+    return (alpha * T_exc if ok else zero), (T_exc if ok else Tp), T_exc, alpha * inv_one_m, ok & (ex < kc[2])
+
+
+@njit(cache=True, inline="always", fastmath=FASTMATH)
+def _exponent_grad(e, w, a_ratio, live, sp, gTT_p, zero):
+    """dL/ds of a pair from e = dL/dw, the suffix sp = sum_{j>k} e_j w_j and dL/dT_final T_final:
+    -> (G, the suffix including this pair); G = 0 where the pair did not get a gradient."""
+    G = a_ratio * (sp + gTT_p) - e * w
+    return (G if live else zero), sp + e * w
+
+
 @njit(cache=True, parallel=True, fastmath=FASTMATH)
 def raster_fwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles_x,
                cw, kc, centres, out_feat, out_T, out_last):
@@ -711,22 +800,11 @@ def raster_fwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
     Cf = feats.shape[1]
     n_tiles = tiles_x * ((H + tile_size - 1) // tile_size)
     ts = tile_size
-    P = ts * ts
-    one, amax, zero = kc[1], kc[2], kc[3]
-    amin, tstop, sskip = kc[20], kc[21], kc[22]
     for jb in prange(bins.shape[0]):
         b = bins[jb]
         i, o, x0, y0, x1, y1 = _bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout)
-        T = np.zeros(P, kc.dtype)
-        acc = np.zeros((Cf, P), kc.dtype)
-        last = np.zeros(P, np.int32)  # int32: as many SIMD lanes as float32
-        cxt = np.empty(P, kc.dtype)
-        cyt = np.empty(P, kc.dtype)
-        _tile_centres(centres, x0, y0, ts, cw, cxt, cyt)
-        wbuf = np.empty(P, kc.dtype)
-        sbuf = np.zeros(P, np.int32)  # 1 where the last Gaussian stopped the pixel
-        row_active = np.zeros(ts, np.int64)  # pixels still compositing, per tile row
-        n_active = _start_tile_fwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, one, T, row_active)
+        T, acc, last, cxt, cyt, wbuf, sbuf, row_active, n_active = _tile_state_fwd(pix_view, o, i, x0, y0, x1, y1,
+                                                                                   ts, cw, Cf, kc, centres)
         for k in range(bin_start[b], bin_start[b + 1]):
             if n_active == 0:
                 break
@@ -746,21 +824,10 @@ def raster_fwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
                     dx = cxt[p] - mx
                     dy = cyt[p] - my
                     s = (hA * dx + B * dy) * dx + hC * dy * dy - lo
-                    alpha = min(_exp_neg(s, kc), amax)
-                    Tp = T[p]
-                    ok = (s <= sskip) & (alpha > amin) & (Tp > zero)
-                    T_next = Tp * (one - alpha)
-                    stop = ok & (T_next <= tstop)
-                    comp = ok & (T_next > tstop)
-                    wbuf[p] = alpha * Tp if comp else zero
-                    T[p] = T_next if comp else (-Tp if stop else Tp)
-                    last[p] = k1 if comp else last[p]
+                    wbuf[p], T[p], last[p], stop = _composite_pixel(s, T[p], last[p], k1, kc)
                     sbuf[p] = 1 if stop else 0
                     stopped += 1 if stop else 0
-                for c in range(Cf):  # one loop per channel: an inner channel loop would stop the vectorizer
-                    fc = feats[g, c]
-                    for pp in range(pa, pb):
-                        acc[c, np.uint64(pp)] += wbuf[np.uint64(pp)] * fc
+                _accumulate_features(acc, wbuf, feats, g, pa, pb)
             if stopped:
                 n_active -= stopped
                 _retire_stopped(row_active, sbuf, ra, rb, ca, cb, ts, cw)
@@ -777,26 +844,12 @@ def raster_bwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
     Cf = feats.shape[1]
     n_tiles = tiles_x * ((H + tile_size - 1) // tile_size)
     ts = tile_size
-    P = ts * ts
-    one, amax, zero = kc[1], kc[2], kc[3]
-    amin, sskip = kc[20], kc[22]
+    zero = kc[3]
     for jb in prange(bins.shape[0]):
         b = bins[jb]
         i, o, x0, y0, x1, y1 = _bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout)
-        T = np.zeros(P, kc.dtype)
-        gTT = np.zeros(P, kc.dtype)
-        suffix = np.zeros(P, kc.dtype)
-        gF = np.zeros((Cf, P), kc.dtype)
-        last = np.zeros(P, np.int32)  # int32: as many SIMD lanes as float32
-        cxt = np.empty(P, kc.dtype)
-        cyt = np.empty(P, kc.dtype)
-        _tile_centres(centres, x0, y0, ts, cw, cxt, cyt)
-        ebuf = np.empty(P, kc.dtype)
-        wbuf = np.empty(P, kc.dtype)
-        gf = np.empty(Cf, kc.dtype)
-        row_last = np.zeros(ts, np.int64)  # one past the last composited intersection, per tile row
-        k_end = _start_tile_bwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, out_T, out_last, g_T, g_feat, T, gTT, last,
-                                gF, row_last, bin_start[b])
+        T, gTT, suffix, gF, last, cxt, cyt, ebuf, wbuf, gf, row_last, k_end = _tile_state_bwd(
+            pix_view, o, i, x0, y0, x1, y1, ts, cw, Cf, kc, centres, out_T, out_last, g_T, g_feat, bin_start[b])
         for k in range(k_end - 1, bin_start[b] - 1, -1):
             g = flat_ids[k]
             gi, n, mx, my, A, B, C, lo = _gaussian(means2d, conics, log_opac, g, N)
@@ -822,20 +875,9 @@ def raster_bwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
                     dx = cxt[p] - mx
                     dy = cyt[p] - my
                     s = (hA * dx + B * dy) * dx + hC * dy * dy - lo
-                    ex = _exp_neg(s, kc)
-                    alpha = min(ex, amax)
-                    ok = (s <= sskip) & (alpha > amin) & (k32 < last[p])
-                    inv_one_m = one / (one - alpha)
-                    Tp = T[p]
-                    T_exc = Tp * inv_one_m
-                    w = alpha * T_exc if ok else zero
-                    e = ebuf[p]
+                    w, T[p], T_exc, a_ratio, live = _uncomposite_pixel(s, T[p], last[p], k32, kc)
                     wbuf[p] = w
-                    sp = suffix[p]
-                    G = alpha * inv_one_m * (sp + gTT[p]) - e * w
-                    G = G if (ok & (ex < amax)) else zero  # clamped alpha: no gradient through it
-                    suffix[p] = sp + e * w
-                    T[p] = T_exc if ok else Tp
+                    G, suffix[p] = _exponent_grad(ebuf[p], w, a_ratio, live, suffix[p], gTT[p], zero)
                     gmx -= G * (A * dx + B * dy)
                     gmy -= G * (B * dx + C * dy)
                     ga += G * dx * dx

@@ -1,0 +1,145 @@
+"""2DGS (surfels) in the compiled CPU backend: the autograd glue of `cpu_kernels_2dgs`, with the
+semantics of torch_backend.py's 2DGS path (checked against it in tests/test_render_cpu_2dgs.py).
+
+Outputs: colour, alpha, depth, camera-frame normals, the depth distortion map
+(``extras["distortion"]``), radii, the projected centres (``extras["means2d_values"]``, with
+``absgrad``) and gsplat's ``gradient_2dgs`` densification carrier as ``means2d``; gradients of every
+surfel parameter and of the poses; rolling shutter through ``pixel_pose_index``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from egobench.camera.pinhole import Pinhole
+from egobench.render.cpu_backend import (NEAR_PLANE, FAR_PLANE, _np, _pose_grad, _set_threads, camera_array,
+                                         composite_output, pixel_views, raster_setup, reduce_intersections)
+from egobench.render.torch_backend import _densify_carrier_2dgs
+from egobench.render.types import Gaussians, RenderOutput
+
+
+class _Project2DGS(torch.autograd.Function):
+    """(means, quats, scales, viewmats) -> means2d [I,N,2] (gsplat pixels), ray transforms [I,N,9],
+    depths [I,N], normals [I,N,3]; radii [I,N,2] int32 (not differentiable)."""
+
+    @staticmethod
+    def forward(ctx, means, quats, scales, viewmats, cam, width, height):
+        from egobench.render import cpu_kernels_2dgs as k2
+
+        I, N = viewmats.shape[0], means.shape[0]
+        dt = _np(means).dtype
+        m2, tsl = np.empty((I, N, 2), dt), np.empty((I, N, 9), dt)
+        dep, nrm = np.empty((I, N), dt), np.empty((I, N, 3), dt)
+        rad = np.empty((I, N, 2), dtype=np.int32)
+        _set_threads()
+        k2.project_fwd_2dgs(_np(means), _np(quats), _np(scales), _np(viewmats), cam, width, height, NEAR_PLANE,
+                            FAR_PLANE, m2, tsl, dep, rad, nrm)
+        ctx.save_for_backward(means, quats, scales, viewmats)
+        ctx.cam = cam
+        radii = torch.from_numpy(rad)
+        ctx.mark_non_differentiable(radii)
+        return (*[torch.from_numpy(a) for a in (m2, tsl, dep, nrm)], radii)
+
+    @staticmethod
+    def backward(ctx, g_m2, g_tsl, g_dep, g_nrm, _g_radii):
+        from egobench.render import cpu_kernels_2dgs as k2
+
+        means, quats, scales, viewmats = ctx.saved_tensors
+        I, N = viewmats.shape[0], means.shape[0]
+
+        def f64(g, shape):
+            return np.zeros(shape) if g is None else _np(g).astype(np.float64, copy=False)
+
+        grads = (f64(g_m2, (I, N, 2)), f64(g_tsl, (I, N, 9)), f64(g_dep, (I, N)), f64(g_nrm, (I, N, 3)))
+        gm, gq, gs = np.empty((N, 3)), np.empty((N, 4)), np.empty((N, 3))
+        gv_parts = np.zeros((max(1, math.ceil(N / k2.CHUNK)), I, 12))
+        _set_threads()
+        k2.project_bwd_2dgs(*(_np(t).astype(np.float64) for t in (means, quats, scales, viewmats)), ctx.cam,
+                            NEAR_PLANE, FAR_PLANE, *grads, gm, gq, gs, gv_parts)
+        dt = means.dtype
+        gv = _pose_grad(gv_parts, dt) if ctx.needs_input_grad[3] else None
+        return (torch.from_numpy(gm).to(dt), torch.from_numpy(gq).to(dt), torch.from_numpy(gs).to(dt), gv,
+                None, None, None)
+
+
+class _Rasterize2DGS(torch.autograd.Function):
+    """(means2d, ray transforms [I,N,9], log_opacity, colors, depths, normals) -> features
+    [Iout,H,W,7] (sum w (rgb, depth, normal)), transmittance [Iout,H,W], distortion [Iout,H,W]."""
+
+    @staticmethod
+    def forward(ctx, means2d, tsl, log_opac, colors, depths, normals, radii, pix_view, bin_needed, tile_size,
+                absgrad_target):
+        from egobench.render import cpu_kernels_2dgs as k2
+
+        I, N = depths.shape
+        Iout, H, W = pix_view.shape
+        st = raster_setup(means2d, radii, depths, colors, normals, pix_view, bin_needed, tile_size)
+        m2, tsl_np, lo = _np(means2d), _np(tsl), _np(log_opac)
+        Cf = st.feats.shape[1]
+        out_feat = np.zeros((Iout, H, W, Cf + 1), dtype=m2.dtype)  # + distortion
+        out_T = np.zeros((Iout, H, W), dtype=m2.dtype)
+        out_last = np.zeros((Iout, H, W), dtype=np.int32)
+        _set_threads()
+        k2.raster_fwd_2dgs(m2, tsl_np, lo, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, tile_size,
+                           st.tiles_x, st.cw, st.kc, st.centres, out_feat, out_T, out_last)
+        ctx.state = (m2, tsl_np, lo, st, pix_view, tile_size, out_feat, out_T, out_last, absgrad_target)
+        ctx.shapes = (I, N, colors.dtype)
+        feat = torch.from_numpy(out_feat)
+        return feat[..., :Cf].contiguous(), torch.from_numpy(out_T), feat[..., Cf].contiguous()
+
+    @staticmethod
+    def backward(ctx, g_feat, g_T, g_dist):
+        from egobench.render import cpu_kernels_2dgs as k2
+
+        m2, tsl_np, lo, st, pix_view, ts, out_feat, out_T, out_last, ab = ctx.state
+        I, N, dt = ctx.shapes
+        Cf = st.feats.shape[1]
+        g_state = np.zeros(out_T.shape + (Cf + 2,), out_T.dtype)  # dL/dF, 2 dL/d distortion, forward depth
+        if g_feat is not None:
+            g_state[..., :Cf] = _np(g_feat)
+        if g_dist is not None:
+            g_state[..., Cf] = 2.0 * _np(g_dist)
+        g_state[..., Cf + 1] = out_feat[..., k2.DEPTH_CH]
+        gT = np.zeros(out_T.shape, out_T.dtype) if g_T is None else _np(g_T)
+        isect = np.zeros((st.flat_ids.shape[0], 12 + Cf), st.kc.dtype)
+        _set_threads()
+        k2.raster_bwd_2dgs(m2, tsl_np, lo, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, ts, st.tiles_x,
+                           st.cw, st.kc, st.centres, out_T, out_last, g_state, gT, isect)
+        per = reduce_intersections(isect, st.flat_ids, I, N, dt, ab)
+        c = 12  # features: colour, depth, normal
+        return (per[..., 0:2], per[..., 2:11], per[..., 11].sum(0), per[..., c:c + 3].sum(0), per[..., c + 3],
+                per[..., c + 4:c + 7], None, None, None, None, None)
+
+
+def render_cpu_2dgs(gaussians: Gaussians, camera: Pinhole, viewmats: Tensor, *, pixel_pose_index: Tensor | None,
+                    background: Tensor | None, tile_size: int, absgrad: bool) -> RenderOutput:
+    """2DGS render with the compiled kernels; same contract as the torch path of `render` for
+    mode="2dgs". viewmats [I, 4, 4] world-to-camera; pixel_pose_index [H, W] or None."""
+    H, W = camera.height, camera.width
+    I = viewmats.shape[0]
+    m2g, tsl, depths, normals, radii = _Project2DGS.apply(gaussians.means, gaussians.quats, gaussians.scales,
+                                                          viewmats, camera_array(camera), W, H)
+    means2d_out = m2g - 0.5  # egobench pixel convention
+    if means2d_out.requires_grad:
+        means2d_out.retain_grad()
+    # gsplat's gradient_2dgs carrier: zeros added to the ray transforms' translation column
+    tsl3, carrier = _densify_carrier_2dgs(tsl.reshape(I, -1, 3, 3), tsl.requires_grad)
+    ts = int(tile_size)
+    pix_view, bin_needed = pixel_views(pixel_pose_index, I, H, W, ts)
+    holder = [means2d_out] if absgrad and means2d_out.requires_grad else None
+    feats, trans, dist = _Rasterize2DGS.apply(means2d_out + 0.5, tsl3.reshape(I, -1, 9),
+                                              F.logsigmoid(gaussians.opacity_logits), gaussians.colors, depths,
+                                              normals, radii, pix_view, bin_needed, ts, holder)
+    rgb, alpha, depth = composite_output(feats, trans, background)
+    extras = {"backend": "cpu", "tile_size": ts, "distortion": dist[..., None]}
+    means2d = means2d_out
+    if carrier is not None:  # as the torch and gsplat backends: means2d carries gsplat's gradient_2dgs
+        extras["means2d_values"] = means2d_out
+        means2d = carrier
+    return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, normal=feats[..., 4:7], means2d=means2d,
+                        radii=radii.amax(-1), extras=extras)

@@ -1,0 +1,431 @@
+"""numba kernels of the compiled CPU backend for 2DGS surfels (gsplat 1.5.3 semantics, as
+torch_backend.py's `project_2dgs`, `coefficients_2dgs` and the 2DGS path of `_Composite`).
+
+Projection: ray transform M = K [R_c s0 | R_c s1 | mean_c] (rows u_M, v_M, w_M), the centre and
+AABB radius from M's dual conic, the camera-facing normal (third rotation axis); the backward
+reuses the 3DGS helpers of `cpu_kernels` (a surfel is Mc = V R diag(s) with a zero third column).
+Compositing: per pixel the ray-splat intersection h_u x h_v (linear in the pixel, evaluated
+relative to the tile centre as the torch backend), min(3D, 2D low-pass) exponent, the 3DGS
+compositing rules, plus the depth distortion 2 sum_{j<k} w_j w_k (z_k - z_j). The tile loop, state
+layout, binning and gradient reduction are `cpu_kernels`' (see there for determinism and threads).
+
+Caching: numba keys the cache of these kernels on this file's modification time only, but they
+inline helpers of `cpu_kernels.py`; `_follow_helper_edits` (run at import) therefore touches this
+file when `cpu_kernels.py` is newer, so that an edited helper recompiles these kernels too.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+
+import numpy as np
+from numba import njit, prange
+
+from egobench.render import cpu_kernels as ck
+from egobench.render.cpu_kernels import (CHUNK, EXTENT_SIGMAS, FASTMATH, SIGMA_ROW, _accumulate_features,
+                                         _add_feature_grads, _add_rot_scale_grads, _add_view_and_mean_grads,
+                                         _bin_tile, _camera_point, _composite_pixel, _exponent_grad, _feature_dot,
+                                         _finish_tile_fwd, _normal_grad, _quat_grad, _retire_stopped, _rotmat,
+                                         _tile_state_bwd, _tile_state_fwd, _trim_rows_active, _trim_rows_composited,
+                                         _uncomposite_pixel)
+
+
+def _follow_helper_edits() -> None:
+    """Marks this file as changed (mtime) when cpu_kernels.py is newer: numba's cache would otherwise
+    keep kernels compiled with an older version of the helpers they inline. No-op where read-only."""
+    try:
+        if os.path.getmtime(ck.__file__) > os.path.getmtime(__file__):
+            os.utime(__file__)
+    except OSError:
+        pass
+
+
+_follow_helper_edits()
+
+FILTER_2D = 2.0  # 2D low-pass filter: exponent FILTER_2D |pixel - centre|^2 / 2 (gsplat's FILTER_INV_SQUARE)
+DEPTH_CH = 3  # feature channel holding the depth (colour 0-2, depth 3, normal 4-6)
+
+__all__ = ["project_fwd_2dgs", "project_bwd_2dgs", "raster_fwd_2dgs", "raster_bwd_2dgs", "CHUNK"]
+
+
+@njit(cache=True, inline="always")
+def _ray_transform(V, R, scales, means, n, cam, M):
+    """Fills M [3, 3] = K [R_c[:, 0] s0 | R_c[:, 1] s1 | mean_c] (R_c = V[:3, :3] R) -> camera-frame
+    centre (x, y, z)."""
+    fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
+    x, y, z = _camera_point(V, means, n)
+    for c in range(2):
+        t0 = (V[0, 0] * R[0, c] + V[0, 1] * R[1, c] + V[0, 2] * R[2, c]) * scales[n, c]
+        t1 = (V[1, 0] * R[0, c] + V[1, 1] * R[1, c] + V[1, 2] * R[2, c]) * scales[n, c]
+        t2 = (V[2, 0] * R[0, c] + V[2, 1] * R[1, c] + V[2, 2] * R[2, c]) * scales[n, c]
+        M[0, c], M[1, c], M[2, c] = fx * t0 + cx * t2, fy * t1 + cy * t2, t2
+    M[0, 2], M[1, 2], M[2, 2] = fx * x + cx * z, fy * y + cy * z, z
+    return x, y, z
+
+
+@njit(cache=True, inline="always")
+def _surfel_centre(M, valid):
+    """Projected centre (m0, m1) and dual-conic scale d of ray transform M [3, 3] (f = (1, 1, -1) / d;
+    d = 1 where culled, as torch's substitute)."""
+    d = M[2, 0] * M[2, 0] + M[2, 1] * M[2, 1] - M[2, 2] * M[2, 2]
+    d_s = d if valid else 1.0
+    m0 = (M[0, 0] * M[2, 0] + M[0, 1] * M[2, 1] - M[0, 2] * M[2, 2]) / d_s
+    m1 = (M[1, 0] * M[2, 0] + M[1, 1] * M[2, 1] - M[1, 2] * M[2, 2]) / d_s
+    return m0, m1, d_s
+
+
+@njit(cache=True, parallel=True)
+def project_fwd_2dgs(means, quats, scales, viewmats, cam, width, height, near, far,
+                     means2d, tsl, depths, radii, normals):
+    """means [N,3], quats [N,4], scales [N,3] (first two used), viewmats [I,4,4], cam (fx, fy, cx, cy)
+    -> fills means2d [I,N,2], tsl [I,N,9] (ray transform, row-major), depths [I,N], radii [I,N,2]
+    int32 (gsplat's AABB, 0 where culled), normals [I,N,3] (camera frame, facing the camera)."""
+    N, I = means.shape[0], viewmats.shape[0]
+    for ch in prange((N + CHUNK - 1) // CHUNK):
+        R = np.empty((3, 3))
+        M = np.empty((3, 3))
+        gnw = np.zeros(3)
+        zero_g = np.zeros((1, 1, 3))
+        for n in range(ch * CHUNK, min(N, (ch + 1) * CHUNK)):
+            R, _, _, _, _, _ = _rotmat(quats[n, 0], quats[n, 1], quats[n, 2], quats[n, 3], R)
+            for i in range(I):
+                V = viewmats[i]
+                x, y, z = _ray_transform(V, R, scales, means, n, cam, M)
+                d = M[2, 0] * M[2, 0] + M[2, 1] * M[2, 1] - M[2, 2] * M[2, 2]
+                valid = d != 0 and z > near and z < far
+                m0, m1, d_s = _surfel_centre(M, valid)
+                h0 = m0 * m0 - (M[0, 0] * M[0, 0] + M[0, 1] * M[0, 1] - M[0, 2] * M[0, 2]) / d_s
+                h1 = m1 * m1 - (M[1, 0] * M[1, 0] + M[1, 1] * M[1, 1] - M[1, 2] * M[1, 2]) / d_s
+                rx = math.ceil(EXTENT_SIGMAS * math.sqrt(max(h0, 1e-4)))
+                ry = math.ceil(EXTENT_SIGMAS * math.sqrt(max(h1, 1e-4)))
+                keep = valid and m0 + rx > 0 and m0 - rx < width and m1 + ry > 0 and m1 - ry < height
+                radii[i, n, 0] = np.int32(rx) if keep else 0
+                radii[i, n, 1] = np.int32(ry) if keep else 0
+                means2d[i, n, 0], means2d[i, n, 1], depths[i, n] = m0, m1, z
+                for r in range(3):
+                    for c in range(3):
+                        tsl[i, n, r * 3 + c] = M[r, c]
+                sgn = _normal_grad(V, R, 2, x, y, z, zero_g, 0, 0, gnw)
+                for r in range(3):
+                    normals[i, n, r] = sgn * (V[r, 0] * R[0, 2] + V[r, 1] * R[1, 2] + V[r, 2] * R[2, 2])
+
+
+@njit(cache=True, inline="always")
+def _has_upstream_grad(g_means2d, g_tsl, g_depths, g_normals, i, n):
+    """Whether any upstream gradient of (pose i, surfel n) is non-zero (skipped exactly otherwise)."""
+    if g_means2d[i, n, 0] != 0.0 or g_means2d[i, n, 1] != 0.0 or g_depths[i, n] != 0.0:
+        return True
+    for c in range(9):
+        if g_tsl[i, n, c] != 0.0:
+            return True
+    return g_normals[i, n, 0] != 0.0 or g_normals[i, n, 1] != 0.0 or g_normals[i, n, 2] != 0.0
+
+
+@njit(cache=True, inline="always")
+def _ray_transform_grad(M, valid, d_s, g_means2d, g_tsl, i, n, cam, gMc, gpc):
+    """dL/dM (from the rasterizer, g_tsl[i, n] [9], and from the centre, g_means2d[i, n] [2]) ->
+    gMc [3, 3] = dL/d(V R diag(s)) (third column 0: a surfel's normal axis has no scale) and
+    gpc [3] = dL/d mean_c (the depth's gradient is added by the caller)."""
+    s = (1.0, 1.0, -1.0)
+    gq = np.empty(3)  # dL/dq, q = (w_M * s) / d: m_j = u_M^T q, v_M^T q
+    P = 0.0
+    for c in range(3):
+        gq[c] = g_means2d[i, n, 0] * M[0, c] + g_means2d[i, n, 1] * M[1, c]
+        P += gq[c] * s[c] * M[2, c] / d_s
+    gM = np.empty((3, 3))
+    for c in range(3):
+        q = s[c] * M[2, c] / d_s
+        gM[0, c] = g_tsl[i, n, c] + g_means2d[i, n, 0] * q
+        gM[1, c] = g_tsl[i, n, 3 + c] + g_means2d[i, n, 1] * q
+        gw = s[c] * (gq[c] - 2.0 * P * M[2, c]) / d_s if valid else gq[c] * s[c]
+        gM[2, c] = g_tsl[i, n, 6 + c] + gw
+    # M = K T_cl: rows 0, 1 scaled by fx, fy; row 2 also feeds rows 0, 1 through cx, cy
+    for c in range(3):
+        g0, g1 = cam[0] * gM[0, c], cam[1] * gM[1, c]
+        g2 = cam[2] * gM[0, c] + cam[3] * gM[1, c] + gM[2, c]
+        if c < 2:
+            gMc[0, c], gMc[1, c], gMc[2, c] = g0, g1, g2
+        else:
+            gpc[0], gpc[1], gpc[2] = g0, g1, g2
+            gMc[0, 2], gMc[1, 2], gMc[2, 2] = 0.0, 0.0, 0.0
+
+
+@njit(cache=True, parallel=True)
+def project_bwd_2dgs(means, quats, scales, viewmats, cam, near, far, g_means2d, g_tsl, g_depths, g_normals,
+                     g_means, g_quats, g_scales, g_view_parts):
+    """Backward of `project_fwd_2dgs` (every entry with an upstream gradient, culled ones as torch's
+    graph). Fills g_means [N,3], g_quats [N,4], g_scales [N,3] and g_view_parts [chunks, I, 12]
+    (per-chunk partial dL/d viewmat[:3, :4], reduced in chunk order by the caller)."""
+    N, I = means.shape[0], viewmats.shape[0]
+    for ch in prange(g_view_parts.shape[0]):
+        R = np.empty((3, 3))
+        M = np.empty((3, 3))
+        gR = np.empty((3, 3))
+        gMc = np.empty((3, 3))
+        gs = np.empty(3)
+        gm = np.empty(3)
+        gpc = np.empty(3)
+        gnw = np.empty(3)
+        for n in range(ch * CHUNK, min(N, (ch + 1) * CHUNK)):
+            R, qw, qx, qy, qz, qinv = _rotmat(quats[n, 0], quats[n, 1], quats[n, 2], quats[n, 3], R)
+            gR[:] = 0.0
+            gs[:] = 0.0
+            gm[:] = 0.0
+            for i in range(I):
+                if not _has_upstream_grad(g_means2d, g_tsl, g_depths, g_normals, i, n):
+                    continue
+                V = viewmats[i]
+                x, y, z = _ray_transform(V, R, scales, means, n, cam, M)
+                d = M[2, 0] * M[2, 0] + M[2, 1] * M[2, 1] - M[2, 2] * M[2, 2]
+                valid = d != 0 and z > near and z < far
+                _, _, d_s = _surfel_centre(M, valid)
+                _ray_transform_grad(M, valid, d_s, g_means2d, g_tsl, i, n, cam, gMc, gpc)
+                gpc[2] += g_depths[i, n]
+                gnw[:] = 0.0
+                sgn = _normal_grad(V, R, 2, x, y, z, g_normals, i, n, gnw)
+                _add_view_and_mean_grads(V, R, scales, means, n, gpc, gMc, sgn, g_normals, i, 2, True,
+                                         g_view_parts[ch, i], gm)
+                _add_rot_scale_grads(V, R, scales, n, gMc, gnw, 2, gR, gs)
+            for b in range(3):
+                g_means[n, b] = gm[b]
+                g_scales[n, b] = gs[b]
+            _quat_grad(gR, qw, qx, qy, qz, qinv, g_quats, n)
+
+
+# ------------------------------------------------------------------------------------------
+# compositing
+# ------------------------------------------------------------------------------------------
+
+
+@njit(cache=True, inline="always")
+def _cross_coefs(tsl, gi, n, ox, oy, cc):
+    """Fills cc [9] with h_u x h_v = C0 + lx C1 + ly C2 (lx, ly pixel minus tile centre (ox, oy)):
+    cc = (C0, C1, C2), C0 = Up x Vp, C1 = W x Vp, C2 = Up x W, Up = ox W - U, Vp = oy W - V."""
+    W0, W1, W2 = tsl[gi, n, 6], tsl[gi, n, 7], tsl[gi, n, 8]
+    u0, u1, u2 = ox * W0 - tsl[gi, n, 0], ox * W1 - tsl[gi, n, 1], ox * W2 - tsl[gi, n, 2]
+    v0, v1, v2 = oy * W0 - tsl[gi, n, 3], oy * W1 - tsl[gi, n, 4], oy * W2 - tsl[gi, n, 5]
+    cc[0], cc[1], cc[2] = u1 * v2 - u2 * v1, u2 * v0 - u0 * v2, u0 * v1 - u1 * v0
+    cc[3], cc[4], cc[5] = W1 * v2 - W2 * v1, W2 * v0 - W0 * v2, W0 * v1 - W1 * v0
+    cc[6], cc[7], cc[8] = u1 * W2 - u2 * W1, u2 * W0 - u0 * W2, u0 * W1 - u1 * W0
+    return u0, u1, u2, v0, v1, v2
+
+
+@njit(cache=True, inline="always")
+def _axis_range(lo_c, hi_c, tile_lo, n_px, ts):
+    """Pixel interval [lo_c, hi_c] -> tile-local [a, b)."""
+    return max(0, int(math.floor(lo_c)) - tile_lo), min(min(ts, n_px - tile_lo), int(math.ceil(hi_c)) - tile_lo)
+
+
+@njit(cache=True, inline="always")
+def _footprint_2dgs(tsl, gi, n, mx, my, lo, x0, y0, ts, W, H):
+    """Tile-local rows [ra, rb) and columns [ca, cb) where a surfel can reach alpha > 1/255: the
+    union of the 2D filter's disc and the image of the disc u^2 + v^2 <= 2 (SIGMA_ROW + log o)
+    (exact bounding box from its dual conic when that disc lies in front of the camera, else the
+    whole tile), with a 1-pixel margin."""
+    e = SIGMA_ROW + lo
+    if e <= 0.0:
+        return 0, 0, 0, 0
+    r2 = 2.0 * e
+    rf = math.sqrt(e) + 1.0  # filter disc: FILTER_2D |d|^2 / 2 <= e
+    xa, xb, ya, yb = mx - rf, mx + rf, my - rf, my + rf
+    W0, W1, W2 = tsl[gi, n, 6], tsl[gi, n, 7], tsl[gi, n, 8]
+    d = r2 * (W0 * W0 + W1 * W1) - W2 * W2
+    if not (W2 > 0.0 and d < 0.0):
+        return 0, min(ts, H - y0), 0, min(ts, W - x0)
+    for ax in range(2):
+        U0, U1, U2 = tsl[gi, n, 3 * ax], tsl[gi, n, 3 * ax + 1], tsl[gi, n, 3 * ax + 2]
+        c = (r2 * (U0 * W0 + U1 * W1) - U2 * W2) / d
+        h = math.sqrt(max(c * c - (r2 * (U0 * U0 + U1 * U1) - U2 * U2) / d, 0.0)) + 1.0
+        if ax == 0:
+            xa, xb = min(xa, c - h), max(xb, c + h)
+        else:
+            ya, yb = min(ya, c - h), max(yb, c + h)
+    ra, rb = _axis_range(ya, yb, y0, H, ts)
+    ca, cb = _axis_range(xa, xb, x0, W, ts)
+    return ra, rb, ca, cb
+
+
+@njit(cache=True, inline="always")
+def _tile_local(cxt, cyt, x0, y0, ts):
+    """Pixel centres relative to the tile centre (x0 + ts / 2, y0 + ts / 2), compute dtype (exact)
+    -> (lxt, lyt [P], tile centre ox, oy)."""
+    ox, oy = x0 + 0.5 * ts, y0 + 0.5 * ts
+    lxt = np.empty_like(cxt)
+    lyt = np.empty_like(cyt)
+    for p in range(cxt.shape[0]):
+        lxt[p] = cxt[p] - ox
+        lyt[p] = cyt[p] - oy
+    return lxt, lyt, ox, oy
+
+
+@njit(cache=True, inline="always", fastmath=FASTMATH)
+def _surfel_exponent(lx, ly, dx, dy, cc, lo, kc):
+    """Exponent s = min(|uv|^2 of h_u x h_v, FILTER_2D |d|^2) / 2 - log o at one pixel (lx, ly tile-local;
+    dx, dy from the projected centre; cc: the 9 `_cross_coefs` as a tuple) -> (s, X, Y, 1/Z (0 where
+    Z = 0), g3 = |uv|^2, whether the 3D term is the smaller)."""
+    zero = kc[3]
+    X = cc[0] + lx * cc[3] + ly * cc[6]
+    Y = cc[1] + lx * cc[4] + ly * cc[7]
+    Z = cc[2] + lx * cc[5] + ly * cc[8]
+    nz = Z != zero
+    iz = kc[1] / (Z if nz else kc[1])
+    iz = iz if nz else zero
+    g3 = (X * X + Y * Y) * (iz * iz)
+    g2 = (kc[1] + kc[1]) * (dx * dx + dy * dy)  # FILTER_2D = 2
+    use3 = nz & (g3 <= g2)
+    return kc[0] * (g3 if use3 else g2) - lo, X, Y, iz, g3, use3
+
+
+@njit(cache=True)  # not inlined: numba's parfor analysis rejects its nested tuple there
+def _surfel(means2d, tsl, log_opac, g, N, ox, oy, cc):
+    """Entry g = image * N + surfel -> (image gi, surfel n, centre mx, my, log opacity, the 9 cross
+    coefficients as a tuple (compute dtype), Up, Vp (for the backward))."""
+    gi, n = g // N, g % N
+    up_vp = _cross_coefs(tsl, gi, n, ox, oy, cc)
+    c9 = (cc[0], cc[1], cc[2], cc[3], cc[4], cc[5], cc[6], cc[7], cc[8])
+    return gi, n, means2d[gi, n, 0], means2d[gi, n, 1], log_opac[n], c9, up_vp
+
+
+@njit(cache=True, parallel=True, fastmath=FASTMATH)
+def raster_fwd_2dgs(means2d, tsl, log_opac, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles_x,
+                    cw, kc, centres, out_feat, out_T, out_last):
+    """`cpu_kernels.raster_fwd` for surfels: tsl [I, N, 9] ray transforms, feats [I*N, Cf] with the depth
+    in channel DEPTH_CH; out_feat [Iout, H, W, Cf + 1] gets sum w f and, in its last channel, the
+    depth distortion 2 sum_k w_k (z_k W_k - A_k) (W_k, A_k: sums of w_j, w_j z_j over earlier j)."""
+    Iout, H, W = pix_view.shape
+    N = log_opac.shape[0]
+    Cf = feats.shape[1]
+    n_tiles = tiles_x * ((H + tile_size - 1) // tile_size)
+    ts = tile_size
+    one = kc[1]
+    for jb in prange(bins.shape[0]):
+        b = bins[jb]
+        i, o, x0, y0, x1, y1 = _bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout)
+        T, acc, last, cxt, cyt, wbuf, sbuf, row_active, n_active = _tile_state_fwd(pix_view, o, i, x0, y0, x1, y1,
+                                                                                   ts, cw, Cf + 1, kc, centres)
+        lxt, lyt, ox, oy = _tile_local(cxt, cyt, x0, y0, ts)
+        cc = np.empty(9, kc.dtype)
+        for k in range(bin_start[b], bin_start[b + 1]):
+            if n_active == 0:
+                break
+            gi, n, mx, my, lo, c9, _ = _surfel(means2d, tsl, log_opac, flat_ids[k], N, ox, oy, cc)
+            ra, rb, ca, cb = _footprint_2dgs(tsl, gi, n, mx, my, lo, x0, y0, ts, W, H)
+            ra, rb = _trim_rows_active(ra, rb, row_active)
+            if ra >= rb or ca >= cb:
+                continue
+            zk = feats[flat_ids[k], DEPTH_CH]
+            stopped = 0
+            k1 = np.int32(k + 1)
+            for q in range(ca // cw, (cb - 1) // cw + 1):
+                pa, pb = q * ts * cw + ra * cw, q * ts * cw + rb * cw
+                for pp in range(pa, pb):
+                    p = np.uint64(pp)
+                    s, _, _, _, _, _ = _surfel_exponent(lxt[p], lyt[p], cxt[p] - mx, cyt[p] - my, c9, lo, kc)
+                    Tp = T[p]
+                    w, T[p], last[p], stop = _composite_pixel(s, Tp, last[p], k1, kc)
+                    wbuf[p] = w
+                    acc[Cf, p] += (w + w) * (zk * (one - Tp) - acc[DEPTH_CH, p])  # before the depth update
+                    sbuf[p] = 1 if stop else 0
+                    stopped += 1 if stop else 0
+                _accumulate_features(acc, wbuf, feats, flat_ids[k], pa, pb)
+            if stopped:
+                n_active -= stopped
+                _retire_stopped(row_active, sbuf, ra, rb, ca, cb, ts, cw)
+        _finish_tile_fwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, T, last, acc, out_feat, out_T, out_last)
+
+
+@njit(cache=True, inline="always")
+def _write_surfel_grad(isect_grad, k, ac, up_vp, tsl, gi, n, ox, oy, gmx, gmy, glo, gf, gz, Cf):
+    """Row k of isect_grad from dL/d cross coefficients ac [9] (C0, C1, C2): dL/d (centre x, y; ray
+    transform rows U, V, W; log opacity; features gf[:Cf], plus gz on the depth)."""
+    u0, u1, u2, v0, v1, v2 = up_vp
+    W0, W1, W2 = tsl[gi, n, 6], tsl[gi, n, 7], tsl[gi, n, 8]
+    # C0 = Up x Vp, C1 = W x Vp, C2 = Up x W: d(a x b).g / da = b x g, / db = g x a
+    gu0 = v1 * ac[2] - v2 * ac[1] + W1 * ac[8] - W2 * ac[7]
+    gu1 = v2 * ac[0] - v0 * ac[2] + W2 * ac[6] - W0 * ac[8]
+    gu2 = v0 * ac[1] - v1 * ac[0] + W0 * ac[7] - W1 * ac[6]
+    gv0 = ac[1] * u2 - ac[2] * u1 + ac[4] * W2 - ac[5] * W1
+    gv1 = ac[2] * u0 - ac[0] * u2 + ac[5] * W0 - ac[3] * W2
+    gv2 = ac[0] * u1 - ac[1] * u0 + ac[3] * W1 - ac[4] * W0
+    gw0 = v1 * ac[5] - v2 * ac[4] + ac[7] * u2 - ac[8] * u1 + ox * gu0 + oy * gv0
+    gw1 = v2 * ac[3] - v0 * ac[5] + ac[8] * u0 - ac[6] * u2 + ox * gu1 + oy * gv1
+    gw2 = v0 * ac[4] - v1 * ac[3] + ac[6] * u1 - ac[7] * u0 + ox * gu2 + oy * gv2
+    isect_grad[k, 0], isect_grad[k, 1], isect_grad[k, 11] = gmx, gmy, glo
+    isect_grad[k, 2], isect_grad[k, 3], isect_grad[k, 4] = -gu0, -gu1, -gu2
+    isect_grad[k, 5], isect_grad[k, 6], isect_grad[k, 7] = -gv0, -gv1, -gv2
+    isect_grad[k, 8], isect_grad[k, 9], isect_grad[k, 10] = gw0, gw1, gw2
+    for c in range(Cf):
+        isect_grad[k, 12 + c] = gf[c] + (gz if c == DEPTH_CH else 0.0)
+
+
+@njit(cache=True, parallel=True, fastmath=FASTMATH)
+def raster_bwd_2dgs(means2d, tsl, log_opac, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles_x,
+                    cw, kc, centres, out_T, out_last, g_state, g_T, isect_grad):
+    """Back-to-front backward of `raster_fwd_2dgs`. g_state [Iout, H, W, Cf + 2]: dL/dF (Cf channels),
+    2 dL/d distortion, the forward's accumulated depth. isect_grad [M, 12 + Cf] per intersection:
+    dL/d centre x, y; ray transform (9, row-major); log opacity; features."""
+    Iout, H, W = pix_view.shape
+    N = log_opac.shape[0]
+    Cf = feats.shape[1]
+    n_tiles = tiles_x * ((H + tile_size - 1) // tile_size)
+    ts = tile_size
+    half, one, zero = kc[0], kc[1], kc[3]
+    for jb in prange(bins.shape[0]):
+        b = bins[jb]
+        i, o, x0, y0, x1, y1 = _bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout)
+        T, gTT, suffix, gF, last, cxt, cyt, ebuf, wbuf, _, row_last, k_end = _tile_state_bwd(
+            pix_view, o, i, x0, y0, x1, y1, ts, cw, Cf + 2, kc, centres, out_T, out_last, g_T, g_state, bin_start[b])
+        gf = np.empty(Cf, kc.dtype)  # feature gradients only (gF's last two rows are distortion state)
+        lxt, lyt, ox, oy = _tile_local(cxt, cyt, x0, y0, ts)
+        w_after = np.zeros_like(T)  # sum of w_j over the later j
+        z_after = np.zeros_like(T)  # sum of w_j z_j over the later j
+        cc = np.empty(9, kc.dtype)
+        ac = np.empty(9, kc.dtype)
+        for k in range(k_end - 1, bin_start[b] - 1, -1):
+            g = flat_ids[k]
+            gi, n, mx, my, lo, c9, up_vp = _surfel(means2d, tsl, log_opac, g, N, ox, oy, cc)
+            ra, rb, ca, cb = _footprint_2dgs(tsl, gi, n, mx, my, lo, x0, y0, ts, W, H)
+            ra, rb = _trim_rows_composited(ra, rb, k, row_last)
+            zk = feats[g, DEPTH_CH]
+            k32 = np.int32(k)
+            a0 = a1 = a2 = a3 = a4 = a5 = a6 = a7 = a8 = gmx = gmy = glo = gz = zero
+            gf[:] = zero
+            if ra >= rb or ca >= cb:
+                ca, cb = 0, 0
+            for q in range(ca // cw, (cb - 1) // cw + 1 if cb > ca else 0):
+                pa, pb = q * ts * cw + ra * cw, q * ts * cw + rb * cw
+                _feature_dot(ebuf, gF, feats, g, pa, pb, zero)
+                for pp in range(pa, pb):
+                    p = np.uint64(pp)
+                    lx, ly, dx, dy = lxt[p], lyt[p], cxt[p] - mx, cyt[p] - my
+                    s, X, Y, iz, g3, use3 = _surfel_exponent(lx, ly, dx, dy, c9, lo, kc)
+                    w, T[p], T_exc, a_ratio, live = _uncomposite_pixel(s, T[p], last[p], k32, kc)
+                    wbuf[p] = w
+                    gD2, wa, za = gF[Cf, p], w_after[p], z_after[p]
+                    W_exc = one - T_exc
+                    A_exc = gF[Cf + 1, p] - za - w * zk
+                    e = ebuf[p] + gD2 * ((zk * W_exc - A_exc) + (za - zk * wa))
+                    gz += gD2 * w * (W_exc - wa)
+                    w_after[p] = wa + w
+                    z_after[p] = za + w * zk
+                    G, suffix[p] = _exponent_grad(e, w, a_ratio, live, suffix[p], gTT[p], zero)
+                    G3 = half * G if use3 else zero
+                    G2 = half * G - G3
+                    t = (G3 + G3) * iz * iz
+                    gX, gY, gZ = t * X, t * Y, -(G3 + G3) * g3 * iz
+                    a0 += gX
+                    a1 += gY
+                    a2 += gZ
+                    a3 += lx * gX
+                    a4 += lx * gY
+                    a5 += lx * gZ
+                    a6 += ly * gX
+                    a7 += ly * gY
+                    a8 += ly * gZ
+                    gmx -= (G2 + G2) * (dx + dx)  # d/dm of FILTER_2D |pixel - m|^2
+                    gmy -= (G2 + G2) * (dy + dy)
+                    glo -= G
+                _add_feature_grads(gf, wbuf, gF, pa, pb, zero)
+            ac[0], ac[1], ac[2], ac[3], ac[4], ac[5], ac[6], ac[7], ac[8] = a0, a1, a2, a3, a4, a5, a6, a7, a8
+            _write_surfel_grad(isect_grad, k, ac, up_vp, tsl, gi, n, ox, oy, gmx, gmy, glo, gf, gz, Cf)
