@@ -217,3 +217,22 @@ def test_2dgs_pixel_bound_holds_every_visible_pixel():
                 r2 = 2.0 * (cpu_kernels.SIGMA_ROW + lo[n])  # the disc crosses the camera plane: whole tile
                 n_whole += int(r2 > 0 and not (Wr[2] > 0 and r2 * (Wr[0] ** 2 + Wr[1] ** 2) < Wr[2] ** 2))
     assert n_checked > 100 and n_whole > 0
+
+
+def test_2dgs_deterministic_across_threads():
+    """Parallel loops write disjoint slices and every sum is reduced in a fixed order: bit-identical
+    outputs and gradients for 1 and 2 threads."""
+    cam = Pinhole(fx=40.0, fy=40.0, cx=31.5, cy=23.5, width=64, height=48)
+    g = Gaussians(**{k: v.float() for k, v in make_scene(500, cam, 8).tensors().items()})
+    before = torch.get_num_threads()
+    try:
+        results = []
+        for threads in (1, 2, 2):
+            torch.set_num_threads(threads)
+            results.append(run2(g, cam, pose(0.01, 0.0).float(), "cpu", 4))
+    finally:
+        torch.set_num_threads(before)
+    for other in results[1:]:
+        assert torch.equal(results[0][0], other[0])
+        for k in results[0][1]:
+            assert torch.equal(results[0][1][k], other[1][k]), k
