@@ -101,3 +101,22 @@ def test_doubled_noise_is_named_with_a_pipeline_reference(null_recording):
     assert [n.name for n in d.named] == ["noise"], d.verdict
     noise = d.rounds[0][0]
     assert 1.6 < noise.params["noise_std_factor"] < 2.4
+
+
+def test_high_frequency_model_error_is_not_named_noise_on_a_trained_run(null_recording):
+    """A trained render's own high-frequency error (here: pixel-scale texture error three times the
+    sensor noise) raises the high-passed residual variance at every level exactly like stronger
+    noise: the ground-truth path names it noise, a trained-run diagnosis must call noise not testable."""
+    from egobench.diagnose.calibration import NOISE_UNTESTABLE
+
+    _root, src = null_recording
+    ctx = src.context
+    rng = np.random.default_rng(5)
+    resid_sd = float(np.std(src.measured - src.predicted))
+    pred = np.clip(src.predicted + rng.normal(0.0, 3.0 * resid_sd, src.predicted.shape), 0.0, 1.0).astype(np.float32)
+    naive = diagnose_residuals(src.measured, pred, ctx, DiagnosisConfig(causes=("noise",)))
+    assert [n.name for n in naive.named] == ["noise"]  # the test can fail
+    d = diagnose_residuals(src.measured, pred, ctx, DiagnosisConfig(trained_run=True))
+    assert "noise" not in [n.name for n in d.named], d.verdict
+    noise = next(r for r in d.rounds[0] if r.name == "noise")
+    assert not noise.testable and noise.reason == NOISE_UNTESTABLE

@@ -265,6 +265,18 @@ def resolution_matched(data: ResidualData, sigma: float) -> ResidualData:
 #: Why white balance is not tested on a trained run.
 WB_UNTESTABLE = ("not identifiable from a trained run: a constant per-channel gain on every frame is absorbed "
                  "exactly into the scene colours the model learns (render = k x shading x colour)")
+#: Why sensor noise is not tested on a trained run.
+NOISE_UNTESTABLE = ("not identifiable from a trained run: the model's own high-frequency error adds residual "
+                    "variance at every signal level, exactly as a stronger sensor noise would")
+
+
+def mark_noise_untestable(results: list[CauseResult]) -> None:
+    """Mark the noise cause of a trained run's round not testable (in place; NOISE_UNTESTABLE)."""
+    for r in results:
+        if r.name == "noise" and r.testable:
+            r.testable, r.reason = False, NOISE_UNTESTABLE
+
+
 #: Smallest spread (std of log exposure x gain across frames) for the trained-run response test.
 MIN_LOG_EXPOSURE_SPREAD = 0.05
 

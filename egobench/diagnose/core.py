@@ -24,7 +24,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from egobench.diagnose.calibration import calibrate_geometric, calibrate_photometric, geometric_standard_errors
+from egobench.diagnose.calibration import (calibrate_geometric, calibrate_photometric, geometric_standard_errors,
+                                           mark_noise_untestable)
 from egobench.diagnose.estimators import CAUSES, CauseResult, Noise, ResidualData
 from egobench.diagnose.signatures import LEVEL, DiagnosisContext, box3, checkerboard, erode, holm, psnr
 
@@ -366,7 +367,8 @@ def diagnose_residuals(
         if cfg.trained_run:
             se = calibrate_photometric(data, testable, int(cfg.placebo_draws), int(cfg.placebo_seed) + rnd)
             calibrate_geometric(data, testable, int(cfg.placebo_seed) + rnd)
-            testable = [r for r in testable if r.testable]  # (white balance is not identifiable on a trained run)
+            mark_noise_untestable(testable)
+            testable = [r for r in testable if r.testable]  # (white balance and noise are not identifiable on a trained run)
             if rnd == 1:
                 round1_se = {**se, **geometric_standard_errors(testable)}
         _adjust_and_rank(testable, cfg)
