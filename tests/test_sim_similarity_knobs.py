@@ -99,3 +99,20 @@ def test_sun_scale_scales_only_the_sun():
     assert math.isclose(E[2] - E[1], E[1] - E[0], rel_tol=1e-9)
     indoor = [make_scene("indoor", 0, sun_scale=s).irradiance(p + torch.tensor([[0, 0, 1.0]]), up) for s in (0.5, 2)]
     assert torch.equal(indoor[0], indoor[1])
+
+
+def test_auto_exposure_meters_over_the_online_view_only():
+    """With the raw ROI, a larger factory-calibration error widens the cast region (the factory
+    stream samples more raw pixels) but must not move where the auto-exposure meters: the metering
+    box is the online (true) view's, identical for the default factory errors and large ones."""
+    from egobench.sim.capture import build_capture_setup
+
+    base = {"n_frames": 3, "rectified_size": 32, "rectified_focal_ratio": 2.0, "raw_roi": True}
+    big = {"factory_focal_frac": 0.1, "factory_principal_px": 300.0}  # a moved, wider factory footprint
+    small_setup = build_capture_setup(SimConfig.from_overrides("indoor", 4, base))
+    big_setup = build_capture_setup(SimConfig.from_overrides("indoor", 4, {**base, **big}))
+    assert big_setup.raw.box != small_setup.raw.box  # the factory stream's footprint grew
+    assert big_setup.raw.meter_box == small_setup.raw.meter_box
+    r0, r1, c0, c1 = small_setup.raw.meter_box
+    R0, R1, C0, C1 = small_setup.raw.box
+    assert R0 <= r0 < r1 <= R1 and C0 <= c0 < c1 <= C1

@@ -172,6 +172,7 @@ class RawCamera:
     pixel_samples: int = 1  # P sub-pixel positions per pixel (k x k jittered stratified grid, P = k^2)
     sub_rays_cam: Tensor | None = None  # [P, H, W, 3] float64 unit rays through the sub-pixel positions
     box: tuple[int, int, int, int] | None = None  # (row0, row1, col0, col1) holding every cast pixel; None = the frame
+    meter_box: tuple[int, int, int, int] | None = None  # where the auto-exposure preview meters; None = ``box``
 
     @classmethod
     def build(cls, cal: CameraCalibration, pixel_samples: int = 1) -> "RawCamera":
@@ -196,15 +197,23 @@ class RawCamera:
         """[P, H, W, 3] rays of the P sub-pixel positions (P = 1: the pixel centres)."""
         return self.rays_cam[None] if self.sub_rays_cam is None else self.sub_rays_cam
 
-    def restricted_to(self, cast: Tensor) -> "RawCamera":
+    def restricted_to(self, cast: Tensor, meter: Tensor | None = None) -> "RawCamera":
         """This camera casting only the pixels of ``cast`` [H, W] bool (the others stay black);
-        ``box`` becomes their bounding box, where the auto-exposure preview meters."""
+        ``box`` becomes their bounding box. The auto-exposure preview meters over the bounding box
+        of ``meter`` [H, W] bool (default: ``cast``), so that what one stream samples (the factory
+        rectification's wider footprint) does not change the exposures of another."""
         valid = self.valid & cast
-        rows, cols = torch.nonzero(valid.any(1)).flatten(), torch.nonzero(valid.any(0)).flatten()
-        if rows.numel() == 0:
-            raise ValueError("RawCamera.restricted_to: no valid raw pixel is sampled by the rectified view")
-        box = (int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1)
-        return dataclasses.replace(self, valid=valid, box=box)
+        box = _bounding_box(valid, "cast")
+        meter_box = box if meter is None else _bounding_box(self.valid & meter, "meter")
+        return dataclasses.replace(self, valid=valid, box=box, meter_box=meter_box)
+
+
+def _bounding_box(mask: Tensor, name: str) -> tuple[int, int, int, int]:
+    """(row0, row1, col0, col1) of the True pixels of ``mask`` [H, W]; ValueError when there are none."""
+    rows, cols = torch.nonzero(mask.any(1)).flatten(), torch.nonzero(mask.any(0)).flatten()
+    if rows.numel() == 0:
+        raise ValueError(f"RawCamera.restricted_to: {name}: no valid raw pixel is sampled by the rectified view")
+    return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
 
 
 def sampled_raw_pixels(rects: list, raw_shape: tuple[int, int], margin_px: int = 2) -> Tensor:
@@ -338,7 +347,8 @@ def preview(scene, trajectory, raw: RawCamera, t_ns: int, grid: int = PREVIEW_GR
     """Coarse cast at one time (on ``device``) -> (luminance [n], hit points world [m, 3], their raw
     pixels [m, 2]), on the CPU."""
     H, W = raw.valid.shape
-    r0, r1, c0, c1 = raw.box if raw.box is not None else (0, H, 0, W)
+    box = raw.meter_box if raw.meter_box is not None else raw.box
+    r0, r1, c0, c1 = box if box is not None else (0, H, 0, W)
     iv = torch.linspace(r0, r1 - 1, grid).round().long()
     iu = torch.linspace(c0, c1 - 1, grid).round().long()
     vv, uu = torch.meshgrid(iv, iu, indexing="ij")
@@ -835,7 +845,8 @@ def build_capture_setup(config: SimConfig) -> CaptureSetup:
             for name, cal in (("online", cals.online), ("factory", cals.factory))}
     raw = RawCamera.build(cals.true, config.pixel_samples)
     if config.raw_roi:
-        raw = raw.restricted_to(sampled_raw_pixels([rect for rect, _ in rigs.values()], raw.valid.shape))
+        raw = raw.restricted_to(sampled_raw_pixels([rect for rect, _ in rigs.values()], raw.valid.shape),
+                                meter=sampled_raw_pixels([rigs["online"][0]], raw.valid.shape))
     H_raw, W_raw = raw.valid.shape
     photometric = _photometric_truth(config, dev, cals.true, (H_raw, W_raw))
     truth_rays = _online_truth_rays(*rigs["online"])
