@@ -123,8 +123,9 @@ def _geometry_recording(held: _Held, recording_dir, geometry_recording, notes: d
 
 
 def _evaluate_frame(held: _Held, f: Frame, n: int, geo_rec: Recording | None, renders_dir: Path | None,
-                    ok_lpips: bool, teaser: bool) -> dict[str, Any]:
-    """Metrics of one held-out frame (on its 8-bit render); renders and the virtual-gain teaser saved."""
+                    ok_lpips: bool, teaser: bool, pairs: list) -> dict[str, Any]:
+    """Metrics of one held-out frame (on its 8-bit render); renders and the virtual-gain teaser saved;
+    (render, capture) appended to ``pairs`` for the transfer function."""
     from egobench.metrics import lpips_alex, psnr, ssim
 
     run, spec = held.run, held.run.spec
@@ -134,6 +135,7 @@ def _evaluate_frame(held: _Held, f: Frame, n: int, geo_rec: Recording | None, re
     gt = resize_map(held.recording.load_image(f), run.camera)
     entry: dict[str, Any] = {"frame": f.index, "psnr": psnr(pred, gt, held.maps.mask),
                              "ssim": ssim(pred, gt, held.maps.mask), "pose_samples": int(n)}
+    pairs.append((pred.cpu().numpy(), gt.cpu().numpy()))
     if ok_lpips:
         entry["lpips"] = lpips_alex(pred, gt)
     if renders_dir is not None:
@@ -179,16 +181,26 @@ def evaluate(recording_dir, run_dir, *, scene: str | None = None, paper_scene: s
     geo_rec = _geometry_recording(held, recording_dir, geometry_recording, notes)
     renders_dir = Path(run_dir) / "renders" if save_renders else None
     noisiest = max(held.frames, key=lambda f: (float(f.gain), -f.index))
+    pairs: list = []
     with torch.no_grad():
-        per_image = [_evaluate_frame(held, f, n, geo_rec, renders_dir, ok_lpips, teaser=f is noisiest)
+        per_image = [_evaluate_frame(held, f, n, geo_rec, renders_dir, ok_lpips, teaser=f is noisiest, pairs=pairs)
                      for f, n in zip(held.frames, held.counts)]
     missing = sum(1 for e in per_image if e.pop("geometry_missing", False))
     if missing:
         notes["geometry"] = (f"{missing} of {len(per_image)} held-out frames have no pixel where the model is opaque "
                              "(alpha > 0.5) and the ground truth valid: their depth/normal are missing from the means")
     record = _run_record(held, per_image, notes, scene, paper_scene, scene_kind)
+    record["fidelity"] = _fidelity(held, pairs)
     write_json(Path(run_dir) / "eval.json", record)
     return record
+
+
+def _fidelity(held: _Held, pairs: list) -> dict:
+    """The model's transfer function on the held-out frames and its resolved wavelength (egobench.fidelity)."""
+    from egobench.fidelity import transfer_function
+
+    mask = held.maps.mask.cpu().numpy().astype(bool)
+    return transfer_function([p for p, _ in pairs], [g for _, g in pairs], mask=mask).to_dict()
 
 
 def _run_record(held: _Held, per_image: list[dict], notes: dict, scene: str | None,

@@ -198,6 +198,8 @@ def records_frame(records: Sequence[RunRecord]) -> pd.DataFrame:
         for k in ("iterations", "time_s", "iters_per_s", "raster_time_share", "num_gaussians"):
             row[f"train_{k}"] = r.train.get(k)
         row["num_frames"] = r.recording_stats.get(NUM_FRAMES_KEY)
+        # the model's resolved wavelength on the held-out frames (egobench.fidelity); older records lack it
+        row["resolved_wavelength_px"] = (r.raw.get("fidelity") or {}).get("resolved_wavelength_px")
         row["head_speed_deg_s_p50"] = r.head_speed_deg_s
         row["config_hash"] = r.raw.get("config_hash")
         row["git_commit"] = r.raw.get("git_commit")

@@ -9,6 +9,8 @@ import numpy as np
 import pytest
 import torch
 
+from egobench.fidelity import transfer_function
+
 from egobench.evaluate import RUN_SCHEMA, evaluate
 from egobench.io_utils import read_json
 from egobench.metrics import psnr, ssim
@@ -50,12 +52,20 @@ def test_record_fields_and_psnr_on_saved_render(trained):
         assert out["notes"]["lpips"].startswith("not available")
     # Motion is fast in this fixture: held-out frames use several rolling-shutter samples.
     assert max(e["pose_samples"] for e in out["per_image"]) > 1
+    preds, gts = [], []
     for e in out["per_image"]:
         img = cv2.cvtColor(cv2.imread(str(run / "renders" / f"{e['frame']:05d}.png")), cv2.COLOR_BGR2RGB)
         pred = torch.from_numpy(img).float() / 255.0
         gt = rec.load_image(next(f for f in rec.frames if f.index == e["frame"]))
         assert psnr(pred, gt, rec.mask) == pytest.approx(e["psnr"], abs=1e-9)
         assert ssim(pred, gt, rec.mask) == pytest.approx(e["ssim"], abs=1e-9)
+        preds.append(pred.numpy())
+        gts.append(gt.numpy())
+    # the model's transfer function, recomputed from the saved renders
+    fid = transfer_function(preds, gts, mask=rec.mask.numpy().astype(bool))
+    assert out["fidelity"]["n_frames"] == 3
+    np.testing.assert_allclose(out["fidelity"]["transfer"], fid.transfer, atol=1e-4)
+    assert out["fidelity"]["resolved_wavelength_px"] == pytest.approx(fid.resolved_wavelength_px, rel=1e-6)
     assert out["metrics"]["psnr"] == pytest.approx(np.mean([e["psnr"] for e in out["per_image"]]))
     teaser = list((run / "renders").glob("virtual_gain_3x_*_beside_input.png"))
     assert len(teaser) == 1 and cv2.imread(str(teaser[0])).shape == (32, 64, 3)
