@@ -40,6 +40,20 @@ def test_schedule_scales_with_iterations():
     assert cfg.hash("ours") != short.hash("ours") and cfg.hash("ours") != cfg.hash("splatfacto")
 
 
+def test_means_lr_matches_the_paper_travel_on_a_short_schedule():
+    """With means_travel_matched the means' lr is lr_means x 30K / iterations on a shorter schedule
+    (the cpu preset), never lowered on a longer one; the Adam optimiser of the means starts there."""
+    from egobench.train.state import _learning_rates
+
+    paper = TrainConfig()
+    assert paper.lr_means_at == paper.lr_means  # the paper preset keeps the paper's lr
+    cpu = TrainConfig.cpu(iterations=1000)
+    assert cpu.means_travel_matched and cpu.lr_means_at == pytest.approx(cpu.lr_means * 30.0)
+    assert TrainConfig.cpu(iterations=60_000).lr_means_at == cpu.lr_means
+    assert _learning_rates(cpu, scene_scale=2.0)["means"] == pytest.approx(cpu.lr_means * 30.0 * 2.0)
+    assert cpu.hash("ours") != dataclasses.replace(cpu, means_travel_matched=False).hash("ours")
+
+
 def test_overrides_and_errors():
     cfg = parse_overrides(TrainConfig(), ["lr_means=1e-3", "max_side=48", "opacity_reset=intended",
                                           "background=1,1,1"])

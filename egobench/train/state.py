@@ -57,7 +57,7 @@ class TrainState:
 
 
 def _learning_rates(config: TrainConfig, scene_scale: float) -> dict[str, float]:
-    return {"means": config.lr_means * scene_scale, "scales": config.lr_scales, "quats": config.lr_quats,
+    return {"means": config.lr_means_at * scene_scale, "scales": config.lr_scales, "quats": config.lr_quats,
             "opacities": config.lr_opacities, "colors": config.lr_colors, "pose_delta": config.lr_pose,
             "twist": config.lr_twist}
 
