@@ -226,3 +226,46 @@ def test_one_thread_per_worker_from_omp_num_threads():
     env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")
     res = subprocess.run([sys.executable, "-c", code], env=env, cwd=root, capture_output=True, text=True, check=True)
     assert res.stdout.split() == ["1", "1", "1"]
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_band_rows_hold_every_visible_pixel(dtype):
+    """The rows the compositing loops visit per 8-column group (`_footprint_tab` narrowed by
+    `_band_rows`, from `gaussian_table`) contain every pixel whose exponent allows alpha > 1/255,
+    computed independently per pixel in float64; the band must also cut rows somewhere (else the
+    test would not exercise it)."""
+    import numpy as np
+
+    from egobench.render import _viewmats, cpu_backend, cpu_kernels
+
+    ts, cw, n_checked, n_cut = 16, cpu_kernels.column_group(16), 0, 0
+    for seed in range(3):
+        g = edge_case_scene(seed, dtype)
+        lo = torch.nn.functional.logsigmoid(g.opacity_logits).numpy()
+        m2, con, dep, _, rad = cpu_backend._Project.apply(
+            g.means, g.quats, g.scales, _viewmats(pose(0.03, -0.02)[None].to(dtype)),
+            torch.sigmoid(g.opacity_logits).detach(), cpu_backend.camera_array(CAM), CAM.width, CAM.height, False)
+        m2, con, rad = m2.numpy(), con.numpy(), rad.numpy()
+        tab = np.empty((m2.shape[1], cpu_kernels.TAB_COLS), m2.dtype)
+        cpu_kernels.gaussian_table(m2, con, rad, lo, tab)
+        pix_view, need = cpu_backend.pixel_views(None, 1, CAM.height, CAM.width, ts)
+        tiles_x = math.ceil(CAM.width / ts)
+        flat, starts = cpu_kernels.bin_tiles(m2, rad, dep.numpy(), ts, tiles_x, need.shape[1] // tiles_x, need)
+        for b in range(need.shape[1]):
+            x0, y0 = (b % tiles_x) * ts, (b // tiles_x) * ts
+            py, px = np.meshgrid(np.arange(y0, y0 + ts) + 0.5, np.arange(x0, x0 + ts) + 0.5, indexing="ij")
+            for n in flat[starts[b]:starts[b + 1]]:
+                A, B, C = (float(v) for v in con[0, n])
+                dx, dy = px - float(m2[0, n, 0]), py - float(m2[0, n, 1])
+                reach = 0.5 * (A * dx * dx + 2 * B * dx * dy + C * dy * dy) - float(lo[n]) <= 5.55
+                reach &= (py < CAM.height) & (px < CAM.width)
+                ra, rb, ca, cb = cpu_kernels._footprint_tab(tab, n, x0, y0, ts, CAM.width, CAM.height)
+                visited = np.zeros_like(reach)
+                for q in range(ca // cw, (cb - 1) // cw + 1 if cb > ca else 0):
+                    qa, qb = max(ca, q * cw), min(cb, q * cw + cw)
+                    qra, qrb = cpu_kernels._band_rows(tab, n, x0, y0, qa, qb, ra, rb)
+                    visited[qra:qrb, qa:qb] = True
+                    n_cut += int(qrb - qra < rb - ra)
+                assert not (reach & ~visited).any(), (seed, b, n)
+                n_checked += int(reach.any())
+    assert n_checked > 100 and n_cut > 20

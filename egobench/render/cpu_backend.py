@@ -204,15 +204,17 @@ class _Rasterize(torch.autograd.Function):
         I, N = depths.shape
         Iout, H, W = pix_view.shape
         st = raster_setup(means2d, radii, depths, colors, normals, pix_view, bin_needed, tile_size)
-        m2, con, rad, lo = _np(means2d), _np(conics), _np(radii), _np(log_opac)
+        m2 = _np(means2d)
         Cf = st.feats.shape[1]
         out_feat = np.zeros((Iout, H, W, Cf), dtype=m2.dtype)
         out_T = np.zeros((Iout, H, W), dtype=m2.dtype)
         out_last = np.zeros((Iout, H, W), dtype=np.int32)
         _set_threads()
-        ck.raster_fwd(m2, con, rad, lo, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, tile_size,
+        tab = np.empty((I * N, ck.TAB_COLS), dtype=m2.dtype)
+        ck.gaussian_table(m2, _np(conics), _np(radii), _np(log_opac), tab)
+        ck.raster_fwd(tab, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, tile_size,
                       st.tiles_x, st.cw, st.kc, st.centres, out_feat, out_T, out_last)
-        ctx.state = (m2, con, rad, lo, st, pix_view, tile_size, out_T, out_last, absgrad_target)
+        ctx.state = (tab, st, pix_view, tile_size, out_T, out_last, absgrad_target)
         ctx.has_normals = bool(normals.shape[1])
         ctx.shapes = (I, N, colors.dtype)
         return torch.from_numpy(out_feat), torch.from_numpy(out_T)
@@ -221,14 +223,14 @@ class _Rasterize(torch.autograd.Function):
     def backward(ctx, g_feat, g_T):
         from egobench.render import cpu_kernels as ck
 
-        m2, con, rad, lo, st, pix_view, ts, out_T, out_last, ab = ctx.state
+        tab, st, pix_view, ts, out_T, out_last, ab = ctx.state
         I, N, dt = ctx.shapes
         Cf = st.feats.shape[1]
         gF = np.zeros(out_T.shape + (Cf,), out_T.dtype) if g_feat is None else _np(g_feat)
         gT = np.zeros(out_T.shape, out_T.dtype) if g_T is None else _np(g_T)
         isect = np.zeros((st.flat_ids.shape[0], 6 + Cf), st.kc.dtype)
         _set_threads()
-        ck.raster_bwd(m2, con, rad, lo, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, ts, st.tiles_x, st.cw,
+        ck.raster_bwd(tab, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, ts, st.tiles_x, st.cw,
                       st.kc, st.centres, out_T, out_last, gF, gT, isect)
         per = reduce_intersections(isect, st.flat_ids, I, N, dt, ab)
         g_normals = per[..., 10:13] if ctx.has_normals else None
