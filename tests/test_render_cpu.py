@@ -269,3 +269,17 @@ def test_band_rows_hold_every_visible_pixel(dtype):
                 assert not (reach & ~visited).any(), (seed, b, n)
                 n_checked += int(reach.any())
     assert n_checked > 100 and n_cut > 20
+
+
+def test_finite_check_is_exact_when_the_sum_overflows():
+    """`render` checks finiteness through the sum of each parameter tensor; finite entries whose sum
+    overflows float32 must still pass, and a NaN among them must still be named."""
+    g = Gaussians(**{k: v.float() for k, v in edge_case_scene(0).tensors().items()})
+    colors = g.colors.clone()
+    colors[:4] = 3e38  # finite; their sum is inf in float32
+    assert not torch.isfinite(colors.sum())
+    out = render(Gaussians(g.means, g.quats, g.log_scales, g.opacity_logits, colors), CAM, pose(), backend="cpu")
+    assert out.rgb.shape == (1, CAM.height, CAM.width, 3)
+    colors[5, 1] = float("nan")
+    with pytest.raises(ValueError, match="colors must be finite"):
+        render(Gaussians(g.means, g.quats, g.log_scales, g.opacity_logits, colors), CAM, pose(), backend="cpu")
