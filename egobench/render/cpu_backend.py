@@ -120,7 +120,7 @@ def reduce_intersections(isect: np.ndarray, flat_ids: np.ndarray, I: int, N: int
     order); sets absgrad_holder[0].absgrad [I, N, 2] (sum of |row[:2]|) when a holder is given."""
     from egobench.render import cpu_kernels as ck
 
-    absg = np.zeros((I * N, 2))
+    absg = np.zeros((I * N if absgrad_holder is not None else 0, 2))
     per = ck.reduce_isect_grad(isect, flat_ids, flat_ids.shape[0], I * N, absg)
     if absgrad_holder is not None:  # gsplat's absgrad attribute
         absgrad_holder[0].absgrad = torch.from_numpy(absg).reshape(I, N, 2).to(dt)

@@ -374,14 +374,16 @@ def bin_tiles(means2d, radii, depths, tile_size, tiles_x, tiles_y, bin_needed):
         digit = ((ukeys >> shift) & 0xFFFF).astype(np.uint16)
         p = np.argsort(digit if perm is None else digit[perm], kind="stable")
         perm = p if perm is None else perm[p]
-    order = vis if perm is None else vis[perm]
-    return _fill_bins(rect, order, depths.shape[1], tiles_x, tiles_y, bin_needed)
+    if perm is None:
+        return _fill_bins(rect, vis, depths.shape[1], tiles_x, tiles_y, bin_needed)
+    # rectangles in depth order too: _fill_bins then reads them sequentially (no cache misses)
+    return _fill_bins(rect[perm], vis[perm], depths.shape[1], tiles_x, tiles_y, bin_needed)
 
 
 @njit(cache=True)
 def _tile_rects(means2d, radii, depths, tile_size, tiles_x, tiles_y, bin_needed):
-    """Tile rectangles [I*N, 4] (x0, x1, y0, y1) of the visible (image, Gaussian) pairs, their flat
-    ids (ascending) and depths."""
+    """Tile rectangles [nv, 4] int32 (x0, x1, y0, y1) of the nv visible (image, Gaussian) pairs, their
+    flat ids (ascending) and depths."""
     I, N = depths.shape
     n_tiles = tiles_x * tiles_y
     # each image's tile ranges are clipped to the bounding box of its needed bins (as torch_backend)
@@ -397,7 +399,7 @@ def _tile_rects(means2d, radii, depths, tile_size, tiles_x, tiles_y, bin_needed)
                 bx1[i] = max(bx1[i], tx + 1)
                 by0[i] = min(by0[i], ty)
                 by1[i] = max(by1[i], ty + 1)
-    rect = np.empty((I * N, 4), np.int64)  # rows of visible pairs only are written and read
+    rect = np.empty((I * N, 4), np.int32)
     vis = np.empty(I * N, np.int64)
     keys = np.empty(I * N, depths.dtype)
     nv = 0
@@ -416,16 +418,17 @@ def _tile_rects(means2d, radii, depths, tile_size, tiles_x, tiles_y, bin_needed)
             if x1 <= x0 or y1 <= y0:
                 continue
             k = i * N + n
-            rect[k, 0], rect[k, 1], rect[k, 2], rect[k, 3] = x0, x1, y0, y1
+            rect[nv, 0], rect[nv, 1], rect[nv, 2], rect[nv, 3] = x0, x1, y0, y1
             vis[nv] = k
             keys[nv] = depths[i, n]
             nv += 1
-    return rect, vis[:nv].copy(), keys[:nv].copy()
+    return rect[:nv].copy(), vis[:nv].copy(), keys[:nv].copy()
 
 
 @njit(cache=True)
 def _fill_bins(rect, order, N, tiles_x, tiles_y, bin_needed):
-    """Counting sort of the intersections of the pairs in ``order`` (front to back) by bin."""
+    """Counting sort of the intersections of the pairs in ``order`` (front to back; rect [nv, 4]
+    their tile rectangles, in the same order) by bin."""
     I = bin_needed.shape[0]
     n_tiles = tiles_x * tiles_y
     nv = order.shape[0]
@@ -433,8 +436,8 @@ def _fill_bins(rect, order, N, tiles_x, tiles_y, bin_needed):
     for j in range(nv):
         k = order[j]
         i = k // N
-        for ty in range(rect[k, 2], rect[k, 3]):
-            for tx in range(rect[k, 0], rect[k, 1]):
+        for ty in range(rect[j, 2], rect[j, 3]):
+            for tx in range(rect[j, 0], rect[j, 1]):
                 b = i * n_tiles + ty * tiles_x + tx
                 if bin_needed[i, b - i * n_tiles]:
                     counts[b + 1] += 1
@@ -444,8 +447,8 @@ def _fill_bins(rect, order, N, tiles_x, tiles_y, bin_needed):
     for j in range(nv):
         k = order[j]
         i = k // N
-        for ty in range(rect[k, 2], rect[k, 3]):
-            for tx in range(rect[k, 0], rect[k, 1]):
+        for ty in range(rect[j, 2], rect[j, 3]):
+            for tx in range(rect[j, 0], rect[j, 1]):
                 b = i * n_tiles + ty * tiles_x + tx
                 if bin_needed[i, b - i * n_tiles]:
                     flat_ids[fill[b]] = k
@@ -1032,12 +1035,15 @@ def raster_bwd(tab, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles
 @njit(cache=True)
 def reduce_isect_grad(isect_grad, flat_ids, M, IN, absgrad):
     """Per-intersection gradients -> per (image, Gaussian) sums [I*N, 6 + Cf], in intersection
-    order (sequential: deterministic); absgrad [I*N, 2] sums |dL/d mean| per intersection."""
+    order (sequential: deterministic); absgrad [I*N, 2] sums |dL/d mean| per intersection (an
+    empty [0, 2] array: not asked for, skipped)."""
     out = np.zeros((IN, isect_grad.shape[1]))
+    want_abs = absgrad.shape[0] > 0
     for k in range(M):
         g = flat_ids[k]
         for c in range(isect_grad.shape[1]):
             out[g, c] += isect_grad[k, c]
-        absgrad[g, 0] += abs(isect_grad[k, 0])
-        absgrad[g, 1] += abs(isect_grad[k, 1])
+        if want_abs:
+            absgrad[g, 0] += abs(isect_grad[k, 0])
+            absgrad[g, 1] += abs(isect_grad[k, 1])
     return out
