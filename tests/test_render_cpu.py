@@ -283,3 +283,36 @@ def test_finite_check_is_exact_when_the_sum_overflows():
     colors[5, 1] = float("nan")
     with pytest.raises(ValueError, match="colors must be finite"):
         render(Gaussians(g.means, g.quats, g.log_scales, g.opacity_logits, colors), CAM, pose(), backend="cpu")
+
+
+def test_raster_threads_env_gives_the_kernels_their_own_count():
+    """EGOBENCH_RASTER_THREADS sets the kernels' threads independently of torch's (torch at 1,
+    numba at 2: the pool is sized from it at import); without it numba follows torch; a bad value
+    is a ValueError naming the variable."""
+    import os
+    import subprocess
+    import sys
+
+    from egobench.render import cpu_backend
+
+    code = ("import torch\n"
+            "from egobench.render import render\n"
+            "from tests.test_render_cpu import make_scene, CAM, pose\n"
+            "out = render(make_scene(20, CAM, 0), CAM, pose(), backend='cpu')\n"
+            "import numba\n"
+            "print(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS, numba.get_num_threads())\n")
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = {k: v for k, v in os.environ.items() if k not in ("NUMBA_NUM_THREADS", cpu_backend.RASTER_THREADS_ENV)}
+    env.update(OMP_NUM_THREADS="1", PYTHONPATH=root + os.pathsep + env.get("PYTHONPATH", ""))
+    outs = []
+    for value in ("2", None):
+        e = dict(env, **({cpu_backend.RASTER_THREADS_ENV: value} if value else {}))
+        res = subprocess.run([sys.executable, "-c", code], env=e, cwd=root, capture_output=True, text=True, check=True)
+        outs.append(res.stdout.split())
+    assert outs == [["1", "2", "2"], ["1", "1", "1"]]
+    os.environ[cpu_backend.RASTER_THREADS_ENV] = "two"
+    try:
+        with pytest.raises(ValueError, match="EGOBENCH_RASTER_THREADS must be a positive integer"):
+            cpu_backend.raster_threads()
+    finally:
+        del os.environ[cpu_backend.RASTER_THREADS_ENV]

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import functools
 import math
+import os
 import sys
 from dataclasses import dataclass
 
@@ -60,11 +61,29 @@ def _np(t: Tensor) -> np.ndarray:
     return t.detach().contiguous().numpy()
 
 
+#: environment variable giving the compiled kernels their own thread count (default: torch's)
+RASTER_THREADS_ENV = "EGOBENCH_RASTER_THREADS"
+
+
+def raster_threads() -> int:
+    """Threads of the compiled kernels: EGOBENCH_RASTER_THREADS when set, else torch's count
+    (OMP_NUM_THREADS / torch.set_num_threads). Setting it to 2 with torch at 1 thread parallelises
+    the kernels only: torch's OpenMP threads gain nothing on the small tensors around them and spin
+    or stall at every operation (measured: docs/cpu-rasterizer.md, "Threads")."""
+    value = os.environ.get(RASTER_THREADS_ENV, "")
+    if not value:
+        return torch.get_num_threads()
+    if not value.isdigit() or int(value) < 1:
+        raise ValueError(f"{RASTER_THREADS_ENV} must be a positive integer (threads of the compiled CPU "
+                         f"rasterizer), got {value!r}")
+    return int(value)
+
+
 def _set_threads() -> None:
-    """numba follows torch's thread count (OMP_NUM_THREADS / torch.set_num_threads)."""
+    """numba's thread count: `raster_threads`, at most numba's pool size."""
     import numba
 
-    numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
+    numba.set_num_threads(max(1, min(raster_threads(), numba.config.NUMBA_NUM_THREADS)))
 
 
 def _pose_grad(gv_parts: np.ndarray, dt: torch.dtype) -> Tensor:
