@@ -33,6 +33,7 @@ if "NUMBA_NUM_THREADS" not in os.environ and _POOL.isdigit() and int(_POOL) > 0:
 
 import numba  # noqa: E402
 import numpy as np  # noqa: E402
+import llvmlite.binding as ll  # noqa: E402
 from llvmlite import ir  # noqa: E402
 from numba import njit, prange, types  # noqa: E402
 from numba.core import cgutils  # noqa: E402
@@ -580,8 +581,10 @@ def _prefetch_row(typingctx, arr, row):
                                         [idx, context.get_constant(types.intp, 0)], wraparound=False,
                                         boundscheck=False)
         i8p, i32 = ir.IntType(8).as_pointer(), ir.IntType(32)
-        fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.VoidType(), [i8p, i32, i32, i32]),
-                                            "llvm.prefetch.p0")
+        # the intrinsic's name mangles the pointer type: "p0" for opaque pointers (LLVM >= 17), "p0i8"
+        # for typed ones
+        name = "llvm.prefetch.p0" if ll.llvm_version_info[0] >= 17 else "llvm.prefetch.p0i8"
+        fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.VoidType(), [i8p, i32, i32, i32]), name)
         builder.call(fn, [builder.bitcast(ptr, i8p), i32(0), i32(3), i32(1)])
         return context.get_dummy_value()
     return types.void(arr, row), codegen
