@@ -316,3 +316,27 @@ def test_raster_threads_env_gives_the_kernels_their_own_count():
             cpu_backend.raster_threads()
     finally:
         del os.environ[cpu_backend.RASTER_THREADS_ENV]
+
+
+def test_stage_profiler_reports_every_stage_of_the_binned_scene():
+    """`python -m egobench.render.cpu_profile` (docs/cpu-rasterizer.md's profile): every stage is
+    timed, the sum is the sum of the listed stages, and the intersection count is the binning's."""
+    import numpy as np
+
+    from egobench import bench
+    from egobench.render import cpu_backend, cpu_kernels, cpu_profile
+
+    st = cpu_profile.stage_times(sigma_px=1.5, width=32, n=300, repeats=1)
+    stages = ("project_fwd", "raster_setup(incl. bin_tiles)", "gaussian_table", "raster_fwd", "raster_bwd",
+              "reduce_isect_grad", "project_bwd")
+    assert all(st[k] >= 0 for k in stages + ("bin_tiles",)) and st["render_fwd_bwd (bench step)"] > 0
+    assert st["sum_of_stages"] == pytest.approx(sum(st[k] for k in stages), abs=0.01)
+    spec = bench._case_spec((32, 300, 1.5))
+    g = bench.bench_scene(spec)
+    with torch.no_grad():
+        m2, _, dep, _, rad = cpu_backend._Project.apply(
+            g.means, g.quats, g.scales, torch.eye(4)[None], torch.sigmoid(g.opacity_logits),
+            cpu_backend.camera_array(bench.bench_camera(spec)), 32, 32, False)
+    need = np.ones((1, 4), dtype=np.bool_)
+    flat, _ = cpu_kernels.bin_tiles(m2.numpy(), rad.numpy(), dep.numpy(), 16, 2, 2, need)
+    assert st["intersections"] == flat.shape[0] > 0
