@@ -226,3 +226,117 @@ def test_one_thread_per_worker_from_omp_num_threads():
     env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")
     res = subprocess.run([sys.executable, "-c", code], env=env, cwd=root, capture_output=True, text=True, check=True)
     assert res.stdout.split() == ["1", "1", "1"]
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_band_rows_hold_every_visible_pixel(dtype):
+    """The rows the compositing loops visit per 8-column group (`_footprint_tab` narrowed by
+    `_band_rows`, from `gaussian_table`) contain every pixel whose exponent allows alpha > 1/255,
+    computed independently per pixel in float64; the band must also cut rows somewhere (else the
+    test would not exercise it)."""
+    import numpy as np
+
+    from egobench.render import _viewmats, cpu_backend, cpu_kernels
+
+    ts, cw, n_checked, n_cut = 16, cpu_kernels.column_group(16), 0, 0
+    for seed in range(3):
+        g = edge_case_scene(seed, dtype)
+        lo = torch.nn.functional.logsigmoid(g.opacity_logits).numpy()
+        m2, con, dep, _, rad = cpu_backend._Project.apply(
+            g.means, g.quats, g.scales, _viewmats(pose(0.03, -0.02)[None].to(dtype)),
+            torch.sigmoid(g.opacity_logits).detach(), cpu_backend.camera_array(CAM), CAM.width, CAM.height, False)
+        m2, con, rad = m2.numpy(), con.numpy(), rad.numpy()
+        tab = np.empty((m2.shape[1], cpu_kernels.TAB_COLS), m2.dtype)
+        cpu_kernels.gaussian_table(m2, con, rad, lo, tab)
+        pix_view, need = cpu_backend.pixel_views(None, 1, CAM.height, CAM.width, ts)
+        tiles_x = math.ceil(CAM.width / ts)
+        flat, starts = cpu_kernels.bin_tiles(m2, rad, dep.numpy(), ts, tiles_x, need.shape[1] // tiles_x, need)
+        for b in range(need.shape[1]):
+            x0, y0 = (b % tiles_x) * ts, (b // tiles_x) * ts
+            py, px = np.meshgrid(np.arange(y0, y0 + ts) + 0.5, np.arange(x0, x0 + ts) + 0.5, indexing="ij")
+            for n in flat[starts[b]:starts[b + 1]]:
+                A, B, C = (float(v) for v in con[0, n])
+                dx, dy = px - float(m2[0, n, 0]), py - float(m2[0, n, 1])
+                reach = 0.5 * (A * dx * dx + 2 * B * dx * dy + C * dy * dy) - float(lo[n]) <= 5.55
+                reach &= (py < CAM.height) & (px < CAM.width)
+                ra, rb, ca, cb = cpu_kernels._footprint_tab(tab, n, x0, y0, ts, CAM.width, CAM.height)
+                visited = np.zeros_like(reach)
+                for q in range(ca // cw, (cb - 1) // cw + 1 if cb > ca else 0):
+                    qa, qb = max(ca, q * cw), min(cb, q * cw + cw)
+                    qra, qrb = cpu_kernels._band_rows(tab, n, x0, y0, qa, qb, ra, rb)
+                    visited[qra:qrb, qa:qb] = True
+                    n_cut += int(qrb - qra < rb - ra)
+                assert not (reach & ~visited).any(), (seed, b, n)
+                n_checked += int(reach.any())
+    assert n_checked > 100 and n_cut > 20
+
+
+def test_finite_check_is_exact_when_the_sum_overflows():
+    """`render` checks finiteness through the sum of each parameter tensor; finite entries whose sum
+    overflows float32 must still pass, and a NaN among them must still be named."""
+    g = Gaussians(**{k: v.float() for k, v in edge_case_scene(0).tensors().items()})
+    colors = g.colors.clone()
+    colors[:4] = 3e38  # finite; their sum is inf in float32
+    assert not torch.isfinite(colors.sum())
+    out = render(Gaussians(g.means, g.quats, g.log_scales, g.opacity_logits, colors), CAM, pose(), backend="cpu")
+    assert out.rgb.shape == (1, CAM.height, CAM.width, 3)
+    colors[5, 1] = float("nan")
+    with pytest.raises(ValueError, match="colors must be finite"):
+        render(Gaussians(g.means, g.quats, g.log_scales, g.opacity_logits, colors), CAM, pose(), backend="cpu")
+
+
+def test_raster_threads_env_gives_the_kernels_their_own_count():
+    """EGOBENCH_RASTER_THREADS sets the kernels' threads independently of torch's (torch at 1,
+    numba at 2: the pool is sized from it at import); without it numba follows torch; a bad value
+    is a ValueError naming the variable."""
+    import os
+    import subprocess
+    import sys
+
+    from egobench.render import cpu_backend
+
+    code = ("import torch\n"
+            "from egobench.render import render\n"
+            "from tests.test_render_cpu import make_scene, CAM, pose\n"
+            "out = render(make_scene(20, CAM, 0), CAM, pose(), backend='cpu')\n"
+            "import numba\n"
+            "print(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS, numba.get_num_threads())\n")
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = {k: v for k, v in os.environ.items() if k not in ("NUMBA_NUM_THREADS", cpu_backend.RASTER_THREADS_ENV)}
+    env.update(OMP_NUM_THREADS="1", PYTHONPATH=root + os.pathsep + env.get("PYTHONPATH", ""))
+    outs = []
+    for value in ("2", None):
+        e = dict(env, **({cpu_backend.RASTER_THREADS_ENV: value} if value else {}))
+        res = subprocess.run([sys.executable, "-c", code], env=e, cwd=root, capture_output=True, text=True, check=True)
+        outs.append(res.stdout.split())
+    assert outs == [["1", "2", "2"], ["1", "1", "1"]]
+    os.environ[cpu_backend.RASTER_THREADS_ENV] = "two"
+    try:
+        with pytest.raises(ValueError, match="EGOBENCH_RASTER_THREADS must be a positive integer"):
+            cpu_backend.raster_threads()
+    finally:
+        del os.environ[cpu_backend.RASTER_THREADS_ENV]
+
+
+def test_stage_profiler_reports_every_stage_of_the_binned_scene():
+    """`python -m egobench.render.cpu_profile` (docs/cpu-rasterizer.md's profile): every stage is
+    timed, the sum is the sum of the listed stages, and the intersection count is the binning's."""
+    import numpy as np
+
+    from egobench import bench
+    from egobench.render import cpu_backend, cpu_kernels, cpu_profile
+
+    st = cpu_profile.stage_times(sigma_px=1.5, width=32, n=300, repeats=1)
+    stages = ("project_fwd", "raster_setup(incl. bin_tiles)", "gaussian_table", "raster_fwd", "raster_bwd",
+              "reduce_isect_grad", "project_bwd")
+    assert all(st[k] >= 0 for k in stages + ("bin_tiles",)) and st["render_fwd_bwd (bench step)"] > 0
+    assert st["sum_of_stages"] == pytest.approx(sum(st[k] for k in stages), abs=0.01)
+    spec = bench._case_spec((32, 300, 1.5))
+    g = bench.bench_scene(spec)
+    with torch.no_grad():
+        m2, _, dep, _, rad = cpu_backend._Project.apply(
+            g.means, g.quats, g.scales, torch.eye(4)[None], torch.sigmoid(g.opacity_logits),
+            cpu_backend.camera_array(bench.bench_camera(spec)), 32, 32, False)
+    need = np.ones((1, 4), dtype=np.bool_)
+    flat, _ = cpu_kernels.bin_tiles(m2.numpy(), rad.numpy(), dep.numpy(), 16, 2, 2, need)
+    assert st["intersections"] == flat.shape[0] > 0

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import functools
 import math
+import os
 import sys
 from dataclasses import dataclass
 
@@ -60,11 +61,29 @@ def _np(t: Tensor) -> np.ndarray:
     return t.detach().contiguous().numpy()
 
 
+#: environment variable giving the compiled kernels their own thread count (default: torch's)
+RASTER_THREADS_ENV = "EGOBENCH_RASTER_THREADS"
+
+
+def raster_threads() -> int:
+    """Threads of the compiled kernels: EGOBENCH_RASTER_THREADS when set, else torch's count
+    (OMP_NUM_THREADS / torch.set_num_threads). Setting it to 2 with torch at 1 thread parallelises
+    the kernels only: torch's OpenMP threads gain nothing on the small tensors around them and spin
+    or stall at every operation (measured: docs/cpu-rasterizer.md, "Threads")."""
+    value = os.environ.get(RASTER_THREADS_ENV, "")
+    if not value:
+        return torch.get_num_threads()
+    if not value.isdigit() or int(value) < 1:
+        raise ValueError(f"{RASTER_THREADS_ENV} must be a positive integer (threads of the compiled CPU "
+                         f"rasterizer), got {value!r}")
+    return int(value)
+
+
 def _set_threads() -> None:
-    """numba follows torch's thread count (OMP_NUM_THREADS / torch.set_num_threads)."""
+    """numba's thread count: `raster_threads`, at most numba's pool size."""
     import numba
 
-    numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
+    numba.set_num_threads(max(1, min(raster_threads(), numba.config.NUMBA_NUM_THREADS)))
 
 
 def _pose_grad(gv_parts: np.ndarray, dt: torch.dtype) -> Tensor:
@@ -120,7 +139,7 @@ def reduce_intersections(isect: np.ndarray, flat_ids: np.ndarray, I: int, N: int
     order); sets absgrad_holder[0].absgrad [I, N, 2] (sum of |row[:2]|) when a holder is given."""
     from egobench.render import cpu_kernels as ck
 
-    absg = np.zeros((I * N, 2))
+    absg = np.zeros((I * N if absgrad_holder is not None else 0, 2))
     per = ck.reduce_isect_grad(isect, flat_ids, flat_ids.shape[0], I * N, absg)
     if absgrad_holder is not None:  # gsplat's absgrad attribute
         absgrad_holder[0].absgrad = torch.from_numpy(absg).reshape(I, N, 2).to(dt)
@@ -204,15 +223,17 @@ class _Rasterize(torch.autograd.Function):
         I, N = depths.shape
         Iout, H, W = pix_view.shape
         st = raster_setup(means2d, radii, depths, colors, normals, pix_view, bin_needed, tile_size)
-        m2, con, rad, lo = _np(means2d), _np(conics), _np(radii), _np(log_opac)
+        m2 = _np(means2d)
         Cf = st.feats.shape[1]
         out_feat = np.zeros((Iout, H, W, Cf), dtype=m2.dtype)
         out_T = np.zeros((Iout, H, W), dtype=m2.dtype)
         out_last = np.zeros((Iout, H, W), dtype=np.int32)
         _set_threads()
-        ck.raster_fwd(m2, con, rad, lo, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, tile_size,
+        tab = np.empty((I * N, ck.TAB_COLS), dtype=m2.dtype)
+        ck.gaussian_table(m2, _np(conics), _np(radii), _np(log_opac), tab)
+        ck.raster_fwd(tab, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, tile_size,
                       st.tiles_x, st.cw, st.kc, st.centres, out_feat, out_T, out_last)
-        ctx.state = (m2, con, rad, lo, st, pix_view, tile_size, out_T, out_last, absgrad_target)
+        ctx.state = (tab, st, pix_view, tile_size, out_T, out_last, absgrad_target)
         ctx.has_normals = bool(normals.shape[1])
         ctx.shapes = (I, N, colors.dtype)
         return torch.from_numpy(out_feat), torch.from_numpy(out_T)
@@ -221,14 +242,14 @@ class _Rasterize(torch.autograd.Function):
     def backward(ctx, g_feat, g_T):
         from egobench.render import cpu_kernels as ck
 
-        m2, con, rad, lo, st, pix_view, ts, out_T, out_last, ab = ctx.state
+        tab, st, pix_view, ts, out_T, out_last, ab = ctx.state
         I, N, dt = ctx.shapes
         Cf = st.feats.shape[1]
         gF = np.zeros(out_T.shape + (Cf,), out_T.dtype) if g_feat is None else _np(g_feat)
         gT = np.zeros(out_T.shape, out_T.dtype) if g_T is None else _np(g_T)
         isect = np.zeros((st.flat_ids.shape[0], 6 + Cf), st.kc.dtype)
         _set_threads()
-        ck.raster_bwd(m2, con, rad, lo, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, ts, st.tiles_x, st.cw,
+        ck.raster_bwd(tab, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, ts, st.tiles_x, st.cw,
                       st.kc, st.centres, out_T, out_last, gF, gT, isect)
         per = reduce_intersections(isect, st.flat_ids, I, N, dt, ab)
         g_normals = per[..., 10:13] if ctx.has_normals else None

@@ -25,15 +25,19 @@ import os
 # Workers run one thread each when Snakemake runs jobs side by side: Snakemake exports
 # OMP_NUM_THREADS={threads} to every shell job (config resources.<step>.threads, default 1); torch
 # reads it, `cpu_backend` sets numba's count to torch's on every call, and here numba's pool is
-# capped to it as well (numba reads NUMBA_NUM_THREADS when first imported).
-if "NUMBA_NUM_THREADS" not in os.environ and os.environ.get("OMP_NUM_THREADS", "").isdigit():
-    if int(os.environ["OMP_NUM_THREADS"]) > 0:
-        os.environ["NUMBA_NUM_THREADS"] = os.environ["OMP_NUM_THREADS"]
+# capped to it as well (numba reads NUMBA_NUM_THREADS when first imported). EGOBENCH_RASTER_THREADS,
+# when set, gives the kernels their own count instead (`cpu_backend.raster_threads`).
+_POOL = os.environ.get("EGOBENCH_RASTER_THREADS") or os.environ.get("OMP_NUM_THREADS", "")
+if "NUMBA_NUM_THREADS" not in os.environ and _POOL.isdigit() and int(_POOL) > 0:
+    os.environ["NUMBA_NUM_THREADS"] = _POOL
 
 import numba  # noqa: E402
 import numpy as np  # noqa: E402
+import llvmlite.binding as ll  # noqa: E402
+from llvmlite import ir  # noqa: E402
 from numba import njit, prange, types  # noqa: E402
-from numba.extending import overload  # noqa: E402
+from numba.core import cgutils  # noqa: E402
+from numba.extending import intrinsic, overload  # noqa: E402
 
 # numba's OpenMP layer keeps its worker threads spinning after each parallel loop, which stalls
 # torch's own OpenMP threads (measured: torch ops 100x slower after one such loop on a 2-core
@@ -372,14 +376,16 @@ def bin_tiles(means2d, radii, depths, tile_size, tiles_x, tiles_y, bin_needed):
         digit = ((ukeys >> shift) & 0xFFFF).astype(np.uint16)
         p = np.argsort(digit if perm is None else digit[perm], kind="stable")
         perm = p if perm is None else perm[p]
-    order = vis if perm is None else vis[perm]
-    return _fill_bins(rect, order, depths.shape[1], tiles_x, tiles_y, bin_needed)
+    if perm is None:
+        return _fill_bins(rect, vis, depths.shape[1], tiles_x, tiles_y, bin_needed)
+    # rectangles in depth order too: _fill_bins then reads them sequentially (no cache misses)
+    return _fill_bins(rect[perm], vis[perm], depths.shape[1], tiles_x, tiles_y, bin_needed)
 
 
 @njit(cache=True)
 def _tile_rects(means2d, radii, depths, tile_size, tiles_x, tiles_y, bin_needed):
-    """Tile rectangles [I*N, 4] (x0, x1, y0, y1) of the visible (image, Gaussian) pairs, their flat
-    ids (ascending) and depths."""
+    """Tile rectangles [nv, 4] int32 (x0, x1, y0, y1) of the nv visible (image, Gaussian) pairs, their
+    flat ids (ascending) and depths."""
     I, N = depths.shape
     n_tiles = tiles_x * tiles_y
     # each image's tile ranges are clipped to the bounding box of its needed bins (as torch_backend)
@@ -395,7 +401,7 @@ def _tile_rects(means2d, radii, depths, tile_size, tiles_x, tiles_y, bin_needed)
                 bx1[i] = max(bx1[i], tx + 1)
                 by0[i] = min(by0[i], ty)
                 by1[i] = max(by1[i], ty + 1)
-    rect = np.empty((I * N, 4), np.int64)  # rows of visible pairs only are written and read
+    rect = np.empty((I * N, 4), np.int32)
     vis = np.empty(I * N, np.int64)
     keys = np.empty(I * N, depths.dtype)
     nv = 0
@@ -414,16 +420,17 @@ def _tile_rects(means2d, radii, depths, tile_size, tiles_x, tiles_y, bin_needed)
             if x1 <= x0 or y1 <= y0:
                 continue
             k = i * N + n
-            rect[k, 0], rect[k, 1], rect[k, 2], rect[k, 3] = x0, x1, y0, y1
+            rect[nv, 0], rect[nv, 1], rect[nv, 2], rect[nv, 3] = x0, x1, y0, y1
             vis[nv] = k
             keys[nv] = depths[i, n]
             nv += 1
-    return rect, vis[:nv].copy(), keys[:nv].copy()
+    return rect[:nv].copy(), vis[:nv].copy(), keys[:nv].copy()
 
 
 @njit(cache=True)
 def _fill_bins(rect, order, N, tiles_x, tiles_y, bin_needed):
-    """Counting sort of the intersections of the pairs in ``order`` (front to back) by bin."""
+    """Counting sort of the intersections of the pairs in ``order`` (front to back; rect [nv, 4]
+    their tile rectangles, in the same order) by bin."""
     I = bin_needed.shape[0]
     n_tiles = tiles_x * tiles_y
     nv = order.shape[0]
@@ -431,8 +438,8 @@ def _fill_bins(rect, order, N, tiles_x, tiles_y, bin_needed):
     for j in range(nv):
         k = order[j]
         i = k // N
-        for ty in range(rect[k, 2], rect[k, 3]):
-            for tx in range(rect[k, 0], rect[k, 1]):
+        for ty in range(rect[j, 2], rect[j, 3]):
+            for tx in range(rect[j, 0], rect[j, 1]):
                 b = i * n_tiles + ty * tiles_x + tx
                 if bin_needed[i, b - i * n_tiles]:
                     counts[b + 1] += 1
@@ -442,8 +449,8 @@ def _fill_bins(rect, order, N, tiles_x, tiles_y, bin_needed):
     for j in range(nv):
         k = order[j]
         i = k // N
-        for ty in range(rect[k, 2], rect[k, 3]):
-            for tx in range(rect[k, 0], rect[k, 1]):
+        for ty in range(rect[j, 2], rect[j, 3]):
+            for tx in range(rect[j, 0], rect[j, 1]):
                 b = i * n_tiles + ty * tiles_x + tx
                 if bin_needed[i, b - i * n_tiles]:
                     flat_ids[fill[b]] = k
@@ -480,15 +487,18 @@ def _exp_neg_impl(s, kc):
     if kc.dtype == types.float32:
         def impl32(s, kc):
             x = -min(s, kc[5]) * kc[4]
-            # unrolled by hand: a loop here would be the innermost loop and stop the vectorizer
-            p = kc[11] * x + kc[12]
-            p = p * x + kc[13]
-            p = p * x + kc[14]
-            p = p * x + kc[15]
-            p = p * x + kc[16]
-            p = p * x + kc[17]
-            p = p * x + kc[18]
-            p = p * x + kc[19]
+            # unrolled by hand: a loop here would be the innermost loop and stop the vectorizer;
+            # Estrin's scheme (pairs, then powers x^2, x^4, x^8): a dependency chain half as long
+            # as Horner's, which is what bounds the short per-Gaussian pixel loops
+            x2 = x * x
+            x4 = x2 * x2
+            q0 = kc[18] * x + kc[19]
+            q1 = kc[16] * x + kc[17]
+            q2 = kc[14] * x + kc[15]
+            q3 = kc[12] * x + kc[13]
+            r0 = q1 * x2 + q0
+            r1 = q3 * x2 + q2
+            p = (r1 * x4 + r0) + kc[11] * (x4 * x4)
             p = p * p
             p = p * p
             p = p * p
@@ -554,11 +564,111 @@ def _tile_centres(centres, x0, y0, ts, cw, cxt, cyt):
             cyt[q] = centres[y0 + r]
 
 
+#: intersections ahead whose table and feature rows the compositing loops prefetch (the rows are
+#: read in depth order, scattered over the table: without it a cache miss starts every intersection)
+PREFETCH_AHEAD = 6
+
+
+@intrinsic
+def _prefetch_row(typingctx, arr, row):
+    """Software prefetch (read, all cache levels) of the start of row `row` of a 2D C-contiguous array."""
+    def codegen(context, builder, signature, args):
+        aryty = signature.args[0]
+        ary = context.make_array(aryty)(context, builder, args[0])
+        idx = context.cast(builder, args[1], signature.args[1], types.intp)
+        ptr = cgutils.get_item_pointer2(context, builder, ary.data, cgutils.unpack_tuple(builder, ary.shape),
+                                        cgutils.unpack_tuple(builder, ary.strides), aryty.layout,
+                                        [idx, context.get_constant(types.intp, 0)], wraparound=False,
+                                        boundscheck=False)
+        i8p, i32 = ir.IntType(8).as_pointer(), ir.IntType(32)
+        # the intrinsic's name mangles the pointer type: "p0" for opaque pointers (LLVM >= 17), "p0i8"
+        # for typed ones
+        name = "llvm.prefetch.p0" if ll.llvm_version_info[0] >= 17 else "llvm.prefetch.p0i8"
+        fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.VoidType(), [i8p, i32, i32, i32]), name)
+        builder.call(fn, [builder.bitcast(ptr, i8p), i32(0), i32(3), i32(1)])
+        return context.get_dummy_value()
+    return types.void(arr, row), codegen
+
+
+#: columns of `gaussian_table`
+TAB_COLS = 16
+
+
+@njit(cache=True, parallel=True)
+def gaussian_table(means2d, conics, radii, log_opac, tab):
+    """Per (image, Gaussian) constants of the compositing loops, computed once instead of once per
+    tile intersection: means2d [I,N,2], conics [I,N,3], radii [I,N,2], log_opac [N] -> tab
+    [I*N, TAB_COLS] (compute dtype), row image * N + Gaussian: 0-1 centre (x, y), 2-4 conic
+    (A, B, C), 5 log opacity, 6-7 footprint half-extents (x, y) (`_extent`), 8-14 the ellipse of
+    `_band_rows` (usable (1/0), C R2, det, 1/C, x half-extent xe, x offset of the topmost point
+    dxt, its y offset dyt)."""
+    I, N = means2d.shape[0], log_opac.shape[0]
+    n_chunks = (N + CHUNK - 1) // CHUNK
+    for ch in prange(n_chunks):
+        for i in range(I):
+            for n in range(ch * CHUNK, min(N, (ch + 1) * CHUNK)):
+                g = i * N + n
+                A, B, C, lo = conics[i, n, 0], conics[i, n, 1], conics[i, n, 2], log_opac[n]
+                tab[g, 0] = means2d[i, n, 0]
+                tab[g, 1] = means2d[i, n, 1]
+                tab[g, 2] = A
+                tab[g, 3] = B
+                tab[g, 4] = C
+                tab[g, 5] = lo
+                tab[g, 6] = _extent(A, B, C, lo, radii[i, n, 0], True)
+                tab[g, 7] = _extent(A, B, C, lo, radii[i, n, 1], False)
+                Af, Bf, Cf = float(A), float(B), float(C)
+                r2 = 2.0 * (SIGMA_ROW + float(lo)) + 0.05  # the ellipse d^T Q d <= R2, slightly enlarged
+                det = Af * Cf - Bf * Bf
+                ok = det > 0.0 and Af > 0.0 and Cf > 0.0 and r2 > 0.0
+                dets, As, Cs = (det, Af, Cf) if ok else (1.0, 1.0, 1.0)
+                dyt = math.sqrt(max(r2, 0.0) * As / dets)
+                tab[g, 8] = 1.0 if ok else 0.0
+                tab[g, 9] = Cs * r2
+                tab[g, 10] = dets
+                tab[g, 11] = 1.0 / Cs
+                tab[g, 12] = math.sqrt(max(Cs * r2 / dets, 0.0))
+                tab[g, 13] = -Bf / As * dyt
+                tab[g, 14] = dyt
+                tab[g, 15] = 0.0
+
+
 @njit(cache=True, inline="always")
-def _footprint(mx, my, A, B, C, lo, rx, ry, x0, y0, ts, W, H):
-    """Tile-local rows [ra, rb) and columns [ca, cb) a Gaussian's ellipse can reach."""
-    ey = _extent(A, B, C, lo, ry, False)
-    ex = _extent(A, B, C, lo, rx, True)
+def _band_rows(tab, g, x0, y0, qa, qb, ra, rb):
+    """Rows [ra, rb) narrowed to those whose pixel centres in tile-local columns [qa, qb) can lie in
+    the ellipse d^T Q d <= R2 of `gaussian_table` row g (a superset, 0.25-pixel margins). Over a band
+    of columns the ellipse's top y_hi(dx) = (-B dx + sqrt(C R2 - det dx^2)) / C is concave, largest at
+    the column nearest the topmost point (dxt, dyt); its bottom likewise at the one nearest (-dxt, -dyt)."""
+    if tab[g, 8] == 0.0 or ra >= rb:
+        return ra, rb
+    mx, my, B = float(tab[g, 0]), float(tab[g, 1]), float(tab[g, 3])
+    cr2, det, inv_c, xe = float(tab[g, 9]), float(tab[g, 10]), float(tab[g, 11]), float(tab[g, 12])
+    dxt, dyt = float(tab[g, 13]), float(tab[g, 14])
+    a = max(x0 + qa + 0.5 - mx, -xe)
+    b = min(x0 + qb - 0.5 - mx, xe)
+    if a > b + 0.25:  # the band lies beside the ellipse
+        return ra, ra
+    b = max(a, b)
+    if a <= dxt and dxt <= b:
+        y_hi = dyt
+    else:
+        dt = min(max(dxt, a), b)
+        y_hi = (-B * dt + math.sqrt(max(cr2 - det * dt * dt, 0.0))) * inv_c
+    if a <= -dxt and -dxt <= b:
+        y_lo = -dyt
+    else:
+        db = min(max(-dxt, a), b)
+        y_lo = (-B * db - math.sqrt(max(cr2 - det * db * db, 0.0))) * inv_c
+    # rows whose centre y0 + r + 0.5 lies in [my + y_lo, my + y_hi], with a 0.25-pixel margin
+    lo_r = min(max(my + y_lo - y0 - 0.75, -1.0), rb + 1.0)
+    hi_r = min(max(my + y_hi - y0 - 0.25, -1.0), rb + 1.0)
+    return max(ra, int(math.ceil(lo_r))), min(rb, int(math.floor(hi_r)) + 1)
+
+
+@njit(cache=True, inline="always")
+def _footprint_tab(tab, g, x0, y0, ts, W, H):
+    """Tile-local rows [ra, rb) and columns [ca, cb) the ellipse of `gaussian_table` row g can reach."""
+    mx, my, ex, ey = tab[g, 0], tab[g, 1], float(tab[g, 6]), float(tab[g, 7])
     ra = max(0, int(math.floor(my - ey)) - y0)
     rb = min(min(ts, H - y0), int(math.ceil(my + ey)) - y0)
     ca = max(0, int(math.floor(mx - ex)) - x0)
@@ -573,14 +683,6 @@ def _bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout):
     o = 0 if Iout == 1 else i
     x0, y0 = (t % tiles_x) * ts, (t // tiles_x) * ts
     return i, o, x0, y0, min(x0 + ts, W), min(y0 + ts, H)
-
-
-@njit(cache=True, inline="always")
-def _gaussian(means2d, conics, log_opac, g, N):
-    """Entry g = image * N + Gaussian -> (image gi, Gaussian n, centre mx, my, conic A, B, C, log opacity)."""
-    gi, n = g // N, g % N
-    return gi, n, means2d[gi, n, 0], means2d[gi, n, 1], conics[gi, n, 0], conics[gi, n, 1], conics[gi, n, 2], \
-        log_opac[n]
 
 
 @njit(cache=True, inline="always")
@@ -783,11 +885,18 @@ def _exponent_grad(e, w, a_ratio, live, sp, gTT_p, zero):
     return (G if live else zero), sp + e * w
 
 
+@njit(cache=True, inline="always", fastmath=FASTMATH)
+def _exponent(dx, dy, hA, B, hC, lo):
+    """sigma - log o of a pixel at offset (dx, dy) from the centre (hA = A / 2, hC = C / 2)."""
+    return (hA * dx + B * dy) * dx + hC * dy * dy - lo
+
+
 @njit(cache=True, parallel=True, fastmath=FASTMATH)
-def raster_fwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles_x,
+def raster_fwd(tab, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles_x,
                cw, kc, centres, out_feat, out_T, out_last):
     """Front-to-back compositing of each bin (image i, tile t) in ``bins`` into the output pixels
-    whose view is i (pix_view [Iout,H,W]). feats [I*N, Cf] per (image, Gaussian) features; cw
+    whose view is i (pix_view [Iout,H,W]). tab [I*N, TAB_COLS] `gaussian_table` (centres, conics,
+    log opacities, footprints); feats [I*N, Cf] per (image, Gaussian) features; cw
     `column_group`; kc `compute_constants`; centres [max(W, H) + tile_size] pixel centres
     (index + 0.5), compute dtype. Writes out_feat [Iout,H,W,Cf] (sum w f), out_T [Iout,H,W]
     (composited transmittance) and out_last [Iout,H,W] (one past the last composited intersection).
@@ -796,7 +905,6 @@ def raster_fwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
     ellipse's rows, trimmed to rows still compositing) are one contiguous range, updated by one
     branch-free loop (it vectorizes)."""
     Iout, H, W = pix_view.shape
-    N = log_opac.shape[0]
     Cf = feats.shape[1]
     n_tiles = tiles_x * ((H + tile_size - 1) // tile_size)
     ts = tile_size
@@ -809,38 +917,43 @@ def raster_fwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
             if n_active == 0:
                 break
             g = flat_ids[k]
-            gi, n, mx, my, A, B, C, lo = _gaussian(means2d, conics, log_opac, g, N)
+            gp = flat_ids[min(k + PREFETCH_AHEAD, bin_start[b + 1] - 1)]
+            _prefetch_row(tab, gp)
+            _prefetch_row(feats, gp)
+            mx, my, A, B, C, lo = tab[g, 0], tab[g, 1], tab[g, 2], tab[g, 3], tab[g, 4], tab[g, 5]
             hA, hC = kc[0] * A, kc[0] * C
-            ra, rb, ca, cb = _footprint(mx, my, A, B, C, lo, radii[gi, n, 0], radii[gi, n, 1], x0, y0, ts, W, H)
+            ra, rb, ca, cb = _footprint_tab(tab, g, x0, y0, ts, W, H)
             ra, rb = _trim_rows_active(ra, rb, row_active)
             if ra >= rb or ca >= cb:
                 continue
-            stopped = 0
             k1 = np.int32(k + 1)
             for q in range(ca // cw, (cb - 1) // cw + 1):
-                pa, pb = q * ts * cw + ra * cw, q * ts * cw + rb * cw
+                # rows of this column group the ellipse can reach (fewer than the footprint's)
+                qra, qrb = _band_rows(tab, g, x0, y0, max(ca, q * cw), min(cb, q * cw + cw), ra, rb)
+                if qra >= qrb:
+                    continue
+                pa, pb = q * ts * cw + qra * cw, q * ts * cw + qrb * cw
+                stopped = 0
+                # (accumulating the features in this loop measured slower: 7.7 against 7.1 ms)
                 for pp in range(pa, pb):  # unsigned index: no wraparound test; branch-free: vectorizes
                     p = np.uint64(pp)
-                    dx = cxt[p] - mx
-                    dy = cyt[p] - my
-                    s = (hA * dx + B * dy) * dx + hC * dy * dy - lo
+                    s = _exponent(cxt[p] - mx, cyt[p] - my, hA, B, hC, lo)
                     wbuf[p], T[p], last[p], stop = _composite_pixel(s, T[p], last[p], k1, kc)
                     sbuf[p] = 1 if stop else 0
                     stopped += 1 if stop else 0
                 _accumulate_features(acc, wbuf, feats, g, pa, pb)
-            if stopped:
-                n_active -= stopped
-                _retire_stopped(row_active, sbuf, ra, rb, ca, cb, ts, cw)
+                if stopped:
+                    n_active -= stopped
+                    _retire_stopped(row_active, sbuf, qra, qrb, q * cw, q * cw + 1, ts, cw)
         _finish_tile_fwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, T, last, acc, out_feat, out_T, out_last)
 
 
 @njit(cache=True, parallel=True, fastmath=FASTMATH)
-def raster_bwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles_x,
+def raster_bwd(tab, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles_x,
                cw, kc, centres, out_T, out_last, g_feat, g_T, isect_grad):
     """Back-to-front backward of `raster_fwd` (T recovered by division, as gsplat): isect_grad
     [M, 6 + Cf] per intersection (dL/d mean x, y; dL/d conic a, b, c; dL/d log opacity; dL/d features)."""
     Iout, H, W = pix_view.shape
-    N = log_opac.shape[0]
     Cf = feats.shape[1]
     n_tiles = tiles_x * ((H + tile_size - 1) // tile_size)
     ts = tile_size
@@ -852,9 +965,12 @@ def raster_bwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
             pix_view, o, i, x0, y0, x1, y1, ts, cw, Cf, kc, centres, out_T, out_last, g_T, g_feat, bin_start[b])
         for k in range(k_end - 1, bin_start[b] - 1, -1):
             g = flat_ids[k]
-            gi, n, mx, my, A, B, C, lo = _gaussian(means2d, conics, log_opac, g, N)
+            gp = flat_ids[max(k - PREFETCH_AHEAD, bin_start[b])]
+            _prefetch_row(tab, gp)
+            _prefetch_row(feats, gp)
+            mx, my, A, B, C, lo = tab[g, 0], tab[g, 1], tab[g, 2], tab[g, 3], tab[g, 4], tab[g, 5]
             hA, hC = kc[0] * A, kc[0] * C
-            ra, rb, ca, cb = _footprint(mx, my, A, B, C, lo, radii[gi, n, 0], radii[gi, n, 1], x0, y0, ts, W, H)
+            ra, rb, ca, cb = _footprint_tab(tab, g, x0, y0, ts, W, H)
             ra, rb = _trim_rows_composited(ra, rb, k, row_last)
             gmx = zero
             gmy = zero
@@ -868,13 +984,45 @@ def raster_bwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
             if ra >= rb or ca >= cb:
                 ca, cb = 0, 0
             for q in range(ca // cw, (cb - 1) // cw + 1 if cb > ca else 0):
-                pa, pb = q * ts * cw + ra * cw, q * ts * cw + rb * cw
+                qra, qrb = _band_rows(tab, g, x0, y0, max(ca, q * cw), min(cb, q * cw + cw), ra, rb)
+                if qra >= qrb:
+                    continue
+                pa, pb = q * ts * cw + qra * cw, q * ts * cw + qrb * cw
+                if Cf == 4:  # colour + depth: dL/dw and the feature gradients in the same pass
+                    f0, f1, f2, f3 = feats[g, 0], feats[g, 1], feats[g, 2], feats[g, 3]
+                    s0 = zero
+                    s1 = zero
+                    s2 = zero
+                    s3 = zero
+                    for pp in range(pa, pb):  # unsigned index: no wraparound test; branch-free: vectorizes
+                        p = np.uint64(pp)
+                        dx = cxt[p] - mx
+                        dy = cyt[p] - my
+                        s = _exponent(dx, dy, hA, B, hC, lo)
+                        w, T[p], T_exc, a_ratio, live = _uncomposite_pixel(s, T[p], last[p], k32, kc)
+                        e = gF[0, p] * f0 + gF[1, p] * f1 + gF[2, p] * f2 + gF[3, p] * f3
+                        G, suffix[p] = _exponent_grad(e, w, a_ratio, live, suffix[p], gTT[p], zero)
+                        gmx -= G * (A * dx + B * dy)
+                        gmy -= G * (B * dx + C * dy)
+                        ga += G * dx * dx
+                        gb += G * dx * dy
+                        gc += G * dy * dy
+                        glo -= G
+                        s0 += w * gF[0, p]
+                        s1 += w * gF[1, p]
+                        s2 += w * gF[2, p]
+                        s3 += w * gF[3, p]
+                    gf[0] += s0
+                    gf[1] += s1
+                    gf[2] += s2
+                    gf[3] += s3
+                    continue
                 _feature_dot(ebuf, gF, feats, g, pa, pb, zero)
-                for pp in range(pa, pb):  # unsigned index: no wraparound test; branch-free: vectorizes
+                for pp in range(pa, pb):
                     p = np.uint64(pp)
                     dx = cxt[p] - mx
                     dy = cyt[p] - my
-                    s = (hA * dx + B * dy) * dx + hC * dy * dy - lo
+                    s = _exponent(dx, dy, hA, B, hC, lo)
                     w, T[p], T_exc, a_ratio, live = _uncomposite_pixel(s, T[p], last[p], k32, kc)
                     wbuf[p] = w
                     G, suffix[p] = _exponent_grad(ebuf[p], w, a_ratio, live, suffix[p], gTT[p], zero)
@@ -891,12 +1039,15 @@ def raster_bwd(means2d, conics, radii, log_opac, feats, flat_ids, bin_start, bin
 @njit(cache=True)
 def reduce_isect_grad(isect_grad, flat_ids, M, IN, absgrad):
     """Per-intersection gradients -> per (image, Gaussian) sums [I*N, 6 + Cf], in intersection
-    order (sequential: deterministic); absgrad [I*N, 2] sums |dL/d mean| per intersection."""
+    order (sequential: deterministic); absgrad [I*N, 2] sums |dL/d mean| per intersection (an
+    empty [0, 2] array: not asked for, skipped)."""
     out = np.zeros((IN, isect_grad.shape[1]))
+    want_abs = absgrad.shape[0] > 0
     for k in range(M):
         g = flat_ids[k]
         for c in range(isect_grad.shape[1]):
             out[g, c] += isect_grad[k, c]
-        absgrad[g, 0] += abs(isect_grad[k, 0])
-        absgrad[g, 1] += abs(isect_grad[k, 1])
+        if want_abs:
+            absgrad[g, 0] += abs(isect_grad[k, 0])
+            absgrad[g, 1] += abs(isect_grad[k, 1])
     return out
