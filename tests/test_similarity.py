@@ -65,6 +65,22 @@ def test_rs_shift_of_a_pure_yaw_is_about_f_omega_readout(tmp_path):
     np.testing.assert_allclose(sim_measures.rs_shift_px(rec, pixel_scale=2.0), 2 * expected, rtol=1e-6)
 
 
+def test_view_readout_span_is_the_row_time_range_of_the_valid_pixels(tmp_path):
+    """A view reading rows from R = 0 to 1 spans the whole readout; one whose valid pixels read only
+    R in [0.4, 0.6] (a narrow view of a tall sensor) sees a fifth of the shift between its rows."""
+    import dataclasses
+
+    rec = _yaw_recording(tmp_path, 3.0, 0.01626)
+    assert sim_measures.view_readout_span(rec) == pytest.approx(1.0)
+    size = rec.mask.shape[0]
+    band = 0.4 + 0.2 * torch.arange(size, dtype=torch.float32)[:, None].expand(size, size) / (size - 1)
+    mask = rec.mask.clone()
+    mask[0] = False  # an invalid row outside the band does not count
+    band[0] = 0.0
+    narrow = dataclasses.replace(rec, row_time_ratio=band, mask=mask)
+    assert sim_measures.view_readout_span(narrow) == pytest.approx(0.2 * (size - 2) / (size - 1), rel=1e-5)
+
+
 def test_rs_shift_uses_the_true_readout_when_the_truth_has_one(tmp_path):
     omega, stated, true = 3.0, 0.01, 0.02
     rec = _yaw_recording(tmp_path, omega, stated)
