@@ -116,3 +116,27 @@ def test_auto_exposure_meters_over_the_online_view_only():
     r0, r1, c0, c1 = small_setup.raw.meter_box
     R0, R1, C0, C1 = small_setup.raw.box
     assert R0 <= r0 < r1 <= R1 and C0 <= c0 < c1 <= C1
+
+
+def test_a_view_readout_window_spans_the_readout_over_the_view():
+    """readout_window = "view": the rolling shutter reads only the rows the online view samples, so
+    the written row-time ratio runs from ~0 to ~1 across the view (the paper's 90 deg view: 0.11-0.89)
+    instead of a narrow band around 0.5, and the raw rows' start times run from read start at the
+    window's first row to read start + readout at its last."""
+    from egobench.sim.capture import build_capture_setup, row_start_times_ns
+
+    base = {"n_frames": 3, "rectified_size": 32, "rectified_focal_ratio": 2.0, "raw_roi": True}
+    sensor = build_capture_setup(SimConfig.from_overrides("indoor", 4, base))
+    view = build_capture_setup(SimConfig.from_overrides("indoor", 4, {**base, "readout_window": "view"}))
+    r_sensor = sensor.rigs["online"][0].row_time_ratio(sensor.raw.readout_rows)[sensor.rigs["online"][0].valid]
+    r_view = view.rigs["online"][0].row_time_ratio(view.raw.readout_rows)[view.rigs["online"][0].valid]
+    assert sensor.raw.readout_rows is None and float(r_sensor.max() - r_sensor.min()) < 0.4
+    assert float(r_view.min()) < 0.1 and float(r_view.max()) > 0.9  # the window keeps a 2 px margin
+    np.testing.assert_allclose(view.truth_rays.row_time_ratio[view.truth_rays.valid].numpy(), r_view.numpy(), atol=1e-6)
+    a, b = view.raw.readout_rows
+    t = row_start_times_ns(1_000_000, 0.05, view.raw.valid.shape[0], (a, b))
+    assert int(t[a]) == 1_000_000 and int(t[b]) == 1_000_000 + 50_000_000
+    assert int(t[0]) == 1_000_000 and int(t[-1]) == 1_000_000 + 50_000_000  # rows outside are clamped
+    assert int(t[(a + b) // 2]) == pytest.approx(1_000_000 + 25_000_000, abs=50_000_000 / (b - a))
+    with pytest.raises(ValueError, match="readout_window"):
+        SimConfig.from_overrides("indoor", 4, {**base, "readout_window": "rows"})

@@ -128,9 +128,12 @@ class Rectification:
             raise ValueError(f"Rectification.warp_vignette: expected a [H_s, W_s] image, got shape {tuple(v.shape)}")
         return self.warp(v.to(torch.float32), mode="bilinear")
 
-    def row_time_ratio(self) -> Tensor:
-        """R(u) = source row / (H_s - 1) per rectified pixel, [H, W] float32 in [0, 1]; 0 outside valid."""
-        ratio = self.map_uv[..., 1] / max(self.src.height - 1, 1)
+    def row_time_ratio(self, readout_rows: tuple[int, int] | None = None) -> Tensor:
+        """R(u) = (source row - a) / (b - a) per rectified pixel, [H, W] float32 in [0, 1]; 0 outside valid.
+        ``readout_rows`` (a, b): the first and last raw row the rolling shutter reads (default: the whole
+        sensor, 0 and H_s - 1)."""
+        a, b = (0, self.src.height - 1) if readout_rows is None else readout_rows
+        ratio = (self.map_uv[..., 1] - a) / max(b - a, 1)
         return torch.where(self.valid, ratio.clamp(0.0, 1.0), torch.zeros_like(ratio))
 
     @property

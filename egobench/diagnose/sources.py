@@ -228,7 +228,7 @@ def _recast_setup(root: Path, info: dict, config, rec, gamma: float) -> tuple[_R
     from egobench.data.mps import read_online_calibration
     from egobench.formation import FormationConfig, FormationModel, PoissonGaussianNoise, radial_vignette
     from egobench.sim.calibration import make_calibrations
-    from egobench.sim.capture import RawCamera, _rig, sampled_raw_pixels
+    from egobench.sim.capture import RawCamera, _rig, sampled_raw_pixels, view_readout_rows
     from egobench.sim.devices import get_device
     from egobench.sim.world import make_scene
 
@@ -246,6 +246,8 @@ def _recast_setup(root: Path, info: dict, config, rec, gamma: float) -> tuple[_R
     rect, _pin = _rig(cal_online, config.rectified_size, config.focal_ratio())  # the measured images' rectification
     if config.raw_roi:
         raw = raw.restricted_to(sampled_raw_pixels([rect], raw.valid.shape))
+    if config.readout_window == "view":  # the same ROI readout as the capture (the online view's rows)
+        raw = replace(raw, readout_rows=view_readout_rows(rect, raw.valid.shape))
     # the calibrated lens shading in the raw image (what vignette.png is rectified from)
     raw_vignette = radial_vignette((cal_model.height, cal_model.width), 1.0 - dev.vignette_corner,
                                    dev.vignette_power, centre=(float(cal_model.params[1]), float(cal_model.params[2])))

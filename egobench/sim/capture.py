@@ -173,6 +173,7 @@ class RawCamera:
     sub_rays_cam: Tensor | None = None  # [P, H, W, 3] float64 unit rays through the sub-pixel positions
     box: tuple[int, int, int, int] | None = None  # (row0, row1, col0, col1) holding every cast pixel; None = the frame
     meter_box: tuple[int, int, int, int] | None = None  # where the auto-exposure preview meters; None = ``box``
+    readout_rows: tuple[int, int] | None = None  # (first, last) raw row read over the readout; None = every row
 
     @classmethod
     def build(cls, cal: CameraCalibration, pixel_samples: int = 1) -> "RawCamera":
@@ -288,10 +289,20 @@ def paired_temporal_samples(n_time: int, n_pixel: int) -> int:
     return int(math.ceil(n_time / n_pixel) * n_pixel) if n_time >= n_pixel else int(n_time)
 
 
-def row_start_times_ns(read_start_ns: int, readout_s: float, height: int) -> Tensor:
-    """t(r) = read_start + r / (H - 1) * readout, [H] int64 ns (docs/architecture.md)."""
-    r = torch.arange(height, dtype=torch.float64)
-    return read_start_ns + torch.round(r / max(height - 1, 1) * readout_s * 1e9).to(torch.int64)
+def row_start_times_ns(read_start_ns: int, readout_s: float, height: int,
+                       readout_rows: tuple[int, int] | None = None) -> Tensor:
+    """t(r) = read_start + (r - a) / (b - a) * readout, [H] int64 ns (docs/architecture.md); (a, b) =
+    ``readout_rows``, the first and last row read (default 0 and H - 1); rows outside are clamped."""
+    a, b = (0, height - 1) if readout_rows is None else readout_rows
+    r = ((torch.arange(height, dtype=torch.float64) - a) / max(b - a, 1)).clamp(0.0, 1.0)
+    return read_start_ns + torch.round(r * readout_s * 1e9).to(torch.int64)
+
+
+def view_readout_rows(rect, raw_shape: tuple[int, int]) -> tuple[int, int]:
+    """(first, last) raw row the rectification ``rect`` samples (its bilinear lookups, +2 px): the
+    rows an ROI readout of that view reads (SimConfig.readout_window = "view")."""
+    rows = torch.nonzero(sampled_raw_pixels([rect], raw_shape).any(1)).flatten()
+    return int(rows[0]), int(rows[-1])
 
 
 def capture_irradiance(scene, trajectory, raw: RawCamera, read_start_ns: int, exposure_s: float, readout_s: float,
@@ -311,7 +322,7 @@ def capture_irradiance(scene, trajectory, raw: RawCamera, read_start_ns: int, ex
     H, W = raw.valid.shape
     P = int(raw.pixel_samples)
     S = paired_temporal_samples(int(n_samples), P)
-    t_rows = row_start_times_ns(read_start_ns, readout_s, H)  # [H]
+    t_rows = row_start_times_ns(read_start_ns, readout_s, H, raw.readout_rows)  # [H]
     t = exposure_sample_times_ns(t_rows, exposure_s, S)  # [H, S] int64
     T = camera_poses(trajectory, _as_T(raw.calibration), t.reshape(-1)).reshape(H, S, 4, 4)
     time_idx, sub_idx = sample_schedule(S, P)  # [n], [n]
@@ -374,7 +385,8 @@ def motion_during_exposure_px(trajectory, raw: RawCamera, points_world: Tensor, 
         return 0.0
     cam = raw.calibration.camera()
     H = raw.valid.shape[0]
-    t_rows = row_start_times_ns(read_start_ns, readout_s, H)[[0, H // 2, H - 1]]
+    a, b = (0, H - 1) if raw.readout_rows is None else raw.readout_rows
+    t_rows = row_start_times_ns(read_start_ns, readout_s, H, raw.readout_rows)[[a, (a + b) // 2, b]]
     t_end = t_rows + int(round(exposure_s * 1e9))
     T = camera_poses(trajectory, _as_T(raw.calibration), torch.cat([t_rows, t_end]))
     from egobench.geometry import se3_inverse, transform_points
@@ -771,9 +783,9 @@ class OnlineTruthRays:
     valid: Tensor  # [h, w] bool pixels inside the raw image
 
 
-def _online_truth_rays(rect: Rectification, pin: Pinhole) -> OnlineTruthRays:
+def _online_truth_rays(rect: Rectification, pin: Pinhole, readout_rows: tuple[int, int] | None) -> OnlineTruthRays:
     """The ground-truth rays of the online rig (Rectification, Pinhole)."""
-    return OnlineTruthRays(row_time_ratio=rect.row_time_ratio().to(torch.float64),
+    return OnlineTruthRays(row_time_ratio=rect.row_time_ratio(readout_rows).to(torch.float64),
                            rays_cam=pin.unproject(pin.pixel_grid(dtype=torch.float64)), valid=rect.valid)
 
 
@@ -848,8 +860,10 @@ def build_capture_setup(config: SimConfig) -> CaptureSetup:
         raw = raw.restricted_to(sampled_raw_pixels([rect for rect, _ in rigs.values()], raw.valid.shape),
                                 meter=sampled_raw_pixels([rigs["online"][0]], raw.valid.shape))
     H_raw, W_raw = raw.valid.shape
+    if config.readout_window == "view":
+        raw = dataclasses.replace(raw, readout_rows=view_readout_rows(rigs["online"][0], (H_raw, W_raw)))
     photometric = _photometric_truth(config, dev, cals.true, (H_raw, W_raw))
-    truth_rays = _online_truth_rays(*rigs["online"])
+    truth_rays = _online_truth_rays(*rigs["online"], raw.readout_rows)
     wrong = _metadata_wrong_frames(config)
     semidense = _semidense_truth(config, scene, trajectory, clocks)
     return CaptureSetup(config=config, device=dev, compute=compute, cals=cals, scene=scene, trajectory=trajectory,
@@ -1165,7 +1179,7 @@ def _write_stream_files(setup: CaptureSetup, frames_out: dict[str, list[dict]], 
         rect, pin = setup.rigs[name]
         stream = partial / setup.streams[name]
         write_camera_maps(stream, rect.warp_vignette(calibrated_vignette(cal, setup.device)).numpy(),
-                          rect.valid.numpy(), rect.row_time_ratio().numpy())
+                          rect.valid.numpy(), rect.row_time_ratio(setup.raw.readout_rows).numpy())
         write_transforms(stream, frames_out[name], camera_label=setup.device.label,
                          extra={"calibration": name, "readout_s": setup.clocks.readout_stated_s,
                                 "pixel_centre_convention": "integer (projectaria): cx = (W - 1) / 2 is centred"})

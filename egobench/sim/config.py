@@ -47,6 +47,7 @@ class SimConfig:
     rectified_size: int = 128  # rectified pinhole image width = height, pixels (paper: 2400)
     rectified_focal_ratio: float | None = None  # rectified pinhole focal / width; None = the device's (Aria: 0.5, a 90 deg view as the paper's 1200 / 2400). Larger = a narrower view with more pixels per degree (docs/similarity.md)
     raw_roi: bool = False  # cast only the raw pixels the rectified streams sample (+2 px); the rest of the raw frame stays black and auto-exposure meters that region: same images, far fewer rays when the rectified view is narrow
+    readout_window: str = "sensor"  # rows the rolling shutter reads over readout_s: "sensor" (every raw row, as Aria) or "view" (an ROI readout of the rows the online view samples: a narrow view then spans the readout as the paper's 90 deg view spans 78 % of it; docs/similarity.md)
     raw_size: int | None = None  # raw fisheye height in pixels; None = 1.2 x rectified x (focal ratio / the device's) (paper 2880 / 2400)
     temporal_samples: int | None = None  # exposure samples S per row; None = adaptive (see max_sample_step_px)
     max_sample_step_px: float = 0.15  # adaptive S: image motion between two temporal samples stays below this
@@ -285,6 +286,8 @@ def _check_sampling(cfg: SimConfig) -> None:
     _check_number(cfg, "rectified_focal_ratio", 0.1, 20.0, allow_none=True)
     if not isinstance(cfg.raw_roi, bool):
         _bad(cfg, "raw_roi", "true or false")
+    if cfg.readout_window not in ("sensor", "view"):
+        _bad(cfg, "readout_window", "'sensor' or 'view'")
     ps = cfg.pixel_samples
     if (isinstance(ps, bool) or not isinstance(ps, int) or ps < 1 or ps > 64
             or int(round(math.sqrt(ps))) ** 2 != ps):
