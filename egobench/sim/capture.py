@@ -213,7 +213,7 @@ def _bounding_box(mask: Tensor, name: str) -> tuple[int, int, int, int]:
     """(row0, row1, col0, col1) of the True pixels of ``mask`` [H, W]; ValueError when there are none."""
     rows, cols = torch.nonzero(mask.any(1)).flatten(), torch.nonzero(mask.any(0)).flatten()
     if rows.numel() == 0:
-        raise ValueError(f"RawCamera.restricted_to: {name}: no valid raw pixel is sampled by the rectified view")
+        raise ValueError(f"raw camera {name}: no valid raw pixel is sampled by the rectified view")
     return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
 
 
@@ -301,8 +301,8 @@ def row_start_times_ns(read_start_ns: int, readout_s: float, height: int,
 def view_readout_rows(rect, raw_shape: tuple[int, int]) -> tuple[int, int]:
     """(first, last) raw row the rectification ``rect`` samples (its bilinear lookups, +2 px): the
     rows an ROI readout of that view reads (SimConfig.readout_window = "view")."""
-    rows = torch.nonzero(sampled_raw_pixels([rect], raw_shape).any(1)).flatten()
-    return int(rows[0]), int(rows[-1])
+    row0, row1, _, _ = _bounding_box(sampled_raw_pixels([rect], raw_shape), "readout window")
+    return row0, row1 - 1
 
 
 def capture_irradiance(scene, trajectory, raw: RawCamera, read_start_ns: int, exposure_s: float, readout_s: float,
