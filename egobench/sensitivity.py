@@ -61,7 +61,7 @@ REFERENCE = "ours"
 #: Bounds of the model's exponent p: (min, max for pixel quantities, max otherwise); see the module doc.
 P_MIN, P_MAX_PX, P_MAX = 0.5, 2.0, 4.0
 #: x quantities in pixels (a misregistration: its mean-square error grows at most as x^2).
-PIXEL_QUANTITIES = ("rs_shift_px_median", "calib_error_px_median")
+PIXEL_QUANTITIES = ("rs_shift_px_median", "calib_error_px_median", "calib_inconsistency_px_median")
 CURVE_COLUMNS = ["ablation", "x_quantity", "x_value", "scene", "n_seeds", "delta_psnr_mean",
                  "delta_psnr_ci95_low", "delta_psnr_ci95_high", "identical"]
 PREDICTION_COLUMNS = ["ablation", "x_quantity", "paper_x", "paper_x_source", "predicted_delta_psnr",
@@ -330,6 +330,7 @@ def prediction_frame(records: Sequence[RunRecord], curve: pd.DataFrame, sweeps: 
 def _axis_label(key: str) -> str:
     return {"rs_shift_px_median": "rolling-shutter shift during readout, median (px)",
             "calib_error_px_median": "calibration reprojection error, median (px)",
+            "calib_inconsistency_px_median": "calibration error a reconstruction cannot absorb, median (px)",
             "scene_dynamic_range_stops": "scene dynamic range (stops)"}.get(key, key)
 
 

@@ -21,7 +21,7 @@ from typing import Any, Mapping
 #: Similarity quantity (key of `egobench similarity`'s JSON) each ablation ignores, by default.
 DEFAULT_X = {
     "no_motion_sampling": "rs_shift_px_median",
-    "no_viba": "calib_error_px_median",
+    "no_viba": "calib_inconsistency_px_median",
     "no_scene_gamma": "scene_dynamic_range_stops",
 }
 REFERENCE = "ours"

@@ -247,7 +247,7 @@ def test_sweep_recordings_and_their_overrides():
     assert "--set readout_s=0.016" in suite.simulate_args("sens-no_motion_sampling-0.016")
     assert suite.train_args("sens-no_viba-x4") == "--preset cpu --iterations 20"
     args = suite.sensitivity_args()
-    assert '"paper_x": 4.2' in args and '"x": "calib_error_px_median"' in args and '"paper_x": null' in args
+    assert '"paper_x": 4.2' in args and '"x": "calib_inconsistency_px_median"' in args and '"paper_x": null' in args
 
 
 @pytest.mark.parametrize("edit, key", [

@@ -317,6 +317,11 @@ def test_simulated_calibration_errors_match_the_drawn_rotation(simulated):
     assert res["calib_error_px_p90"] == pytest.approx(float(np.percentile(expected, 90)), rel=1e-4)
     assert res["calib_error_online_vs_true_px_median"] == pytest.approx(0.0, abs=1e-6)
     assert res["calib_error_factory_vs_true_px_median"] == pytest.approx(res["calib_error_px_median"], rel=1e-6)
+    # a constant 2 deg rotation: most of it is absorbed, and what is left is a fraction of the error
+    assert res["calib_inconsistency_n_points"] > 0
+    assert 0 < res["calib_inconsistency_px_median"] < 0.8 * res["calib_error_px_median"]
+    assert res["calib_unabsorbed_fraction"] == pytest.approx(
+        res["calib_inconsistency_px_median"] / res["calib_error_as_trained_px_median"], rel=0.2)
 
 
 def test_simulated_exposure_truth_and_resolution_scaling(simulated):
@@ -326,7 +331,8 @@ def test_simulated_exposure_truth_and_resolution_scaling(simulated):
     assert res["rs_shift_source"].startswith("true clocks") and res["rs_shift_n_points"] > 0
     assert res["scene_dynamic_range_stops"] > 0
     assert res["texture_hf_fraction_clean"] is not None and res["texture_spectral_slope_clean"] < 0
-    for key in ("rs_shift_px_median", "rs_shift_px_p90", "calib_error_px_median", "calib_error_px_p90"):
+    for key in ("rs_shift_px_median", "rs_shift_px_p90", "calib_error_px_median", "calib_error_px_p90",
+                "calib_inconsistency_px_median", "calib_inconsistency_px_p90"):
         assert res64[key] == pytest.approx(2 * res[key], rel=1e-9)  # pixel quantities: x 64 / 32
     assert res64["resolution_px"] == 64 and res64["pixel_scale"] == 2.0
     assert res64["texture_hf_fraction"] is None and "exceeds the rectified width" in res64["content_note"]
@@ -348,7 +354,8 @@ def test_without_the_simulators_extra_files_the_measures_fall_back(simulated, tm
     assert res["texture_hf_fraction_clean"] is None and res["rs_shift_source"] == "stream's stated clocks"
     # the factory calibration differs from the (true) online one by a rotation only, and the online
     # stream's stated clocks are the true ones: extrinsics alone and stated clocks give the same numbers
-    for key in ("calib_error_px_median", "calib_error_px_p90", "rs_shift_px_median", "rs_shift_px_p90"):
+    for key in ("calib_error_px_median", "calib_error_px_p90", "rs_shift_px_median", "rs_shift_px_p90",
+                "calib_inconsistency_px_median", "calib_inconsistency_px_p90"):
         assert res[key] == pytest.approx(ref[key], rel=1e-4)
 
 
