@@ -354,8 +354,12 @@ def sensitivity_figure(curve: pd.DataFrame, pred: pd.DataFrame):
         ax.errorbar(pts["x_value"], y, yerr=err, fmt="o", color="C0", capsize=3, label="egobench (95 % CI)")
         span = [*pts["x_value"].astype(float), *([float(pr["paper_x"])] if pd.notna(pr["paper_x"]) else [])]
         log_x = min(span) > 0 and max(span) > 10 * min(span)  # points bunched far below the operating point
-        if log_x:
+        if log_x:  # plain numbers at the major ticks, no labels at the minor ones (they collide)
+            from matplotlib.ticker import NullFormatter, ScalarFormatter
+
             ax.set_xscale("log")
+            ax.xaxis.set_major_formatter(ScalarFormatter())
+            ax.xaxis.set_minor_formatter(NullFormatter())
         if pd.notna(pr["fit_x0"]):
             xx = (np.geomspace(min(span) / 1.2, max(span) * 1.2, 200) if log_x
                   else np.linspace(0.0, max(span) * 1.08, 200))
