@@ -10,6 +10,7 @@ not, and must still name a real hidden effect first with a positive held-out gai
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -333,3 +334,26 @@ def test_distortion_must_beat_wrong_centre_placebos():
     d = diagnose_residuals(case.measured, case.predicted, case.context, TRAINED)
     assert d.verdict == "distortion" and abs(d.named[0].params["k0_error"] / 0.008 - 1) < 0.1
     assert d.named[0].params["calibration"]["placebo_exceed"] == 0
+
+
+def test_the_sweeps_vignette_truth_is_the_shading_at_the_views_corner(tmp_path):
+    # independent of the warp: the same recording simulated with and without the hidden shading
+    # (noise off, fixed exposure), the decoded pixel ratio at the view's farthest corner
+    from egobench.data import load_recording
+    from egobench.diagnose.trained_sweep import vignette_in_view
+    from egobench.sim.capture import simulate_recording
+    from egobench.sim.config import SimConfig
+
+    base = {"n_frames": 4, "rectified_size": 32, "noise": False, "exposure_s": 2e-3, "gain": 4.0}
+    for name, strength in (("with", 0.35), ("without", 0.0)):
+        simulate_recording(SimConfig.from_overrides("indoor", 3, {**base, "vignette_strength": strength}),
+                           tmp_path / name, progress=False)
+    expected = vignette_in_view(tmp_path / "with", 0.35)
+    recs = [load_recording(tmp_path / n, "online") for n in ("with", "without")]
+    pin = recs[0].camera
+    corners = [(0, 0), (pin.width - 1, 0), (0, pin.height - 1), (pin.width - 1, pin.height - 1)]
+    u, v = max(corners, key=lambda c: math.hypot(c[0] - pin.cx, c[1] - pin.cy))
+    lin = [sum(float(r.load_image(f)[v, u].double().pow(2.2).sum()) for f in r.frames) for r in recs]
+    assert 0.1 < expected < 0.35  # the view's corner lies inside the raw corner
+    assert 1.0 - lin[0] / lin[1] == pytest.approx(expected, abs=0.01)
+    assert vignette_in_view(tmp_path / "with", 0.0) == 0.0

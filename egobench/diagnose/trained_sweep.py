@@ -106,10 +106,36 @@ def _run_case(case: dict, cfg: TrainedSweepConfig, case_dir: Path, diag: Diagnos
     tc = replace(preset_config("cpu"), max_side=0, device="cpu").scaled_to(cfg.iterations)
     if not (run / "train.json").is_file() or not json.loads((run / "train.json").read_text()).get("complete"):
         train(rec, cfg.method, tc, run, resume="auto", progress=False)
+    if case["effect"] == "vignette":  # the truth in the diagnosis's parametrisation (set on the case)
+        case["value_in_view"] = vignette_in_view(rec, case["value"])
     src = run_source(rec, run, progress=False)
     d = diagnose_residuals(src.measured, src.predicted, src.context, replace(diag, trained_run=True))
     return write_report(case_dir / "diagnosis", d, src.measured, src.predicted,
                         title=f"Trained-run sweep case {case['id']}", extra={"case": case})
+
+
+def vignette_in_view(recording_dir: str | Path, corner_attenuation: float) -> float:
+    """The attenuation, at the rectified view's corner farthest from the principal point, of a hidden
+    lens shading that attenuates the RAW image's corner by ``corner_attenuation`` (the simulator's
+    parameter): the diagnosis estimates the shading in the view, normalised at that corner."""
+    from egobench.data import load_recording
+    from egobench.data.layout import MPS_SLAM, ONLINE_CALIBRATION_FILE, recording_root
+    from egobench.data.mps import read_online_calibration
+    from egobench.diagnose.sources import recording_rectification
+    from egobench.formation import radial_vignette
+    from egobench.sim.devices import get_device
+
+    rec = load_recording(recording_dir, "online")
+    dev = get_device((rec.meta or {}).get("device") or "aria")
+    rect, _ = recording_rectification(recording_dir, "online", dev, rec.camera)
+    cal = read_online_calibration(recording_root(recording_dir) / MPS_SLAM / ONLINE_CALIBRATION_FILE)[0].camera(dev.label)
+    raw = radial_vignette((cal.height, cal.width), corner_attenuation, dev.vignette_power,
+                          centre=(float(cal.params[1]), float(cal.params[2])))
+    view = rect.warp_vignette(raw.float()).numpy()
+    pin = rec.camera
+    corners = [(0, 0), (pin.width - 1, 0), (0, pin.height - 1), (pin.width - 1, pin.height - 1)]
+    u, v = max(corners, key=lambda c: math.hypot(c[0] - pin.cx, c[1] - pin.cy))
+    return float(1.0 - view[v, u])
 
 
 def _row(case: dict, record: dict | None, error: str | None, runtime_s: float) -> dict:
@@ -124,7 +150,9 @@ def _row(case: dict, record: dict | None, error: str | None, runtime_s: float) -
         "detected": effect is not None and verdict == effect,
         "false_alarm": effect is None and record is not None and not silent,
         "wrong_name": effect is not None and record is not None and not silent and verdict != effect,
-        "param_error": parameter_error(effect, case["value"], first["params"]) if (first and effect == verdict) else None,
+        "param_error": (parameter_error(effect, case.get("value_in_view", case["value"]), first["params"])
+                        if (first and effect == verdict) else None),
+        "value_in_view": case.get("value_in_view"),
         "psnr_gain_db": first["psnr_gain_db"] if first else 0.0,
         "held_out_psnr_db": me.get("held_out_psnr_db"), "model_error_over_noise_db": me.get("model_error_over_noise_db"),
         "smallest_testable": json.dumps((me.get("smallest_testable") or {}).get(effect or "", {})),
