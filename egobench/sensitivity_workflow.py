@@ -56,7 +56,7 @@ def sweep_points(config: Mapping) -> list[SweepPoint]:
                                       {**base, sweep["field"]: v}))
         else:
             for m in sweep["scale"]:
-                scaled = {k: float(b) * float(m) for k, b in sweep["fields"].items()}
+                scaled = {k: float(f"{float(b) * float(m):.12g}") for k, b in sweep["fields"].items()}  # no 1.4000000000000001
                 out.append(SweepPoint(f"{SCENE_PREFIX}{ablation}-x{_token(m)}", ablation, float(m),
                                       {**base, **scaled}))
     return out

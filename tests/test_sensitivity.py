@@ -320,3 +320,12 @@ def test_schema_ablation_names_are_methods():
     assert set(sw.DEFAULT_X) <= set(schema["propertyNames"]["enum"])
     x_enum = schema["additionalProperties"]["properties"]["x"]["enum"]
     assert set(sw.DEFAULT_X.values()) <= set(x_enum) and set(sens.PIXEL_QUANTITIES) <= set(x_enum)
+
+
+def test_scaled_sweep_values_carry_no_float_noise():
+    config = {"sensitivity": {"ablations": {"no_viba": {
+        "kind": "outdoor", "sweep": {"fields": {"factory_rotation_deg": 0.2, "factory_principal_px": 0.1},
+                                     "scale": [3, 7]}}}}}
+    points = sw.sweep_points(config)
+    assert 0.2 * 7 != 1.4 and points[1].sim["factory_rotation_deg"] == 1.4  # as the simulate args print it
+    assert points[0].sim["factory_principal_px"] == 0.3 and 0.1 * 3 != 0.3
