@@ -34,7 +34,7 @@ from egobench.data.recording import Frame, Recording
 from egobench.io_utils import git_commit, read_json, write_json
 from egobench.methods import get_method
 from egobench.predict import (
-    FrameMaps, RenderSettings, formation_model, frame_maps, frame_poses, method_normaliser, predict_frame,
+    FrameMaps, RenderSettings, formation_model, frame_poses, method_normaliser, predict_frame, run_maps,
     render_frame, resize_map, sample_counts,
 )
 from egobench.train.checkpoint import TrainedRun, load_trained_run
@@ -100,7 +100,7 @@ def _held_out(recording_dir, run_dir, device: str | None) -> _Held:
         raise ValueError(f"recording {rec.root}: no held-out frames (every 8th frame, from index 0)")
     counts = sample_counts(rec, frames, spec, run.config.max_pose_samples, run.config.sample_rule,
                            pixel_scale=run.camera.width / rec.camera.width)
-    return _Held(run=run, recording=rec, frames=frames, counts=counts, maps=frame_maps(rec, run.camera),
+    return _Held(run=run, recording=rec, frames=frames, counts=counts, maps=run_maps(rec, run),
                  k_of=method_normaliser(rec, spec), formation=formation_model(spec),
                  settings=RenderSettings.of(run.config))
 

@@ -52,6 +52,17 @@ def frame_maps(recording: Recording, camera: Pinhole) -> FrameMaps:
                      row_time_ratio=resize_map(recording.row_time_ratio.float(), camera))
 
 
+def run_maps(recording: Recording, run) -> FrameMaps:
+    """`frame_maps` at a trained run's camera, its vignette times the lens shading the run learned
+    (`egobench.shading`; unchanged for runs without one)."""
+    from dataclasses import replace
+
+    from egobench.shading import learned_vignette
+
+    maps = frame_maps(recording, run.camera)
+    return replace(maps, vignette=learned_vignette(maps.vignette, run.camera, run.checkpoint.get("extra") or {}, run.config))
+
+
 def exposure_normaliser(recording: Recording) -> Tensor:
     """k [F] over all frames of the recording (exposure*gain / median), float32."""
     from egobench.formation import exposure_gain_normaliser

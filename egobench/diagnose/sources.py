@@ -342,7 +342,7 @@ def run_source(recording_dir: str | Path, run_dir: str | Path, max_frames: int |
 
     from egobench.data import load_recording
     from egobench.predict import (
-        RenderSettings, formation_model, frame_maps, method_normaliser, predict_frame, sample_counts,
+        RenderSettings, formation_model, method_normaliser, predict_frame, run_maps, sample_counts,
     )
     from egobench.train.checkpoint import load_trained_run
 
@@ -354,7 +354,7 @@ def run_source(recording_dir: str | Path, run_dir: str | Path, max_frames: int |
         raise ValueError(f"{run_dir}: trained at {cam.width}x{cam.height}, the recording is "
                          f"{rec.camera.width}x{rec.camera.height}; diagnose needs full-resolution renders")
     frames = _select(rec.frames, max_frames)
-    maps, k_of, formation = frame_maps(rec, cam), method_normaliser(rec, spec), formation_model(spec)
+    maps, k_of, formation = run_maps(rec, run), method_normaliser(rec, spec), formation_model(spec)
     settings = RenderSettings.of(run.config)
     counts = sample_counts(rec, frames, spec, run.config.max_pose_samples, run.config.sample_rule, 1.0)
     measured, predicted, velocity = [], [], []

@@ -31,6 +31,12 @@ class TrainConfig:
     lr_colors: float = 2.5e-3  # Adam lr of colours (RGB, scene-colour space)
     lr_pose: float = 1e-4  # Adam lr of per-frame pose corrections (se(3), methods with pose_optimisation)
     lr_twist: float = 1e-3  # Adam lr of per-frame velocities (velocity_shift methods)
+    # Model extension (egobench.shading): a radial lens shading exp(a2 r^2 + a4 r^4) on top of the stated
+    # vignette, learned with the scene; its centre can be moved (fractions of width / height: a placebo)
+    learn_shading: bool = False
+    lr_shading: float = 1e-2  # Adam lr of the shading coefficients
+    shading_centre_dx: float = 0.0
+    shading_centre_dy: float = 0.0
     grow_grad2d: float = 2e-4  # densify when the mean normalised screen gradient exceeds this
     grow_scale3d: float = 0.01  # duplicate below / split above this max-scale (x scene_scale)
     prune_opa: float = 0.005  # prune below this opacity
@@ -71,6 +77,8 @@ class TrainConfig:
             raise ValueError(f"TrainConfig.ssim_lambda: expected a value in [0, 1], got {self.ssim_lambda}")
         if int(self.max_pose_samples) != self.max_pose_samples or self.max_pose_samples < 1:
             raise ValueError(f"TrainConfig.max_pose_samples: expected an integer >= 1, got {self.max_pose_samples}")
+        if not self.lr_shading > 0:
+            raise ValueError(f"TrainConfig.lr_shading: expected > 0, got {self.lr_shading}")
         if len(self.background) != 3:
             raise ValueError(f"TrainConfig.background: expected 3 values, got {self.background}")
 

@@ -71,6 +71,7 @@ class StepContext:
     vignette: Tensor  # [H, W]
     k: Tensor  # [F] exposure*gain normaliser of the training frames
     row_time_ratio: Tensor  # [H, W] R(u): pixel-pose indices are built on the device
+    shading_r2: Tensor | None = None  # [H, W] normalised r^2 of the learnable shading (learn_shading), else None
 
 
 def step_context(data: TrainingData, config: TrainConfig, device: torch.device) -> StepContext:
@@ -82,7 +83,16 @@ def step_context(data: TrainingData, config: TrainConfig, device: torch.device) 
     return StepContext(data=data, config=config, settings=RenderSettings.of(config, device),
                        formation=formation_model(data.spec), mask3=mask3, n_mask=n_mask,
                        vignette=data.maps.vignette.to(device), k=data.k.to(device),
-                       row_time_ratio=data.maps.row_time_ratio.to(device))
+                       row_time_ratio=data.maps.row_time_ratio.to(device),
+                       shading_r2=_shading_r2(data, config, device))
+
+
+def _shading_r2(data: TrainingData, config: TrainConfig, device: torch.device) -> Tensor | None:
+    from egobench.shading import radius2
+
+    if not config.learn_shading:
+        return None
+    return radius2(data.camera, (config.shading_centre_dx, config.shading_centre_dy)).to(device)
 
 
 def _check_finite(it: int, named: list[tuple[str, Tensor]]) -> None:
@@ -122,13 +132,22 @@ def _forward(state: TrainState, ctx: StepContext, it: int, fi: int) -> tuple[Ten
         if o.means2d is not None and o.means2d.requires_grad:
             o.means2d.retain_grad()
     rgb = mean_rgb(outs)  # [H, W, 3] exposure samples averaged
-    pred = predict_image(rgb, spec, ctx.k[fi], ctx.vignette, ctx.formation)
+    pred = predict_image(rgb, spec, ctx.k[fi], _vignette(state, ctx), ctx.formation)
     gt = image_to_float(data.images[fi].to(ctx.settings.device, non_blocking=True))  # [H, W, 3] 0..1
     loss = photometric_loss(pred, gt, ctx.mask3, ctx.n_mask, config.ssim_lambda)
     if spec.splat_mode == "2dgs":
         loss = loss + twodgs_regularisers(outs, data.camera, config, it, ctx.mask3)
     _check_finite(it, [("rendered rgb", rgb), ("loss", loss)])
     return loss, outs, t_fwd
+
+
+def _vignette(state: TrainState, ctx: StepContext) -> Tensor:
+    """The stated vignette, times the learnable shading when the run learns one."""
+    if ctx.shading_r2 is None:
+        return ctx.vignette
+    from egobench.shading import KEY, shading
+
+    return ctx.vignette * shading(ctx.shading_r2, state.extra[KEY])
 
 
 def _backward(loss: Tensor, outs: list, device: torch.device) -> float:

@@ -43,7 +43,19 @@ def train_record(result: "TrainResult", state: TrainState, data: TrainingData, c
         "motion_samples": {"mean": float(ns.mean()), "max": int(ns.max()), "min": int(ns.min()),
                            "warmup_iter": config.motion_warmup_iter, "rule": config.sample_rule},
         "densification_last": state.densifier.last_counts,
+        "learned_shading": _learned_shading(state, config),
     }
+
+
+def _learned_shading(state: TrainState, config: TrainConfig) -> dict | None:
+    """The learned lens shading's coefficients and corner attenuation (None without learn_shading)."""
+    from egobench.shading import KEY, corner_attenuation
+
+    if KEY not in state.extra:
+        return None
+    a = state.extra[KEY].detach().cpu().tolist()
+    return {"coeffs_r2_r4": a, "corner_attenuation": corner_attenuation(a),
+            "centre_offset": [config.shading_centre_dx, config.shading_centre_dy]}
 
 
 def _image_store_stats(data: TrainingData, config: TrainConfig) -> dict:

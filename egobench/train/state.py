@@ -15,6 +15,8 @@ from egobench.train.data import TrainingData
 from egobench.train.initialise import init_params
 
 Optimisers = dict[str, torch.optim.Adam]
+#: The extra trainables that hold one row per training frame.
+PER_FRAME = ("pose_delta", "twist")
 
 
 @dataclass
@@ -24,7 +26,7 @@ class TrainState:
     params: dict[str, torch.nn.Parameter]  # means [N,3], scales [N,3], quats [N,4], opacities [N], colors [N,3]
     optimizers: Optimisers  # one Adam per parameter
     scheduler: torch.optim.lr_scheduler.ExponentialLR  # on the means' lr
-    extra: dict[str, torch.nn.Parameter]  # per training frame: pose_delta [F, 6] and/or twist [F, 6]
+    extra: dict[str, torch.nn.Parameter]  # per frame: pose_delta [F, 6], twist [F, 6]; per run: shading [2]
     extra_optimizers: Optimisers
     densifier: Densifier
     frame_generator: torch.Generator  # the epoch permutations of the training frames
@@ -45,7 +47,7 @@ class TrainState:
 
     def frame_trainables(self, fi: int) -> dict[str, Tensor]:
         """The per-frame trainables of training frame ``fi`` (``pose_delta`` [6], ``twist`` [6]) that exist."""
-        return {name: value[fi] for name, value in self.extra.items()}
+        return {name: value[fi] for name, value in self.extra.items() if name in PER_FRAME}
 
     def step_optimisers(self, it: int) -> None:
         """Adam steps of every parameter, the lr schedule, then the densifier's refinement at ``it``."""
@@ -59,7 +61,7 @@ class TrainState:
 def _learning_rates(config: TrainConfig, scene_scale: float) -> dict[str, float]:
     return {"means": config.lr_means_at * scene_scale, "scales": config.lr_scales, "quats": config.lr_quats,
             "opacities": config.lr_opacities, "colors": config.lr_colors, "pose_delta": config.lr_pose,
-            "twist": config.lr_twist}
+            "twist": config.lr_twist, "shading": config.lr_shading}
 
 
 def _optimisers(params: dict, extra: dict, config: TrainConfig, scene_scale: float):
@@ -81,10 +83,14 @@ def _densifier(config: TrainConfig, scene_scale: float) -> Densifier:
     ), scene_scale=scene_scale)
 
 
-def _frame_trainables(data: TrainingData, device: torch.device) -> dict[str, torch.nn.Parameter]:
+def _extra_trainables(data: TrainingData, config: TrainConfig, device: torch.device) -> dict[str, torch.nn.Parameter]:
     """pose_delta [F, 6] (zeros) for pose-optimising methods; twist [F, 6] (from the trajectory) for
-    velocity-shift methods."""
+    velocity-shift methods; shading [2] (zeros: none) with ``config.learn_shading``."""
     extra: dict[str, torch.nn.Parameter] = {}
+    if config.learn_shading:
+        from egobench.shading import KEY
+
+        extra[KEY] = torch.nn.Parameter(torch.zeros(2, device=device))
     F = len(data.frames)
     if data.spec.pose_optimisation:
         extra["pose_delta"] = torch.nn.Parameter(torch.zeros(F, 6, device=device))
@@ -103,7 +109,7 @@ def new_state(data: TrainingData, config: TrainConfig, device: torch.device) -> 
     gen = torch.Generator().manual_seed(config.seed)
     params = init_params(data, config, gen)
     params = {k: torch.nn.Parameter(v.detach().to(device)) for k, v in params.items()}
-    extra = _frame_trainables(data, device)
+    extra = _extra_trainables(data, config, device)
     optimizers, scheduler, extra_optimizers = _optimisers(params, extra, config, data.scene_scale)
     return TrainState(params=params, optimizers=optimizers, scheduler=scheduler, extra=extra,
                       extra_optimizers=extra_optimizers, densifier=_densifier(config, data.scene_scale),

@@ -1,0 +1,53 @@
+"""A learnable radial lens shading: the model extension for an unmodelled vignette (issue 15).
+
+A trained model absorbs a fixed lens shading that its calibration does not state (docs/diagnosis.md:
+the residual keeps 6-30 % of it), so the residual cannot show it. Trained jointly with the scene, a
+shading S(u) = exp(a2 r^2 + a4 r^4) multiplying the stated vignette takes it back: r is the distance
+from the principal point (optionally moved by a fraction of the image, a placebo centre) over the
+distance of the farthest image corner, so ``corner_attenuation`` = 1 - exp(a2 + a4) is the extra
+darkening at that corner, the diagnosis's parametrisation. `TrainConfig.learn_shading` switches it on;
+the two coefficients are the run's ``extra["shading"]`` and renders of the run apply them.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from egobench.camera.pinhole import Pinhole
+
+#: Name of the coefficients [a2, a4] among a run's extra trainables.
+KEY = "shading"
+
+
+def radius2(camera: Pinhole, centre_offset: tuple[float, float] = (0.0, 0.0)) -> Tensor:
+    """[H, W] float32: squared distance of each pixel centre from the principal point shifted by
+    ``centre_offset`` x (width, height), over that of the farthest image corner."""
+    cx = camera.cx + centre_offset[0] * camera.width
+    cy = camera.cy + centre_offset[1] * camera.height
+    v, u = torch.meshgrid(torch.arange(camera.height, dtype=torch.float64),
+                          torch.arange(camera.width, dtype=torch.float64), indexing="ij")
+    corners = [(0, 0), (camera.width - 1, 0), (0, camera.height - 1), (camera.width - 1, camera.height - 1)]
+    r2_max = max((x - cx) ** 2 + (y - cy) ** 2 for x, y in corners)
+    return (((u - cx) ** 2 + (v - cy) ** 2) / r2_max).float()
+
+
+def shading(r2: Tensor, coeffs: Tensor) -> Tensor:
+    """exp(a2 r^2 + a4 r^4) [H, W] for r2 [H, W] and coeffs [2] = (a2, a4)."""
+    return torch.exp(coeffs[0] * r2 + coeffs[1] * r2 * r2)
+
+
+def corner_attenuation(coeffs) -> float:
+    """1 - S at the farthest corner (r = 1): the learned extra darkening there."""
+    a = [float(c) for c in coeffs]
+    return 1.0 - math.exp(a[0] + a[1])
+
+
+def learned_vignette(vignette: Tensor, camera: Pinhole, extra: dict, config) -> Tensor:
+    """The stated vignette [H, W] times the run's learned shading (unchanged when it learned none)."""
+    if KEY not in extra:
+        return vignette
+    r2 = radius2(camera, (config.shading_centre_dx, config.shading_centre_dy)).to(vignette.device)
+    return vignette * shading(r2, extra[KEY].detach().to(vignette.device)).to(vignette.dtype)
