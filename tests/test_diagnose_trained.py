@@ -226,6 +226,7 @@ def test_trained_sweep_is_resumable_per_case(tmp_path, monkeypatch):
 
     def fake_case(case, cfg, case_dir, diag):
         calls.append(case["id"])
+        case["learned_shading"] = 0.2 if case["effect"] == "vignette" else -0.05
         if case["id"] in fail:
             raise RuntimeError("interrupted")
         verdict = case["effect"] or RECONSTRUCTION_ERROR
@@ -357,3 +358,30 @@ def test_the_sweeps_vignette_truth_is_the_shading_at_the_views_corner(tmp_path):
     assert 0.1 < expected < 0.35  # the view's corner lies inside the raw corner
     assert 1.0 - lin[0] / lin[1] == pytest.approx(expected, abs=0.01)
     assert vignette_in_view(tmp_path / "with", 0.0) == 0.0
+
+
+def test_the_shading_extension_is_called_against_the_nulls():
+    import pandas as pd
+
+    from egobench.diagnose.trained_sweep import TrainedSweepConfig, summarise_trained, trained_markdown
+
+    rows = [{"case": f"null_s{i}", "effect": "none", "learned_shading": v, "value_in_view": None}
+            for i, v in enumerate((-0.05, -0.03, -0.07))]
+    rows += [{"case": "vignette_0.35_s0", "effect": "vignette", "learned_shading": 0.13, "value_in_view": 0.19},
+             {"case": "vignette_0.35_s1", "effect": "vignette", "learned_shading": -0.045, "value_in_view": 0.19},
+             {"case": "response_0.45_s0", "effect": "response", "learned_shading": -0.04, "value_in_view": None}]
+    for r in rows:
+        r.update({"magnitude": 0.35 if r["effect"] == "vignette" else 0.45, "value": "null", "verdict": RECONSTRUCTION_ERROR,
+                  "named": "", "detected": False, "false_alarm": False, "wrong_name": False, "param_error": None,
+                  "psnr_gain_db": 0.0, "held_out_psnr_db": 30.0, "model_error_over_noise_db": 3.0,
+                  "smallest_testable": "{}", "error": "", "runtime_s": 1.0})
+    df = pd.DataFrame(rows)
+    x = summarise_trained(df, TrainedSweepConfig(effects=("vignette", "response")))["shading_extension"]
+    assert x["null_mean"] == pytest.approx(-0.05) and x["null_sd"] == pytest.approx(0.02)
+    assert x["threshold"] == pytest.approx(0.01) and x["null_above"] == 0
+    vig, resp = x["effects"]
+    assert vig["effect"] == "vignette" and vig["above_threshold"] == 0.5
+    assert vig["median_error"] == pytest.approx(np.median([abs(0.13 + 0.05 - 0.19), abs(-0.045 + 0.05 - 0.19)]))
+    assert resp["above_threshold"] == 0.0 and "median_error" not in resp
+    md = trained_markdown(summarise_trained(df, TrainedSweepConfig(effects=("vignette", "response"))), df)
+    assert "threshold 0.010" in md and "| vignette | 2 | 0.50 |" in md

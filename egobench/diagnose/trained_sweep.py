@@ -28,6 +28,8 @@ from egobench.io_utils import atomic_path, write_json
 DEFAULT_MAGNITUDES = {"vignette": (0.35,), "response": (0.45,), "white_balance": (0.12,), "exposure_metadata": (0.25,),
                       "time_offset": (3e-3,), "readout": (0.4,), "exposure_blur": (8e-3,), "distortion": (0.008,),
                       "noise": (0.5,)}
+#: A case's learned shading is called a vignette above the nulls' mean plus this many standard deviations.
+EXTENSION_SIGMAS = 3.0
 #: Photometric effects (the default set of the sweep).
 PHOTOMETRIC = ("vignette", "response", "white_balance", "exposure_metadata")
 
@@ -46,6 +48,9 @@ class TrainedSweepConfig:
     iterations: int = 800  # CPU preset, schedule scaled (300: 26.6 dB median held out, 800: 31.5 dB at 40 px)
     method: str = "ours"
     magnitudes: dict = field(default_factory=lambda: dict(DEFAULT_MAGNITUDES))
+    # also train each case with the learnable lens shading (egobench.shading) and call a vignette when the
+    # learned corner attenuation exceeds the nulls' mean + EXTENSION_SIGMAS sd (trained runs absorb it)
+    shading_extension: bool = True
 
     def validate(self) -> "TrainedSweepConfig":
         unknown = [e for e in self.effects if e not in EFFECTS]
@@ -108,10 +113,22 @@ def _run_case(case: dict, cfg: TrainedSweepConfig, case_dir: Path, diag: Diagnos
         train(rec, cfg.method, tc, run, resume="auto", progress=False)
     if case["effect"] == "vignette":  # the truth in the diagnosis's parametrisation (set on the case)
         case["value_in_view"] = vignette_in_view(rec, case["value"])
+    if cfg.shading_extension:  # the model extension's learned shading (set on the case)
+        case["learned_shading"] = _learned_shading(rec, replace(tc, learn_shading=True), cfg.method, case_dir / "run_shading")
     src = run_source(rec, run, progress=False)
     d = diagnose_residuals(src.measured, src.predicted, src.context, replace(diag, trained_run=True))
     return write_report(case_dir / "diagnosis", d, src.measured, src.predicted,
                         title=f"Trained-run sweep case {case['id']}", extra={"case": case})
+
+
+def _learned_shading(rec: Path, tc, method: str, run: Path) -> float:
+    """Corner attenuation learned by ``method`` trained with the lens-shading extension (resumes)."""
+    from egobench.train import train
+
+    done = run / "train.json"
+    if not done.is_file() or not json.loads(done.read_text()).get("complete"):
+        train(rec, method, tc, run, resume="auto", progress=False)
+    return float(json.loads(done.read_text())["learned_shading"]["corner_attenuation"])
 
 
 def vignette_in_view(recording_dir: str | Path, corner_attenuation: float) -> float:
@@ -152,7 +169,7 @@ def _row(case: dict, record: dict | None, error: str | None, runtime_s: float) -
         "wrong_name": effect is not None and record is not None and not silent and verdict != effect,
         "param_error": (parameter_error(effect, case.get("value_in_view", case["value"]), first["params"])
                         if (first and effect == verdict) else None),
-        "value_in_view": case.get("value_in_view"),
+        "value_in_view": case.get("value_in_view"), "learned_shading": case.get("learned_shading"),
         "psnr_gain_db": first["psnr_gain_db"] if first else 0.0,
         "held_out_psnr_db": me.get("held_out_psnr_db"), "model_error_over_noise_db": me.get("model_error_over_noise_db"),
         "smallest_testable": json.dumps((me.get("smallest_testable") or {}).get(effect or "", {})),
@@ -216,6 +233,42 @@ def summarise_trained(df, cfg: TrainedSweepConfig) -> dict:
             "silent_rate": float(g.verdict.isin([NO_DISCREPANCY, RECONSTRUCTION_ERROR]).mean()),
             "median_param_error": float(errs.median()) if len(errs) else None, "error_unit": ERROR_UNITS[effect],
             "verdicts": g.verdict.tolist()})
+    out["shading_extension"] = _extension_summary(ok)
+    return out
+
+
+def _extension_summary(ok) -> dict | None:
+    """The learnable-shading extension as a vignette detector, calibrated on the null cases: threshold
+    = nulls' mean + EXTENSION_SIGMAS sd; per effect, the fraction of cases above it and (vignette) the
+    median error of learned - null mean against the truth at the view's corner."""
+    if "learned_shading" not in ok or ok.learned_shading.isna().all():
+        return None
+    null = ok[(ok.effect == "none")].learned_shading.dropna().astype(float)
+    if len(null) < 3:
+        return None
+    mean, sd = float(null.mean()), float(null.std(ddof=1))
+    thr = mean + EXTENSION_SIGMAS * sd
+    out = {"null_mean": mean, "null_sd": sd, "threshold": thr, "n_null": int(len(null)),
+           "null_above": int((null > thr).sum()), "effects": []}
+    for effect, g in ok[ok.effect != "none"].groupby("effect", sort=False):
+        learned = g.learned_shading.astype(float)
+        e = {"effect": effect, "n": int(len(g)), "above_threshold": float((learned > thr).mean())}
+        if effect == "vignette" and "value_in_view" in g and g.value_in_view.notna().all():
+            e["median_error"] = float(np.median(np.abs(learned - mean - g.value_in_view.astype(float))))
+        out["effects"].append(e)
+    return out
+
+
+def _extension_lines(x: dict | None) -> list[str]:
+    if not x:
+        return []
+    out = ["", f"Vignette through the model extension (a lens shading learned with the scene, `egobench.shading`): "
+           f"the {x['n_null']} nulls learn a corner attenuation of {x['null_mean']:.3f} +- {x['null_sd']:.3f} "
+           f"(threshold {x['threshold']:.3f}, {x['null_above']} null(s) above it).", "",
+           "| effect | n | above the threshold | median error of learned - null mean (vignette) |", "|---|---|---|---|"]
+    for e in x["effects"]:
+        err = f"{e['median_error']:.3f}" if e.get("median_error") is not None else "-"
+        out.append(f"| {e['effect']} | {e['n']} | {e['above_threshold']:.2f} | {err} |")
     return out
 
 
@@ -234,12 +287,13 @@ def trained_markdown(s: dict, df) -> str:
         lines.append(f"| {e['effect']} | {e['magnitude']:g} | {e['n']} | {e['detection_rate']:.2f} | "
                      f"{e['detected_with_positive_gain']:.2f} | {e['wrong_name_rate']:.2f} | {e['silent_rate']:.2f} | {err} | "
                      f"{', '.join(e['verdicts'])} |")
+    lines += _extension_lines(s.get("shading_extension"))
     lines += ["", "## Cases", "", "| case | verdict | named | held-out PSNR (dB) | model error over noise (dB) | "
-              "gain (dB) | smallest testable (this effect) | error |", "|---|---|---|---|---|---|---|---|"]
+              "gain (dB) | smallest testable (this effect) | learned shading | error |", "|---|---|---|---|---|---|---|---|---|"]
     for r in df.to_dict("records"):
         def f(x):
             return "-" if x is None or (isinstance(x, float) and not math.isfinite(x)) else f"{x:.2f}"
         lines.append(f"| {r['case']} | {r['verdict']} | {r['named'] or '-'} | {f(r['held_out_psnr_db'])} | "
                      f"{f(r['model_error_over_noise_db'])} | {f(r['psnr_gain_db'])} | {r['smallest_testable']} | "
-                     f"{(r['error'] or '')[:80]} |")
+                     f"{f(r.get('learned_shading'))} | {(r['error'] or '')[:80]} |")
     return "\n".join(lines) + "\n"
