@@ -22,16 +22,30 @@ from egobench.camera.pinhole import Pinhole
 KEY = "shading"
 
 
+def _centre(camera: Pinhole, centre_offset: tuple[float, float]) -> tuple[float, float]:
+    return camera.cx + centre_offset[0] * camera.width, camera.cy + centre_offset[1] * camera.height
+
+
+def farthest_corner(camera: Pinhole, centre_offset: tuple[float, float] = (0.0, 0.0)) -> tuple[int, int]:
+    """(u, v) of the image corner pixel farthest from the (shifted) principal point: where r = 1."""
+    cx, cy = _centre(camera, centre_offset)
+    corners = [(0, 0), (camera.width - 1, 0), (0, camera.height - 1), (camera.width - 1, camera.height - 1)]
+    return max(corners, key=lambda c: (c[0] - cx) ** 2 + (c[1] - cy) ** 2)
+
+
 def radius2(camera: Pinhole, centre_offset: tuple[float, float] = (0.0, 0.0)) -> Tensor:
     """[H, W] float32: squared distance of each pixel centre from the principal point shifted by
     ``centre_offset`` x (width, height), over that of the farthest image corner."""
-    cx = camera.cx + centre_offset[0] * camera.width
-    cy = camera.cy + centre_offset[1] * camera.height
+    cx, cy = _centre(camera, centre_offset)
     v, u = torch.meshgrid(torch.arange(camera.height, dtype=torch.float64),
                           torch.arange(camera.width, dtype=torch.float64), indexing="ij")
-    corners = [(0, 0), (camera.width - 1, 0), (0, camera.height - 1), (camera.width - 1, camera.height - 1)]
-    r2_max = max((x - cx) ** 2 + (y - cy) ** 2 for x, y in corners)
-    return (((u - cx) ** 2 + (v - cy) ** 2) / r2_max).float()
+    x, y = farthest_corner(camera, centre_offset)
+    return (((u - cx) ** 2 + (v - cy) ** 2) / ((x - cx) ** 2 + (y - cy) ** 2)).float()
+
+
+def radius2_of(camera: Pinhole, config) -> Tensor:
+    """`radius2` about the centre a `TrainConfig` places the learnable shading at."""
+    return radius2(camera, (config.shading_centre_dx, config.shading_centre_dy))
 
 
 def shading(r2: Tensor, coeffs: Tensor) -> Tensor:
@@ -49,5 +63,5 @@ def learned_vignette(vignette: Tensor, camera: Pinhole, extra: dict, config) -> 
     """The stated vignette [H, W] times the run's learned shading (unchanged when it learned none)."""
     if KEY not in extra:
         return vignette
-    r2 = radius2(camera, (config.shading_centre_dx, config.shading_centre_dy)).to(vignette.device)
+    r2 = radius2_of(camera, config).to(vignette.device)
     return vignette * shading(r2, extra[KEY].detach().to(vignette.device)).to(vignette.dtype)

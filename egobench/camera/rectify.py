@@ -36,6 +36,11 @@ def default_pinhole_for(
     return Pinhole(fx=focal, fy=focal, cx=(width - 1) / 2, cy=(height - 1) / 2, width=width, height=height)
 
 
+def readout_range(readout_rows: tuple[int, int] | None, height: int) -> tuple[int, int]:
+    """(first, last) raw row a rolling shutter reads: ``readout_rows``, or every row of ``height``."""
+    return (0, height - 1) if readout_rows is None else (int(readout_rows[0]), int(readout_rows[1]))
+
+
 @dataclass
 class Rectification:
     """An inverse warp from ``src`` to the pinhole ``dst`` (build it with ``Rectification.build``)."""
@@ -132,7 +137,7 @@ class Rectification:
         """R(u) = (source row - a) / (b - a) per rectified pixel, [H, W] float32 in [0, 1]; 0 outside valid.
         ``readout_rows`` (a, b): the first and last raw row the rolling shutter reads (default: the whole
         sensor, 0 and H_s - 1)."""
-        a, b = (0, self.src.height - 1) if readout_rows is None else readout_rows
+        a, b = readout_range(readout_rows, self.src.height)
         ratio = (self.map_uv[..., 1] - a) / max(b - a, 1)
         return torch.where(self.valid, ratio.clamp(0.0, 1.0), torch.zeros_like(ratio))
 

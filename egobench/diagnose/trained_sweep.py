@@ -98,7 +98,7 @@ def _run_case(case: dict, cfg: TrainedSweepConfig, case_dir: Path, diag: Diagnos
     from egobench.diagnose.sources import run_source
     from egobench.sim.capture import simulate_recording
     from egobench.sim.config import SimConfig, hidden_effect_overrides
-    from egobench.train import preset_config, train
+    from egobench.train import preset_config
 
     overrides = {"n_frames": cfg.n_frames, "rectified_size": cfg.size, "readout_s": 0.01626, "motion": cfg.motion}
     if case["effect"] is not None:
@@ -109,26 +109,26 @@ def _run_case(case: dict, cfg: TrainedSweepConfig, case_dir: Path, diag: Diagnos
                            resume="auto")
     run = case_dir / "run"
     tc = replace(preset_config("cpu"), max_side=0, device="cpu").scaled_to(cfg.iterations)
-    if not (run / "train.json").is_file() or not json.loads((run / "train.json").read_text()).get("complete"):
-        train(rec, cfg.method, tc, run, resume="auto", progress=False)
+    _train_once(rec, cfg.method, tc, run)
     if case["effect"] == "vignette":  # the truth in the diagnosis's parametrisation (set on the case)
         case["value_in_view"] = vignette_in_view(rec, case["value"])
     if cfg.shading_extension:  # the model extension's learned shading (set on the case)
-        case["learned_shading"] = _learned_shading(rec, replace(tc, learn_shading=True), cfg.method, case_dir / "run_shading")
+        record = _train_once(rec, cfg.method, replace(tc, learn_shading=True), case_dir / "run_shading")
+        case["learned_shading"] = float(record["learned_shading"]["corner_attenuation"])
     src = run_source(rec, run, progress=False)
     d = diagnose_residuals(src.measured, src.predicted, src.context, replace(diag, trained_run=True))
     return write_report(case_dir / "diagnosis", d, src.measured, src.predicted,
                         title=f"Trained-run sweep case {case['id']}", extra={"case": case})
 
 
-def _learned_shading(rec: Path, tc, method: str, run: Path) -> float:
-    """Corner attenuation learned by ``method`` trained with the lens-shading extension (resumes)."""
+def _train_once(rec: Path, method: str, tc, run: Path) -> dict:
+    """Train ``run`` unless a complete train.json is there (an interrupted run resumes); its record."""
     from egobench.train import train
 
     done = run / "train.json"
     if not done.is_file() or not json.loads(done.read_text()).get("complete"):
         train(rec, method, tc, run, resume="auto", progress=False)
-    return float(json.loads(done.read_text())["learned_shading"]["corner_attenuation"])
+    return json.loads(done.read_text())
 
 
 def vignette_in_view(recording_dir: str | Path, corner_attenuation: float) -> float:
@@ -140,6 +140,7 @@ def vignette_in_view(recording_dir: str | Path, corner_attenuation: float) -> fl
     from egobench.data.mps import read_online_calibration
     from egobench.diagnose.sources import recording_rectification
     from egobench.formation import radial_vignette
+    from egobench.shading import farthest_corner
     from egobench.sim.devices import get_device
 
     rec = load_recording(recording_dir, "online")
@@ -149,9 +150,7 @@ def vignette_in_view(recording_dir: str | Path, corner_attenuation: float) -> fl
     raw = radial_vignette((cal.height, cal.width), corner_attenuation, dev.vignette_power,
                           centre=(float(cal.params[1]), float(cal.params[2])))
     view = rect.warp_vignette(raw.float()).numpy()
-    pin = rec.camera
-    corners = [(0, 0), (pin.width - 1, 0), (0, pin.height - 1), (pin.width - 1, pin.height - 1)]
-    u, v = max(corners, key=lambda c: math.hypot(c[0] - pin.cx, c[1] - pin.cy))
+    u, v = farthest_corner(rec.camera)
     return float(1.0 - view[v, u])
 
 

@@ -64,6 +64,7 @@ import torch
 from torch import Tensor
 
 from egobench.camera.pinhole import Pinhole
+from egobench.camera.rectify import readout_range
 from egobench.data.mps import CameraCalibration, SemiDensePoints
 from egobench.sim.config import SimConfig
 from egobench.sim.devices import SEMIDENSE_NOISE, DeviceProfile, get_device
@@ -293,7 +294,7 @@ def row_start_times_ns(read_start_ns: int, readout_s: float, height: int,
                        readout_rows: tuple[int, int] | None = None) -> Tensor:
     """t(r) = read_start + (r - a) / (b - a) * readout, [H] int64 ns (docs/architecture.md); (a, b) =
     ``readout_rows``, the first and last row read (default 0 and H - 1); rows outside are clamped."""
-    a, b = (0, height - 1) if readout_rows is None else readout_rows
+    a, b = readout_range(readout_rows, height)
     r = ((torch.arange(height, dtype=torch.float64) - a) / max(b - a, 1)).clamp(0.0, 1.0)
     return read_start_ns + torch.round(r * readout_s * 1e9).to(torch.int64)
 
@@ -385,7 +386,7 @@ def motion_during_exposure_px(trajectory, raw: RawCamera, points_world: Tensor, 
         return 0.0
     cam = raw.calibration.camera()
     H = raw.valid.shape[0]
-    a, b = (0, H - 1) if raw.readout_rows is None else raw.readout_rows
+    a, b = readout_range(raw.readout_rows, H)
     t_rows = row_start_times_ns(read_start_ns, readout_s, H, raw.readout_rows)[[a, (a + b) // 2, b]]
     t_end = t_rows + int(round(exposure_s * 1e9))
     T = camera_poses(trajectory, _as_T(raw.calibration), torch.cat([t_rows, t_end]))

@@ -88,11 +88,9 @@ def step_context(data: TrainingData, config: TrainConfig, device: torch.device) 
 
 
 def _shading_r2(data: TrainingData, config: TrainConfig, device: torch.device) -> Tensor | None:
-    from egobench.shading import radius2
+    from egobench.shading import radius2_of
 
-    if not config.learn_shading:
-        return None
-    return radius2(data.camera, (config.shading_centre_dx, config.shading_centre_dy)).to(device)
+    return radius2_of(data.camera, config).to(device) if config.learn_shading else None
 
 
 def _check_finite(it: int, named: list[tuple[str, Tensor]]) -> None:
