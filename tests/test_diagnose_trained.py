@@ -385,3 +385,56 @@ def test_the_shading_extension_is_called_against_the_nulls():
     assert resp["above_threshold"] == 0.0 and "median_error" not in resp
     md = trained_markdown(summarise_trained(df, TrainedSweepConfig(effects=("vignette", "response"))), df)
     assert "threshold 0.010" in md and "| vignette | 2 | 0.50 |" in md
+
+
+def _null_summary(path, mean=-0.05, sd=0.02, setup=None):
+    setup = setup or {"method": "ours", "size": 32, "n_frames": 16, "iterations": 40}
+    path.write_text(json.dumps({"config": setup, "shading_extension": {
+        "null_mean": mean, "null_sd": sd, "threshold": mean + 3 * sd, "n_null": 10}}))
+    return path
+
+
+def test_the_extensions_call_on_a_users_run_against_the_sweeps_nulls(tmp_path):
+    from egobench.diagnose.extension import exposure_ratio, judge_shading, load_shading_null
+
+    null = load_shading_null(_null_summary(tmp_path / "s.json"))
+    assert null.threshold == pytest.approx(0.01) and null.n == 10
+    setup = {"method": "ours", "size": 32, "n_frames": 16, "iterations": 40}
+    x = judge_shading(0.15, null, setup, exposure_ratio(np.array([1e-3, 2e-3]), np.array([2.0, 3.0])))
+    assert x["above_threshold"] and x["estimate"] == pytest.approx(0.20) and x["setup_mismatch"] == {}
+    assert x["exposure_ratio"] == pytest.approx(3.0) and "3.00x" in x["notes"][0]
+    x = judge_shading(0.005, null, {**setup, "size": 128}, 1.0)
+    assert not x["above_threshold"] and x["estimate"] is None and x["called"] is None
+    assert x["setup_mismatch"] == {"size": {"run": 128, "null": 32}} and "size 128 here, 32 there" in x["notes"][0]
+    (tmp_path / "bad.json").write_text(json.dumps({"config": {}, "shading_extension": None}))
+    with pytest.raises(ValueError, match="bad.json: field 'shading_extension'"):
+        load_shading_null(tmp_path / "bad.json")
+
+
+def test_diagnose_runs_the_shading_extension_on_a_run_with_and_without_a_learned_shading(tmp_path):
+    """--shading-null: a run trained with learn_shading is read as it is; a run without one gets an
+    extension run with its own config plus learn_shading, in OUT/run_shading."""
+    from egobench.cli import main
+
+    rec, null = tmp_path / "rec", _null_summary(tmp_path / "sweep.json")
+    sets = ["n_frames=16", "rectified_size=32", "readout_s=0.01626", "motion=fast"]
+    assert main(["simulate", "--kind", "indoor", "--seed", "2", "--out", str(rec), "--no-progress",
+                 *[x for s in sets for x in ("--set", s)]]) == 0
+    for name, extra in (("shaded", ["--set", "learn_shading=true"]), ("plain", [])):
+        assert main(["train", "--recording", str(rec), "--method", "ours", "--out", str(tmp_path / name),
+                     "--preset", "cpu", "--iterations", "40", "--set", "max_side=0", "--no-progress", *extra]) == 0
+    own = json.loads((tmp_path / "shaded" / "train.json").read_text())["learned_shading"]["corner_attenuation"]
+    assert main(["diagnose", str(rec), "--run", str(tmp_path / "shaded"), "--shading-null", str(null),
+                 "--out", str(tmp_path / "d1"), "--no-progress"]) == 0
+    x = json.loads((tmp_path / "d1" / "diagnosis.json").read_text())["shading_extension"]
+    assert x["learned_corner_attenuation"] == pytest.approx(own) and not (tmp_path / "d1" / "run_shading").exists()
+    assert x["setup"] == {"method": "ours", "size": 32, "n_frames": 16, "iterations": 40} and x["setup_mismatch"] == {}
+    assert "Model extension: a learned lens shading" in (tmp_path / "d1" / "report.md").read_text()
+    assert main(["diagnose", str(rec), "--run", str(tmp_path / "plain"), "--shading-null", str(null),
+                 "--out", str(tmp_path / "d2"), "--no-progress"]) == 0
+    ext = json.loads((tmp_path / "d2" / "run_shading" / "train.json").read_text())
+    base = json.loads((tmp_path / "plain" / "train.json").read_text())
+    assert ext["config"]["learn_shading"] and {k: v for k, v in ext["config"].items() if k != "learn_shading"} == \
+        {k: v for k, v in base["config"].items() if k != "learn_shading"}
+    x = json.loads((tmp_path / "d2" / "diagnosis.json").read_text())["shading_extension"]
+    assert x["learned_corner_attenuation"] == pytest.approx(ext["learned_shading"]["corner_attenuation"])

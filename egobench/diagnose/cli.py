@@ -43,6 +43,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="with --train: the starting config, as `egobench train --preset` (at the recording's "
                              "full resolution: diagnosis compares full-resolution renders)")
     parser.add_argument("--iterations", type=int, default=None, help="with --train: iterations (schedule scaled)")
+    parser.add_argument("--shading-null", default=None, metavar="TRAINED_SWEEP_JSON",
+                        help="with a run: the model extension (a lens shading learned with the scene; the run's own "
+                             "when trained with learn_shading, else trained into OUT/run_shading with the run's "
+                             "config), called against the null cases of this trained-run sweep summary")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     add_input_arguments(parser)
 
@@ -126,8 +130,30 @@ def _diagnose_recording(args: argparse.Namespace, cfg: DiagnosisConfig, out: Pat
         from dataclasses import replace
 
         cfg = replace(cfg, trained_run=True)
+    extension = _shading_extension(args, rec, run_dir, src, out) if args.shading_null else None
     d = diagnose_residuals(src.measured, src.predicted, src.context, cfg)
+    extra = {"method": args.method, "source": src.description}
     record = write_report(out, d, src.measured, src.predicted, title=f"Residual diagnosis of {rec.name} ({src.description})",
-                          extra={"method": args.method, "source": src.description})
-    print(json.dumps({"out": str(out), "verdict": record["verdict"], "psnr_gain_db": record["psnr_gain_db"]}))
+                          extra=extra, shading_extension=extension)
+    summary = {"out": str(out), "verdict": record["verdict"], "psnr_gain_db": record["psnr_gain_db"]}
+    if extension is not None:
+        summary["shading_extension"] = extension["called"]
+    print(json.dumps(summary))
     return 0
+
+
+def _shading_extension(args: argparse.Namespace, rec: Path, run_dir: Path | None, src, out: Path) -> dict:
+    """--shading-null: the learned lens shading of the run (or of its extension run) against the sweep's nulls."""
+    from egobench.data.reader import recording_from_args
+    from egobench.diagnose.extension import (exposure_ratio, judge_shading, learned_shading_of, load_shading_null,
+                                             run_setup)
+    from egobench.methods import get_method
+
+    if run_dir is None:
+        raise ValueError("--shading-null: the model extension needs a trained run (--run RUN_DIR or --train)")
+    null = load_shading_null(args.shading_null)
+    recording = recording_from_args(rec, get_method(args.method).calibration, args)
+    learned, _ = learned_shading_of(run_dir, recording, out, args.method, progress=not args.no_progress)
+    n, h, w = src.measured.shape[:3]
+    setup = run_setup(run_dir, n_frames=n, image_size=max(h, w))
+    return judge_shading(learned, null, setup, exposure_ratio(src.context.exposure_s, src.context.gain))

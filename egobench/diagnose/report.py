@@ -168,15 +168,23 @@ def markdown(d: Diagnosis, title: str) -> str:
 
 
 def write_report(out_dir: str | Path, d: Diagnosis, measured: np.ndarray, predicted: np.ndarray,
-                 title: str = "Residual diagnosis", extra: dict | None = None) -> dict:
-    """Write diagnosis.json, report.md and figures/ into out_dir; return the JSON record."""
+                 title: str = "Residual diagnosis", extra: dict | None = None,
+                 shading_extension: dict | None = None) -> dict:
+    """Write diagnosis.json, report.md and figures/ into out_dir; return the JSON record
+    (``shading_extension``: the model extension's call, `egobench.diagnose.extension.judge_shading`)."""
     out = Path(out_dir)
     (out / "figures").mkdir(parents=True, exist_ok=True)
     record = d.to_dict()
     if extra:
         record["extra"] = extra
+    if shading_extension is not None:
+        record["shading_extension"] = shading_extension
     write_json(out / "diagnosis.json", record)
     text = markdown(d, title)
+    if shading_extension is not None:
+        from egobench.diagnose.extension import shading_markdown
+
+        text += shading_markdown(shading_extension)
     if extra:
         import json
 
