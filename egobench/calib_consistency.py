@@ -20,6 +20,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from egobench.calib_projection import frame_number, from_camera, median_p90, observed_in_test_px, online_at, to_camera
 from egobench.camera.pinhole import Pinhole
 
 #: Frames with fewer observations of a point than this leave its residual undefined.
@@ -76,7 +77,6 @@ def absorbed_residual_px(u_obs: Tensor, valid: Tensor, pinhole: Pinhole, T_world
 def _world_points(recording, frames: list, every: int, max_per_frame: int) -> Tensor:
     """Sparse-depth points of every ``every``-th frame, in the world [P, 3] float64."""
     from egobench.motion_sampling import _sparse_points_camera
-    from egobench.similarity import _from_camera
 
     chunks = []
     for f in frames[::every]:
@@ -84,23 +84,22 @@ def _world_points(recording, frames: list, every: int, max_per_frame: int) -> Te
             continue
         p_c = _sparse_points_camera(recording, f)
         stride = max(1, len(p_c) // max_per_frame)
-        chunks.append(_from_camera(f.T_world_camera, p_c[::stride][:max_per_frame]))
+        chunks.append(from_camera(f.T_world_camera, p_c[::stride][:max_per_frame]))
     return torch.cat(chunks) if chunks else torch.zeros(0, 3, dtype=torch.float64)
 
 
 def _observations(online_rec, pairs: list, cals: dict, X: Tensor) -> tuple[Tensor, Tensor]:
     """Where each factory-stream image shows each point [P, J, 2], and which frames see it [P, J]."""
-    from egobench.similarity import _online_at, _to_camera, observed_in_test_px
 
     pin = online_rec.camera
     full = cals["factory"] is not None and cals["online"] is not None
     u_all, ok_all = [], []
     for f, _ in pairs:
-        u_on, ok = pin.project(_to_camera(f.T_world_camera, X))
+        u_on, ok = pin.project(to_camera(f.T_world_camera, X))
         ok = ok & (u_on[:, 0] >= 0) & (u_on[:, 0] <= pin.width - 1) & (u_on[:, 1] >= 0) & (u_on[:, 1] <= pin.height - 1)
         if full:  # the raw pixel the online calibration puts X at, as the factory rectification shows it
             T_wd = f.T_world_camera.to(torch.float64) @ torch.linalg.inv(f.T_device_camera.to(torch.float64))
-            u_obs, ok_obs = observed_in_test_px(_to_camera(T_wd, X), _online_at(cals["online"], f.timestamp_ns),
+            u_obs, ok_obs = observed_in_test_px(to_camera(T_wd, X), online_at(cals["online"], f.timestamp_ns),
                                                 cals["factory"], pin)
             ok = ok & ok_obs
         else:  # two rectified streams: they differ in extrinsics only
@@ -114,7 +113,6 @@ def calibration_inconsistency(online_rec, factory_rec, cals: dict, pixel_scale: 
                               every: int = 8, max_per_frame: int = 48) -> dict:
     """Median/p90 of the factory stream's unabsorbable residual (px x pixel_scale), the median
     absolute error before absorption on the same observations, and the number of points."""
-    from egobench.similarity import _median_p90, frame_number
 
     keys = ("calib_inconsistency_px_median", "calib_inconsistency_px_p90", "calib_unabsorbed_fraction")
     if factory_rec is None:
@@ -132,7 +130,7 @@ def calibration_inconsistency(online_rec, factory_rec, cals: dict, pixel_scale: 
     res = absorbed_residual_px(u_obs, ok, pin, T_fa, X)
     res = res[torch.isfinite(res)].numpy() * pixel_scale
     out: dict = {"calib_inconsistency_n_points": int(res.size)}
-    out["calib_inconsistency_px_median"], out["calib_inconsistency_px_p90"] = _median_p90(res)
+    out["calib_inconsistency_px_median"], out["calib_inconsistency_px_p90"] = median_p90(res)
     med_before = float(np.median(before.numpy())) * pixel_scale if before.numel() else None
     out["calib_unabsorbed_fraction"] = (None if not med_before or out["calib_inconsistency_px_median"] is None
                                         else out["calib_inconsistency_px_median"] / med_before)

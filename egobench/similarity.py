@@ -54,6 +54,8 @@ import torch
 from torch import Tensor
 
 from egobench.calib_consistency import calibration_inconsistency
+from egobench.calib_projection import (frame_number, from_camera, median_p90, observed_in_test_px, online_at,
+                                        to_camera)
 from egobench.data.recording import Frame, Recording
 
 SCHEMA = "egobench.similarity/1"
@@ -81,19 +83,6 @@ METRIC_KEYS = (
 #: `ideal_hf_fraction(2400)`, the paper-scale reference (tests recompute it).
 IDEAL_HF_FRACTION_2400 = 0.1066
 
-
-def _median_p90(values: np.ndarray) -> tuple[float | None, float | None]:
-    v = np.asarray(values, dtype=np.float64)
-    v = v[np.isfinite(v)]
-    if v.size == 0:
-        return None, None
-    return float(np.median(v)), float(np.percentile(v, 90))
-
-
-def frame_number(frame: Frame) -> int:
-    """The simulator's frame number k of a frame (its image name NNNNN.png), else its index."""
-    stem = Path(frame.image_path).stem
-    return int(stem) if stem.isdigit() else int(frame.index)
 
 
 # ----------------------------------------------------------------------------------------
@@ -166,33 +155,6 @@ def trajectory_rs_shift_px(trajectory, T_device_camera: Tensor, focal_px: float 
 # ----------------------------------------------------------------------------------------
 # calibration
 # ----------------------------------------------------------------------------------------
-def _to_camera(T_a_camera: Tensor | np.ndarray, points_a: Tensor) -> Tensor:
-    """Points [P, 3] in frame a -> the camera frame, given T_a_camera (camera -> a)."""
-    T = torch.as_tensor(np.asarray(T_a_camera), dtype=torch.float64)
-    return (points_a - T[:3, 3]) @ T[:3, :3]  # R^T (p - t), row vectors
-
-
-def _from_camera(T_a_camera: Tensor, points_camera: Tensor) -> Tensor:
-    """Points [P, 3] in the camera frame -> frame a."""
-    T = T_a_camera.to(torch.float64)
-    return points_camera @ T[:3, :3].T + T[:3, 3]
-
-
-def observed_in_test_px(points_reference_device: Tensor, reference, test, pinhole) -> tuple[Tensor, Tensor]:
-    """Where ``test``'s rectified image shows device points [P, 3] that ``reference`` images right:
-    (pixels [P, 2] of ``pinhole``, valid [P]). Fisheye `CameraCalibration`s: the raw pixel
-    r = F_ref(X_ref) rectified by test, pinhole(F_test^-1(r)); 4x4 T_device_camera's (rectified
-    streams, extrinsics only): pinhole(X_ref)."""
-    P = torch.as_tensor(points_reference_device, dtype=torch.float64)
-    if not hasattr(reference, "camera"):
-        return pinhole.project(_to_camera(reference, P))
-    raw, ok = reference.camera().project(_to_camera(reference.T_device_camera, P))
-    ok = ok & (raw[:, 0] >= 0) & (raw[:, 0] <= reference.width - 1) & (raw[:, 1] >= 0) & (raw[:, 1] <= reference.height - 1)
-    ray, conv = test.camera().unproject_checked(raw)
-    u_obs, ok_obs = pinhole.project(ray)
-    return u_obs, ok & conv & ok_obs
-
-
 def calibration_reprojection_px(points_device: Tensor, reference, test, pinhole, *,
                                 points_test_camera: Tensor | None = None) -> Tensor:
     """Per-point reprojection error [P] (pixels of ``pinhole``, NaN where undefined) of calibration
@@ -207,7 +169,7 @@ def calibration_reprojection_px(points_device: Tensor, reference, test, pinhole,
     P = torch.as_tensor(points_device, dtype=torch.float64)
     u_obs, ok = observed_in_test_px(P, reference, test, pinhole)
     T_test = test.T_device_camera if hasattr(test, "camera") else test
-    X_test = _to_camera(T_test, P) if points_test_camera is None else points_test_camera.to(torch.float64)
+    X_test = to_camera(T_test, P) if points_test_camera is None else points_test_camera.to(torch.float64)
     u_pred, ok_pred = pinhole.project(X_test)
     err = (u_obs - u_pred).norm(dim=-1)
     return torch.where(ok & ok_pred, err, torch.full_like(err, float("nan")))
@@ -219,7 +181,7 @@ def _frame_points_device(recording: Recording, frame: Frame) -> Tensor | None:
 
     if frame.sparse_depth is None or len(frame.sparse_depth.z) == 0:
         return None
-    return _from_camera(frame.T_device_camera, _sparse_points_camera(recording, frame))
+    return from_camera(frame.T_device_camera, _sparse_points_camera(recording, frame))
 
 
 def _camera_label(recording: Recording) -> str:
@@ -246,12 +208,6 @@ def read_calibrations(recording: Recording, truth: dict | None) -> dict:
     return out
 
 
-def _online_at(online: list, t_ns: int):
-    """The online calibration record nearest in time to ``t_ns``."""
-    i = int(np.argmin([abs(ts * 1000 - t_ns) for ts, _ in online]))
-    return online[i][1]
-
-
 def calibration_errors(online_rec: Recording, factory_rec: Recording | None, cals: dict,
                        pixel_scale: float = 1.0) -> dict:
     """Median/p90 reprojection errors (pixels x pixel_scale): factory vs online (same device pose and
@@ -265,13 +221,13 @@ def calibration_errors(online_rec: Recording, factory_rec: Recording | None, cal
         ff = factory_frames.get(frame_number(f))
         if P is None or (not full and ff is None):
             continue
-        on = _online_at(cals["online"], f.timestamp_ns) if full else f.T_device_camera
+        on = online_at(cals["online"], f.timestamp_ns) if full else f.T_device_camera
         fa = cals["factory"] if full else ff.T_device_camera
         errs[""].append(calibration_reprojection_px(P, on, fa, pin))
         if ff is not None:  # the point through the factory stream's own centre pose (its time offset)
-            p_w = _from_camera(f.T_world_camera, _to_camera(f.T_device_camera, P))
+            p_w = from_camera(f.T_world_camera, to_camera(f.T_device_camera, P))
             errs["as_trained_"].append(calibration_reprojection_px(
-                P, on, fa, pin, points_test_camera=_to_camera(ff.T_world_camera, p_w)))
+                P, on, fa, pin, points_test_camera=to_camera(ff.T_world_camera, p_w)))
         if full and cals["true"] is not None:
             errs["online_vs_true_"].append(calibration_reprojection_px(P, cals["true"], on, pin))
             errs["factory_vs_true_"].append(calibration_reprojection_px(P, cals["true"], fa, pin))
@@ -279,9 +235,9 @@ def calibration_errors(online_rec: Recording, factory_rec: Recording | None, cal
                                         else "rectified streams' extrinsics only" if factory_rec is not None else None)}
     for tag, chunks in errs.items():
         values = torch.cat(chunks).numpy() * pixel_scale if chunks else np.zeros(0)
-        out[f"calib_error_{tag}px_median"], out[f"calib_error_{tag}px_p90"] = _median_p90(values)
+        out[f"calib_error_{tag}px_median"], out[f"calib_error_{tag}px_p90"] = median_p90(values)
     if full:
-        dt = [(_online_at(cals["online"], f.timestamp_ns).time_offset_s - cals["factory"].time_offset_s) * 1e3
+        dt = [(online_at(cals["online"], f.timestamp_ns).time_offset_s - cals["factory"].time_offset_s) * 1e3
               for f in online_rec.frames]
         out["calib_time_offset_diff_ms"] = float(np.median(dt))
     return out
@@ -516,7 +472,7 @@ def measure_recording(path: str | Path, resolution: int | None = None, max_image
                     "rectified_size_px": width, "resolution_px": resolution, "pixel_scale": scale,
                     "n_frames": len(rec.frames), "has_ground_truth": truth is not None}
     rs = rs_shift_px(rec, truth, scale)
-    result["rs_shift_px_median"], result["rs_shift_px_p90"] = _median_p90(rs)
+    result["rs_shift_px_median"], result["rs_shift_px_p90"] = median_p90(rs)
     result["rs_shift_source"] = "true clocks (truth.json)" if truth is not None else "stream's stated clocks"
     result["rs_shift_n_points"] = int(rs.size)
     result["view_readout_span"] = view_readout_span(rec)
