@@ -438,3 +438,36 @@ def test_diagnose_runs_the_shading_extension_on_a_run_with_and_without_a_learned
         {k: v for k, v in base["config"].items() if k != "learn_shading"}
     x = json.loads((tmp_path / "d2" / "diagnosis.json").read_text())["shading_extension"]
     assert x["learned_corner_attenuation"] == pytest.approx(ext["learned_shading"]["corner_attenuation"])
+
+
+@pytest.mark.parametrize("trained_run", [True, False])
+def test_a_weaker_cause_is_not_named_when_the_strongest_does_not_generalise(monkeypatch, trained_run):
+    """Trained run: the top candidate fails the held-out gain floor -> the round names nothing (the
+    weaker candidate, which alone would pass, is not trusted beside the model's own error). The
+    ground-truth path names the top candidate regardless of its gain."""
+    from types import SimpleNamespace
+
+    from egobench.diagnose.core import _name_mean_cause
+    from egobench.diagnose.estimators import CAUSES, CauseResult
+
+    gains = {"time_offset": 0.0, "vignette": 1.0}  # held-out "PSNR" gain each extension would give
+    for name in gains:
+        monkeypatch.setattr(CAUSES[name], "apply", lambda cur, r, *a, **k: cur + gains[r.name])
+    strong = CauseResult("time_offset", "geometric", True, p_adjusted=1e-20, effect_rms=0.0035, significant=True,
+                         score=0.0035)
+    weak = CauseResult("vignette", "photometric", True, p_adjusted=0.008, effect_rms=0.0055, significant=True,
+                       score=0.0012)
+    cfg = DiagnosisConfig(trained_run=trained_run)
+    picked = _name_mean_cause([weak, strong], 1, np.zeros(1), np.zeros(1), None,
+                              SimpleNamespace(fit_mask=None), cfg, lambda pred: float(pred.mean()))
+    if not trained_run:
+        assert picked is not None and picked[0].name == "time_offset"
+        return
+    assert picked is None and not strong.significant and not weak.significant
+    assert "gain_floor_db" in strong.reason and "time_offset, ranked above it" in weak.reason
+    gains["time_offset"] = 0.5  # the strongest generalises: it is named
+    strong.significant = weak.significant = True
+    strong.score, weak.score = 0.0035, 0.0012
+    picked = _name_mean_cause([weak, strong], 1, np.zeros(1), np.zeros(1), None,
+                              SimpleNamespace(fit_mask=None), cfg, lambda pred: float(pred.mean()))
+    assert picked[0].name == "time_offset" and picked[0].psnr_gain_db == pytest.approx(0.5)
