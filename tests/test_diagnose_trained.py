@@ -471,3 +471,32 @@ def test_a_weaker_cause_is_not_named_when_the_strongest_does_not_generalise(monk
     picked = _name_mean_cause([weak, strong], 1, np.zeros(1), np.zeros(1), None,
                               SimpleNamespace(fit_mask=None), cfg, lambda pred: float(pred.mean()))
     assert picked[0].name == "time_offset" and picked[0].psnr_gain_db == pytest.approx(0.5)
+
+
+def test_a_contained_cause_is_named_with_its_container_and_scored_apart_from_wrong_names():
+    """Time offset named while readout (which contains it) is not significant: the name carries
+    readout as its "or"; the sweep counts that apart from a wrong name."""
+    from egobench.diagnose.core import NamedCause, _note_containing_causes
+    from egobench.diagnose.estimators import CauseResult
+    from egobench.diagnose.trained_sweep import _row
+
+    def named(readout_significant):
+        c = NamedCause("time_offset", 1, 1e-8, 0.006, {"time_offset_error_s": -0.0029}, 0.25)
+        _note_containing_causes(c, [CauseResult("readout", "geometric", True, p_adjusted=0.07,
+                                                significant=readout_significant),
+                                    CauseResult("vignette", "photometric", True, p_adjusted=0.5)])
+        return c
+
+    assert [a["cause"] for a in named(False).params["or"]] == ["readout"]
+    assert "or" not in named(True).params
+
+    def row(effect, cause):
+        record = {"verdict": cause.name, "named": [cause.__dict__], "model_error": {}}
+        return _row({"id": "c", "effect": effect, "magnitude": 0.4, "value": -0.4}, record, None, 1.0)
+
+    r = row("readout", named(False))
+    assert r["contained_name"] and not r["wrong_name"] and not r["detected"]
+    r = row("readout", named(True))
+    assert r["wrong_name"] and not r["contained_name"]
+    r = row("vignette", named(False))
+    assert r["wrong_name"] and not r["contained_name"]

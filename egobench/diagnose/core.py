@@ -288,6 +288,17 @@ def _name_mean_cause(testable: list[CauseResult], rnd: int, measured: np.ndarray
     return None
 
 
+def _note_containing_causes(cause: NamedCause, testable: list[CauseResult]) -> None:
+    """A named cause that a more general one contains (time offset in readout) is also explained by
+    that one when its extra term is not significant: say so in the named cause's params ("or")."""
+    alternatives = [{"cause": r.name, "p_adjusted": r.p_adjusted,
+                     "note": f"{r.name} contains {cause.name}; its extra term is not significant here, so "
+                             f"{r.name} would explain the same residual"}
+                    for r in testable if cause.name in CAUSES[r.name].nests and not r.significant]
+    if alternatives:
+        cause.params["or"] = alternatives
+
+
 def _noise_variance(pred: np.ndarray, ctx: DiagnosisContext, idx: np.ndarray) -> np.ndarray:
     """Residual variance the assumed noise alone gives [f, H, W, 3] (display units): the pipeline
     reference's squares when the context has one, else the analytic model (0 when noiseless)."""
@@ -383,6 +394,7 @@ def diagnose_residuals(
         picked = _name_mean_cause(testable, rnd, measured, current, ctx, split, cfg, score)
         if picked is not None:
             cause, current = picked
+            _note_containing_causes(cause, testable)
             named.append(cause)
             continue
         noise = _name_noise(testable, rnd, measured, current, ctx, split, cfg)

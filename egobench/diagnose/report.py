@@ -28,7 +28,7 @@ def _fmt(x, digits: int = 4) -> str:
 
 
 def _summary(params: dict) -> str:
-    skip = {"first_order_estimate", "frame_scale", "sign", "log_shading_r2_r4"}
+    skip = {"first_order_estimate", "frame_scale", "sign", "log_shading_r2_r4", "or"}
     return "; ".join(f"{k}={_fmt(v)}" for k, v in params.items() if k not in skip)
 
 
@@ -155,6 +155,8 @@ def markdown(d: Diagnosis, title: str) -> str:
             gain = f"{n.psnr_gain_db:+.2f} dB" if n.nll_gain_nats_per_px is None else f"NLL {n.nll_gain_nats_per_px:+.3f} nats/px"
             lines.append(f"| {n.round} | {n.name} | {n.p_adjusted:.2g} | {n.effect_rms * LEVELS:.2f} | {_summary(n.params)} | {gain} |")
         lines.append("")
+        lines += [f"- {n.name}, or {a['cause']} (p_adj {a['p_adjusted']:.2g}): {a['note']}"
+                  for n in d.named for a in n.params.get("or", [])]
     lines += ["## Ranking (round 1)", "", "| cause | statistic | p | p_adj (Holm) | effect (levels) | significant | estimate |",
               "|---|---|---|---|---|---|---|"]
     for r in d.ranking:

@@ -160,12 +160,16 @@ def _row(case: dict, record: dict | None, error: str | None, runtime_s: float) -
     first = record["named"][0] if record and record["named"] else None
     me = (record or {}).get("model_error") or {}
     silent = verdict in (NO_DISCREPANCY, RECONSTRUCTION_ERROR)
+    # named a cause the hidden one contains (time offset for a readout error), with the hidden one as its "or"
+    contained = bool(first and effect is not None and verdict != effect
+                     and any(a["cause"] == effect for a in first["params"].get("or", [])))
     return {
         "case": case["id"], "effect": effect or "none", "magnitude": case["magnitude"], "value": json.dumps(case["value"]),
         "verdict": verdict, "named": ";".join(n["name"] for n in (record or {}).get("named", [])),
         "detected": effect is not None and verdict == effect,
         "false_alarm": effect is None and record is not None and not silent,
-        "wrong_name": effect is not None and record is not None and not silent and verdict != effect,
+        "wrong_name": effect is not None and record is not None and not silent and verdict != effect and not contained,
+        "contained_name": contained,
         "param_error": (parameter_error(effect, case.get("value_in_view", case["value"]), first["params"])
                         if (first and effect == verdict) else None),
         "value_in_view": case.get("value_in_view"), "learned_shading": case.get("learned_shading"),
@@ -229,6 +233,7 @@ def summarise_trained(df, cfg: TrainedSweepConfig) -> dict:
             "effect": effect, "magnitude": float(mag), "n": int(len(g)), "detection_rate": float(g.detected.mean()),
             "detected_with_positive_gain": float((g.detected & (g.psnr_gain_db > 0)).mean()),
             "wrong_name_rate": float(g.wrong_name.mean()),
+            "contained_name_rate": float(g.contained_name.mean()) if "contained_name" in g else 0.0,
             "silent_rate": float(g.verdict.isin([NO_DISCREPANCY, RECONSTRUCTION_ERROR]).mean()),
             "median_param_error": float(errs.median()) if len(errs) else None, "error_unit": ERROR_UNITS[effect],
             "verdicts": g.verdict.tolist()})
@@ -279,12 +284,14 @@ def trained_markdown(s: dict, df) -> str:
              f"'{c['method']}' trained {c['iterations']} iterations (CPU preset); diagnosed from the run's renders.", "",
              f"False alarms on null cases: {fa}; null verdicts {s['null_verdicts']}; median held-out PSNR of the runs "
              f"{s['median_held_out_psnr_db']:.2f} dB." if s["median_held_out_psnr_db"] is not None else "", "",
-             "| effect | magnitude | n | detection rate | detected with gain > 0 | wrong-name rate | silent rate "
-             "| median param error | verdicts |", "|---|---|---|---|---|---|---|---|---|"]
+             "| effect | magnitude | n | detection rate | detected with gain > 0 | wrong-name rate "
+             "| contained cause named (the hidden one as its 'or') | silent rate | median param error | verdicts |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for e in s["effects"]:
         err = "-" if e["median_param_error"] is None else f"{e['median_param_error']:.3g} ({e['error_unit']})"
         lines.append(f"| {e['effect']} | {e['magnitude']:g} | {e['n']} | {e['detection_rate']:.2f} | "
-                     f"{e['detected_with_positive_gain']:.2f} | {e['wrong_name_rate']:.2f} | {e['silent_rate']:.2f} | {err} | "
+                     f"{e['detected_with_positive_gain']:.2f} | {e['wrong_name_rate']:.2f} | "
+                     f"{e.get('contained_name_rate', 0.0):.2f} | {e['silent_rate']:.2f} | {err} | "
                      f"{', '.join(e['verdicts'])} |")
     lines += _extension_lines(s.get("shading_extension"))
     lines += ["", "## Cases", "", "| case | verdict | named | held-out PSNR (dB) | model error over noise (dB) | "
