@@ -500,3 +500,18 @@ def test_a_contained_cause_is_named_with_its_container_and_scored_apart_from_wro
     assert r["wrong_name"] and not r["contained_name"]
     r = row("vignette", named(False))
     assert r["wrong_name"] and not r["contained_name"]
+
+
+def test_retention_is_the_round_one_estimate_over_the_truth_as_deviations_from_nominal():
+    from egobench.diagnose.trained_sweep import retention
+
+    def record(name, params):
+        return {"rounds": [[{"name": "vignette", "params": {"corner_attenuation": 0.5}},
+                            {"name": name, "params": params}]]}
+
+    assert retention("distortion", -0.008, record("distortion", {"k0_error": 0.002})) == pytest.approx(-0.25)
+    assert retention("response", 1.75, record("response", {"gamma": 2.02})) == pytest.approx(0.4)
+    assert retention("vignette", 0.2, record("response", {})) == pytest.approx(2.5)
+    assert retention("time_offset", 0.003, record("time_offset", {})) is None  # no estimate
+    assert retention("white_balance", (1.1, 1.0, 0.9), record("white_balance", {})) is None
+    assert retention(None, None, record("vignette", {})) is None

@@ -154,6 +154,27 @@ def vignette_in_view(recording_dir: str | Path, corner_attenuation: float) -> fl
     return float(1.0 - view[v, u])
 
 
+#: Per effect: the round-1 estimate's parameter and its nominal (no-effect) value, for `retention`.
+_RETAINED = {"readout": ("readout_relative_error", 0.0), "time_offset": ("time_offset_error_s", 0.0),
+             "exposure_blur": ("exposure_s", 0.0), "vignette": ("corner_attenuation", 0.0),
+             "response": ("gamma", 2.2), "distortion": ("k0_error", 0.0),
+             "exposure_metadata": ("median_exposure_relative_error", 0.0)}
+
+
+def retention(effect: str | None, truth, record: dict | None) -> float | None:
+    """How much of a hidden effect survives training: round 1's estimate of it (named or not) over
+    the truth, both as deviations from nominal (1: all of it, 0: absorbed, < 0: the wrong sign).
+    None for effects without one scalar parameter (white balance, noise) or without an estimate."""
+    if effect not in _RETAINED or record is None or not record.get("rounds"):
+        return None
+    key, nominal = _RETAINED[effect]
+    fit = next((r for r in record["rounds"][0] if r["name"] == effect), None)
+    est = None if fit is None else fit.get("params", {}).get(key)
+    if not isinstance(est, (int, float)) or not isinstance(truth, (int, float)) or truth == nominal:
+        return None
+    return float((est - nominal) / (truth - nominal))
+
+
 def _row(case: dict, record: dict | None, error: str | None, runtime_s: float) -> dict:
     effect = case["effect"]
     verdict = record["verdict"] if record else "error"
@@ -173,6 +194,7 @@ def _row(case: dict, record: dict | None, error: str | None, runtime_s: float) -
         "param_error": (parameter_error(effect, case.get("value_in_view", case["value"]), first["params"])
                         if (first and effect == verdict) else None),
         "value_in_view": case.get("value_in_view"), "learned_shading": case.get("learned_shading"),
+        "retention": retention(effect, case.get("value_in_view", case["value"]), record),
         "psnr_gain_db": first["psnr_gain_db"] if first else 0.0,
         "held_out_psnr_db": me.get("held_out_psnr_db"), "model_error_over_noise_db": me.get("model_error_over_noise_db"),
         "smallest_testable": json.dumps((me.get("smallest_testable") or {}).get(effect or "", {})),
@@ -234,6 +256,8 @@ def summarise_trained(df, cfg: TrainedSweepConfig) -> dict:
             "detected_with_positive_gain": float((g.detected & (g.psnr_gain_db > 0)).mean()),
             "wrong_name_rate": float(g.wrong_name.mean()),
             "contained_name_rate": float(g.contained_name.mean()) if "contained_name" in g else 0.0,
+            "median_retention": (float(g.retention.dropna().median())
+                                 if "retention" in g and g.retention.notna().any() else None),
             "silent_rate": float(g.verdict.isin([NO_DISCREPANCY, RECONSTRUCTION_ERROR]).mean()),
             "median_param_error": float(errs.median()) if len(errs) else None, "error_unit": ERROR_UNITS[effect],
             "verdicts": g.verdict.tolist()})
@@ -285,13 +309,15 @@ def trained_markdown(s: dict, df) -> str:
              f"False alarms on null cases: {fa}; null verdicts {s['null_verdicts']}; median held-out PSNR of the runs "
              f"{s['median_held_out_psnr_db']:.2f} dB." if s["median_held_out_psnr_db"] is not None else "", "",
              "| effect | magnitude | n | detection rate | detected with gain > 0 | wrong-name rate "
-             "| contained cause named (the hidden one as its 'or') | silent rate | median param error | verdicts |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "| contained cause named (the hidden one as its 'or') | silent rate | median param error "
+             "| retained through training (median estimate / truth) | verdicts |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for e in s["effects"]:
         err = "-" if e["median_param_error"] is None else f"{e['median_param_error']:.3g} ({e['error_unit']})"
+        kept = "-" if e.get("median_retention") is None else f"{e['median_retention']:.2f}"
         lines.append(f"| {e['effect']} | {e['magnitude']:g} | {e['n']} | {e['detection_rate']:.2f} | "
                      f"{e['detected_with_positive_gain']:.2f} | {e['wrong_name_rate']:.2f} | "
-                     f"{e.get('contained_name_rate', 0.0):.2f} | {e['silent_rate']:.2f} | {err} | "
+                     f"{e.get('contained_name_rate', 0.0):.2f} | {e['silent_rate']:.2f} | {err} | {kept} | "
                      f"{', '.join(e['verdicts'])} |")
     lines += _extension_lines(s.get("shading_extension"))
     lines += ["", "## Cases", "", "| case | verdict | named | held-out PSNR (dB) | model error over noise (dB) | "
