@@ -430,8 +430,16 @@ def test_diagnose_runs_the_shading_extension_on_a_run_with_and_without_a_learned
     assert x["learned_corner_attenuation"] == pytest.approx(own) and not (tmp_path / "d1" / "run_shading").exists()
     assert x["setup"] == {"method": "ours", "size": 32, "n_frames": 16, "iterations": 40} and x["setup_mismatch"] == {}
     assert "Model extension: a learned lens shading" in (tmp_path / "d1" / "report.md").read_text()
+    kept = tmp_path / "kept.json"  # a trained-sweep summary's retention (--retention)
+    kept.write_text(json.dumps({"config": {}, "effects": [{"effect": "time_offset", "median_retention": 0.5},
+                                                          {"effect": "distortion", "median_retention": -0.1}]}))
     assert main(["diagnose", str(rec), "--run", str(tmp_path / "plain"), "--shading-null", str(null),
-                 "--out", str(tmp_path / "d2"), "--no-progress"]) == 0
+                 "--retention", str(kept), "--out", str(tmp_path / "d2"), "--no-progress"]) == 0
+    me = json.loads((tmp_path / "d2" / "diagnosis.json").read_text())["model_error"]
+    assert me["smallest_testable_hidden"]["time_offset"]["time_offset_error_s"] == pytest.approx(
+        2 * me["smallest_testable"]["time_offset"]["time_offset_error_s"])
+    assert me["smallest_testable_hidden"]["distortion"]["testable"] is False
+    assert "not testable (retention -0.10)" in (tmp_path / "d2" / "report.md").read_text()
     ext = json.loads((tmp_path / "d2" / "run_shading" / "train.json").read_text())
     base = json.loads((tmp_path / "plain" / "train.json").read_text())
     assert ext["config"]["learn_shading"] and {k: v for k, v in ext["config"].items() if k != "learn_shading"} == \
@@ -515,3 +523,22 @@ def test_retention_is_the_round_one_estimate_over_the_truth_as_deviations_from_n
     assert retention("time_offset", 0.003, record("time_offset", {})) is None  # no estimate
     assert retention("white_balance", (1.1, 1.0, 0.9), record("white_balance", {})) is None
     assert retention(None, None, record("vignette", {})) is None
+
+
+def test_the_smallest_testable_hidden_effect_is_the_residual_size_over_the_retention(tmp_path):
+    from egobench.diagnose.absorption import hidden_testable, load_retention
+
+    a, b = tmp_path / "a.json", tmp_path / "b.json"
+    a.write_text(json.dumps({"config": {"size": 64}, "effects": [
+        {"effect": "time_offset", "median_retention": 0.5}, {"effect": "distortion", "median_retention": -0.11}]}))
+    b.write_text(json.dumps({"config": {"size": 64}, "effects": [
+        {"effect": "time_offset", "median_retention": 0.8}, {"effect": "white_balance", "median_retention": None}]}))
+    retention, sources = load_retention([a, b])
+    assert retention == {"time_offset": 0.8, "distortion": -0.11} and [s["source"] for s in sources] == [str(a), str(b)]
+    h = hidden_testable({"time_offset": {"time_offset_error_s": 0.002}, "distortion": {"k0_error": 0.004},
+                         "vignette": {"corner_attenuation": 0.03}}, retention)
+    assert h["time_offset"]["time_offset_error_s"] == pytest.approx(0.0025) and h["time_offset"]["testable"]
+    assert h["distortion"] == {"testable": False, "retention": -0.11} and "vignette" not in h
+    (tmp_path / "old.json").write_text(json.dumps({"effects": [{"effect": "vignette"}]}))
+    with pytest.raises(ValueError, match=r"old.json: field 'effects\[\].median_retention'"):
+        load_retention([tmp_path / "old.json"])

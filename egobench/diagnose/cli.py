@@ -47,6 +47,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="with a run: the model extension (a lens shading learned with the scene; the run's own "
                              "when trained with learn_shading, else trained into OUT/run_shading with the run's "
                              "config), called against the null cases of this trained-run sweep summary")
+    parser.add_argument("--retention", action="append", default=None, metavar="TRAINED_SWEEP_JSON",
+                        help="with a run: scale the smallest testable sizes by how much of each effect training "
+                             "retained in this trained-run sweep summary (repeatable; later files win)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     add_input_arguments(parser)
 
@@ -132,6 +135,8 @@ def _diagnose_recording(args: argparse.Namespace, cfg: DiagnosisConfig, out: Pat
         cfg = replace(cfg, trained_run=True)
     extension = _shading_extension(args, rec, run_dir, src, out) if args.shading_null else None
     d = diagnose_residuals(src.measured, src.predicted, src.context, cfg)
+    if args.retention:
+        _add_hidden_testable(d, args.retention)
     extra = {"method": args.method, "source": src.description}
     record = write_report(out, d, src.measured, src.predicted, title=f"Residual diagnosis of {rec.name} ({src.description})",
                           extra=extra, shading_extension=extension)
@@ -140,6 +145,17 @@ def _diagnose_recording(args: argparse.Namespace, cfg: DiagnosisConfig, out: Pat
         summary["shading_extension"] = extension["called"]
     print(json.dumps(summary))
     return 0
+
+
+def _add_hidden_testable(d, paths: list[str]) -> None:
+    """--retention: the smallest testable hidden effects (egobench.diagnose.absorption) into model_error."""
+    from egobench.diagnose.absorption import hidden_testable, load_retention
+
+    if d.model_error is None:
+        raise ValueError("--retention: needs a trained run's diagnosis (--run RUN_DIR or --train)")
+    retention, sources = load_retention(paths)
+    d.model_error["smallest_testable_hidden"] = hidden_testable(d.model_error.get("smallest_testable", {}), retention)
+    d.model_error["retention_sources"] = sources
 
 
 def _shading_extension(args: argparse.Namespace, rec: Path, run_dir: Path | None, src, out: Path) -> dict:

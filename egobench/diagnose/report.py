@@ -132,9 +132,15 @@ def model_error_markdown(me: dict, config) -> list[str]:
              f"shuffles; response: per-frame scale vs permuted exposure metadata; vignette: frames as units and "
              f"wrong-centre placebos; timing: permuted velocity fields; white balance: not identifiable, absorbed "
              f"into the scene colours), held-out gain > {config.gain_floor_db} dB", "",
-             "| cause | smallest effect testable on this run (of what training left in the residual) |", "|---|---|"]
+             "| cause | smallest effect testable on this run (of what training left in the residual) "
+             "| smallest hidden effect testable (over the retention of a trained sweep, `--retention`) |",
+             "|---|---|---|"]
+    hidden = me.get("smallest_testable_hidden", {})
     for name, v in me.get("smallest_testable", {}).items():
-        lines.append(f"| {name} | {_summary(v)} |")
+        h = hidden.get(name)
+        cell = "-" if h is None else (f"not testable (retention {h['retention']:.2f})" if not h["testable"] else
+                                      _summary({k: x for k, x in h.items() if k != "testable"}))
+        lines.append(f"| {name} | {_summary(v)} | {cell} |")
     return lines + [""]
 
 
