@@ -9,8 +9,9 @@ testable; with a retention near or below zero it is not testable on such a run a
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
+
+from egobench.diagnose.trained_sweep import read_summary
 
 #: Below this median retention an effect is reported as not testable on a run of the sweep's setup.
 RETENTION_FLOOR = 0.05
@@ -22,10 +23,7 @@ def load_retention(paths: list[str | Path]) -> tuple[dict[str, float], list[dict
     retention, sources = {}, []
     for path in paths:
         p = Path(path)
-        if not p.is_file():
-            raise FileNotFoundError(f"{p}: trained-run sweep summary not found (trained_sweep.json of "
-                                    f"`egobench diagnose --sweep --trained`)")
-        s = json.loads(p.read_text())
+        s, setup = read_summary(p)
         effects = s.get("effects")
         if not isinstance(effects, list):
             raise ValueError(f"{p}: field 'effects': expected the per-effect list of a trained-sweep summary")
@@ -35,8 +33,7 @@ def load_retention(paths: list[str | Path]) -> tuple[dict[str, float], list[dict
             raise ValueError(f"{p}: field 'effects[].median_retention': none given (a summary written before "
                              f"retention was measured: rerun the sweep to rewrite it)")
         retention.update(found)
-        c = s.get("config") or {}
-        sources.append({"source": str(p), "setup": {k: c.get(k) for k in ("method", "size", "n_frames", "iterations")}})
+        sources.append({"source": str(p), "setup": setup})
     return retention, sources
 
 

@@ -17,10 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from egobench.diagnose.trained_sweep import EXTENSION_SIGMAS
-
-#: Setup fields of a null distribution that should match the diagnosed run's.
-SETUP_FIELDS = ("method", "size", "n_frames", "iterations")
+from egobench.diagnose.trained_sweep import EXTENSION_SIGMAS, SETUP_FIELDS, read_summary
 
 
 @dataclass(frozen=True)
@@ -38,17 +35,13 @@ class ShadingNull:
 def load_shading_null(path: str | Path) -> ShadingNull:
     """The null distribution from a trained-run sweep's summary (trained_sweep.json)."""
     p = Path(path)
-    if not p.is_file():
-        raise FileNotFoundError(f"{p}: trained-run sweep summary not found (trained_sweep.json of "
-                                f"`egobench diagnose --sweep --trained`)")
-    s = json.loads(p.read_text())
+    s, setup = read_summary(p)
     x = s.get("shading_extension")
     if not isinstance(x, dict) or not all(k in x for k in ("null_mean", "null_sd", "threshold", "n_null")):
         raise ValueError(f"{p}: field 'shading_extension': expected the nulls' learned shading (null_mean, null_sd, "
                          f"threshold, n_null) of a sweep run with the shading extension; got {x!r}")
-    config = s.get("config") or {}
     return ShadingNull(mean=float(x["null_mean"]), sd=float(x["null_sd"]), threshold=float(x["threshold"]),
-                       n=int(x["n_null"]), setup={k: config.get(k) for k in SETUP_FIELDS}, source=str(p))
+                       n=int(x["n_null"]), setup=setup, source=str(p))
 
 
 def learned_shading_of(run_dir: str | Path, recording, out_dir: str | Path, method: str,

@@ -30,6 +30,8 @@ DEFAULT_MAGNITUDES = {"vignette": (0.35,), "response": (0.45,), "white_balance":
                       "noise": (0.5,)}
 #: A case's learned shading is called a vignette above the nulls' mean plus this many standard deviations.
 EXTENSION_SIGMAS = 3.0
+#: Setup fields of a sweep that a diagnosed run's should match (its nulls and retention depend on them).
+SETUP_FIELDS = ("method", "size", "n_frames", "iterations")
 #: Photometric effects (the default set of the sweep).
 PHOTOMETRIC = ("vignette", "response", "white_balance", "exposure_metadata")
 
@@ -238,6 +240,17 @@ def run_trained_sweep(out_dir: str | Path, cfg: TrainedSweepConfig | None = None
     with atomic_path(out / "trained_sweep.md") as tmp:
         tmp.write_text(trained_markdown(summary, df))
     return summary
+
+
+def read_summary(path: str | Path) -> tuple[dict, dict]:
+    """(summary, setup: SETUP_FIELDS of its config) of a sweep's trained_sweep.json; a named error if missing."""
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"{p}: trained-run sweep summary not found (trained_sweep.json of "
+                                f"`egobench diagnose --sweep --trained`)")
+    s = json.loads(p.read_text())
+    config = s.get("config") or {}
+    return s, {k: config.get(k) for k in SETUP_FIELDS}
 
 
 def summarise_trained(df, cfg: TrainedSweepConfig) -> dict:
