@@ -262,9 +262,15 @@ def motion_samples(recording: Recording, pixel_scale: float = 1.0, config=None) 
 
 def exposure_ratio(recording: Recording) -> float:
     """max / min over frames of exposure_s x gain (ValueError on a non-positive product)."""
-    m = np.asarray([f.exposure_s * f.gain for f in recording.frames], dtype=np.float64)
+    return exposure_gain_ratio([f.exposure_s for f in recording.frames], [f.gain for f in recording.frames],
+                               where=str(recording.root))
+
+
+def exposure_gain_ratio(exposure_s, gain, where: str) -> float:
+    """max / min of per-frame exposure_s [F] x gain [F] (ValueError naming ``where`` on a non-positive product)."""
+    m = np.asarray(exposure_s, dtype=np.float64) * np.asarray(gain, dtype=np.float64)
     if not np.all(m > 0):
-        raise ValueError(f"{recording.root}: exposure_s x gain must be positive for every frame, got min {m.min()}")
+        raise ValueError(f"{where}: exposure_s x gain must be positive for every frame, got min {m.min()}")
     return float(m.max() / m.min())
 
 

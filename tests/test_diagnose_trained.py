@@ -395,12 +395,13 @@ def _null_summary(path, mean=-0.05, sd=0.02, setup=None):
 
 
 def test_the_extensions_call_on_a_users_run_against_the_sweeps_nulls(tmp_path):
-    from egobench.diagnose.extension import exposure_ratio, judge_shading, load_shading_null
+    from egobench.diagnose.extension import judge_shading, load_shading_null
+    from egobench.similarity import exposure_gain_ratio
 
     null = load_shading_null(_null_summary(tmp_path / "s.json"))
     assert null.threshold == pytest.approx(0.01) and null.n == 10
     setup = {"method": "ours", "size": 32, "n_frames": 16, "iterations": 40}
-    x = judge_shading(0.15, null, setup, exposure_ratio(np.array([1e-3, 2e-3]), np.array([2.0, 3.0])))
+    x = judge_shading(0.15, null, setup, exposure_gain_ratio(np.array([1e-3, 2e-3]), np.array([2.0, 3.0]), where="test"))
     assert x["above_threshold"] and x["estimate"] == pytest.approx(0.20) and x["setup_mismatch"] == {}
     assert x["exposure_ratio"] == pytest.approx(3.0) and "3.00x" in x["notes"][0]
     x = judge_shading(0.005, null, {**setup, "size": 128}, 1.0)

@@ -161,15 +161,16 @@ def _add_hidden_testable(d, paths: list[str]) -> None:
 def _shading_extension(args: argparse.Namespace, rec: Path, run_dir: Path | None, src, out: Path) -> dict:
     """--shading-null: the learned lens shading of the run (or of its extension run) against the sweep's nulls."""
     from egobench.data.reader import recording_from_args
-    from egobench.diagnose.extension import (exposure_ratio, judge_shading, learned_shading_of, load_shading_null,
-                                             run_setup)
+    from egobench.diagnose.extension import judge_shading, learned_shading_of, load_shading_null, run_setup
     from egobench.methods import get_method
+    from egobench.similarity import exposure_gain_ratio
 
     if run_dir is None:
         raise ValueError("--shading-null: the model extension needs a trained run (--run RUN_DIR or --train)")
     null = load_shading_null(args.shading_null)
     recording = recording_from_args(rec, get_method(args.method).calibration, args)
-    learned, _ = learned_shading_of(run_dir, recording, out, args.method, progress=not args.no_progress)
+    learned, learned_in = learned_shading_of(run_dir, recording, out, args.method, progress=not args.no_progress)
     n, h, w = src.measured.shape[:3]
     setup = run_setup(run_dir, n_frames=n, image_size=max(h, w))
-    return judge_shading(learned, null, setup, exposure_ratio(src.context.exposure_s, src.context.gain))
+    ratio = exposure_gain_ratio(src.context.exposure_s, src.context.gain, where=f"{rec}: exposure metadata")
+    return {**judge_shading(learned, null, setup, ratio), "learned_in": learned_in}

@@ -15,9 +15,8 @@ import json
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-import numpy as np
 
-from egobench.diagnose.trained_sweep import EXTENSION_SIGMAS, SETUP_FIELDS, read_summary
+from egobench.diagnose.trained_sweep import EXTENSION_SIGMAS, SETUP_FIELDS, read_summary, train_once
 
 
 @dataclass(frozen=True)
@@ -49,18 +48,14 @@ def learned_shading_of(run_dir: str | Path, recording, out_dir: str | Path, meth
     """(learned corner attenuation, run folder it comes from): the run's own when it was trained with
     ``learn_shading``; otherwise the same training config with the shading learned, trained into
     OUT/run_shading (resumable)."""
-    from egobench.train import train
     from egobench.train.checkpoint import config_of
 
     record = _train_record(Path(run_dir))
     if record.get("learned_shading"):
         return float(record["learned_shading"]["corner_attenuation"]), str(run_dir)
     ext = Path(out_dir) / "run_shading"
-    done = _train_record(ext) if (ext / "train.json").is_file() else {}
-    if not done.get("complete"):
-        config = replace(config_of(record), learn_shading=True)
-        train(recording, record.get("method", method), config, ext, resume="auto", progress=progress)
-        done = _train_record(ext)
+    done = train_once(recording, record.get("method", method), replace(config_of(record), learn_shading=True), ext,
+                      progress=progress)
     return float(done["learned_shading"]["corner_attenuation"]), str(ext)
 
 
@@ -100,13 +95,6 @@ def judge_shading(learned: float, null: ShadingNull, setup: dict, exposure_ratio
             "called": "vignette (or response)" if above else None,
             "setup": setup, "setup_mismatch": mismatch, "exposure_ratio": float(exposure_ratio),
             "null_source": null.source, "notes": notes}
-
-
-def exposure_ratio(exposure_s: np.ndarray, gain: np.ndarray) -> float:
-    """max / min over frames of exposure x gain (1 when either is absent or non-positive)."""
-    e = np.asarray(exposure_s, dtype=float) * np.asarray(gain, dtype=float)
-    e = e[np.isfinite(e) & (e > 0)]
-    return float(e.max() / e.min()) if e.size else 1.0
 
 
 def shading_markdown(x: dict) -> str:

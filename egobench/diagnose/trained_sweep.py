@@ -111,11 +111,11 @@ def _run_case(case: dict, cfg: TrainedSweepConfig, case_dir: Path, diag: Diagnos
                            resume="auto")
     run = case_dir / "run"
     tc = replace(preset_config("cpu"), max_side=0, device="cpu").scaled_to(cfg.iterations)
-    _train_once(rec, cfg.method, tc, run)
+    train_once(rec, cfg.method, tc, run)
     if case["effect"] == "vignette":  # the truth in the diagnosis's parametrisation (set on the case)
         case["value_in_view"] = vignette_in_view(rec, case["value"])
     if cfg.shading_extension:  # the model extension's learned shading (set on the case)
-        record = _train_once(rec, cfg.method, replace(tc, learn_shading=True), case_dir / "run_shading")
+        record = train_once(rec, cfg.method, replace(tc, learn_shading=True), case_dir / "run_shading")
         case["learned_shading"] = float(record["learned_shading"]["corner_attenuation"])
     src = run_source(rec, run, progress=False)
     d = diagnose_residuals(src.measured, src.predicted, src.context, replace(diag, trained_run=True))
@@ -123,13 +123,14 @@ def _run_case(case: dict, cfg: TrainedSweepConfig, case_dir: Path, diag: Diagnos
                         title=f"Trained-run sweep case {case['id']}", extra={"case": case})
 
 
-def _train_once(rec: Path, method: str, tc, run: Path) -> dict:
-    """Train ``run`` unless a complete train.json is there (an interrupted run resumes); its record."""
+def train_once(rec, method: str, tc, run: Path, progress: bool = False) -> dict:
+    """Train ``run`` (``rec``: a recording folder or a loaded Recording) unless a complete train.json
+    is there (an interrupted run resumes); its record."""
     from egobench.train import train
 
     done = run / "train.json"
     if not done.is_file() or not json.loads(done.read_text()).get("complete"):
-        train(rec, method, tc, run, resume="auto", progress=False)
+        train(rec, method, tc, run, resume="auto", progress=progress)
     return json.loads(done.read_text())
 
 
@@ -156,20 +157,17 @@ def vignette_in_view(recording_dir: str | Path, corner_attenuation: float) -> fl
     return float(1.0 - view[v, u])
 
 
-#: Per effect: the round-1 estimate's parameter and its nominal (no-effect) value, for `retention`.
-_RETAINED = {"readout": ("readout_relative_error", 0.0), "time_offset": ("time_offset_error_s", 0.0),
-             "exposure_blur": ("exposure_s", 0.0), "vignette": ("corner_attenuation", 0.0),
-             "response": ("gamma", 2.2), "distortion": ("k0_error", 0.0),
-             "exposure_metadata": ("median_exposure_relative_error", 0.0)}
+#: Estimate keys that differ from the effect registry's parameter name (egobench.effects).
+_ESTIMATE_KEY = {"exposure_metadata": "median_exposure_relative_error"}
 
 
 def retention(effect: str | None, truth, record: dict | None) -> float | None:
     """How much of a hidden effect survives training: round 1's estimate of it (named or not) over
     the truth, both as deviations from nominal (1: all of it, 0: absorbed, < 0: the wrong sign).
-    None for effects without one scalar parameter (white balance, noise) or without an estimate."""
-    if effect not in _RETAINED or record is None or not record.get("rounds"):
+    None for effects without one scalar parameter (white balance) or without an estimate."""
+    if effect not in EFFECTS or record is None or not record.get("rounds"):
         return None
-    key, nominal = _RETAINED[effect]
+    key, nominal = _ESTIMATE_KEY.get(effect, EFFECTS[effect].parameter), EFFECTS[effect].nominal
     fit = next((r for r in record["rounds"][0] if r["name"] == effect), None)
     est = None if fit is None else fit.get("params", {}).get(key)
     if not isinstance(est, (int, float)) or not isinstance(truth, (int, float)) or truth == nominal:
