@@ -10,7 +10,7 @@ from __future__ import annotations
 import shlex
 import shutil
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -93,6 +93,11 @@ def check_config(config: Mapping, schema: Mapping | None = None, check_sim: bool
                 if name in by_name and m not in by_name[name]["methods"]:
                     messages.append(f"config.diagnose.methods: {m!r} is not run on scene {name!r}; diagnose.source "
                                     "'run' needs the trained run (add it to the scene's methods or use 'ground_truth')")
+    for i, scene in enumerate(config["scenes"]):
+        for m in scene.get("method_seeds") or {}:
+            if m not in scene["methods"]:
+                messages.append(f"config.scenes[{i}].method_seeds: {m!r} is not among the scene's methods "
+                                f"({', '.join(scene['methods'])})")
     adt = (config.get("diagnose") or {}).get("adt_dir")
     if adt and not (Path(adt) / "video.vrs").is_file():
         messages.append(f"config.diagnose.adt_dir: {adt}: expected a folder with video.vrs and synthetic_video.vrs")
@@ -119,6 +124,11 @@ def _check_paper_scenes(scenes: list) -> list[str]:
             messages.append(f"config.scenes[{i}].paper_scene: {value!r} (scene {scene['name']!r}) is not a scene of "
                             f"the paper's tables; expected one of {', '.join(map(repr, PAPER_SCENES))} or null")
     return messages
+
+
+def _method_seeds(scene: Mapping) -> dict[str, tuple[int, ...]]:
+    """The scene's per-method seed overrides, method -> seeds."""
+    return {m: tuple(int(x) for x in seeds) for m, seeds in (scene.get("method_seeds") or {}).items()}
 
 
 def aria_inputs(scene: Mapping, aria_root: str | None) -> tuple[str, str] | None:
@@ -251,6 +261,11 @@ class Scene:
     vignette: str | None = None  # real scene: raw lens shading PNG
     focal: float = 1200.0  # real scene: rectified focal, px
     size: int = 2400  # real scene: rectified side, px
+    method_seeds: Mapping[str, tuple[int, ...]] = field(default_factory=dict)  # per-method seeds (override)
+
+    def seeds_of(self, method: str) -> tuple[int, ...]:
+        """Training seeds of ``method`` on this scene: its ``method_seeds`` entry, else the scene's."""
+        return tuple(self.method_seeds.get(method, self.seeds))
 
 
 class Suite:
@@ -296,6 +311,7 @@ class Suite:
             vignette=s.get("vignette"),
             focal=float(s.get("focal", 1200)),
             size=int(s.get("size", 2400)),
+            method_seeds=_method_seeds(s),
         )
 
     # ---- paths -----------------------------------------------------------------------------
@@ -307,7 +323,7 @@ class Suite:
 
     def runs(self) -> list[tuple[str, str, int]]:
         """Every (scene, method, seed) training job, in config order."""
-        return [(s.name, m, seed) for s in self.scenes.values() for m in s.methods for seed in s.seeds]
+        return [(s.name, m, seed) for s in self.scenes.values() for m in s.methods for seed in s.seeds_of(m)]
 
     def eval_records(self) -> list[str]:
         return [f"{self.run_dir(s, m, seed)}/eval.json" for s, m, seed in self.runs()]

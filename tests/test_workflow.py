@@ -57,9 +57,12 @@ def test_default_suite_covers_every_table_row():
                                  "ours_2dgs", "2dgs_no_motion_sampling"}
     assert by_kind["quest3"] == {"ours", "no_viba", "no_motion_sampling"}
     # three seeds each, five outdoors (a held-out frame in a fast turn dominates its seed spread)
-    assert len(suite.runs()) == 6 * 5 + (6 + 7 + 3) * 3
-    seeds = {scene: {seed for s, _m, seed in suite.runs() if s == scene} for scene in suite.scenes}
+    assert len(suite.runs()) == 6 * 5 + (6 + 7 + 3) * 3 + 2 * 2
+    seeds = {scene: {seed for s, m, seed in suite.runs() if s == scene and "2dgs" not in m} for scene in suite.scenes}
     assert seeds == {"outdoor_0": {0, 1, 2, 3, 4}, "indoor_0": {0, 1, 2}, "object_0": {0, 1, 2}, "quest3_0": {0, 1, 2}}
+    # ...and five for the 2DGS pair on the object scene (its per-seed deltas all negative, the 3-seed t-interval wide)
+    assert {(m, seed) for s, m, seed in suite.runs() if "2dgs" in m} == {
+        (m, seed) for m in ("ours_2dgs", "2dgs_no_motion_sampling") for seed in range(5)}
 
 
 def test_paper_suite_scale():
@@ -81,14 +84,14 @@ def test_suite_paths_and_arguments():
         "defaults": {"seeds": [0, 1], "iterations": 50, "sim": {"n_frames": 16, "noise": False}},
         "scenes": [{"name": "a", "kind": "indoor", "paper_scene": "plant hallway", "methods": ["ours", "no_viba"],
                     "sim": {"n_frames": 8, "white_balance": [1.0, 0.9, 1.1]}, "train": {"lr_colors": 0.5}},
-                   {"name": "b", "kind": "object", "methods": ["ours_2dgs"], "seeds": [3], "iterations": 7,
-                    "preset": "paper"}],
+                   {"name": "b", "kind": "object", "methods": ["ours_2dgs", "ours"], "seeds": [3], "iterations": 7,
+                    "preset": "paper", "method_seeds": {"ours": [3, 4]}}],
     })
     wc.check_config(config)
     s = wc.Suite(config)
     assert s.runs() == [("a", "ours", 0), ("a", "ours", 1), ("a", "no_viba", 0), ("a", "no_viba", 1),
-                        ("b", "ours_2dgs", 3)]
-    assert s.eval_records()[-1] == "results/t/runs/b/ours_2dgs/seed3/eval.json"
+                        ("b", "ours_2dgs", 3), ("b", "ours", 3), ("b", "ours", 4)]
+    assert s.eval_records()[-1] == "results/t/runs/b/ours/seed4/eval.json"
     assert s.recording_dir("a") == "results/t/recordings/a"
     assert s.simulate_args("a") == ("--kind indoor --seed 0 --set n_frames=8 --set name=a --set noise=false "
                                     "--set white_balance=1.0,0.9,1.1")
@@ -175,6 +178,9 @@ def test_egobench_command():
         (lambda c: c["defaults"].update(preset="gpu"), "config.defaults.preset: 'gpu' is not allowed"),
         (lambda c: c.pop("suite"), "'suite' is a required property"),
         (lambda c: c["diagnose"].update(methods=["ours_2dgs"]), "'ours_2dgs' is not run on scene 'indoor_0'"),
+        (lambda c: c["scenes"][0].update(method_seeds={"ours_2dgs": [0, 1]}),
+         "config.scenes[0].method_seeds: 'ours_2dgs' is not among the scene's methods (splatfacto, "),
+        (lambda c: c["scenes"][0].update(method_seeds={"ours": [-1]}), "config.scenes[0].method_seeds.ours[0]: -1"),
         (lambda c: c["scenes"][0].update(paper_scene="plant halway"),
          "config.scenes[0].paper_scene: 'plant halway' (scene 'outdoor_0') is not a scene of the paper's tables; "
          "expected one of 'bike shop', 'steakhouse patio'"),
