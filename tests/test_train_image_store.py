@@ -157,3 +157,18 @@ def test_store_exact_over_the_full_8bit_range():
     assert store.dtype == torch.uint8 and tuple(store.shape) == (2, 16, 16, 3)
     assert torch.equal(store[0], u8) and torch.equal(store[1], u8)
     assert torch.equal(T.image_to_float(store[1]), Stub().load_image(None))
+
+
+def test_grey_init_colour_is_half_in_the_models_own_colour_space(toy):
+    """init_colour="grey" (the authors' code: MPS points carry no colour) starts every Gaussian at 0.5,
+    whatever the method's colour space; the geometry is the same as with image colours."""
+    cfg = TrainConfig(max_side=0, max_gaussians=300)
+    data = prepare_data(toy, SPEC, cfg, progress=False)
+    image = I.init_params(data, cfg, torch.Generator().manual_seed(0))
+    grey = I.init_params(data, TrainConfig(max_side=0, max_gaussians=300, init_colour="grey"),
+                         torch.Generator().manual_seed(0))
+    assert torch.equal(grey["colors"].detach(), torch.full_like(image["colors"].detach(), 0.5))
+    for name in ("means", "scales", "quats", "opacities"):
+        assert torch.equal(grey[name], image[name]), name
+    with pytest.raises(ValueError, match="TrainConfig.init_colour: expected 'image' or 'grey', got 'gray'"):
+        TrainConfig(init_colour="gray")

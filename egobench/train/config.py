@@ -56,6 +56,10 @@ class TrainConfig:
     dist_start_frac: float = 3_000 / PAPER_ITERATIONS  # ...from this fraction (paper 3K)
     init_opacity: float = 0.1  # initial opacity of every Gaussian
     init_scale: float = 1.0  # initial scale = this x RMS distance to the 3 nearest points
+    # initial colours: "image" (each point's colour in the first training image it projects into, the
+    # method's formation inverted) or "grey" (0.5 in the model's colour space, as the authors' code, whose
+    # MPS points carry no colour: linear 0.5 for w/o scene gamma, gamma-space 0.5 otherwise)
+    init_colour: Literal["image", "grey"] = "image"
     scene_scale: float = 0.0  # > 0: override gsplat's scene scale (1.1 x camera-centre extent), metres
     max_gaussians: int = 0  # cap on the Gaussian count (initial subsample and after growth); 0 = none
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)  # background colour (scene-colour space)
@@ -71,6 +75,8 @@ class TrainConfig:
             raise ValueError(f"TrainConfig.resolution_scale: expected > 0, got {self.resolution_scale}")
         if self.opacity_reset not in ("gsplat", "intended"):
             raise ValueError(f"TrainConfig.opacity_reset: expected 'gsplat' or 'intended', got {self.opacity_reset!r}")
+        if self.init_colour not in ("image", "grey"):
+            raise ValueError(f"TrainConfig.init_colour: expected 'image' or 'grey', got {self.init_colour!r}")
         if self.sample_rule not in ("code", "paper"):
             raise ValueError(f"TrainConfig.sample_rule: expected 'code' or 'paper', got {self.sample_rule!r}")
         if not 0 <= self.ssim_lambda <= 1:

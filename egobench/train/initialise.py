@@ -38,7 +38,7 @@ def scene_colour_from_image(pixel: Tensor, k: Tensor, vignette: Tensor, spec: Me
 def init_params(data: TrainingData, config: TrainConfig, generator: torch.Generator) -> dict[str, torch.nn.Parameter]:
     """Gaussians from the semi-dense points: opacity init_opacity, scale from 3-NN distance,
     random quaternions (gsplat), colour from the first training image each point projects into
-    (inside the valid mask), else grey 0.5."""
+    (inside the valid mask), else grey 0.5 (``init_colour="grey"``: 0.5 everywhere, as the authors' code)."""
     pts = data.recording.points_world.to(torch.float32)
     if config.max_gaussians > 0 and len(pts) > config.max_gaussians:
         keep = torch.randperm(len(pts), generator=generator)[: config.max_gaussians].sort().values
@@ -47,7 +47,7 @@ def init_params(data: TrainingData, config: TrainConfig, generator: torch.Genera
     scales = torch.log(_knn_rms_distance(pts) * config.init_scale)[:, None].repeat(1, 3)
     quats = torch.rand((N, 4), generator=generator)
     opacities = torch.logit(torch.full((N,), float(config.init_opacity)))
-    colors = _initial_colours(data, pts)
+    colors = _initial_colours(data, pts) if config.init_colour == "image" else torch.full((N, 3), 0.5)
     return {
         "means": torch.nn.Parameter(pts.clone()),
         "scales": torch.nn.Parameter(scales),
