@@ -128,11 +128,8 @@ def _evaluate_frame(held: _Held, f: Frame, n: int, geo_rec: Recording | None, re
     (render, capture) appended to ``pairs`` for the transfer function."""
     from egobench.metrics import lpips_alex, psnr, ssim
 
-    run, spec = held.run, held.run.spec
-    p = predict_frame(run.gaussians, held.recording, f, spec, run.camera, held.maps, held.k_of[f.index], n,
-                      held.settings, held.formation)
-    pred = quantise8(p.image)
-    gt = resize_map(held.recording.load_image(f), run.camera)
+    run = held.run
+    p, pred, gt = _render_pair(held, f, n)
     entry: dict[str, Any] = {"frame": f.index, "psnr": psnr(pred, gt, held.maps.mask),
                              "ssim": ssim(pred, gt, held.maps.mask), "pose_samples": int(n)}
     pairs.append((pred.cpu().numpy(), gt.cpu().numpy()))
@@ -145,6 +142,23 @@ def _evaluate_frame(held: _Held, f: Frame, n: int, geo_rec: Recording | None, re
     if geo_rec is not None:
         entry.update(_geometry(run, geo_rec, f, n, run.camera.width / held.recording.camera.width))
     return entry
+
+
+def _render_pair(held: _Held, f: Frame, n: int):
+    """(prediction, its 8-bit render [H, W, 3], the captured image at the run's size) of a held-out frame."""
+    run = held.run
+    p = predict_frame(run.gaussians, held.recording, f, run.spec, run.camera, held.maps, held.k_of[f.index], n,
+                      held.settings, held.formation)
+    return p, quantise8(p.image), resize_map(held.recording.load_image(f), run.camera)
+
+
+def held_out_psnr(recording_dir, run_dir, device: str | None = None) -> list[float]:
+    """PSNR (dB) of each held-out frame, as `evaluate` computes it, without writing anything."""
+    from egobench.metrics import psnr
+
+    held = _held_out(recording_dir, run_dir, device)
+    with torch.no_grad():
+        return [psnr(*_render_pair(held, f, n)[1:], held.maps.mask) for f, n in zip(held.frames, held.counts)]
 
 
 def _save_virtual_gain(held: _Held, f: Frame, rgb: Tensor, gt: Tensor, renders_dir: Path) -> None:

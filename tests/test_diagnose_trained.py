@@ -365,11 +365,14 @@ def test_the_shading_extension_is_called_against_the_nulls():
 
     from egobench.diagnose.trained_sweep import TrainedSweepConfig, summarise_trained, trained_markdown
 
-    rows = [{"case": f"null_s{i}", "effect": "none", "learned_shading": v, "value_in_view": None}
-            for i, v in enumerate((-0.05, -0.03, -0.07))]
-    rows += [{"case": "vignette_0.35_s0", "effect": "vignette", "learned_shading": 0.13, "value_in_view": 0.19},
-             {"case": "vignette_0.35_s1", "effect": "vignette", "learned_shading": -0.045, "value_in_view": 0.19},
-             {"case": "response_0.45_s0", "effect": "response", "learned_shading": -0.04, "value_in_view": None}]
+    rows = [{"case": f"null_s{i}", "effect": "none", "learned_shading": v, "value_in_view": None, "extension_gain_db": g}
+            for i, (v, g) in enumerate(((-0.05, 0.01), (-0.03, -0.02), (-0.07, 0.03)))]
+    rows += [{"case": "vignette_0.35_s0", "effect": "vignette", "learned_shading": 0.13, "value_in_view": 0.19,
+              "extension_gain_db": 0.4},
+             {"case": "vignette_0.35_s1", "effect": "vignette", "learned_shading": -0.045, "value_in_view": 0.19,
+              "extension_gain_db": 0.2},
+             {"case": "response_0.45_s0", "effect": "response", "learned_shading": -0.04, "value_in_view": None,
+              "extension_gain_db": -0.1}]
     for r in rows:
         r.update({"magnitude": 0.35 if r["effect"] == "vignette" else 0.45, "value": "null", "verdict": RECONSTRUCTION_ERROR,
                   "named": "", "detected": False, "false_alarm": False, "wrong_name": False, "param_error": None,
@@ -383,8 +386,11 @@ def test_the_shading_extension_is_called_against_the_nulls():
     assert vig["effect"] == "vignette" and vig["above_threshold"] == 0.5
     assert vig["median_error"] == pytest.approx(np.median([abs(0.13 + 0.05 - 0.19), abs(-0.045 + 0.05 - 0.19)]))
     assert resp["above_threshold"] == 0.0 and "median_error" not in resp
+    # called with a held-out gain: only the first vignette case (the second gains but is below the threshold)
+    assert vig["above_threshold_with_gain"] == 0.5 and vig["median_gain_db"] == pytest.approx(0.3)
+    assert resp["above_threshold_with_gain"] == 0.0 and x["null_median_gain_db"] == pytest.approx(0.01)
     md = trained_markdown(summarise_trained(df, TrainedSweepConfig(effects=("vignette", "response"))), df)
-    assert "threshold 0.010" in md and "| vignette | 2 | 0.50 |" in md
+    assert "threshold 0.010" in md and "| vignette | 2 | 0.50 | 0.50 | +0.30 |" in md and "| none (nulls) | 3 |" in md
 
 
 def _null_summary(path, mean=-0.05, sd=0.02, setup=None):
@@ -447,6 +453,14 @@ def test_diagnose_runs_the_shading_extension_on_a_run_with_and_without_a_learned
         {k: v for k, v in base["config"].items() if k != "learn_shading"}
     x = json.loads((tmp_path / "d2" / "diagnosis.json").read_text())["shading_extension"]
     assert x["learned_corner_attenuation"] == pytest.approx(ext["learned_shading"]["corner_attenuation"])
+    # the extension's held-out gain: both runs scored as `egobench evaluate` scores them, nothing written into them
+    assert json.loads((tmp_path / "d1" / "diagnosis.json").read_text())["shading_extension"]["held_out"] is None
+    assert not (tmp_path / "plain" / "eval.json").exists() and not (tmp_path / "d2" / "run_shading" / "eval.json").exists()
+    for run, key in ((tmp_path / "plain", "base_psnr_db"), (tmp_path / "d2" / "run_shading", "extension_psnr_db")):
+        assert main(["evaluate", "--recording", str(rec), "--run", str(run), "--no-renders"]) == 0
+        assert x["held_out"][key] == pytest.approx(json.loads((run / "eval.json").read_text())["metrics"]["psnr"], abs=1e-9)
+    assert x["held_out"]["gain_db"] == pytest.approx(x["held_out"]["extension_psnr_db"] - x["held_out"]["base_psnr_db"])
+    assert f"(gain {x['held_out']['gain_db']:+.2f} dB)" in (tmp_path / "d2" / "report.md").read_text()
 
 
 @pytest.mark.parametrize("trained_run", [True, False])

@@ -143,6 +143,8 @@ def _diagnose_recording(args: argparse.Namespace, cfg: DiagnosisConfig, out: Pat
     summary = {"out": str(out), "verdict": record["verdict"], "psnr_gain_db": record["psnr_gain_db"]}
     if extension is not None:
         summary["shading_extension"] = extension["called"]
+        if extension["held_out"]:
+            summary["shading_extension_gain_db"] = extension["held_out"]["gain_db"]
     print(json.dumps(summary))
     return 0
 
@@ -161,7 +163,8 @@ def _add_hidden_testable(d, paths: list[str]) -> None:
 def _shading_extension(args: argparse.Namespace, rec: Path, run_dir: Path | None, src, out: Path) -> dict:
     """--shading-null: the learned lens shading of the run (or of its extension run) against the sweep's nulls."""
     from egobench.data.reader import recording_from_args
-    from egobench.diagnose.extension import judge_shading, learned_shading_of, load_shading_null, run_setup
+    from egobench.diagnose.extension import (extension_gain, judge_shading, learned_shading_of, load_shading_null,
+                                             run_setup)
     from egobench.methods import get_method
     from egobench.similarity import exposure_gain_ratio
 
@@ -173,4 +176,7 @@ def _shading_extension(args: argparse.Namespace, rec: Path, run_dir: Path | None
     n, h, w = src.measured.shape[:3]
     setup = run_setup(run_dir, n_frames=n, image_size=max(h, w))
     ratio = exposure_gain_ratio(src.context.exposure_s, src.context.gain, where=f"{rec}: exposure metadata")
-    return {**judge_shading(learned, null, setup, ratio), "learned_in": learned_in}
+    judged = {**judge_shading(learned, null, setup, ratio), "learned_in": learned_in, "held_out": None}
+    if Path(learned_in) != Path(run_dir):  # an extension run beside the user's: what the extension gains
+        judged["held_out"] = extension_gain(recording, run_dir, learned_in)
+    return judged

@@ -115,8 +115,11 @@ def _run_case(case: dict, cfg: TrainedSweepConfig, case_dir: Path, diag: Diagnos
     if case["effect"] == "vignette":  # the truth in the diagnosis's parametrisation (set on the case)
         case["value_in_view"] = vignette_in_view(rec, case["value"])
     if cfg.shading_extension:  # the model extension's learned shading (set on the case)
+        from egobench.diagnose.extension import extension_gain
+
         record = train_once(rec, cfg.method, replace(tc, learn_shading=True), case_dir / "run_shading")
         case["learned_shading"] = float(record["learned_shading"]["corner_attenuation"])
+        case["extension_gain_db"] = extension_gain(rec, run, case_dir / "run_shading")["gain_db"]
     src = run_source(rec, run, progress=False)
     d = diagnose_residuals(src.measured, src.predicted, src.context, replace(diag, trained_run=True))
     return write_report(case_dir / "diagnosis", d, src.measured, src.predicted,
@@ -194,6 +197,7 @@ def _row(case: dict, record: dict | None, error: str | None, runtime_s: float) -
         "param_error": (parameter_error(effect, case.get("value_in_view", case["value"]), first["params"])
                         if (first and effect == verdict) else None),
         "value_in_view": case.get("value_in_view"), "learned_shading": case.get("learned_shading"),
+        "extension_gain_db": case.get("extension_gain_db"),
         "retention": retention(effect, case.get("value_in_view", case["value"]), record),
         "psnr_gain_db": first["psnr_gain_db"] if first else 0.0,
         "held_out_psnr_db": me.get("held_out_psnr_db"), "model_error_over_noise_db": me.get("model_error_over_noise_db"),
@@ -289,9 +293,16 @@ def _extension_summary(ok) -> dict | None:
     thr = mean + EXTENSION_SIGMAS * sd
     out = {"null_mean": mean, "null_sd": sd, "threshold": thr, "n_null": int(len(null)),
            "null_above": int((null > thr).sum()), "effects": []}
+    nulls = ok[ok.effect == "none"]
+    if "extension_gain_db" in nulls and nulls.extension_gain_db.notna().all():
+        out["null_median_gain_db"] = float(nulls.extension_gain_db.astype(float).median())
     for effect, g in ok[ok.effect != "none"].groupby("effect", sort=False):
         learned = g.learned_shading.astype(float)
         e = {"effect": effect, "n": int(len(g)), "above_threshold": float((learned > thr).mean())}
+        if "extension_gain_db" in g and g.extension_gain_db.notna().all():  # called, and it pays on held-out frames
+            gain = g.extension_gain_db.astype(float)
+            e["above_threshold_with_gain"] = float(((learned > thr) & (gain > 0)).mean())
+            e["median_gain_db"] = float(gain.median())
         if effect == "vignette" and "value_in_view" in g and g.value_in_view.notna().all():
             e["median_error"] = float(np.median(np.abs(learned - mean - g.value_in_view.astype(float))))
         out["effects"].append(e)
@@ -304,10 +315,16 @@ def _extension_lines(x: dict | None) -> list[str]:
     out = ["", f"Vignette through the model extension (a lens shading learned with the scene, `egobench.shading`): "
            f"the {x['n_null']} nulls learn a corner attenuation of {x['null_mean']:.3f} +- {x['null_sd']:.3f} "
            f"(threshold {x['threshold']:.3f}, {x['null_above']} null(s) above it).", "",
-           "| effect | n | above the threshold | median error of learned - null mean (vignette) |", "|---|---|---|---|"]
+           "| effect | n | above the threshold | above it with a held-out gain > 0 | median held-out gain of the "
+           "extension (dB) | median error of learned - null mean (vignette) |", "|---|---|---|---|---|---|"]
     for e in x["effects"]:
         err = f"{e['median_error']:.3f}" if e.get("median_error") is not None else "-"
-        out.append(f"| {e['effect']} | {e['n']} | {e['above_threshold']:.2f} | {err} |")
+        paid = "-" if e.get("above_threshold_with_gain") is None else f"{e['above_threshold_with_gain']:.2f}"
+        gain = "-" if e.get("median_gain_db") is None else f"{e['median_gain_db']:+.2f}"
+        out.append(f"| {e['effect']} | {e['n']} | {e['above_threshold']:.2f} | {paid} | {gain} | {err} |")
+    if x.get("null_median_gain_db") is not None:
+        out.append(f"| none (nulls) | {x['n_null']} | {x['null_above'] / x['n_null']:.2f} | - | "
+                   f"{x['null_median_gain_db']:+.2f} | - |")
     return out
 
 
