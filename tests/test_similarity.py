@@ -378,3 +378,29 @@ def test_missing_recording_is_a_one_line_error(tmp_path, capsys):
     assert main(["similarity", str(tmp_path / "nope"), "--out", str(tmp_path / "x.json")]) == 2
     assert "recording folder not found" in capsys.readouterr().err
     assert not (tmp_path / "x.json").exists()
+
+
+def test_display_levels_are_the_median_luminance_and_the_dark_fraction_of_valid_pixels():
+    grey = np.array([0.05, 0.08, 0.3, 0.5, 0.9, 0.02])  # one row of grey pixels; the last one masked out
+    img = np.repeat(grey[None, :, None], 3, axis=2)
+    mask = np.array([[True] * 5 + [False]])
+    out = sim_measures.display_levels([img, img], [mask, mask])
+    assert out["display_level_median"] == pytest.approx(0.3) and out["dark_pixel_fraction"] == pytest.approx(0.4)
+    with pytest.raises(ValueError, match="no valid pixel"):
+        sim_measures.display_levels([img], [np.zeros_like(mask)])
+
+
+def test_the_paper_scale_display_levels_come_from_real_aria_frames(shared_data):
+    """The paper value of display_level_median / dark_pixel_fraction is what the ADT sample's real frames give."""
+    pytest.importorskip("projectaria_tools")
+    from egobench.diagnose.adt import read_rgb_frames
+
+    images, _, exposure_s, gain, _ = read_rgb_frames(shared_data / "adt_sample" / "video.vrs")
+    n, h, w = images.shape[:3]
+    yy, xx = np.mgrid[:h, :w]
+    circle = (yy - h / 2) ** 2 + (xx - w / 2) ** 2 < (0.45 * w) ** 2
+    out = sim_measures.display_levels(list(images.astype(np.float64) / 255), [circle] * n)
+    paper = sim_measures.paper_operating_point()
+    assert round(out["display_level_median"], 2) == paper["display_level_median"]["value"]
+    assert round(out["dark_pixel_fraction"], 2) == paper["dark_pixel_fraction"]["value"]
+    assert np.all(gain == 16.0) and np.all(exposure_s > 8e-3)  # auto-exposure at its limit, as the source says
