@@ -42,7 +42,7 @@ def test_schema_enums_match_the_package():
     assert schema["properties"]["scenes"]["items"]["properties"]["kind"]["enum"] == list(SCENE_KINDS)
 
 
-@pytest.mark.parametrize("name", ["config.yaml", "paper.yaml", "ci.yaml", "paper_smoke.yaml"])
+@pytest.mark.parametrize("name", ["config.yaml", "authors.yaml", "paper.yaml", "ci.yaml", "paper_smoke.yaml"])
 def test_shipped_configs_are_valid(name):
     suite = wc.load_suite(REPO / "config" / name)
     assert suite.runs() and len(set(suite.runs())) == len(suite.runs())
