@@ -396,10 +396,17 @@ def display_levels(images: list[np.ndarray], masks: list[np.ndarray]) -> dict:
             "dark_pixel_fraction": float(np.mean(values < DARK_LEVEL))}
 
 
-def recording_display_levels(recording: Recording, max_frames: int = MAX_IMAGE_FRAMES) -> dict:
+def _native_images(recording: Recording, max_frames: int) -> tuple[list[Frame], list[np.ndarray]]:
+    """Evenly spread frames and their captured images [H, W, 3] (float64, 0..1) at the recording's size."""
+    frames = _pick(recording.frames, max_frames)
+    return frames, [recording.load_image(f).numpy().astype(np.float64) for f in frames]
+
+
+def recording_display_levels(recording: Recording, max_frames: int = MAX_IMAGE_FRAMES,
+                             loaded: tuple[list[Frame], list[np.ndarray]] | None = None) -> dict:
     """`display_levels` of a recording's captured images (evenly spread frames, its valid mask)."""
     mask = recording.mask.numpy().astype(bool)
-    images = [recording.load_image(f).numpy().astype(np.float64) for f in _pick(recording.frames, max_frames)]
+    _, images = loaded or _native_images(recording, max_frames)
     return display_levels(images, [mask] * len(images))
 
 
@@ -424,18 +431,20 @@ def _spectrum_of(lums: list[np.ndarray], crop) -> tuple[float, float]:
     return spectrum_measures(freq, mean_power / len(lums))
 
 
-def content_measures(recording: Recording, resolution: int, max_frames: int = MAX_IMAGE_FRAMES) -> dict:
+def content_measures(recording: Recording, resolution: int, max_frames: int = MAX_IMAGE_FRAMES,
+                     loaded: tuple[list[Frame], list[np.ndarray]] | None = None) -> dict:
     """At ``resolution``: texture_hf_fraction and texture_spectral_slope (mean spectrum over the frames'
     largest valid centred square; ``_ideal``: an ideal 1/f^2 field's hf fraction at that size),
     misregistration_1px_psnr_db (median over frames); ``_clean`` variants from the ground-truth
-    radiance (noise-free; luminance / its p99, clipped, gamma 1/2.2) when the recording has it."""
+    radiance (noise-free; luminance / its p99, clipped, gamma 1/2.2) when the recording has it.
+    ``loaded``: the frames and their images as `_native_images` gives them (read here if None)."""
     size = _training_size(recording, resolution)
     mask = _mask_at(recording, size)
     crop = _valid_square(mask)
     if crop is None:
         raise ValueError(f"{recording.root}: the valid mask holds no centred square of 16 px or more")
-    frames = _pick(recording.frames, max_frames)
-    images = [_resize(recording.load_image(f).numpy().astype(np.float64), size) for f in frames]
+    frames, native = loaded or _native_images(recording, max_frames)
+    images = [_resize(img, size) for img in native]
     hf, slope = _spectrum_of([img @ np.asarray(LUMA) for img in images], crop)
     n = int(crop[0].stop - crop[0].start)
     out = {"texture_hf_fraction": hf, "texture_spectral_slope": slope, "texture_crop_px": n,
@@ -512,9 +521,10 @@ def measure_recording(path: str | Path, resolution: int | None = None, max_image
     result.update(motion_samples(rec, scale))
     result["exposure_ratio"] = exposure_ratio(rec)
     result["scene_dynamic_range_stops"] = scene_dynamic_range_stops(rec)
-    result.update(recording_display_levels(rec, max_image_frames))
+    loaded = _native_images(rec, max_image_frames)  # read once for the display levels and the content
+    result.update(recording_display_levels(rec, loaded=loaded))
     if resolution <= width:
-        result.update(content_measures(rec, resolution, max_image_frames))
+        result.update(content_measures(rec, resolution, loaded=loaded))
     else:  # images are never upsampled for training: interpolated pixels would measure the interpolator
         result.update({k: None for k in ("texture_hf_fraction", "texture_spectral_slope", "misregistration_1px_psnr_db",
                                          "texture_hf_fraction_ideal", "texture_hf_fraction_clean",
