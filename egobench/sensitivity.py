@@ -33,7 +33,7 @@ It is fitted by least squares to the points' seed means; the interval of the pre
 spread, mean + sem · t(n−1) (the spread behind its `ci95` interval; a plain resampling of 3 seeds
 would understate it), refitted; seeded, so deterministic. An operating point outside the measured x
 range is flagged as an extrapolation. The model cannot return Δ > 0: an ablation that helps fits as
-Δ ≡ 0, which the points (drawn as measured) show.
+Δ ≡ 0, so where any point's interval lies above zero there is no prediction (the note gives the points).
 
 ``egobench sensitivity --records EVAL... --similarity SIM_JSON... --sweep JSON... --out-dir DIR``
 writes ``sensitivity.csv`` (one row per point), ``prediction.csv`` (one row per ablation) and the
@@ -298,6 +298,14 @@ def prediction_row(curve: pd.DataFrame, seed_deltas: Mapping[str, Mapping[int, f
         row["note"] = "no paper operating point given (config.sensitivity.ablations.<name>.paper_x)"
         return row
     row.update(predict(points, sw.paper_x, n_boot, seed, p_bounds(sw.x)))
+    gains = pts[pts["delta_psnr_ci95_low"] > 0]
+    if len(gains):  # the model cannot return a gain: its fit is no estimate of this curve
+        row.update(predicted_delta_psnr=None, predicted_ci95_low=None, predicted_ci95_high=None)
+        row["note"] = ("no prediction: the ablation gains with 95 % confidence at " + ", ".join(
+            f"x = {g.x_value:.3g} ({g.delta_psnr_mean:+.2f} [{g.delta_psnr_ci95_low:+.2f}, "
+            f"{g.delta_psnr_ci95_high:+.2f}] dB)" for g in gains.itertuples())
+            + ", which a loss model (Δ <= 0) cannot describe")
+        return row
     outside = not (row["x_min"] <= sw.paper_x <= row["x_max"])
     row["extrapolation"] = outside
     notes = []

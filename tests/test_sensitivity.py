@@ -211,6 +211,28 @@ def test_one_measured_x_is_not_fitted(tmp_path):
     assert pred["predicted_delta_psnr"] is None and "1 distinct measured x" in pred["note"]
 
 
+def test_an_ablation_that_gains_gets_no_prediction(tmp_path):
+    """A curve that rises above zero with confidence is no loss curve: the fit (Δ <= 0) would predict
+    ~0 with a zero-width interval, so no prediction is given and the note names the point."""
+    sims, _ = synthetic_sweep(tmp_path, xs=(0.5, 1.0, 2.0, 4.0))
+    gain = tmp_path / "runs" / "sens-no_viba-x3" / "no_viba"
+    for seed in (0, 1, 2):  # the largest x: the ablation 1.5 dB better than 'ours' on every seed
+        ours = json.loads((tmp_path / "runs" / "sens-no_viba-x3" / "ours" / f"seed{seed}" / "eval.json").read_text())
+        write_record(tmp_path, "sens-no_viba-x3", "no_viba", seed, ours["metrics"]["psnr"] + 1.5 + 0.01 * seed)
+    records = load_records([tmp_path / "runs"])
+    similarity = sens.load_similarity(sims)
+    curve = sens.curve_frame(records, similarity, [SWEEP])
+    pred = sens.prediction_frame(records, curve, [SWEEP], similarity, n_boot=50).iloc[0]
+    assert gain.is_dir() and pred["predicted_delta_psnr"] is None and pred["predicted_ci95_low"] is None
+    assert pred["note"].startswith("no prediction: the ablation gains with 95 % confidence at x = 4 (+1.51 [")
+    # the same sweep without the gain is predicted
+    sims, _ = synthetic_sweep(tmp_path / "b", xs=(0.5, 1.0, 2.0, 4.0))
+    records = load_records([tmp_path / "b" / "runs"])
+    curve = sens.curve_frame(records, sens.load_similarity(sims), [SWEEP])
+    assert sens.prediction_frame(records, curve, [SWEEP], sens.load_similarity(sims), n_boot=50).iloc[0][
+        "predicted_delta_psnr"] < 0
+
+
 def test_bad_sweep_argument_is_one_line_error(tmp_path, capsys):
     rc = main(["sensitivity", "--records", str(tmp_path), "--similarity", "x.json", "--sweep",
                '{"ablation": "no_viba", "kind": "underwater", "x": "k"}', "--out-dir", str(tmp_path)])
