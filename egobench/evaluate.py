@@ -22,7 +22,7 @@ from __future__ import annotations
 import argparse
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 import torch
@@ -159,6 +159,26 @@ def held_out_psnr(recording_dir, run_dir, device: str | None = None) -> list[flo
     held = _held_out(recording_dir, run_dir, device)
     with torch.no_grad():
         return [psnr(*_render_pair(held, f, n)[1:], held.maps.mask) for f, n in zip(held.frames, held.counts)]
+
+
+def held_out_error_by_level(recording_dir, run_dir, edges: Sequence[float],
+                            device: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Where a run's held-out error lies: the squared error of its 8-bit renders (mean over RGB) summed
+    per bin of the captured pixel's display level (mean over RGB; bins [edges[i], edges[i+1]), valid
+    pixels only) over the held-out frames -> (sse [B], pixels [B]); writes nothing."""
+    held = _held_out(recording_dir, run_dir, device)
+    bins = torch.as_tensor(np.asarray(edges, np.float64))
+    sse, count = np.zeros(len(bins) - 1), np.zeros(len(bins) - 1)
+    with torch.no_grad():
+        for f, n in zip(held.frames, held.counts):
+            _, render, captured = _render_pair(held, f, n)
+            valid = held.maps.mask.bool()
+            err = ((render.double() - captured.double()) ** 2).mean(-1)[valid]
+            b = torch.bucketize(captured.double().mean(-1)[valid], bins, right=True) - 1
+            inside = (b >= 0) & (b < len(bins) - 1)
+            sse += np.bincount(b[inside].numpy(), err[inside].numpy(), len(bins) - 1)
+            count += np.bincount(b[inside].numpy(), minlength=len(bins) - 1)
+    return sse, count
 
 
 def _save_virtual_gain(held: _Held, f: Frame, rgb: Tensor, gt: Tensor, renders_dir: Path) -> None:

@@ -11,7 +11,7 @@ import torch
 
 from egobench.fidelity import transfer_function
 
-from egobench.evaluate import RUN_SCHEMA, evaluate
+from egobench.evaluate import RUN_SCHEMA, evaluate, held_out_error_by_level, held_out_psnr
 from egobench.io_utils import read_json
 from egobench.metrics import psnr, ssim
 from egobench.sim.plane import plane_recording
@@ -159,3 +159,22 @@ def test_transparent_model_has_no_geometry_instead_of_crashing(trained, tmp_path
     assert all(e["depth_si_l1"] is None and "geometry_missing" not in e for e in out["per_image"])
     assert out["notes"]["geometry"].startswith(f"{n} of {n} held-out frames have no pixel where the model is opaque")
     assert np.isfinite(out["metrics"]["psnr"])
+
+
+def test_error_by_display_level_adds_up_to_each_frames_psnr(trained):
+    """The binned squared errors sum to what the per-frame PSNRs of the same renders imply, every valid
+    pixel lands in exactly one bin, and a coarser binning is the sum of a finer one."""
+    rec, run = trained
+    before = sorted(p.name for p in run.rglob("*"))
+    psnrs = held_out_psnr(rec, run)
+    sse, n = held_out_error_by_level(rec, run, [0.0, 0.2, 0.35, 0.5, 1.01])
+    total, n_all = held_out_error_by_level(rec, run, [0.0, 1.01])
+    per_frame = n_all[0] / len(psnrs)  # valid pixels of one frame (the mask is the same in every frame)
+    assert per_frame == int(per_frame) and n.sum() == n_all[0]
+    np.testing.assert_allclose(total[0], sum(per_frame * 10 ** (-p / 10) for p in psnrs), rtol=1e-9)
+    np.testing.assert_allclose(sse.sum(), total[0], rtol=1e-12)
+    assert (n > 0).sum() >= 2  # the toy's levels span several bins
+    split, n_split = held_out_error_by_level(rec, run, [0.0, 0.35, 1.01])
+    np.testing.assert_allclose(split, [sse[:2].sum(), sse[2:].sum()], rtol=1e-12)
+    assert n_split.tolist() == [n[:2].sum(), n[2:].sum()]
+    assert sorted(p.name for p in run.rglob("*")) == before  # writes nothing
