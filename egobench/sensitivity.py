@@ -368,7 +368,10 @@ def sensitivity_figure(curve: pd.DataFrame, pred: pd.DataFrame):
             ax.set_xscale("log")
             ax.xaxis.set_major_formatter(ScalarFormatter())
             ax.xaxis.set_minor_formatter(NullFormatter())
-        if pd.notna(pr["fit_x0"]):
+        no_prediction = str(pr["note"]).startswith("no prediction")
+        if no_prediction:  # a gain the loss model cannot describe: its (flat) fit is not drawn
+            ax.text(0.02, 0.03, "no prediction: the ablation gains", transform=ax.transAxes, fontsize=7)
+        elif pd.notna(pr["fit_x0"]):
             xx = (np.geomspace(min(span) / 1.2, max(span) * 1.2, 200) if log_x
                   else np.linspace(0.0, max(span) * 1.08, 200))
             ax.plot(xx, delta_model(xx, pr["fit_x0"], pr["fit_p"]), color="C0", lw=1,

@@ -225,6 +225,10 @@ def test_an_ablation_that_gains_gets_no_prediction(tmp_path):
     pred = sens.prediction_frame(records, curve, [SWEEP], similarity, n_boot=50).iloc[0]
     assert gain.is_dir() and pred["predicted_delta_psnr"] is None and pred["predicted_ci95_low"] is None
     assert pred["note"].startswith("no prediction: the ablation gains with 95 % confidence at x = 4 (+1.51 [")
+    fig = sens.sensitivity_figure(curve, sens.prediction_frame(records, curve, [SWEEP], similarity, n_boot=50))
+    labels = fig.axes[0].get_legend_handles_labels()[1]
+    assert not any(lb.startswith("fit") or lb.startswith("predicted") for lb in labels)
+    assert any(t.get_text() == "no prediction: the ablation gains" for t in fig.axes[0].texts)
     # the same sweep without the gain is predicted
     sims, _ = synthetic_sweep(tmp_path / "b", xs=(0.5, 1.0, 2.0, 4.0))
     records = load_records([tmp_path / "b" / "runs"])
