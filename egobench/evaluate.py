@@ -169,12 +169,12 @@ def held_out_error_by_level(recording_dir, run_dir, edges: Sequence[float],
     held = _held_out(recording_dir, run_dir, device)
     bins = torch.as_tensor(np.asarray(edges, np.float64))
     sse, count = np.zeros(len(bins) - 1), np.zeros(len(bins) - 1)
+    valid = held.maps.mask.bool().cpu()
     with torch.no_grad():
         for f, n in zip(held.frames, held.counts):
-            _, render, captured = _render_pair(held, f, n)
-            valid = held.maps.mask.bool()
-            err = ((render.double() - captured.double()) ** 2).mean(-1)[valid]
-            b = torch.bucketize(captured.double().mean(-1)[valid], bins, right=True) - 1
+            render, captured = (t.cpu().double() for t in _render_pair(held, f, n)[1:])
+            err = ((render - captured) ** 2).mean(-1)[valid]
+            b = torch.bucketize(captured.mean(-1)[valid], bins, right=True) - 1
             inside = (b >= 0) & (b < len(bins) - 1)
             sse += np.bincount(b[inside].numpy(), err[inside].numpy(), len(bins) - 1)
             count += np.bincount(b[inside].numpy(), minlength=len(bins) - 1)

@@ -278,6 +278,12 @@ def paper_delta(sw: Sweep) -> tuple[float | None, str]:
     return (round(float(np.mean(d)), 6), where) if d else (None, f"{paper.label}: no {sw.ablation} row")
 
 
+def significant_gains(points: pd.DataFrame) -> pd.DataFrame:
+    """The curve points whose 95 % interval lies above zero: the ablation gains there, which the loss
+    model (Δ <= 0) cannot describe."""
+    return points[points["delta_psnr_ci95_low"] > 0]
+
+
 def prediction_row(curve: pd.DataFrame, seed_deltas: Mapping[str, Mapping[int, float]], sw: Sweep,
                    n_boot: int, seed: int) -> dict:
     """One ablation's prediction at the paper's operating point, beside the paper's Δ."""
@@ -298,7 +304,7 @@ def prediction_row(curve: pd.DataFrame, seed_deltas: Mapping[str, Mapping[int, f
         row["note"] = "no paper operating point given (config.sensitivity.ablations.<name>.paper_x)"
         return row
     row.update(predict(points, sw.paper_x, n_boot, seed, p_bounds(sw.x)))
-    gains = pts[pts["delta_psnr_ci95_low"] > 0]
+    gains = significant_gains(pts)
     if len(gains):  # the model cannot return a gain: its fit is no estimate of this curve
         row.update(predicted_delta_psnr=None, predicted_ci95_low=None, predicted_ci95_high=None)
         row["note"] = ("no prediction: the ablation gains with 95 % confidence at " + ", ".join(
@@ -368,8 +374,7 @@ def sensitivity_figure(curve: pd.DataFrame, pred: pd.DataFrame):
             ax.set_xscale("log")
             ax.xaxis.set_major_formatter(ScalarFormatter())
             ax.xaxis.set_minor_formatter(NullFormatter())
-        no_prediction = str(pr["note"]).startswith("no prediction")
-        if no_prediction:  # a gain the loss model cannot describe: its (flat) fit is not drawn
+        if len(significant_gains(pts)):  # a gain the loss model cannot describe: its (flat) fit is not drawn
             ax.text(0.02, 0.03, "no prediction: the ablation gains", transform=ax.transAxes, fontsize=7)
         elif pd.notna(pr["fit_x0"]):
             xx = (np.geomspace(min(span) / 1.2, max(span) * 1.2, 200) if log_x
