@@ -557,3 +557,79 @@ def test_the_smallest_testable_hidden_effect_is_the_residual_size_over_the_reten
     (tmp_path / "old.json").write_text(json.dumps({"effects": [{"effect": "vignette"}]}))
     with pytest.raises(ValueError, match=r"old.json: field 'effects\[\].median_retention'"):
         load_retention([tmp_path / "old.json"])
+
+
+def test_a_sweep_row_counts_causes_named_after_the_right_one_and_the_exposure_spread():
+    """A right first name followed by another cause is counted apart (a false addition); the
+    response test's exposure x gain spread is carried into the row and the per-effect median."""
+    import pandas as pd
+
+    from egobench.diagnose.trained_sweep import TrainedSweepConfig, _row, summarise_trained, trained_markdown
+
+    def record(names, spread):
+        fit = {"name": "response", "params": {"calibration": {"log_exposure_spread": spread}}}
+        return {"verdict": names[0] if names else RECONSTRUCTION_ERROR, "model_error": {}, "rounds": [[fit]],
+                "named": [{"name": n, "params": {}, "psnr_gain_db": 0.1} for n in names]}
+
+    def row(effect, names, spread=0.2):
+        return _row({"id": f"{effect}_{len(names)}", "effect": effect, "magnitude": 0.45, "value": 1.75},
+                    record(names, spread), None, 1.0)
+
+    extra = row("response", ["response", "distortion"], 0.28)
+    assert extra["detected"] and extra["extra_names"] == "distortion" and extra["log_exposure_spread"] == 0.28
+    assert row("response", ["response"])["extra_names"] == ""
+    wrong = row("vignette", ["response", "vignette"])
+    assert wrong["wrong_name"] and wrong["extra_names"] == ""  # a wrong first name is counted as such
+    silent = _row({"id": "n", "effect": "response", "magnitude": 0.45, "value": 1.75},
+                  {"verdict": RECONSTRUCTION_ERROR, "named": [], "model_error": {}, "rounds": []}, None, 1.0)
+    assert silent["log_exposure_spread"] is None and silent["extra_names"] == ""
+    df = pd.DataFrame([extra, row("response", ["response"], 0.10), row("response", [], 0.15)])
+    (e,) = summarise_trained(df, TrainedSweepConfig(effects=("response",)))["effects"]
+    assert e["extra_name_rate"] == pytest.approx(1 / 3) and e["median_log_exposure_spread"] == pytest.approx(0.15)
+    assert e["detection_rate"] == pytest.approx(2 / 3)
+    md = trained_markdown(summarise_trained(df, TrainedSweepConfig(effects=("response",))), df)
+    assert "| response | 0.45 | 3 | 0.67 | 0.67 | 0.00 | 0.00 | 0.33 | 0.33 |" in md and "| 0.150 |" in md
+
+
+def test_a_resumed_case_from_an_older_sweep_gets_the_new_fields_from_its_diagnosis(tmp_path):
+    from egobench.diagnose.trained_sweep import _resumed_row, _row
+
+    record = {"verdict": "response", "model_error": {}, "rounds": [[{"name": "response", "params": {
+        "calibration": {"log_exposure_spread": 0.21}}}]],
+              "named": [{"name": "response", "params": {}, "psnr_gain_db": 0.1},
+                        {"name": "distortion", "params": {}, "psnr_gain_db": 0.06}]}
+    row = _row({"id": "response_0.45_s1", "effect": "response", "magnitude": 0.45, "value": 1.75,
+                "learned_shading": -0.02}, record, None, 3.0)
+    old = {k: v for k, v in row.items() if k not in ("log_exposure_spread", "extra_names")}
+    old["held_out_psnr_db"] = 28.3  # stored fields are kept as they are
+    (tmp_path / "case.json").write_text(json.dumps(old))
+    (tmp_path / "diagnosis.json").write_text(json.dumps(record))
+    got = _resumed_row(tmp_path / "case.json", tmp_path / "diagnosis.json")
+    assert got["log_exposure_spread"] == 0.21 and got["extra_names"] == "distortion"
+    assert got["held_out_psnr_db"] == 28.3 and got["learned_shading"] == -0.02 and got["detected"]
+    assert _resumed_row(tmp_path / "case.json", tmp_path / "absent.json") == old
+
+
+def test_frames_flagged_against_the_bulk_when_a_quarter_of_the_frames_are_off():
+    """A quarter of the frames off by about -0.17 (log) and the rest spread by the model's absorption:
+    one median/MAD over all frames straddles the two groups (threshold above the error); the
+    iterated bulk flags only affected frames, most of them, and Gaussian frame scatter flags (almost) none."""
+    from egobench.diagnose.calibration import FLAG_SIGMAS, _mad, flag_frames_in_both_halves
+
+    rng = np.random.default_rng(3)
+    # the left halves' log scales of a trained outdoor run (64 px, 48 frames, 800 iterations, sorted;
+    # 11 frames with the metadata 25 % off): the model's colours absorbed part of it
+    scale = np.array([-0.197, -0.186, -0.175, -0.172, -0.158, -0.156, -0.155, -0.153, -0.147, -0.137, -0.125,
+                      -0.059, -0.056, -0.021, -0.019, -0.019, -0.011, -0.006, -0.003, -0.002, -0.001, 0.001, 0.001,
+                      0.003, 0.006, 0.015, 0.023, 0.03, 0.03, 0.033, 0.034, 0.035, 0.04, 0.04, 0.04, 0.057, 0.058,
+                      0.061, 0.063, 0.07, 0.072, 0.09])
+    a, b = scale, scale + rng.normal(0, 0.009 * np.sqrt(2), 42)
+    assert FLAG_SIGMAS * _mad(a - np.median(a)) > 0.2  # the single-pass threshold exceeds the error
+    flags, threshold = flag_frames_in_both_halves(a, b)
+    found = np.flatnonzero(flags).tolist()  # the bulk is wide too (sd 0.04): the two mildest stay within it
+    assert set(found) <= set(range(11)) and len(found) >= 8 and threshold < 0.17
+    any_flag = 0
+    for _ in range(300):
+        s = rng.normal(0, 0.02, 42)
+        any_flag += flag_frames_in_both_halves(s + rng.normal(0, 0.01, 42), s + rng.normal(0, 0.01, 42))[0].any()
+    assert any_flag <= 3

@@ -178,10 +178,20 @@ def retention(effect: str | None, truth, record: dict | None) -> float | None:
     return float((est - nominal) / (truth - nominal))
 
 
+def log_exposure_spread(record: dict | None) -> float | None:
+    """Std of log(exposure x gain) across the fitted frames, from the response test's calibration
+    (what a response error on a trained run is tested through); None where the test did not run."""
+    rounds = (record or {}).get("rounds") or [[]]
+    fit = next((r for r in rounds[0] if r["name"] == "response"), None)
+    spread = ((fit or {}).get("params") or {}).get("calibration", {}).get("log_exposure_spread")
+    return float(spread) if isinstance(spread, (int, float)) else None
+
+
 def _row(case: dict, record: dict | None, error: str | None, runtime_s: float) -> dict:
     effect = case["effect"]
     verdict = record["verdict"] if record else "error"
     first = record["named"][0] if record and record["named"] else None
+    later = [n["name"] for n in (record or {}).get("named", [])[1:]]
     me = (record or {}).get("model_error") or {}
     silent = verdict in (NO_DISCREPANCY, RECONSTRUCTION_ERROR)
     # named a cause the hidden one contains (time offset for a readout error), with the hidden one as its "or"
@@ -194,6 +204,8 @@ def _row(case: dict, record: dict | None, error: str | None, runtime_s: float) -
         "false_alarm": effect is None and record is not None and not silent,
         "wrong_name": effect is not None and record is not None and not silent and verdict != effect and not contained,
         "contained_name": contained,
+        # causes named after a right (or contained) first one: false additions on top of the hidden effect
+        "extra_names": ";".join(n for n in later if n != effect) if (effect is not None and (verdict == effect or contained)) else "",
         "param_error": (parameter_error(effect, case.get("value_in_view", case["value"]), first["params"])
                         if (first and effect == verdict) else None),
         "value_in_view": case.get("value_in_view"), "learned_shading": case.get("learned_shading"),
@@ -202,8 +214,21 @@ def _row(case: dict, record: dict | None, error: str | None, runtime_s: float) -
         "psnr_gain_db": first["psnr_gain_db"] if first else 0.0,
         "held_out_psnr_db": me.get("held_out_psnr_db"), "model_error_over_noise_db": me.get("model_error_over_noise_db"),
         "smallest_testable": json.dumps((me.get("smallest_testable") or {}).get(effect or "", {})),
+        "log_exposure_spread": log_exposure_spread(record),
         "error": error or "", "runtime_s": runtime_s,
     }
+
+
+def _resumed_row(done: Path, diagnosis_json: Path) -> dict:
+    """A finished case's row; fields added to the table since it ran are derived from its diagnosis.json."""
+    row = json.loads(done.read_text())
+    if ("log_exposure_spread" not in row or "extra_names" not in row) and diagnosis_json.is_file():
+        case = {"id": row["case"], "effect": None if row["effect"] == "none" else row["effect"],
+                "magnitude": row["magnitude"], "value": json.loads(row["value"]),
+                **{k: row[k] for k in ("value_in_view", "learned_shading", "extension_gain_db") if k in row}}
+        fresh = _row(case, json.loads(diagnosis_json.read_text()), row["error"] or None, row["runtime_s"])
+        row = {**fresh, **row}  # stored fields win; only the missing ones come from the record
+    return row
 
 
 def run_trained_sweep(out_dir: str | Path, cfg: TrainedSweepConfig | None = None, diag: DiagnosisConfig | None = None,
@@ -220,7 +245,7 @@ def run_trained_sweep(out_dir: str | Path, cfg: TrainedSweepConfig | None = None
         case_dir = out / "cases" / case["id"]
         done = case_dir / "case.json"
         if done.is_file():
-            rows.append(json.loads(done.read_text()))
+            rows.append(_resumed_row(done, case_dir / "diagnosis" / "diagnosis.json"))
             continue
         t0, record, error = time.perf_counter(), None, None
         try:
@@ -271,6 +296,9 @@ def summarise_trained(df, cfg: TrainedSweepConfig) -> dict:
             "detected_with_positive_gain": float((g.detected & (g.psnr_gain_db > 0)).mean()),
             "wrong_name_rate": float(g.wrong_name.mean()),
             "contained_name_rate": float(g.contained_name.mean()) if "contained_name" in g else 0.0,
+            "extra_name_rate": (float((g.extra_names.fillna("") != "").mean()) if "extra_names" in g else None),
+            "median_log_exposure_spread": (float(g.log_exposure_spread.dropna().median()) if "log_exposure_spread" in g
+                                           and g.log_exposure_spread.notna().any() else None),
             "median_retention": (float(g.retention.dropna().median())
                                  if "retention" in g and g.retention.notna().any() else None),
             "silent_rate": float(g.verdict.isin([NO_DISCREPANCY, RECONSTRUCTION_ERROR]).mean()),
@@ -328,6 +356,11 @@ def _extension_lines(x: dict | None) -> list[str]:
     return out
 
 
+def _fmt(x, digits: int = 2) -> str:
+    """A table cell: '-' for a missing or non-finite number."""
+    return "-" if x is None or (isinstance(x, float) and not math.isfinite(x)) else f"{x:.{digits}f}"
+
+
 def trained_markdown(s: dict, df) -> str:
     c = s["config"]
     fa = "-" if s["false_alarm_rate"] is None else f"{s['false_alarms']}/{s['n_null']}"
@@ -337,23 +370,24 @@ def trained_markdown(s: dict, df) -> str:
              f"False alarms on null cases: {fa}; null verdicts {s['null_verdicts']}; median held-out PSNR of the runs "
              f"{s['median_held_out_psnr_db']:.2f} dB." if s["median_held_out_psnr_db"] is not None else "", "",
              "| effect | magnitude | n | detection rate | detected with gain > 0 | wrong-name rate "
-             "| contained cause named (the hidden one as its 'or') | silent rate | median param error "
-             "| retained through training (median estimate / truth) | verdicts |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| contained cause named (the hidden one as its 'or') | another cause named after it | silent rate "
+             "| median param error | retained through training (median estimate / truth) "
+             "| exposure x gain spread (median std of log) | verdicts |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for e in s["effects"]:
         err = "-" if e["median_param_error"] is None else f"{e['median_param_error']:.3g} ({e['error_unit']})"
-        kept = "-" if e.get("median_retention") is None else f"{e['median_retention']:.2f}"
         lines.append(f"| {e['effect']} | {e['magnitude']:g} | {e['n']} | {e['detection_rate']:.2f} | "
                      f"{e['detected_with_positive_gain']:.2f} | {e['wrong_name_rate']:.2f} | "
-                     f"{e.get('contained_name_rate', 0.0):.2f} | {e['silent_rate']:.2f} | {err} | {kept} | "
-                     f"{', '.join(e['verdicts'])} |")
+                     f"{e.get('contained_name_rate', 0.0):.2f} | {_fmt(e.get('extra_name_rate'))} | "
+                     f"{e['silent_rate']:.2f} | {err} | {_fmt(e.get('median_retention'))} | "
+                     f"{_fmt(e.get('median_log_exposure_spread'), 3)} | {', '.join(e['verdicts'])} |")
     lines += _extension_lines(s.get("shading_extension"))
     lines += ["", "## Cases", "", "| case | verdict | named | held-out PSNR (dB) | model error over noise (dB) | "
-              "gain (dB) | smallest testable (this effect) | learned shading | error |", "|---|---|---|---|---|---|---|---|---|"]
+              "gain (dB) | smallest testable (this effect) | learned shading | exposure x gain spread | error |",
+              "|---|---|---|---|---|---|---|---|---|---|"]
     for r in df.to_dict("records"):
-        def f(x):
-            return "-" if x is None or (isinstance(x, float) and not math.isfinite(x)) else f"{x:.2f}"
-        lines.append(f"| {r['case']} | {r['verdict']} | {r['named'] or '-'} | {f(r['held_out_psnr_db'])} | "
-                     f"{f(r['model_error_over_noise_db'])} | {f(r['psnr_gain_db'])} | {r['smallest_testable']} | "
-                     f"{f(r.get('learned_shading'))} | {(r['error'] or '')[:80]} |")
+        lines.append(f"| {r['case']} | {r['verdict']} | {r['named'] or '-'} | {_fmt(r['held_out_psnr_db'])} | "
+                     f"{_fmt(r['model_error_over_noise_db'])} | {_fmt(r['psnr_gain_db'])} | {r['smallest_testable']} | "
+                     f"{_fmt(r.get('learned_shading'))} | {_fmt(r.get('log_exposure_spread'), 3)} | "
+                     f"{(r['error'] or '')[:80]} |")
     return "\n".join(lines) + "\n"
