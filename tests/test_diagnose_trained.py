@@ -146,11 +146,13 @@ def test_exposure_split_half_placebo_is_uniformish_on_nulls_and_finds_the_affect
     out = exposure_split_half(fit, cells, 199, np.random.default_rng(0))
     assert out["p"] == out["p_placebo_corr"] == 1 / 200
     assert out["frames_flagged_in_both_halves"] == case.affected_frames
-    # a model whose frame-to-frame error is larger (7 % here) cannot separate a 25 % error on four
-    # frames from its own scatter: not flagged, and the threshold says so (log 1.25 = 0.22 below it)
+    # a model whose frame-to-frame error is larger (7 % here) hides part of a 25 % error on four
+    # frames in its own scatter: only affected frames are flagged, not all of them
     _, fit, cells = _photometric_fit(case.measured, model_error(case.predicted, 5, blur_px=0.0), case.context)
     out = exposure_split_half(fit, cells, 199, np.random.default_rng(0))
-    assert out["p"] == 1.0 and out["p_placebo_corr"] == 1 / 200 and out["flag_threshold_log"] > np.log(1.25)
+    flagged = out["frames_flagged_in_both_halves"]
+    assert 0 < len(flagged) < len(case.affected_frames) and set(flagged) <= set(case.affected_frames)
+    assert np.log(1.25) > out["flag_threshold_log"] > 0.1
 
 
 def test_vignette_must_beat_wrong_centre_placebos():
