@@ -635,3 +635,19 @@ def test_frames_flagged_against_the_bulk_when_a_quarter_of_the_frames_are_off():
         s = rng.normal(0, 0.02, 42)
         any_flag += flag_frames_in_both_halves(s + rng.normal(0, 0.01, 42), s + rng.normal(0, 0.01, 42))[0].any()
     assert any_flag <= 3
+
+
+def test_the_metadata_estimate_is_on_the_frames_the_split_half_test_flags():
+    """On a trained run the named exposure-metadata error is estimated on the frames the calibrated
+    (split-half, bulk) test flags, reported as the recording's frame indices (offset here by 800)."""
+    from dataclasses import replace
+
+    case = make_case("exposure_metadata", 0.25, seed=1)
+    ctx = replace(case.context, frame_index=case.context.frame_index + 800)
+    d = diagnose_residuals(case.measured, model_error(case.predicted, 18), ctx, TRAINED)
+    named = d.named[0]
+    assert named.name == "exposure_metadata"
+    split = named.params["calibration"]["frames_flagged_in_both_halves"]
+    assert split and named.params["flagged_frames"] == split
+    assert set(split) <= {800 + f for f in case.affected_frames}
+    assert all(abs(e - 0.25) < 0.08 for e in named.params["exposure_relative_error"]), named.params

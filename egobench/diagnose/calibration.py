@@ -359,6 +359,19 @@ def _response_from_exposure_apply(r: CauseResult, resp: dict, data: ResidualData
     r.effect_rms = float(np.sqrt(np.mean((new - data.p)[m] ** 2))) if m.any() else 0.0
 
 
+def _metadata_estimate_from_split(r: CauseResult, flagged: list[int]) -> None:
+    """The exposure-metadata estimate on the frames the split-half test flags (in place), so that the
+    test and the estimate agree; the joint fit's own flags (one median/MAD) stay as flagged_frames_cells."""
+    scale = r.params.get("frame_scale", {})
+    errors = [1.0 / scale[f] - 1.0 for f in flagged if f in scale]  # recorded = true x (1 + e)
+    r.params["flagged_frames_cells"] = r.params.get("flagged_frames", [])
+    r.params["flagged_frames"] = [f for f in flagged if f in scale]
+    r.params["exposure_relative_error"] = errors
+    r.params["median_exposure_relative_error"] = float(np.median(errors)) if errors else 0.0
+    if r.plot:
+        r.plot["flagged"] = r.params["flagged_frames"]
+
+
 def calibrate_photometric(data: ResidualData, results: list[CauseResult], draws: int, seed: int) -> dict:
     """Replace the p-values of the photometric causes in ``results`` by calibrated ones (in place);
     the cell-level p-value is kept in params["p_value_cells"]. Returns per-frame standard errors
@@ -392,8 +405,11 @@ def calibrate_photometric(data: ResidualData, results: list[CauseResult], draws:
                               {"frame_t": tc.t, "frame_df": tc.df, **{k: v for k, v in resp.items() if k != "testable"}})
     se["response"] = (resp.get("slope_sd_placebo", math.nan), max(fit.n_frames - 2, 2))
     split = exposure_split_half(fit, cells, draws, np.random.default_rng([int(seed), 15]))
-    if "frames_flagged_in_both_halves" in split:  # positions among the fitted frames -> frame indices
-        split["frames_flagged_in_both_halves"] = [int(data.frames[i]) for i in split["frames_flagged_in_both_halves"]]
+    positions = split.get("frames_flagged_in_both_halves", [])  # among the fitted frames
+    if "frames_flagged_in_both_halves" in split:  # -> the recording's frame indices
+        split["frames_flagged_in_both_halves"] = [int(data.ctx.frame_index[data.frames[i]]) for i in positions]
+        if "exposure_metadata" in by_name:
+            _metadata_estimate_from_split(by_name["exposure_metadata"], split["frames_flagged_in_both_halves"])
     calibrated["exposure_metadata"] = (split["p"], {k: v for k, v in split.items() if k != "testable"})
     se["exposure_metadata"] = (split["robust_sd"], split.get("n_frames", 0) - 1)
     if "white_balance" in by_name:  # (kept in params for the record)
