@@ -614,8 +614,9 @@ def test_a_resumed_case_from_an_older_sweep_gets_the_new_fields_from_its_diagnos
 
 def test_frames_flagged_against_the_bulk_when_a_quarter_of_the_frames_are_off():
     """A quarter of the frames off by about -0.17 (log) and the rest spread by the model's absorption:
-    one median/MAD over all frames straddles the two groups (threshold above the error); the
-    iterated bulk flags only affected frames, most of them, and Gaussian frame scatter flags (almost) none."""
+    one median/MAD over all frames straddles the two groups (threshold above the error); the bulk
+    (shortest half, one reweighting step) flags only affected frames, most of them, and Gaussian
+    frame scatter flags (almost) none."""
     from egobench.diagnose.calibration import FLAG_SIGMAS, _mad, flag_frames_in_both_halves
 
     rng = np.random.default_rng(3)

@@ -205,7 +205,8 @@ def _row(case: dict, record: dict | None, error: str | None, runtime_s: float) -
         "wrong_name": effect is not None and record is not None and not silent and verdict != effect and not contained,
         "contained_name": contained,
         # causes named after a right (or contained) first one: false additions on top of the hidden effect
-        "extra_names": ";".join(n for n in later if n != effect) if (effect is not None and (verdict == effect or contained)) else "",
+        "extra_names": (";".join(n for n in later if n != effect)
+                        if effect is not None and (verdict == effect or contained) else ""),
         "param_error": (parameter_error(effect, case.get("value_in_view", case["value"]), first["params"])
                         if (first and effect == verdict) else None),
         "value_in_view": case.get("value_in_view"), "learned_shading": case.get("learned_shading"),
