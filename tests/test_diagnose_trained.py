@@ -617,7 +617,8 @@ def test_frames_flagged_against_the_bulk_when_a_quarter_of_the_frames_are_off():
     one median/MAD over all frames straddles the two groups (threshold above the error); the bulk
     (shortest half, one reweighting step) flags only affected frames, most of them, and Gaussian
     frame scatter flags (almost) none."""
-    from egobench.diagnose.calibration import FLAG_SIGMAS, _mad, flag_frames_in_both_halves
+    from egobench.diagnose.calibration import FLAG_SIGMAS, flag_frames_in_both_halves
+    from egobench.diagnose.signatures import robust_sd as _mad
 
     rng = np.random.default_rng(3)
     # the left halves' log scales of a trained outdoor run (64 px, 48 frames, 800 iterations, sorted;

@@ -33,7 +33,7 @@ import numpy as np
 import scipy.stats as sps
 
 from egobench.diagnose.estimators import BLOCK_PX, CauseResult, PhotometricFit, ResidualData
-from egobench.diagnose.signatures import frame_t_test, weighted_lstsq
+from egobench.diagnose.signatures import frame_t_test, robust_sd, weighted_lstsq
 
 #: Offsets of the wrong centres of the vignette placebo, as fractions of (width, height).
 PLACEBO_CENTRE_OFFSETS = ((0.25, 0.0), (-0.25, 0.0), (0.0, 0.25), (0.0, -0.25),
@@ -164,11 +164,6 @@ def vignette_placebo(fit: PhotometricFit, cells: _Cells, ctx, height: int, width
             "placebo_p": (1 + exceed) / (1 + len(rss_placebo)), "est": est, "var": var}
 
 
-def _mad(x: np.ndarray) -> float:
-    """Median absolute deviation scaled to a Gaussian standard deviation."""
-    return 1.4826 * float(np.median(np.abs(x - np.median(x))))
-
-
 def flag_frames_in_both_halves(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, float]:
     """Frames [n] whose left (a) and right (b) log scales [n] BOTH deviate from the bulk of the frames,
     with the same sign, beyond FLAG_SIGMAS x the larger of the halves' disagreement and the bulk's
@@ -178,10 +173,10 @@ def flag_frames_in_both_halves(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray
     metadata error on a quarter of the frames makes the frame scales bimodal (the model's colours
     absorb part of it and shift the other frames the other way); one median/MAD over all frames then
     straddles the two groups and its threshold exceeds the error (measured: 0.24 for errors of 0.13-0.20)."""
-    sd_half = _mad((a - b) / math.sqrt(2.0))
+    sd_half = robust_sd((a - b) / math.sqrt(2.0))
     bulk = bulk_frames(0.5 * (a + b))
     ca, cb = a - np.median(a[bulk]), b - np.median(b[bulk])
-    threshold = max(FLAG_SIGMAS * max(sd_half, _mad(ca[bulk]), _mad(cb[bulk])), FLAG_MIN_LOG)
+    threshold = max(FLAG_SIGMAS * max(sd_half, robust_sd(ca[bulk]), robust_sd(cb[bulk])), FLAG_MIN_LOG)
     return (np.abs(ca) > threshold) & (np.abs(cb) > threshold) & (np.sign(ca) == np.sign(cb)), threshold
 
 
@@ -405,9 +400,9 @@ def calibrate_photometric(data: ResidualData, results: list[CauseResult], draws:
                               {"frame_t": tc.t, "frame_df": tc.df, **{k: v for k, v in resp.items() if k != "testable"}})
     se["response"] = (resp.get("slope_sd_placebo", math.nan), max(fit.n_frames - 2, 2))
     split = exposure_split_half(fit, cells, draws, np.random.default_rng([int(seed), 15]))
-    positions = split.get("frames_flagged_in_both_halves", [])  # among the fitted frames
-    if "frames_flagged_in_both_halves" in split:  # -> the recording's frame indices
-        split["frames_flagged_in_both_halves"] = [int(data.ctx.frame_index[data.frames[i]]) for i in positions]
+    if "frames_flagged_in_both_halves" in split:  # positions among the fitted frames -> the recording's frame indices
+        split["frames_flagged_in_both_halves"] = [int(data.ctx.frame_index[data.frames[i]])
+                                                  for i in split["frames_flagged_in_both_halves"]]
         if "exposure_metadata" in by_name:
             _metadata_estimate_from_split(by_name["exposure_metadata"], split["frames_flagged_in_both_halves"])
     calibrated["exposure_metadata"] = (split["p"], {k: v for k, v in split.items() if k != "testable"})

@@ -31,8 +31,8 @@ import numpy as np
 
 from egobench.diagnose.signatures import (
     LEVEL, DiagnosisContext, block_sum, box3, decode, directional_second_derivative, distortion_profile,
-    encode, encode_slope, erode, frame_t_test, gradients, partial_f_test, radial_coordinates, warp,
-    weighted_lstsq,
+    encode, encode_slope, erode, frame_t_test, gradients, partial_f_test, radial_coordinates, robust_sd,
+    warp, weighted_lstsq,
 )
 
 #: Display range used for fits: darker pixels are dominated by noise/quantisation in log
@@ -209,7 +209,7 @@ class PhotometricFit:
         self._fit()
         # Trim cells far off the model (unmodelled content such as a person absent from a simulation).
         res = (self.y - self.X @ self.coef) * np.sqrt(self.w)
-        scale = 1.4826 * np.median(np.abs(res - np.median(res))) + 1e-12
+        scale = robust_sd(res) + 1e-12
         self.trimmed = np.abs(res) > 5.0 * scale
         if self.trimmed.any() and (~self.trimmed).sum() > f_count + 8:
             self._fit()

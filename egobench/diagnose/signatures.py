@@ -264,6 +264,11 @@ def frame_t_test(estimates: np.ndarray, weights: np.ndarray, one_sided: bool = F
     return FrameTest(mean, se, t, n - 1, p)
 
 
+def robust_sd(x: np.ndarray) -> float:
+    """Median absolute deviation from the median, scaled to a Gaussian standard deviation."""
+    return 1.4826 * float(np.median(np.abs(x - np.median(x))))
+
+
 def weighted_lstsq(X: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, float]:
     """Weighted least squares: X [n, k], y [n], w [n] -> (coefficients [k], weighted RSS)."""
     sw = np.sqrt(w)
