@@ -20,6 +20,7 @@ evaluated at the trajectory poses with velocities from the trajectory).
 from __future__ import annotations
 
 import argparse
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
@@ -29,7 +30,7 @@ import torch
 from torch import Tensor
 
 from egobench import __version__
-from egobench.data.reader import add_input_arguments
+from egobench.data.reader import add_input_arguments, frame_counts
 from egobench.data.recording import Frame, Recording
 from egobench.io_utils import git_commit, read_json, write_json
 from egobench.methods import get_method
@@ -37,7 +38,7 @@ from egobench.predict import (
     FrameMaps, RenderSettings, formation_model, frame_poses, method_normaliser, predict_frame, run_maps,
     render_frame, resize_map, sample_counts,
 )
-from egobench.train.checkpoint import TrainedRun, load_trained_run
+from egobench.train.checkpoint import TrainedRun, check_run_complete, load_trained_run
 
 RUN_SCHEMA = "egobench.run/1"
 VIRTUAL_GAIN = 3.0  # paper teaser: re-render at 3x gain
@@ -91,6 +92,7 @@ class _Held:
 
 def _held_out(recording_dir, run_dir, device: str | None) -> _Held:
     run = load_trained_run(run_dir, device, f"evaluate {run_dir}")
+    check_run_complete(run_dir, run.checkpoint)
     spec = run.spec
     rec = _load(recording_dir, spec.calibration)
     if rec.calibration != spec.calibration:
@@ -206,7 +208,11 @@ def evaluate(recording_dir, run_dir, *, scene: str | None = None, paper_scene: s
     """
     from egobench.metrics import lpips_available
 
+    from egobench.data.reader import dropped_summary
+
     held = _held_out(recording_dir, run_dir, device)
+    if line := dropped_summary(held.recording):
+        print(f"egobench evaluate: note: {line}", file=sys.stderr)
     ok_lpips, lpips_reason = lpips_available()
     notes: dict[str, str] = {} if ok_lpips else {"lpips": lpips_reason}
     notes["psnr_clean"] = "not computed: PSNR against clean ground-truth radiance needs the simulator's formation"
@@ -277,6 +283,7 @@ def _run_record(held: _Held, per_image: list[dict], notes: dict, scene: str | No
             "depth_si_l1": mean_of("depth_si_l1"), "normal_l1": mean_of("normal_l1"),
         },
         "notes": notes,
+        "frames": frame_counts(rec),
         "eval": {"resolution": [run.camera.width, run.camera.height], "n_test_frames": len(held.frames),
                  "pose_samples_mean": float(np.mean(held.counts))},
         "recording_stats": recording_stats(rec),

@@ -59,6 +59,23 @@ def read_json(path: str | os.PathLike) -> Any:
         return json.loads(path.read_text())
     except json.JSONDecodeError as exc:
         raise ValueError(f"{path}: not valid JSON ({exc.msg} at line {exc.lineno})") from exc
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{path}: not valid JSON (not UTF-8 text: {exc.reason} at byte {exc.start})") from exc
+
+
+def read_csv(path: str | os.PathLike, what: str, **kwargs):
+    """``pandas.read_csv`` (gzip inferred from the name); a file that cannot be read or decoded
+    (truncated or corrupt gzip, binary data, no columns) raises ValueError naming it and ``what``."""
+    import gzip
+    import zlib
+
+    import pandas as pd
+
+    try:
+        return pd.read_csv(path, **kwargs)
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError, EOFError, OSError,
+            gzip.BadGzipFile, zlib.error) as exc:
+        raise ValueError(f"{path}: not a readable {what} ({type(exc).__name__}: {exc})") from exc
 
 
 def git_commit() -> str:

@@ -155,13 +155,16 @@ def test_nan_pose_names_frame(copy_rec):
 def test_out_of_span_readout_names_frame(copy_rec):
     from egobench.data import load_recording
 
-    def widen(obj):  # frame 4's readout stretched 10 s on both sides: its pose samples leave the trajectory
-        f = obj["frames"][4]
-        f["timestamp_read_start"] -= 10**10
-        f["timestamp_read_end"] += 10**10
+    traj = pd.read_csv(_stream(copy_rec) / "closed_loop_trajectory.csv")
+    end_ns = int(traj["tracking_timestamp_us"].iloc[-1]) * 1000
+
+    def widen(obj):  # the last frame 2 ms before the trajectory's end, read out over 80 ms: its poses leave it
+        f = obj["frames"][5]
+        f["timestamp"] = end_ns - 2_000_000
+        f["timestamp_read_start"], f["timestamp_read_end"] = end_ns - 42_000_000, end_ns + 38_000_000
 
     _edit_transforms(copy_rec, widen)
-    with pytest.raises(ValueError, match=r"frame 4 .*outside the trajectory span"):
+    with pytest.raises(ValueError, match=r"frame 5 .*outside the trajectory span"):
         load_recording(copy_rec, "online")
 
 

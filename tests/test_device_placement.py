@@ -20,6 +20,7 @@ is data-dependent and is switched off in these tests only (fixture `no_value_che
 
 from __future__ import annotations
 
+import json
 from contextlib import contextmanager
 
 import pytest
@@ -247,6 +248,8 @@ def _toy_run(tmp_path, device: str):
     torch.save({"format": "egobench.checkpoint/1", "method": "ours", "iteration": 1, "config": config.to_dict(),
                 "config_hash": config.hash("ours"), "params": params, "camera": rec.camera.to_dict()},
                run / "checkpoint.pt")
+    (run / "train.json").write_text(json.dumps({"method": "ours", "seed": config.seed, "config_hash": config.hash("ours"),
+                                                "train": {"iterations": 1}}))  # the record of a finished run
     return rec, run
 
 

@@ -74,8 +74,10 @@ def recording_root(path: str | Path) -> Path:
 def link_mps_files(stream: Path, mps_dir: Path, absolute: bool = False) -> None:
     """Put closed_loop_trajectory.csv and semidense_points.csv.gz inside a stream folder as symlinks
     to the MPS files: relative when the MPS folder lies inside the recording (it can move) unless
-    ``absolute`` (the authors' choice; needed when the folder is renamed into another parent)."""
+    ``absolute`` (the authors' choice; needed when the folder is renamed into another parent). An
+    MPS folder that is not ``mps/slam/`` of the capture (`check_stream_input`'s rule) is copied."""
     import os
+    import shutil
 
     recording = stream.absolute().parent
     for name in (TRAJECTORY_FILE, POINTS_FILE):
@@ -85,6 +87,9 @@ def link_mps_files(stream: Path, mps_dir: Path, absolute: bool = False) -> None:
         inside = target.is_relative_to(recording) and not absolute
         if link.is_symlink() or link.exists():
             link.unlink()
+        if not any(resolves_inside(target, base) for base in _mps_dirs(stream)):
+            shutil.copyfile(target, link)
+            continue
         link.symlink_to(os.path.relpath(target, stream.absolute()) if inside else target)
 
 
@@ -138,3 +143,54 @@ def find_stream(path: str | Path, calibration: str) -> Path:
         f"{path}: no rectified stream folder (<camera label>-rectified-<focal>-h<size>[{FACTORY_SUFFIX}] "
         f"holding {TRANSFORMS_WITH_DEPTH} or {TRANSFORMS}) here or one level below"
     )
+
+
+# ----------------------------------------------------------------------------------------
+# what a recording may make egobench read
+# ----------------------------------------------------------------------------------------
+#: The rule (docs/robustness.md): a recording names files only inside itself. Paths in its JSON
+#: (image_path, mask_path, sparse_depth) are relative, without '..', and resolve (symlinks
+#: followed) inside the stream folder; the stream folder's closed_loop_trajectory.csv and
+#: semidense_points.csv.gz are files in it or symlinks into ``mps/slam/`` of the same capture
+#: (the stream folder's parent or grandparent, as the authors' preprocessing links them).
+#: Files passed explicitly (--trajectory, --points) are the user's choice and are not confined.
+
+
+def resolves_inside(path: Path, base: Path) -> bool:
+    """Whether ``path`` (symlinks followed) lies inside ``base``."""
+    return path.resolve().is_relative_to(base.resolve())
+
+
+def _mps_dirs(stream: Path) -> list[Path]:
+    """Where a stream folder's MPS links may point: ``mps/slam/`` of its parent or grandparent."""
+    real = stream.resolve()
+    return [real.parent / MPS_SLAM, real.parent.parent / MPS_SLAM]
+
+
+def stream_file(folder: Path, value: object, where: str, key: str) -> Path:
+    """``folder / value`` for a path a recording's JSON names; ValueError unless ``value`` is a
+    relative path that stays inside ``folder`` (no absolute path, no '..', no symlink leading out)."""
+    if not isinstance(value, str) or not value.strip():
+        raise ValueError(f"{where}: field {key!r} must be a non-empty relative path (a string), got {value!r}")
+    rel = Path(value)
+    if any(len(part.encode("utf-8", "surrogatepass")) > 255 for part in rel.parts):
+        raise ValueError(f"{where}: field {key!r} = {value[:40]!r}... is not a file name (a part over 255 bytes)")
+    if rel.is_absolute() or ".." in rel.parts or "\x00" in value:
+        raise ValueError(f"{where}: field {key!r} = {value!r} is refused: a recording may only name files inside "
+                         f"its stream folder {folder} (a relative path without '..')")
+    path = folder / rel
+    if not resolves_inside(path, folder):
+        raise ValueError(f"{where}: field {key!r} = {value!r} is a symlink leading to {path.resolve()}, outside the "
+                         f"stream folder {folder}; refused (a recording may only name files inside itself)")
+    return path
+
+
+def check_stream_input(stream: Path, path: Path, what: str) -> Path:
+    """``path`` (a file the stream folder holds: a camera map or an MPS file) if it resolves inside
+    the stream folder or, for the MPS files, into ``mps/slam/`` of the capture; else ValueError."""
+    allowed = [stream] + (_mps_dirs(stream) if path.name in (TRAJECTORY_FILE, POINTS_FILE, OBSERVATIONS_FILE) else [])
+    if not any(resolves_inside(path, base) for base in allowed):
+        raise ValueError(f"{path}: {what} resolves to {path.resolve()}, outside the recording; refused (a stream "
+                         f"folder's files must lie in it, and its MPS links point into mps/slam/ of the same "
+                         f"capture: {', '.join(str(b) for b in allowed[1:]) or 'none'})")
+    return path

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from egobench.io_utils import atomic_path
+from egobench.io_utils import atomic_path, read_csv
 
 SEMIDENSE_COLUMNS = ("uid", "graph_uid", "px_world", "py_world", "pz_world", "inv_dist_std", "dist_std")
 #: MPS semi-dense filter (PAPER-NOTES section 3): keep inv_dist_std < 0.01 1/m and dist_std < 0.02 m.
@@ -79,11 +79,7 @@ def read_semidense_points(path: str | Path, filter: bool = True, max_inv_dist_st
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: semi-dense points file not found")
-    try:
-        df = pd.read_csv(path, compression="infer")
-    except (EOFError, OSError, gzip.BadGzipFile, pd.errors.ParserError, pd.errors.EmptyDataError,
-            UnicodeDecodeError) as exc:
-        raise ValueError(f"{path}: not a readable semi-dense points CSV ({exc})") from exc
+    df = read_csv(path, "semi-dense points CSV")
     missing = [c for c in SEMIDENSE_COLUMNS if c != "graph_uid" and c not in df.columns]
     if missing:
         raise ValueError(f"{path}: missing column(s) {missing}; expected columns {list(SEMIDENSE_COLUMNS)}")

@@ -70,9 +70,8 @@ class MpsInputs:
 
 def read_mps_folder(mps_dir: str | Path, need_online: bool) -> MpsInputs:
     """Read an MPS slam folder; FileNotFoundError names each missing file."""
-    import pandas as pd
-
     from egobench.data.mps import read_online_calibration, read_semidense_points, read_trajectory
+    from egobench.io_utils import read_csv
 
     mps_dir = Path(mps_dir)
     if not mps_dir.is_dir():
@@ -83,7 +82,7 @@ def read_mps_folder(mps_dir: str | Path, need_online: bool) -> MpsInputs:
     obs = None
     obs_path = mps_dir / OBSERVATIONS_FILE
     if obs_path.is_file():
-        obs = pd.read_csv(obs_path)
+        obs = read_csv(obs_path, "MPS semi-dense observations CSV")
         missing = [c for c in ("uid", "frame_tracking_timestamp_us", "camera_serial") if c not in obs.columns]
         if missing:
             raise ValueError(f"{obs_path}: missing column(s) {missing}")

@@ -34,6 +34,9 @@ import numpy as np
 from egobench.camera.pinhole import Pinhole
 from egobench.io_utils import atomic_path, write_json
 
+#: Plausibility bounds of the capture metadata, generous around an Aria RGB frame (exposures of
+#: 0.1-40 ms, analog gains 1-16, a rolling-shutter readout of 5-33 ms).
+MAX_EXPOSURE_S, MIN_GAIN, MAX_GAIN, MAX_READOUT_S = 10.0, 1e-3, 1e3, 0.1
 FRAME_FIELDS = ("fx", "fy", "cx", "cy", "w", "h", "image_path", "camera2device", "transform_matrix",
                 "timestamp", "timestamp_read_start", "timestamp_read_end", "exposure_duration_s", "gain")
 
@@ -161,7 +164,8 @@ def _matrix(value: Any, where: str, key: str) -> np.ndarray:
     return m
 
 
-def _number(entry: dict, key: str, where: str, integer: bool = False, positive: bool = False) -> float | int:
+def _number(entry: dict, key: str, where: str, integer: bool = False, positive: bool = False,
+            at_most: float | None = None, at_least: float | None = None) -> float | int:
     if key not in entry:
         raise ValueError(f"{where}: missing field {key!r}")
     v = entry[key]
@@ -173,6 +177,8 @@ def _number(entry: dict, key: str, where: str, integer: bool = False, positive: 
         v = int(v)
     if positive and v <= 0:
         raise ValueError(f"{where}: field {key!r} must be > 0, got {v!r}")
+    if (at_most is not None and v > at_most) or (at_least is not None and v < at_least):
+        raise ValueError(f"{where}: field {key!r} = {v!r} is implausible (expected {at_least or 0:g} to {at_most:g})")
     return v
 
 
@@ -180,7 +186,7 @@ def read_transforms(path: str | Path, check_files: bool = True) -> TransformsFil
     """Parse and validate a transforms file (or a stream folder's: transforms_with_sparse_depth.json,
     else transforms.json); ValueError names the file, frame and field. Paths inside are relative
     to the file's folder."""
-    from egobench.data.layout import TRANSFORMS_WITH_DEPTH, transforms_file
+    from egobench.data.layout import TRANSFORMS_WITH_DEPTH, stream_file, transforms_file
     from egobench.io_utils import read_json
 
     path = Path(path)
@@ -217,24 +223,28 @@ def read_transforms(path: str | Path, check_files: bool = True) -> TransformsFil
                           height=int(_number(entry, "h", where, integer=True, positive=True)))
         except ValueError as exc:
             raise ValueError(f"{where}: bad intrinsics ({exc})") from exc
-        image_path = folder / str(entry["image_path"])
+        image_path = stream_file(folder, entry["image_path"], where, "image_path")
         if check_files and not image_path.is_file():
             raise ValueError(f"{where}: image file {image_path} is missing")
-        mask_path = folder / str(entry["mask_path"]) if entry.get("mask_path") else None
-        sd = entry.get("sparse_depth")
+        mask_path, sparse_depth_path = (
+            None if entry.get(key) in (None, "") else stream_file(folder, entry[key], where, key)  # "" / null: none
+            for key in ("mask_path", "sparse_depth"))
         t = _number(entry, "timestamp", where, integer=True)
         t0 = _number(entry, "timestamp_read_start", where, integer=True)
         t1 = _number(entry, "timestamp_read_end", where, integer=True)
         if t1 < t0:
             raise ValueError(f"{where}: timestamp_read_end {t1} precedes timestamp_read_start {t0}")
+        if (t1 - t0) * 1e-9 > MAX_READOUT_S:
+            raise ValueError(f"{where}: timestamp_read_end - timestamp_read_start = {(t1 - t0) * 1e-9:.4g} s is an "
+                             f"implausible rolling-shutter readout (at most {MAX_READOUT_S:g} s expected)")
         frames.append(TransformsFrame(
             position=i, image_path=image_path, image_rel=str(entry["image_path"]), mask_path=mask_path, camera=cam,
             camera2device=_matrix(entry["camera2device"], where, "camera2device"),
             transform_matrix=_matrix(entry["transform_matrix"], where, "transform_matrix"),
             timestamp_ns=t, read_start_ns=t0, read_end_ns=t1,
-            exposure_s=float(_number(entry, "exposure_duration_s", where, positive=True)),
-            gain=float(_number(entry, "gain", where, positive=True)),
-            sparse_depth_path=(folder / str(sd)) if sd else None,
+            exposure_s=float(_number(entry, "exposure_duration_s", where, positive=True, at_most=MAX_EXPOSURE_S)),
+            gain=float(_number(entry, "gain", where, positive=True, at_most=MAX_GAIN, at_least=MIN_GAIN)),
+            sparse_depth_path=sparse_depth_path,
         ))
     extra = {k: v for k, v in obj.items() if k != "frames"}
     return TransformsFile(path=path, camera_model=camera_model, camera_label=str(obj.get("camera_label", "camera-rgb")),

@@ -21,7 +21,7 @@ from egobench.geometry.se3 import (
     check_pose, make_pose, quat_normalize, quat_to_rotmat, rotmat_to_quat, se3_exp, se3_inverse,
     se3_log, so3_log,
 )
-from egobench.io_utils import atomic_path
+from egobench.io_utils import atomic_path, read_csv
 
 #: Required columns of MPS closed_loop_trajectory.csv (others are ignored on read).
 MPS_POSE_COLUMNS = (
@@ -187,10 +187,7 @@ class Trajectory:
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"{path}: trajectory file not found")
-        try:
-            df = pd.read_csv(path, usecols=lambda c: c in MPS_POSE_COLUMNS)
-        except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
-            raise ValueError(f"{path}: not a readable CSV file ({exc})") from exc
+        df = read_csv(path, "MPS trajectory CSV", usecols=lambda c: c in MPS_POSE_COLUMNS)
         missing = [c for c in MPS_POSE_COLUMNS if c not in df.columns]
         if missing:
             raise ValueError(f"{path}: missing column(s) {missing}; an MPS closed_loop_trajectory.csv needs {list(MPS_POSE_COLUMNS)}")

@@ -101,6 +101,32 @@ def load_trained_run(run_dir: str | Path, device: str | None, where: str) -> Tra
                       config=replace(config, device=str(dev)), camera=camera, gaussians=gaussians)
 
 
+def check_run_complete(run_dir: str | Path, ck: dict) -> None:
+    """A run folder is complete when its checkpoint ran every iteration of its config and its
+    train.json describes that checkpoint (method, seed, config hash, iterations); otherwise a
+    ValueError says what is missing or disagrees (a killed or overwritten run is never evaluated)."""
+    from egobench.io_utils import read_json
+
+    run_dir = Path(run_dir)
+    it, total = int(ck.get("iteration", -1)), int(ck.get("config", {}).get("iterations", -1))
+    if it < total:
+        raise ValueError(f"{run_dir}: incomplete run: checkpoint.pt stopped at iteration {it} of {total} "
+                         "(training was interrupted); finish it with `egobench train ... --resume`")
+    rec_path = run_dir / "train.json"
+    if not rec_path.is_file():
+        raise ValueError(f"{run_dir}: incomplete run: checkpoint.pt has no train.json beside it (training did "
+                         "not finish writing its record); train again with `--resume auto`")
+    rec = read_json(rec_path)
+    theirs = {"method": rec.get("method"), "seed": rec.get("seed"), "config_hash": rec.get("config_hash"),
+              "iterations": (rec.get("train") or {}).get("iterations")}
+    ours = {"method": ck.get("method"), "seed": ck.get("config", {}).get("seed"),
+            "config_hash": ck.get("config_hash"), "iterations": it}
+    differ = [f"{k} {theirs[k]!r} (train.json) vs {ours[k]!r} (checkpoint.pt)" for k in ours if theirs[k] != ours[k]]
+    if differ:
+        raise ValueError(f"{run_dir}: train.json and checkpoint.pt describe different runs ({'; '.join(differ)}); "
+                         "a stale record: train the run again")
+
+
 def render_device(requested: str | None, trained_on: str, where: str) -> torch.device:
     """The torch device to render a checkpoint on: ``requested`` (``--device``) or else the run's
     training device (``config.device``). Raises a ValueError naming ``where`` when that is a CUDA

@@ -127,6 +127,21 @@ def validate_recording(recording: Recording, spec: MethodSpec, frames: list[Fram
                 raise ValueError(f"{where}: frame {f.index} has read_end_ns < read_start_ns")
     # The image size must match the calibration (load_image raises a clear ValueError otherwise).
     recording.load_image(frames[0])
+    if not any(points_in_view(recording, f) for f in recording.train_frames):
+        raise ValueError(f"{where}: none of the {len(recording.train_frames)} training frames sees any of the "
+                         f"{len(recording.points_world)} semi-dense points (camera poses and points disagree: "
+                         "a trajectory or points file of another recording?)")
+
+
+def points_in_view(recording: Recording, frame: Frame) -> int:
+    """How many semi-dense points project in front of the camera and inside the image at the frame's centre pose."""
+    T = frame.T_world_camera.to(torch.float64)
+    p_cam = (recording.points_world.to(torch.float64) - T[:3, 3]) @ T[:3, :3]
+    front = p_cam[:, 2] > 1e-6
+    uv, _ = recording.camera.project(p_cam[front])
+    W, H = recording.camera.width, recording.camera.height
+    inside = (uv[:, 0] >= -0.5) & (uv[:, 0] <= W - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= H - 0.5)
+    return int(inside.sum())
 
 
 

@@ -40,7 +40,8 @@ from egobench.train.state import TrainState, load_state, new_state, state_dict
 
 
 class TrainingDiverged(RuntimeError):
-    """Raised when a loss or parameter becomes non-finite (names the iteration and quantity)."""
+    """Raised when a loss or parameter becomes non-finite, or refinement prunes every Gaussian
+    (names the iteration and quantity)."""
 
 
 @dataclass
@@ -170,6 +171,10 @@ def train_step(state: TrainState, ctx: StepContext, it: int) -> None:
             state.densifier.accumulate(state.params, it, o.means2d, o.radii, cam.width, cam.height)
     _check_finite(it, [(f"gradient of {name}", state.params[name].grad) for name in GAUSSIAN_PARAMS])
     state.step_optimisers(it)
+    if len(state.params["means"]) == 0:
+        raise TrainingDiverged(f"training collapsed at iteration {it}: refinement pruned every Gaussian "
+                               f"(scene scale {ctx.data.scene_scale:.3g} m); check the poses and points, or train longer "
+                               "than the refinement schedule's first steps")
     _check_finite(it, [(name, state.params[name]) for name in GAUSSIAN_PARAMS] + list(state.extra.items()))
     state.last_loss = float(loss.detach())
     state.iteration = it + 1
@@ -227,6 +232,7 @@ def train(recording_dir, method: str, config: TrainConfig, out_dir, *, resume: b
     spec = get_method(method)
     ckpt_path = Path(out_dir) / "checkpoint.pt"
     data = prepare_data(_recording_for(recording_dir, spec), spec, config, progress=progress)
+    _say_dropped(data.recording, "train")
     device = torch.device(config.device)
     state = new_state(data, config, device)
     ctx = step_context(data, config, device)
@@ -235,6 +241,7 @@ def train(recording_dir, method: str, config: TrainConfig, out_dir, *, resume: b
         resume = checkpoint_matches(ckpt_path, method, config)
     if resume:
         state = load_state(resumable_checkpoint(ckpt_path, method, config), config, data.scene_scale, device)
+    _drop_stale_records(Path(out_dir))
     start_it = state.iteration
     end_it = config.iterations if stop_after is None else min(config.iterations, int(stop_after))
     bar = tqdm(range(start_it, end_it), desc=f"train {method}", disable=not progress, file=sys.stderr,
@@ -249,6 +256,22 @@ def train(recording_dir, method: str, config: TrainConfig, out_dir, *, resume: b
     state.iteration = max(end_it, start_it)
     write_checkpoint(ckpt_path, _checkpoint_state(state, method, config, data, device))
     return _result(state, data, config, method, Path(out_dir), backend)
+
+
+def _say_dropped(recording: Recording, verb: str) -> None:
+    """Name the frames the reader dropped on the console (train.json and eval.json record them too)."""
+    from egobench.data.reader import dropped_summary
+
+    line = dropped_summary(recording)
+    if line:
+        print(f"egobench {verb}: note: {line}", file=sys.stderr)
+
+
+def _drop_stale_records(out_dir: Path) -> None:
+    """Remove the records of an earlier run in ``out_dir`` (train.json, eval.json) before this one
+    writes its first checkpoint: a run killed midway then has no record that could pass for its own."""
+    for name in ("train.json", "eval.json"):
+        (out_dir / name).unlink(missing_ok=True)
 
 
 def _result(state: TrainState, data: TrainingData, config: TrainConfig, method: str, out_dir: Path,

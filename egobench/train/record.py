@@ -9,6 +9,7 @@ import numpy as np
 import torch
 
 from egobench import __version__
+from egobench.data.reader import frame_counts
 from egobench.io_utils import git_commit
 from egobench.train.config import TrainConfig
 from egobench.train.data import TrainingData
@@ -39,6 +40,7 @@ def train_record(result: "TrainResult", state: TrainState, data: TrainingData, c
             "final_loss": result.final_loss if math.isfinite(result.final_loss) else None,
             "image_store": _image_store_stats(data, config),
         },
+        "frames": frame_counts(rec),
         "camera": cam.to_dict(), "scene_scale": data.scene_scale,
         "motion_samples": {"mean": float(ns.mean()), "max": int(ns.max()), "min": int(ns.min()),
                            "warmup_iter": config.motion_warmup_iter, "rule": config.sample_rule},
