@@ -54,6 +54,7 @@ include: "workflows/plots.smk"
 include: "workflows/diagnose.smk"
 include: "workflows/sensitivity.smk"
 include: "workflows/similarity.smk"
+include: "workflows/viewer.smk"
 
 
 report: "workflows/report/workflow.rst"

@@ -16,6 +16,8 @@ VERBS: dict[str, tuple[str, str]] = {
     "preprocess": ("egobench.data.preprocess", "rectify a raw Aria VRS recording with its MPS output"),
     "train": ("egobench.train.cli", "train one method on one recording"),
     "evaluate": ("egobench.evaluate", "evaluate a trained run on the held-out frames"),
+    "export": ("egobench.export.ply", "write a trained run as an INRIA 3DGS PLY (SuperSplat, viser, nerfstudio)"),
+    "render": ("egobench.export.video", "render a trained run along its recording's trajectory into a video"),
     "tables": ("egobench.tables", "build the paper-shaped CSV and LaTeX tables from run records"),
     "plots": ("egobench.plots", "draw the figures from run records and recordings"),
     "diagnose": ("egobench.diagnose.cli", "find what a model gets wrong about measured data"),

@@ -288,6 +288,7 @@ class Suite:
         self.adt_dir: str | None = diag.get("adt_dir")
         self.trained_sweep: dict = dict(diag.get("trained_sweep") or {})
         self.qualitative_scene = (config.get("plots") or {}).get("qualitative_scene")
+        self.viewer: dict = {"enabled": True, "max_frames": 48, "every": 1, "fps": 10, **(config.get("viewer") or {})}
         ms = config.get("motion_stats") or {}
         self.motion_stats = bool(ms.get("enabled", False))
         self.motion_stats_kind: str = ms.get("kind", "indoor")
@@ -330,6 +331,26 @@ class Suite:
 
     def diagnosis_dirs(self) -> list[str]:
         return [f"{self.root}/diagnosis/{s}/{m}" for s, m in self.diagnose_jobs]
+
+    def viewer_outputs(self) -> list[str]:
+        """Per scene that trains 'ours': its PLY and fly-through video (config.viewer)."""
+        if not self.viewer["enabled"]:
+            return []
+        return [f"{self.root}/viewer/{s}/{name}" for s, sc in self.scenes.items() if "ours" in sc.methods
+                for name in ("ours.ply", "flythrough.mp4")]
+
+    def viewer_runs(self, scene: str) -> tuple[str, str | None]:
+        """(the run folder of 'ours', of w/o motion sampling or None) at the scene's first seed of each."""
+        sc = self._scene(scene)
+        compare = "no_motion_sampling" if "no_motion_sampling" in sc.methods else None
+        return (self.run_dir(scene, "ours", sc.seeds_of("ours")[0]),
+                compare and self.run_dir(scene, compare, sc.seeds_of(compare)[0]))
+
+    def render_args(self, scene: str) -> str:
+        """`egobench render` options of a scene's fly-through (config.viewer)."""
+        v, (_, compare) = self.viewer, self.viewer_runs(scene)
+        out = f"--captured --max-frames {int(v['max_frames'])} --every {int(v['every'])} --fps {float(v['fps']):g}"
+        return out + (f" --compare {compare}" if compare else "")
 
     def methods(self) -> list[str]:
         every = [*self.scenes.values(), *self.sensitivity_scenes.values()]

@@ -307,6 +307,18 @@ def test_ci_suite_runs_end_to_end(tmp_path):
     assert all((root / "figures" / f).is_file() for f in __import__("egobench.plots").plots.OUTPUT_FILES)
     assert (root / "diagnosis" / "outdoor_0" / "ours" / "diagnosis.json").is_file()
     assert (root / "motion_stats" / "motion_stats.json").is_file()
+    # The viewer outputs: the PLY holds every Gaussian of the run; the video one frame per recording
+    # frame (32 < max_frames 48), three panels (ours | w/o motion sampling | captured), each 48 px
+    # enlarged 6x under a 20 px label bar.
+    from egobench.export.ply import read_ply
+    from egobench.train.checkpoint import read_run_checkpoint
+
+    g, mode = read_ply(root / "viewer" / "outdoor_0" / "ours.ply")
+    ck = read_run_checkpoint(root / "runs" / "outdoor_0" / "ours" / "seed0" / "checkpoint.pt")
+    assert mode == "3dgs" and len(g) == len(ck["params"]["means"])
+    video = cv2.VideoCapture(str(root / "viewer" / "outdoor_0" / "flythrough.mp4"))
+    size = (int(video.get(cv2.CAP_PROP_FRAME_WIDTH)), int(video.get(cv2.CAP_PROP_FRAME_HEIGHT)))
+    assert int(video.get(cv2.CAP_PROP_FRAME_COUNT)) == 32 and size == (3 * 48 * 6, 20 + 48 * 6)
     # The similarity table measures the suite's recording at its own resolution.
     sim = read_json(root / "similarity" / "similarity.json")["recordings"]
     sim_csv = pd.read_csv(root / "similarity" / "similarity.csv")
@@ -326,6 +338,7 @@ def test_ci_suite_runs_end_to_end(tmp_path):
                     tmp_path)
     assert rep.returncode == 0, rep.stderr[-3000:]
     assert (tmp_path / "report.html").stat().st_size > 10_000
+    assert "flythrough.mp4" in (tmp_path / "report.html").read_text(errors="replace")
 
 
 # ------------------------------------------------------------------------------------------------

@@ -22,7 +22,7 @@ def figure_files():
 
 
 def all_outputs():
-    out = eval_records() + table_files() + figure_files() + SUITE.diagnosis_dirs()
+    out = eval_records() + table_files() + figure_files() + SUITE.diagnosis_dirs() + SUITE.viewer_outputs()
     out.append(f"{R}/similarity/similarity.json")
     if SUITE.motion_stats:
         out.append(f"{R}/motion_stats/motion_stats.json")

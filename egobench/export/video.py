@@ -1,0 +1,147 @@
+"""`egobench render RUN --recording REC --video OUT.mp4`: a fly-through along the recording's trajectory.
+
+Every frame (or every ``--every``-th) of the recording is rendered as the run predicts it (the
+method's rolling-shutter poses and exposure samples, and its image formation at the frame's own
+exposure and gain, `egobench.predict.predict_frame`), at the run's training resolution. Panels
+side by side: this run, optionally a second run (``--compare``, e.g. w/o motion sampling, each
+run with its own calibration stream of the recording) and the captured frames (``--captured``).
+Encoded with OpenCV's MPEG-4 writer (opencv-python-headless, nothing downloaded).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from egobench.data.reader import add_input_arguments
+from egobench.io_utils import atomic_path
+
+#: Panels are enlarged (nearest neighbour) to at least this height, with a label bar above.
+MIN_PANEL_PX, LABEL_PX = 256, 20
+
+
+@dataclass
+class _Panel:
+    """What one panel shows: a run set up to predict frames, or the captured images."""
+
+    label: str
+    run: object | None  # egobench.evaluate._Held-like: run, recording, maps, k_of, formation, settings
+    recording: object
+
+
+def _run_panel(run_dir, recording_dir, device: str | None):
+    from egobench.data import load_recording
+    from egobench.predict import RenderSettings, formation_model, method_normaliser, run_maps
+    from egobench.train.checkpoint import check_run_complete, load_trained_run
+
+    run = load_trained_run(run_dir, device, f"render {run_dir}")
+    check_run_complete(run_dir, run.checkpoint)
+    rec = recording_dir if not isinstance(recording_dir, (str, Path)) else load_recording(recording_dir, run.spec.calibration)
+    held = argparse.Namespace(run=run, recording=rec, maps=run_maps(rec, run), k_of=method_normaliser(rec, run.spec),
+                              formation=formation_model(run.spec), settings=RenderSettings.of(run.config))
+    return _Panel(label=run.spec.label, run=held, recording=rec)
+
+
+def _predict(panel: _Panel, timestamp_ns: int) -> np.ndarray:
+    """[H, W, 3] uint8: the panel's image of the frame at ``timestamp_ns``."""
+    from egobench.predict import predict_frame, resize_map, sample_counts
+
+    held = panel.run
+    frame = next((f for f in panel.recording.frames if f.timestamp_ns == timestamp_ns), None)
+    if frame is None:
+        raise ValueError(f"{panel.recording.root}: no frame at {timestamp_ns} ns (the runs' recordings differ)")
+    if held is None:
+        cam = panel.recording.camera if panel.label != "captured" else panel.camera
+        img = resize_map(panel.recording.load_image(frame), cam)
+    else:
+        run = held.run
+        n = sample_counts(held.recording, [frame], run.spec, run.config.max_pose_samples, run.config.sample_rule,
+                          pixel_scale=run.camera.width / held.recording.camera.width)[0]
+        img = predict_frame(run.gaussians, held.recording, frame, run.spec, run.camera, held.maps,
+                            held.k_of[frame.index], n, held.settings, held.formation).image
+    return (img.clamp(0, 1) * 255.0).round().to(torch.uint8).numpy()
+
+
+def _labelled(img: np.ndarray, label: str, scale: int) -> np.ndarray:
+    """A panel enlarged ``scale`` x (nearest), with its label in a bar above (RGB uint8)."""
+    import cv2
+
+    big = cv2.resize(img, (img.shape[1] * scale, img.shape[0] * scale), interpolation=cv2.INTER_NEAREST)
+    bar = np.zeros((LABEL_PX, big.shape[1], 3), np.uint8)
+    cv2.putText(bar, label, (4, LABEL_PX - 6), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1, cv2.LINE_AA)
+    return np.concatenate([bar, big], axis=0)
+
+
+def render_video(run_dir, recording_dir, out: str | Path, *, compare=None, captured: bool = False, every: int = 1,
+                 max_frames: int | None = None, fps: float = 10.0, device: str | None = None,
+                 progress: bool = True) -> dict:
+    """Render the recording's frames (every ``every``-th, at most ``max_frames``) as panels side by
+    side into ``out`` (MPEG-4); returns frames, size and panels written."""
+    import cv2
+    from tqdm import tqdm
+
+    if Path(out).suffix.lower() != ".mp4":
+        raise ValueError(f"render: --video {out}: expected a .mp4 file (MPEG-4)")
+    if every < 1 or (max_frames is not None and max_frames < 1) or not fps > 0:
+        raise ValueError(f"render: every ({every}) and max_frames ({max_frames}) must be >= 1 and fps ({fps}) > 0")
+    panels = [_run_panel(run_dir, recording_dir, device)]
+    if compare is not None:
+        panels.append(_run_panel(compare, recording_dir, device))
+    if captured:
+        cap = _Panel(label="captured", run=None, recording=panels[0].recording)
+        cap.camera = panels[0].run.run.camera
+        panels.append(cap)
+    frames = panels[0].recording.frames[::every][:max_frames]
+    H = panels[0].run.run.camera.height
+    scale = max(1, math.ceil(MIN_PANEL_PX / H))
+    size = None
+    with atomic_path(out) as tmp:  # .<name>.XXXX.tmp.mp4: the container follows the suffix
+        writer = None
+        for f in tqdm(frames, desc=f"render {Path(out).name}", disable=not progress, file=sys.stderr, mininterval=2.0):
+            row = np.concatenate([_labelled(_predict(p, f.timestamp_ns), p.label, scale) for p in panels], axis=1)
+            row = np.pad(row, ((0, row.shape[0] % 2), (0, row.shape[1] % 2), (0, 0)))  # even sizes for MPEG-4
+            if writer is None:
+                size = (row.shape[1], row.shape[0])
+                writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), size)
+                if not writer.isOpened():
+                    raise ValueError(f"{out}: OpenCV cannot open an MPEG-4 (mp4v) writer here")
+            writer.write(cv2.cvtColor(row, cv2.COLOR_RGB2BGR))
+        writer.release()
+    return {"path": str(out), "frames": len(frames), "width": size[0], "height": size[1], "fps": fps,
+            "panels": [p.label for p in panels]}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("run", help="run folder with checkpoint.pt and train.json (a finished run)")
+    parser.add_argument("--recording", required=True, help="the recording the run was trained on")
+    parser.add_argument("--video", required=True, metavar="OUT.mp4", help="the video to write")
+    parser.add_argument("--compare", default=None, metavar="RUN2", help="a second run shown beside the first")
+    parser.add_argument("--captured", action="store_true", help="add the captured frames as a panel")
+    parser.add_argument("--every", type=int, default=1, help="render every N-th frame (default: all)")
+    parser.add_argument("--max-frames", type=int, default=None, help="at most this many frames")
+    parser.add_argument("--fps", type=float, default=10.0, help="frames per second of the video")
+    parser.add_argument("--device", default=None, help="torch device (default: the run's training device)")
+    parser.add_argument("--no-progress", action="store_true", help="no tqdm bar")
+    add_input_arguments(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    from egobench.data.reader import recording_from_args
+    from egobench.methods import get_method
+    from egobench.train.checkpoint import read_run_checkpoint
+
+    recording = args.recording
+    if args.trajectory or args.points:  # load with the run's calibration
+        method = read_run_checkpoint(Path(args.run) / "checkpoint.pt")["method"]
+        recording = recording_from_args(args.recording, get_method(method).calibration, args)
+    out = render_video(args.run, recording, args.video, compare=args.compare, captured=args.captured,
+                       every=args.every, max_frames=args.max_frames, fps=args.fps, device=args.device,
+                       progress=not args.no_progress)
+    print(f"rendered {out['frames']} frames ({' | '.join(out['panels'])}), {out['width']}x{out['height']} px -> {out['path']}")
+    return 0

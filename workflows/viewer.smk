@@ -1,0 +1,43 @@
+# The researcher's view of a trained scene: per scene, the first seed of 'ours' as an INRIA 3DGS
+# PLY (SuperSplat, viser, nerfstudio open it) and a side-by-side fly-through video (ours, w/o motion
+# sampling when the scene trains it, the captured frames) that the HTML report shows.
+
+
+rule export_ply:
+    input:
+        record=lambda wildcards: f"{SUITE.viewer_runs(wildcards.scene)[0]}/eval.json",
+    output:
+        ply=f"{R}/viewer/{{scene}}/ours.ply",
+    conda:
+        "envs/egobench.yaml"
+    log:
+        f"{R}/logs/viewer/{{scene}}/export.log",
+    params:
+        run_dir=lambda wildcards, input: os.path.dirname(input.record),
+    threads: res("viewer", "threads")
+    resources:
+        mem_mb=res("viewer", "mem_mb"),
+    shell:
+        "{EGOBENCH} export {params.run_dir} --ply {output.ply} > {log} 2>&1"
+
+
+rule render_video:
+    input:
+        recording=f"{R}/recordings/{{scene}}",
+        records=lambda wildcards: [f"{r}/eval.json" for r in SUITE.viewer_runs(wildcards.scene) if r],
+    output:
+        video=report(f"{R}/viewer/{{scene}}/flythrough.mp4", caption="report/viewer.rst", category="Fly-through"),
+    conda:
+        "envs/egobench.yaml"
+    log:
+        f"{R}/logs/viewer/{{scene}}/render.log",
+    params:
+        run_dir=lambda wildcards, input: os.path.dirname(input.records[0]),
+        args=lambda wildcards: SUITE.render_args(wildcards.scene),
+    threads: res("viewer", "threads")
+    resources:
+        mem_mb=res("viewer", "mem_mb"),
+        gpu=res("viewer", "gpu"),
+    shell:
+        "{EGOBENCH} render {params.run_dir} --recording {input.recording} --video {output.video}"
+        " {params.args} --no-progress > {log} 2>&1"
