@@ -351,14 +351,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from egobench.data.reader import recording_from_args
-    from egobench.train.checkpoint import read_run_checkpoint
+    from egobench.train.checkpoint import recording_for_run
 
-    recording = args.recording
-    if args.trajectory or args.points:  # load with the run's calibration
-        method = read_run_checkpoint(Path(args.run) / "checkpoint.pt")["method"]
-        recording = recording_from_args(args.recording, get_method(method).calibration, args)
-    rec = evaluate(recording, args.run, scene=args.scene, paper_scene=args.paper_scene,
+    rec = evaluate(recording_for_run(args.run, args), args.run, scene=args.scene, paper_scene=args.paper_scene,
                    save_renders=not args.no_renders, device=args.device, scene_kind=args.scene_kind)
     m = rec["metrics"]
     print(f"evaluated {rec['method']} on {rec['scene']}: PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.3f} "

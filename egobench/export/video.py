@@ -43,6 +43,9 @@ def _run_panel(run_dir, recording_dir, device: str | None):
     run = load_trained_run(run_dir, device, f"render {run_dir}")
     check_run_complete(run_dir, run.checkpoint)
     rec = recording_dir if not isinstance(recording_dir, (str, Path)) else load_recording(recording_dir, run.spec.calibration)
+    if rec.calibration != run.spec.calibration:
+        raise ValueError(f"render {run_dir}: method {run.spec.name!r} renders the {run.spec.calibration!r} stream, "
+                         f"the recording was loaded with {rec.calibration!r} (pass the recording folder instead)")
     held = argparse.Namespace(run=run, recording=rec, maps=run_maps(rec, run), k_of=method_normaliser(rec, run.spec),
                               formation=formation_model(run.spec), settings=RenderSettings.of(run.config))
     return _Panel(label=run.spec.label, run=held, recording=rec)
@@ -132,15 +135,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from egobench.data.reader import recording_from_args
-    from egobench.methods import get_method
-    from egobench.train.checkpoint import read_run_checkpoint
+    from egobench.train.checkpoint import recording_for_run
 
-    recording = args.recording
-    if args.trajectory or args.points:  # load with the run's calibration
-        method = read_run_checkpoint(Path(args.run) / "checkpoint.pt")["method"]
-        recording = recording_from_args(args.recording, get_method(method).calibration, args)
-    out = render_video(args.run, recording, args.video, compare=args.compare, captured=args.captured,
+    out = render_video(args.run, recording_for_run(args.run, args), args.video, compare=args.compare, captured=args.captured,
                        every=args.every, max_frames=args.max_frames, fps=args.fps, device=args.device,
                        progress=not args.no_progress)
     print(f"rendered {out['frames']} frames ({' | '.join(out['panels'])}), {out['width']}x{out['height']} px -> {out['path']}")

@@ -127,6 +127,17 @@ def check_run_complete(run_dir: str | Path, ck: dict) -> None:
                          "a stale record: train the run again")
 
 
+def recording_for_run(run_dir: str | Path, args) -> object:
+    """A verb's ``--recording`` for the run in ``run_dir``: the path as given, or, with --trajectory
+    or --points, the recording loaded with them in the run's calibration."""
+    from egobench.data.reader import recording_from_args
+
+    if not (getattr(args, "trajectory", None) or getattr(args, "points", None)):
+        return args.recording
+    method = read_run_checkpoint(Path(run_dir) / "checkpoint.pt")["method"]
+    return recording_from_args(args.recording, get_method(method).calibration, args)
+
+
 def render_device(requested: str | None, trained_on: str, where: str) -> torch.device:
     """The torch device to render a checkpoint on: ``requested`` (``--device``) or else the run's
     training device (``config.device``). Raises a ValueError naming ``where`` when that is a CUDA
