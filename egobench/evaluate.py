@@ -207,6 +207,7 @@ def evaluate(recording_dir, run_dir, *, scene: str | None = None, paper_scene: s
     ``scene_kind``: the table block of a real recording (simulated ones carry their kind).
     """
     from egobench.metrics import lpips_available
+    from egobench.perceptual import MIN_SIDE_PX
 
     from egobench.data.reader import dropped_summary
 
@@ -214,6 +215,8 @@ def evaluate(recording_dir, run_dir, *, scene: str | None = None, paper_scene: s
     if line := dropped_summary(held.recording):
         print(f"egobench evaluate: note: {line}", file=sys.stderr)
     ok_lpips, lpips_reason = lpips_available()
+    if ok_lpips and min(held.run.camera.width, held.run.camera.height) < MIN_SIDE_PX:
+        ok_lpips, lpips_reason = False, f"not computed: AlexNet needs images of at least {MIN_SIDE_PX} px a side"
     notes: dict[str, str] = {} if ok_lpips else {"lpips": lpips_reason}
     notes["psnr_clean"] = "not computed: PSNR against clean ground-truth radiance needs the simulator's formation"
     if held.run.spec.pose_optimisation:
@@ -280,6 +283,7 @@ def _run_record(held: _Held, per_image: list[dict], notes: dict, scene: str | No
         },
         "metrics": {
             "psnr": mean_of("psnr"), "ssim": mean_of("ssim"), "lpips": mean_of("lpips"),
+            "depth_mse_authors": mean_of("depth_mse_authors"), "normal_cos_authors": mean_of("normal_cos_authors"),
             "depth_si_l1": mean_of("depth_si_l1"), "normal_l1": mean_of("normal_l1"),
         },
         "notes": notes,
@@ -311,9 +315,11 @@ def recording_stats(rec: Recording, step_ns: int = 1_000_000) -> dict[str, Any]:
 
 
 def _geometry(run: TrainedRun, geo_rec: Recording, frame: Frame, n: int, scale: float) -> dict:
-    """Depth SI-L1 and normal L1 of one held-out frame rendered through the true (online) camera
-    and trajectory poses at the evaluation scale; ground truth resized by nearest neighbour."""
-    from egobench.metrics import depth_si_l1, normal_l1
+    """Depth and normal errors of one held-out frame rendered through the true (online) camera and
+    trajectory poses at the evaluation scale (ground truth resized by nearest neighbour): the
+    authors' metrics over the ground-truth mask (`depth_mse_authors`, `normal_cos_authors`) and
+    egobench's own over the pixels where the model is also opaque (`depth_si_l1`, `normal_l1`)."""
+    from egobench.metrics import depth_mse_authors, depth_si_l1, normal_cos_authors, normal_l1
 
     gf = next((x for x in geo_rec.frames if x.index == frame.index), None)
     out: dict[str, Any] = {}
@@ -325,16 +331,32 @@ def _geometry(run: TrainedRun, geo_rec: Recording, frame: Frame, n: int, scale: 
     poses, ppi = frame_poses(geo_rec, gf, pose_spec, n, resize_map(geo_rec.row_time_ratio.float(), cam))
     o = render_frame(run.gaussians, cam, poses, ppi, run.spec, RenderSettings.of(run.config),
                      want_normal=n_path is not None)[0]
-    valid = (resize_map(geo_rec.mask.float(), cam, "nearest") > 0.5) & (o.alpha[0, ..., 0].cpu() > 0.5)
-    if not bool(valid.any()):  # the model is transparent everywhere here: no geometry to score
-        return {"depth_si_l1": None, "normal_l1": None, "geometry_missing": True}
-    if d_path is not None:
-        gt_d = resize_map(torch.from_numpy(np.load(d_path).astype(np.float32)), cam, "nearest")
+    in_view = resize_map(geo_rec.mask.float(), cam, "nearest") > 0.5
+    valid = in_view & (o.alpha[0, ..., 0].cpu() > 0.5)
+    gt_d = None if d_path is None else resize_map(torch.from_numpy(np.load(d_path).astype(np.float32)), cam, "nearest")
+    gt_n = None if n_path is None else resize_map(torch.from_numpy(np.load(n_path).astype(np.float32)), cam, "nearest")
+    if gt_d is not None:
+        out["depth_mse_authors"] = depth_mse_authors(o.depth[0, ..., 0].cpu(), gt_d, in_view & (gt_d > 0))
+    if gt_n is not None and o.normal is not None:
+        out["normal_cos_authors"] = normal_cos_authors(_authors_normal(o, run, cam), gt_n, in_view & (gt_n.norm(dim=-1) > 0.5))
+    if not bool(valid.any()):  # the model is transparent everywhere here: egobench's own metrics have no pixel
+        return {**out, "depth_si_l1": None, "normal_l1": None, "geometry_missing": True}
+    if gt_d is not None:
         out["depth_si_l1"] = depth_si_l1(o.depth[0, ..., 0].cpu(), gt_d, valid)
-    if n_path is not None and o.normal is not None:
-        gt_n = resize_map(torch.from_numpy(np.load(n_path).astype(np.float32)), cam, "nearest")
+    if gt_n is not None and o.normal is not None:
         out["normal_l1"] = normal_l1(o.normal[0].cpu(), gt_n, valid)
     return out
+
+
+def _authors_normal(o, run: TrainedRun, cam) -> Tensor:
+    """The normal map the authors' evaluation scores: 2DGS's rasterized normals as they come (sum of
+    w n, not renormalised: a pixel with alpha < 1 holds a shorter vector), 3DGS's from the rendered
+    depth (unit, zero on the border: gsplat's depth_to_normal, as their vanilla_gsplat.py)."""
+    from egobench.train.losses import depth_normals
+
+    if run.spec.splat_mode == "2dgs":
+        return o.normal[0].cpu()
+    return depth_normals(o.depth[0, ..., 0].cpu().to(torch.float64), cam)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

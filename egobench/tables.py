@@ -30,7 +30,7 @@ from egobench.io_utils import atomic_path, read_json
 
 RUN_SCHEMA = "egobench.run/1"
 #: Metrics a record may carry (None = not measured).
-METRICS = (pn.PSNR, pn.SSIM, pn.LPIPS, pn.DEPTH, pn.NORMAL)
+METRICS = (pn.PSNR, pn.SSIM, pn.LPIPS, pn.DEPTH, pn.NORMAL, pn.OWN_DEPTH, pn.OWN_NORMAL)
 #: Reference method of each compared method in the gains table (default: ``ours``).
 GAIN_REFERENCE = {"2dgs_no_motion_sampling": "ours_2dgs"}
 #: Table of each group in egobench.methods' row labels ("aria", "dtc", "quest3").
@@ -92,7 +92,7 @@ class RunRecord:
     paper_scene: str | None  # the paper's scene column this scene stands for
     method: str  # method key (egobench/methods.py)
     seed: int
-    metrics: dict[str, float | None]  # psnr, ssim, lpips, depth_si_l1, normal_l1
+    metrics: dict[str, float | None]  # METRICS: psnr, ssim, lpips, the authors' depth/normal, egobench's own
     train: dict[str, Any] = field(default_factory=dict)  # iterations, time_s, iters_per_s, ...
     recording_stats: dict[str, Any] = field(default_factory=dict)  # num_frames, head speed, ...
     raw: dict[str, Any] = field(default_factory=dict, repr=False)  # the whole record

@@ -160,3 +160,68 @@ def test_lpips_available_reports_reason():
     assert isinstance(ok, bool) and isinstance(reason, str)
     if not ok:
         assert reason.startswith("not available: ")
+
+
+# ------------------------------------------------------------------------------------- the authors' geometry metrics
+def test_authors_mask_erosion_is_5x5():
+    from egobench.metrics import erode_mask_authors
+
+    mask = np.zeros((12, 12), bool)
+    mask[3:9, 3:9] = True  # a 6 x 6 block loses 2 px on each side
+    eroded = erode_mask_authors(mask).numpy()
+    expected = np.zeros((12, 12), bool)
+    expected[5:7, 5:7] = True
+    np.testing.assert_array_equal(eroded, expected)
+
+
+def test_authors_depth_error_hand_computed():
+    from egobench.metrics import depth_mse_authors
+
+    gt = np.ones((9, 9))
+    gt[:, 5:] = 3.0  # min-max normalised: 0 left, 1 right
+    mask = np.ones((9, 9), bool)
+    # a constant prediction normalises to zeros: the authors then take pred = 1, the scale is mean(gt),
+    # and the error is the variance of the normalised gt over the mask (the full frame: erosion keeps it)
+    frac = 36 / 81
+    assert depth_mse_authors(np.full((9, 9), 2.0), gt, mask) == pytest.approx(frac * (1 - frac), abs=1e-12)
+    # any affine map of the truth is scored 0 (min-max normalisation, then scale)
+    assert depth_mse_authors(5.0 * gt + 1.0, gt, mask) == pytest.approx(0.0, abs=1e-15)
+
+
+def test_authors_depth_error_against_a_transcription_of_their_formula():
+    """utils/eval.py with the renderer's 8-bit depth PNGs, written out step by step with numpy/cv2
+    (uint8 cast, float64 mask erosion, least-squares scale, masked MSE)."""
+    import cv2
+
+    from egobench.metrics import depth_mse_authors
+
+    rng = np.random.default_rng(1)
+    gt = rng.uniform(1.0, 4.0, (24, 24))
+    pred = gt * 1.7 + rng.normal(0, 0.2, gt.shape)
+    mask = np.zeros((24, 24), bool)
+    mask[2:20, 4:23] = True
+
+    def png(d):
+        return ((d - d.min()) / (d.max() - d.min()) * 255).astype(np.uint8) / 255.0
+
+    p, g = png(pred), png(gt)
+    m = cv2.erode(mask.astype(np.float64), np.ones((5, 5), np.uint8)) > 0.5
+    s = (g[m] * p[m]).sum() / (p[m] ** 2).sum()
+    expected = (((s * p - g) ** 2) * m).sum() / m.sum()
+    assert depth_mse_authors(pred, gt, mask) == pytest.approx(expected, rel=1e-12)
+
+
+def test_authors_normal_error_hand_computed():
+    from egobench.metrics import normal_cos_authors
+
+    n = np.zeros((7, 7, 3))
+    n[..., 2] = -1.0  # facing the camera: 8-bit (127, 127, 0) -> (-1/255, -1/255, -1)
+    mask = np.ones((7, 7), bool)
+    # identical normals score -2/255^2 (the 8-bit round trip is not renormalised), not 0
+    assert normal_cos_authors(n, n, mask) == pytest.approx(-2 / 255**2, abs=1e-15)
+    # no predicted normal (zeros) scores 1 - 1/255 - 2/255^2
+    assert normal_cos_authors(np.zeros_like(n), n, mask) == pytest.approx(1 - 1 / 255 - 2 / 255**2, abs=1e-15)
+    flipped = -n
+    assert normal_cos_authors(flipped, n, mask) == pytest.approx(2.0, abs=0.01)
+    with pytest.raises(ValueError, match="empty after the authors' 5 x 5 erosion"):
+        normal_cos_authors(n, n, np.eye(7, dtype=bool))
