@@ -451,10 +451,67 @@ def gains_frame(records: Sequence[RunRecord]) -> pd.DataFrame:
                 "delta_psnr_ci95_low": None if identical else low,
                 "delta_psnr_ci95_high": None if identical else high,
                 "identical": identical,
-                "paper_delta_psnr_matched": _paper_delta(paper, m, ref, _matched_columns(recs, kind, paper)),
+                "paper_delta_psnr_matched": (matched := _paper_delta(paper, m, ref, _matched_columns(recs, kind, paper))),
                 "paper_delta_psnr_all": _paper_delta(paper, m, ref, paper.columns),
+                "p_one_sided": None if identical else p_in_direction(seed_means, matched),
             })
-    return pd.DataFrame(rows)
+    return with_reproduction_columns(pd.DataFrame(rows))
+
+
+def p_in_direction(seed_means: Sequence[float], paper_delta: float | None) -> float | None:
+    """One-sided paired t-test p over the seeds, against 'no difference', in the paper's direction
+    (None below two seeds or without a paper Δ)."""
+    n = len(seed_means)
+    if n < 2 or paper_delta is None or paper_delta == 0:
+        return None
+    from scipy.stats import t
+
+    sd = float(np.std(seed_means, ddof=1))
+    if sd == 0:
+        return 0.0 if np.sign(np.mean(seed_means)) == np.sign(paper_delta) else 1.0
+    tstat = float(np.mean(seed_means)) / (sd / math.sqrt(n)) * float(np.sign(paper_delta))
+    return float(t.sf(tstat, n - 1))
+
+
+def holm(p_values: Sequence[float | None]) -> list[float | None]:
+    """Holm's step-down adjusted p-values (None stays None and does not count towards m)."""
+    idx = [i for i, p in enumerate(p_values) if p is not None and not pd.isna(p)]
+    order = sorted(idx, key=lambda i: p_values[i])
+    out: list[float | None] = [None] * len(p_values)
+    running = 0.0
+    for rank, i in enumerate(order):
+        running = max(running, min(1.0, (len(order) - rank) * float(p_values[i])))
+        out[i] = running
+    return out
+
+
+#: The three counts a reproduction reports (docs: README "Results"), from `gains_frame`'s columns.
+COUNT_COLUMNS = {"sign_and_ci": "the paper's sign with the 95 % interval excluding zero",
+                 "survives_holm": "one-sided paired t-test in the paper's direction, Holm-adjusted p < 0.05 over all rows",
+                 "magnitude_match": "the paper's Δ inside our interval, or our Δ within a factor 2 of it"}
+
+
+def with_reproduction_columns(df: pd.DataFrame, alpha: float = 0.05) -> pd.DataFrame:
+    """Per row: Holm-adjusted p, whether the sign (with its interval), the Holm test and the magnitude
+    reproduce, and our Δ over the paper's (matched scenes)."""
+    if df.empty:
+        return df
+    df = df.copy()
+    df["p_holm"] = holm(list(df["p_one_sided"]))
+    paper, low, high, ours = (df[c].astype(float) for c in ("paper_delta_psnr_matched", "delta_psnr_ci95_low",
+                                                            "delta_psnr_ci95_high", "delta_psnr_mean"))
+    df["ratio_to_paper"] = ours / paper
+    df["paper_in_ci"] = (low <= paper) & (paper <= high)
+    df["sign_and_ci"] = ((paper < 0) & (high < 0)) | ((paper > 0) & (low > 0))
+    df["survives_holm"] = df["p_holm"].astype(float) < alpha
+    df["magnitude_match"] = df["paper_in_ci"] | ((df["ratio_to_paper"] >= 0.5) & (df["ratio_to_paper"] <= 2.0))
+    return df
+
+
+def reproduction_counts(gains: pd.DataFrame) -> dict[str, int]:
+    """The three counts over the rows of ``gains`` (and the number of rows)."""
+    return {"rows": int(len(gains)),
+            **{c: int(gains[c].fillna(False).astype(bool).sum()) if c in gains else 0 for c in COUNT_COLUMNS}}
 
 
 def _matched_columns(recs: Sequence[RunRecord], kind: str, paper: pn.PaperTable) -> list[str]:
@@ -598,7 +655,8 @@ def gains_to_latex(df: pd.DataFrame) -> str:
             f"{latex_escape(r['group'])} & {method} (vs.\\ {ref}) & {int(r['n_seeds'])} & {_gain_cell(r)} & "
             f"{_num(r['paper_delta_psnr_matched'], 2, True)} & {_num(r['paper_delta_psnr_all'], 2, True)} \\\\"
         )
-    lines += ["\\bottomrule", "\\end{tabular}", "\\label{tab:egobench_gains}", "\\end{table}", ""]
+    lines += ["\\bottomrule", "\\end{tabular}", "\\par\\footnotesize " + latex_escape("O" + counts_line(df)[1:]) + ".",
+              "\\label{tab:egobench_gains}", "\\end{table}", ""]
     return "\n".join(lines)
 
 
@@ -674,6 +732,14 @@ def write_tables(records: Sequence[RunRecord], out_dir: str | Path) -> list[Path
     return written
 
 
+def counts_line(gains: pd.DataFrame) -> str:
+    """'of N rows: a with the paper's sign ..., b survive Holm, c match in magnitude'."""
+    c = reproduction_counts(gains)
+    return (f"of {c['rows']} rows: {c['sign_and_ci']} with the paper's sign and the 95 % interval excluding zero, "
+            f"{c['survives_holm']} survive Holm (one-sided, alpha 0.05), {c['magnitude_match']} with the paper's "
+            "delta inside the interval or within a factor 2")
+
+
 # --------------------------------------------------------------------------------------------
 # CLI
 
@@ -690,4 +756,5 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("--records: no eval.json run records found")
     written = write_tables(records, args.out_dir)
     print(f"egobench tables: {len(records)} records -> {len(written)} files in {args.out_dir}")
+    print(f"egobench tables: {counts_line(gains_frame(records))}")
     return 0

@@ -325,3 +325,35 @@ def test_a_row_identical_by_construction_is_named_not_measured():
     active = [T.parse_record(r) for s in range(3) for r in pair(s, [1, 3, 2], 24.5)]
     row = T.gains_frame(active).set_index("method").loc["no_motion_sampling"]
     assert row["identical"] == "" and row["delta_psnr_mean"] == pytest.approx(-0.5)
+
+
+def test_holm_matches_a_hand_computation():
+    # p = (0.01, 0.04, 0.03, None, 0.005): sorted 0.005, 0.01, 0.03, 0.04 with m = 4 ->
+    # 4 x 0.005 = 0.02, 3 x 0.01 = 0.03, 2 x 0.03 = 0.06, max(0.06, 1 x 0.04) = 0.06 (step-down monotone)
+    adj = T.holm([0.01, 0.04, 0.03, None, 0.005])
+    assert adj[3] is None
+    assert adj[4] == pytest.approx(0.02) and adj[0] == pytest.approx(0.03)
+    assert adj[2] == pytest.approx(0.06) and adj[1] == pytest.approx(0.06)
+
+
+def test_p_in_the_papers_direction_is_scipys_one_sided_t_test():
+    from scipy.stats import ttest_1samp
+
+    seeds = [-1.2, -0.4, -0.9, 0.1]
+    assert T.p_in_direction(seeds, -0.5) == pytest.approx(ttest_1samp(seeds, 0.0, alternative="less").pvalue)
+    assert T.p_in_direction(seeds, +0.5) == pytest.approx(ttest_1samp(seeds, 0.0, alternative="greater").pvalue)
+    assert T.p_in_direction([-1.0], -0.5) is None and T.p_in_direction(seeds, None) is None
+
+
+def test_reproduction_columns_and_counts():
+    df = pd.DataFrame({
+        "delta_psnr_mean": [-1.0, -0.2, -3.0, 0.5], "delta_psnr_ci95_low": [-1.5, -0.6, -3.5, 0.1],
+        "delta_psnr_ci95_high": [-0.5, 0.2, -2.5, 0.9], "paper_delta_psnr_matched": [-1.2, -0.5, -1.0, -0.4],
+        "p_one_sided": [0.001, 0.2, 0.0001, 0.99]})
+    out = T.with_reproduction_columns(df)
+    assert list(out["sign_and_ci"]) == [True, False, True, False]
+    assert list(out["paper_in_ci"]) == [True, True, False, False]
+    # ratio 3.0 (row 3) is outside a factor 2, and the paper's -1.0 is outside [-3.5, -2.5]
+    assert list(out["magnitude_match"]) == [True, True, False, False]
+    assert list(out["survives_holm"]) == [True, False, True, False]  # 4 x 0.0001, 3 x 0.001; 2 x 0.2
+    assert T.reproduction_counts(out) == {"rows": 4, "sign_and_ci": 2, "survives_holm": 2, "magnitude_match": 2}
