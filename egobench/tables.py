@@ -303,11 +303,17 @@ def _scene_label(scene: str, paper_scene: str | None) -> str:
     return f"{scene} ({paper_scene})" if paper_scene else scene
 
 
+def table_metrics(paper: pn.PaperTable) -> list[str]:
+    """The paper table's metrics, plus LPIPS where the paper does not report it (the field's third
+    metric; the paper's cells there stay empty)."""
+    return list(paper.metrics) + ([] if pn.LPIPS in paper.metrics else [pn.LPIPS])
+
+
 def build_per_scene_table(records: Sequence[RunRecord], group: str) -> ShapedTable:
     """Table 1 block (outdoor or indoor): scenes as columns, PSNR/SSIM, methods as rows."""
     kind, paper = GROUPS[group]
     recs = [r for r in records if r.scene_kind == kind]
-    metrics = list(paper.metrics)
+    metrics = table_metrics(paper)
     notes = []
     scene_cols = _scene_columns(recs, paper)
     if not scene_cols:  # no runs: show the paper's columns alone
@@ -340,7 +346,7 @@ def build_aggregate_table(records: Sequence[RunRecord], group: str) -> ShapedTab
     """Tables 2 and 3: one column (mean over our scenes of that kind) beside the paper's."""
     kind, paper = GROUPS[group]
     recs = [r for r in records if r.scene_kind == kind]
-    metrics = list(paper.metrics)
+    metrics = table_metrics(paper)
     scenes = sorted({r.scene for r in recs})
     notes = [f"egobench: mean over {len(scenes)} scene(s) of kind {kind!r}: {', '.join(scenes) or 'none'}; "
              "std over seeds of the scene mean"]

@@ -357,3 +357,22 @@ def test_reproduction_columns_and_counts():
     assert list(out["magnitude_match"]) == [True, True, False, False]
     assert list(out["survives_holm"]) == [True, False, True, False]  # 4 x 0.0001, 3 x 0.001; 2 x 0.2
     assert T.reproduction_counts(out) == {"rows": 4, "sign_and_ci": 2, "survives_holm": 2, "magnitude_match": 2}
+
+
+def test_lpips_is_in_every_table_with_the_papers_cells_empty_where_it_has_none(tmp_path):
+    recs = suite_records()
+    for i, r in enumerate(recs):
+        r["metrics"]["lpips"] = 0.1 + 0.01 * (i % 3)
+    write_records(tmp_path / "runs", recs)
+    T.write_tables(T.load_records([tmp_path / "runs"]), tmp_path / "tables")
+    for name in ("table1_outdoor", "table1_indoor", "table2", "table3"):
+        df = pd.read_csv(tmp_path / "tables" / f"{name}.csv")
+        cols = [c for c in df.columns if c.endswith(" LPIPS")]
+        assert cols, name
+        ours, paper = df[df["block"] == T.OURS_BLOCK], df[df["block"] == T.PAPER_BLOCK]
+        assert ours[cols].notna().all().all(), name
+        if name != "table3":  # only Table 3 reports LPIPS in the paper
+            assert paper[cols].isna().all().all(), name
+    t3 = pd.read_csv(tmp_path / "tables" / "table3.csv").set_index(["block", "method"])
+    col = [c for c in t3.columns if c.endswith(" LPIPS")][0]
+    assert t3.loc[(T.PAPER_BLOCK, "ours"), col] == pn.TABLE3.value("ours", pn.QUEST_COLUMN, pn.LPIPS)
