@@ -1,0 +1,65 @@
+"""The README's results are the committed suite's: every number of its gains table and of its
+held-out PSNR table, and the three counts, are recomputed from results/default/tables/."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+TABLES = REPO / "results" / "default" / "tables"
+
+
+def _markdown_table(header_start: str) -> list[list[str]]:
+    lines = (REPO / "README.md").read_text().splitlines()
+    i = next(k for k, line in enumerate(lines) if line.startswith(header_start))
+    rows = []
+    for line in lines[i + 2:]:
+        if not line.startswith("|"):
+            break
+        rows.append([c.strip() for c in line.strip().strip("|").split("|")])
+    return rows
+
+
+def test_the_gains_table_is_gains_csv():
+    gains = pd.read_csv(TABLES / "gains.csv").set_index(["group", "method"])
+    rows = _markdown_table("| table | method | vs | egobench ΔPSNR")
+    assert len(rows) == len(gains)
+    for table, method, ref, delta, seeds, paper, sign, p_holm, ratio, magnitude, _ in rows:
+        g = gains.loc[(table, method)]
+        mean, low, high = (float(x) for x in re.findall(r"[+-]\d+\.\d+", delta))
+        assert (mean, low, high) == pytest.approx(
+            (g.delta_psnr_mean, g.delta_psnr_ci95_low, g.delta_psnr_ci95_high), abs=0.005), (table, method)
+        assert ref == g.reference and int(seeds) == g.n_seeds
+        assert float(paper) == pytest.approx(g.paper_delta_psnr_matched, abs=0.005)
+        assert (sign == "yes") == bool(g.sign_and_ci) and (magnitude == "yes") == bool(g.magnitude_match)
+        assert (p_holm == "<0.0001" and g.p_holm < 1e-4) or float(p_holm) == pytest.approx(g.p_holm, abs=5e-5)
+        assert float(ratio) == pytest.approx(g.ratio_to_paper, abs=0.005)
+
+
+def test_the_counts_sentence_is_the_counts_of_gains_csv():
+    from egobench.tables import reproduction_counts
+
+    c = reproduction_counts(pd.read_csv(TABLES / "gains.csv"))
+    text = " ".join((REPO / "README.md").read_text().split())
+    assert (f"of {c['rows']} rows, {c['sign_and_ci']} have the paper's sign with the interval excluding zero, "
+            f"{c['survives_holm']} survive Holm, {c['magnitude_match']} match in magnitude") in text
+
+
+def test_the_held_out_psnr_table_is_results_csv():
+    results = pd.read_csv(TABLES / "results.csv")
+    stats = results.groupby(["method", "scene"])["psnr"].agg(["mean", "std"])
+    rows = _markdown_table("| method | outdoor_0 | indoor_0 | object_0 | quest3_0 |")
+    scenes = ["outdoor_0", "indoor_0", "object_0", "quest3_0"]
+    checked = 0
+    for method, *cells in rows:
+        for scene, cell in zip(scenes, cells):
+            if cell == "–" or "±" not in cell:
+                continue
+            mean, sd = (float(x) for x in cell.split("±"))
+            assert (mean, sd) == pytest.approx(tuple(stats.loc[(method, scene)]), abs=0.005), (method, scene)
+            checked += 1
+    assert checked >= 20
