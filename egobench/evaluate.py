@@ -32,6 +32,7 @@ from torch import Tensor
 from egobench import __version__
 from egobench.data.reader import add_input_arguments, frame_counts
 from egobench.data.recording import Frame, Recording
+from egobench.host import host_info
 from egobench.io_utils import git_commit, read_json, write_json
 from egobench.methods import get_method
 from egobench.predict import (
@@ -288,6 +289,7 @@ def _run_record(held: _Held, per_image: list[dict], notes: dict, scene: str | No
         },
         "notes": notes,
         "frames": frame_counts(rec),
+        "host": {"train": train_rec.get("host"), "evaluate": host_info()},  # where each step's arithmetic ran
         "eval": {"resolution": [run.camera.width, run.camera.height], "n_test_frames": len(held.frames),
                  "pose_samples_mean": float(np.mean(held.counts))},
         "recording_stats": recording_stats(rec),

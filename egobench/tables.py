@@ -201,6 +201,9 @@ def records_frame(records: Sequence[RunRecord]) -> pd.DataFrame:
         # the model's resolved wavelength on the held-out frames (egobench.fidelity); older records lack it
         row["resolved_wavelength_px"] = (r.raw.get("fidelity") or {}).get("resolved_wavelength_px")
         row["head_speed_deg_s_p50"] = r.head_speed_deg_s
+        host = ((r.raw.get("host") or {}).get("train") or {})  # where the training arithmetic ran
+        row.update({f"train_{k}": host.get(k) for k in ("cpu_model", "kernel_target", "torch_cpu_capability")})
+        row["train_versions"] = " ".join(f"{k}={v}" for k, v in (host.get("versions") or {}).items()) or None
         row["config_hash"] = r.raw.get("config_hash")
         row["git_commit"] = r.raw.get("git_commit")
         row["record"] = str(r.path)

@@ -120,7 +120,11 @@ def test_dropped_frames_are_counted_named_and_recorded(copy_rec, tmp_path, capsy
     train(copy_rec, "ours", _config(), tmp_path / "run", progress=False)
     err = capsys.readouterr().err
     assert "1 of 16 frames dropped: 1: centre time outside the trajectory's span (images/00015.png)" in err
-    frames = json.loads((tmp_path / "run" / "train.json").read_text())["frames"]
+    record = json.loads((tmp_path / "run" / "train.json").read_text())
+    from egobench.host import cpu_model
+
+    assert record["host"]["cpu_model"] == cpu_model() and record["host"]["versions"]["numba"]
+    frames = record["frames"]
     assert frames == {"in_file": 16, "used": 15, "train": 13, "held_out": 2,
                       "dropped": {"outside_trajectory": ["images/00015.png"]}}
 

@@ -10,6 +10,7 @@ import torch
 
 from egobench import __version__
 from egobench.data.reader import frame_counts
+from egobench.host import host_info
 from egobench.io_utils import git_commit
 from egobench.train.config import TrainConfig
 from egobench.train.data import TrainingData
@@ -30,6 +31,7 @@ def train_record(result: "TrainResult", state: TrainState, data: TrainingData, c
         "schema": TRAIN_SCHEMA, "method": method, "method_label": spec.label, "seed": config.seed,
         "recording": str(rec.root), "scene": rec.name, "calibration": spec.calibration,
         "config": config.to_dict(), "config_hash": config.hash(method), "git_commit": git_commit(),
+        "host": host_info(),
         "egobench_version": __version__, "complete": result.iterations >= config.iterations,
         "train": {
             "iterations": result.iterations, "time_s": result.time_s, "iters_per_s": result.iters_per_s,

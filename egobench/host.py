@@ -1,0 +1,54 @@
+"""What machine a number came from: CPU model, the instruction set the compiled kernels and torch's
+CPU kernels target, and the package versions.
+
+A CPU run is bit-reproducible on one machine with one set of package versions. Across machines it
+may not be (issue 31: up to 0.77 dB per run between an AVX-512 Zen 5 box and an AVX2 Zen 3 box).
+What could differ: the compiled rasterizer is built for the host CPU (numba, LLVM's name for it,
+e.g. ``znver5``), torch, MKL and oneDNN dispatch on the host's vector width, glibc's libm picks
+variants by CPU features, and pip resolves the package ranges to whatever is newest at install time.
+Every run record carries `host_info()`; docs/reproducibility.md has what was measured.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+from pathlib import Path
+
+def cpu_model() -> str:
+    """The CPU's model name (/proc/cpuinfo on Linux, else the platform's processor string)."""
+    info = Path("/proc/cpuinfo")
+    if info.is_file():
+        for line in info.read_text(errors="replace").splitlines():
+            if line.lower().startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    return platform.processor() or platform.machine() or "unknown"
+
+
+def host_info() -> dict[str, object]:
+    """CPU model, cores, the compiled kernels' LLVM target, torch's CPU capability, package versions."""
+    import torch
+
+    try:
+        import numba
+        from llvmlite import binding as llvm
+
+        kernel_target = numba.config.CPU_NAME or llvm.get_host_cpu_name()
+    except ImportError:  # pragma: no cover - numba is a dependency; tolerate a broken install
+        kernel_target = "unavailable"
+    return {"cpu_model": cpu_model(), "cpu_count": os.cpu_count(), "kernel_target": kernel_target,
+            "torch_cpu_capability": torch.backends.cpu.get_cpu_capability(),
+            "versions": versions()}
+
+
+def versions() -> dict[str, str]:
+    """The versions of the packages whose arithmetic a CPU run's numbers depend on."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = {}
+    for name in ("torch", "numba", "llvmlite", "numpy", "gsplat"):
+        try:
+            out[name] = version(name)
+        except PackageNotFoundError:
+            out[name] = "absent"
+    return out

@@ -1,0 +1,103 @@
+"""Do CPU training results travel between machines? Train one run under emulated CPUs and compare.
+
+    python scripts/cross_isa_check.py --out results/cross_isa [--iterations 300] [--size 64]
+
+One recording (outdoor, seed 0) is simulated once; then 'ours' (seed 0) is trained and evaluated in
+a fresh process per setting, each with its own numba cache:
+
+- ``host``: nothing pinned (this machine's CPU: numba's LLVM host target, torch's widest kernels);
+- ``avx2``: an AVX2-only x86-64 machine emulated on this one (numba compiled for ``znver3``, torch's
+  AVX2 kernels, MKL and oneDNN capped at AVX2, glibc's AVX-512 variants off);
+- ``portable``: PORTABLE (numba ``generic``, torch ``default``, MKL CBWR, oneDNN SSE4.1);
+- ``portable_avx2``: the portable settings on the emulated AVX2 machine.
+
+Writes ``cross_isa.json``: per setting the host info, iterations/s (wall time of the training
+iterations, one thread), held-out PSNR, and per pair the largest parameter difference and the PSNR
+difference. Exploratory: one seed, one scene.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+#: numba's generic x86-64 target, torch's non-vectorised kernels, MKL's reproducible mode, oneDNN at SSE4.1
+PORTABLE = {"NUMBA_CPU_NAME": "generic", "ATEN_CPU_CAPABILITY": "default", "MKL_CBWR": "COMPATIBLE",
+            "ONEDNN_MAX_CPU_ISA": "SSE41"}
+AVX2 = {"NUMBA_CPU_NAME": "znver3", "ATEN_CPU_CAPABILITY": "avx2", "MKL_ENABLE_INSTRUCTIONS": "AVX2",
+        "ONEDNN_MAX_CPU_ISA": "AVX2", "GLIBC_TUNABLES": "glibc.cpu.hwcaps=-AVX512F,-AVX512VL,-AVX512BW,-AVX512DQ,-AVX512CD"}
+
+CHILD = r"""
+import json, sys, numpy as np, torch
+from dataclasses import replace
+from egobench.host import host_info
+from egobench.train.config import preset_config
+from egobench.train.loop import train
+from egobench.evaluate import evaluate
+rec, out, iters = sys.argv[1], sys.argv[2], int(sys.argv[3])
+torch.set_num_threads(1)
+cfg = replace(preset_config("cpu").scaled_to(iters), seed=0)
+res = train(rec, "ours", cfg, out, progress=False)
+ev = evaluate(rec, out, save_renders=False)
+ck = torch.load(out + "/checkpoint.pt", weights_only=True)
+np.savez(out + "/params.npz", **{k: v.numpy() for k, v in ck["params"].items()})
+print(json.dumps({"host": host_info(), "iters_per_s": res.iters_per_s, "psnr": ev["metrics"]["psnr"],
+                  "n_gaussians": res.num_gaussians}))
+"""
+
+
+def run_setting(name: str, env_extra: dict, rec: Path, out: Path, iterations: int) -> dict:
+    env = {k: v for k, v in os.environ.items() if k not in {**AVX2, **PORTABLE}}
+    env.update(env_extra, OMP_NUM_THREADS="1", NUMBA_NUM_THREADS="1",
+               NUMBA_CACHE_DIR=str(out / "numba_cache" / name))
+    run_dir = out / "runs" / name
+    proc = subprocess.run([sys.executable, "-c", CHILD, str(rec), str(run_dir), str(iterations)], env=env,
+                          capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise RuntimeError(f"setting {name}: {proc.stderr[-3000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def compare(out: Path, a: str, b: str) -> dict:
+    import numpy as np
+
+    pa, pb = (np.load(out / "runs" / n / "params.npz") for n in (a, b))
+    if any(pa[k].shape != pb[k].shape for k in pa.files):
+        return {"identical": False, "max_abs_diff": None, "note": "different Gaussian counts"}
+    diff = max(float(np.abs(pa[k].astype(np.float64) - pb[k]).max()) for k in pa.files)
+    return {"identical": all(np.array_equal(pa[k], pb[k]) for k in pa.files), "max_abs_diff": diff}
+
+
+def main() -> int:
+    from egobench.sim.capture import simulate_recording
+    from egobench.sim.config import SimConfig
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--iterations", type=int, default=300)
+    ap.add_argument("--size", type=int, default=64)
+    args = ap.parse_args()
+    out = Path(args.out)
+    rec = out / "recording"
+    if not rec.exists():
+        simulate_recording(SimConfig.from_overrides("outdoor", 0, {"rectified_size": args.size, "n_frames": 32}),
+                           rec, progress=False)
+    settings = {"host": {}, "avx2": AVX2, "portable": dict(PORTABLE), "portable_avx2": {**AVX2, **PORTABLE}}
+    results = {name: run_setting(name, env, rec, out, args.iterations) for name, env in settings.items()}
+    for name, r in results.items():
+        print(f"{name}: {r['iters_per_s']:.1f} it/s, PSNR {r['psnr']:.4f} dB, {r['host']}")
+    pairs = {f"{a} vs {b}": {**compare(out, a, b), "psnr_diff_db": results[a]["psnr"] - results[b]["psnr"]}
+             for a, b in (("host", "avx2"), ("portable", "portable_avx2"), ("host", "portable"))}
+    for k, v in pairs.items():
+        print(k, v)
+    (out / "cross_isa.json").write_text(json.dumps({"settings": results, "pairs": pairs,
+                                                    "iterations": args.iterations, "size_px": args.size}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
