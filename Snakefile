@@ -34,7 +34,12 @@ validate(config, "workflows/schemas/config.schema.yaml")
 
 SUITE = wc.Suite(config)
 R = SUITE.root
-EGOBENCH = wc.egobench_command(config["egobench_command"], workflow.basedir)
+# Every rule's shell calls `egobench <verb>`: a shell function wrapping the configured command prefix.
+# Not provenance (no rule's shell reads a Python global, no param): calling egobench another way never
+# makes Snakemake redo finished simulations or training, and `snakemake --lint` has nothing to report.
+_EGOBENCH_FUNCTION = wc.egobench_shell_function(config["egobench_command"], workflow.basedir)
+_BRACES = str.maketrans({"{": "{{", "}": "}}"})  # Snakemake formats the prefix with the command
+shell.prefix(f"set -euo pipefail; {_EGOBENCH_FUNCTION.translate(_BRACES)} ")
 RUN_START = time.time()  # on SLURM, this run's job logs are those written since
 
 

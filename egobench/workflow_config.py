@@ -243,6 +243,14 @@ def egobench_command(setting: str = "auto", repo_root: str | Path = REPO_ROOT) -
     return f"env PYTHONPATH={root}${{PYTHONPATH:+:$PYTHONPATH}} {shlex.quote(sys.executable)} -m egobench.cli"
 
 
+def egobench_shell_function(setting: str = "auto", repo_root: str | Path = REPO_ROOT) -> str:
+    """A bash function ``egobench`` that runs `egobench_command` (the rules' shell prefix defines it)."""
+    command = egobench_command(setting, repo_root)
+    if command == "egobench":  # the installed script: call it, not this function again
+        command = "command egobench"
+    return f'egobench() {{ {command} "$@"; }};'
+
+
 @dataclass(frozen=True)
 class Scene:
     """One scene entry with the suite defaults applied."""

@@ -26,7 +26,7 @@ rule diagnose:
         gpu=res("diagnose", "gpu"),
         runtime=res("diagnose", "runtime"),
     shell:
-        "{EGOBENCH} diagnose {input.recording} --method {wildcards.method}"
+        "egobench diagnose {input.recording} --method {wildcards.method}"
         " --out {output} {params.args} > {log} 2>&1"
 
 
@@ -49,7 +49,7 @@ rule motion_stats:
     resources:
         mem_mb=res("motion_stats", "mem_mb"),
     shell:
-        "{EGOBENCH} motion-stats --out {params.out_dir} {params.args} > {log} 2>&1"
+        "egobench motion-stats --out {params.out_dir} {params.args} > {log} 2>&1"
 
 
 # `snakemake --cores 2 discovery` (not part of `all`): the hidden-effect sweep (every effect x
@@ -80,7 +80,7 @@ rule diagnose_sweep:
     resources:
         mem_mb=res("diagnose", "mem_mb"),
     shell:
-        "{EGOBENCH} diagnose --sweep --sweep-seeds {params.seeds} --out {output} --no-progress > {log} 2>&1"
+        "egobench diagnose --sweep --sweep-seeds {params.seeds} --out {output} --no-progress > {log} 2>&1"
 
 
 # config.diagnose.trained_sweep.enabled: the sweep on trained runs. The outputs are the tables only,
@@ -104,7 +104,7 @@ rule diagnose_trained_sweep:
     resources:
         mem_mb=res("diagnose", "mem_mb"),
     shell:
-        "{EGOBENCH} diagnose --sweep --trained {params.args} --out {params.out_dir} --no-progress > {log} 2>&1"
+        "egobench diagnose --sweep --trained {params.args} --out {params.out_dir} --no-progress > {log} 2>&1"
 
 
 rule diagnose_adt:
@@ -125,4 +125,4 @@ rule diagnose_adt:
     resources:
         mem_mb=res("diagnose", "mem_mb"),
     shell:
-        "{EGOBENCH} diagnose --adt {params.adt} --out {output} --no-progress > {log} 2>&1"
+        "egobench diagnose --adt {params.adt} --out {output} --no-progress > {log} 2>&1"

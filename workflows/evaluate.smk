@@ -23,5 +23,5 @@ rule evaluate:
         gpu=res("evaluate", "gpu"),
         runtime=res("evaluate", "runtime"),
     shell:
-        "{EGOBENCH} evaluate --recording {input.recording} --run {params.run_dir}"
+        "egobench evaluate --recording {input.recording} --run {params.run_dir}"
         " {params.args} > {log} 2>&1"

@@ -27,5 +27,5 @@ rule plots:
     resources:
         mem_mb=res("plots", "mem_mb"),
     shell:
-        "{EGOBENCH} plots --records {input.records} --recordings {input.recordings}"
+        "egobench plots --records {input.records} --recordings {input.recordings}"
         " --out-dir {params.out_dir} {params.qualitative} > {log} 2>&1"

@@ -27,6 +27,6 @@ rule preprocess:
         gpu=res("preprocess", "gpu"),
         runtime=res("preprocess", "runtime"),
     shell:
-        "{EGOBENCH} preprocess {input.vrs} --mps {input.mps} --out {output} {params.args} --no-progress > {log} 2>&1"
-        " && if [ -n '{params.factory}' ]; then {EGOBENCH} preprocess {input.vrs} --mps {input.mps} --out {output}"
+        "egobench preprocess {input.vrs} --mps {input.mps} --out {output} {params.args} --no-progress > {log} 2>&1"
+        " && if [ -n '{params.factory}' ]; then egobench preprocess {input.vrs} --mps {input.mps} --out {output}"
         " {params.args} {params.factory} --no-progress >> {log} 2>&1; fi"

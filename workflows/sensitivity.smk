@@ -28,10 +28,10 @@ rule sensitivity_similarity:
     resources:
         mem_mb=res("similarity", "mem_mb"),
     shell:
-        "if ! {EGOBENCH} similarity --help > /dev/null 2>&1; then"
+        "if ! egobench similarity --help > /dev/null 2>&1; then"
         " echo 'egobench has no similarity verb (egobench similarity REC --out FILE.json, issue 13):"
         " the sensitivity curves need the measured effect size of each recording' | tee {log} >&2; exit 1; fi;"
-        " {EGOBENCH} similarity {input.recording} --out {output.json} --no-progress > {log} 2>&1"
+        " egobench similarity {input.recording} --out {output.json} --no-progress > {log} 2>&1"
 
 
 rule sensitivity_curves:
@@ -56,5 +56,5 @@ rule sensitivity_curves:
     resources:
         mem_mb=res("tables", "mem_mb"),
     shell:
-        "{EGOBENCH} sensitivity --records {input.records} --similarity {input.similarity}"
+        "egobench sensitivity --records {input.records} --similarity {input.similarity}"
         " --out-dir {params.out_dir} {params.args} > {log} 2>&1"

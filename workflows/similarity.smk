@@ -17,5 +17,5 @@ rule similarity:
     resources:
         mem_mb=res("similarity", "mem_mb"),
     shell:
-        "{EGOBENCH} similarity {input.recordings} --out {output.json} --csv {output.csv} "
+        "egobench similarity {input.recordings} --out {output.json} --csv {output.csv} "
         "--table {output.table} --no-progress > {log} 2>&1"

@@ -22,4 +22,4 @@ rule simulate:
         gpu=res("simulate", "gpu"),
         runtime=res("simulate", "runtime"),
     shell:
-        "{EGOBENCH} simulate --out {output} {params.args} > {log} 2>&1"
+        "egobench simulate --out {output} {params.args} > {log} 2>&1"

@@ -19,4 +19,4 @@ rule tables:
     resources:
         mem_mb=res("tables", "mem_mb"),
     shell:
-        "{EGOBENCH} tables --records {input.records} --out-dir {params.out_dir} > {log} 2>&1"
+        "egobench tables --records {input.records} --out-dir {params.out_dir} > {log} 2>&1"

@@ -23,5 +23,5 @@ rule train:
         gpu=res("train", "gpu"),
         runtime=res("train", "runtime"),
     shell:
-        "{EGOBENCH} train --recording {input.recording} --method {wildcards.method}"
+        "egobench train --recording {input.recording} --method {wildcards.method}"
         " --seed {wildcards.seed} --out {params.run_dir} {params.args} --resume auto > {log} 2>&1"

@@ -18,7 +18,7 @@ rule export_ply:
     resources:
         mem_mb=res("viewer", "mem_mb"),
     shell:
-        "{EGOBENCH} export {params.run_dir} --ply {output.ply} > {log} 2>&1"
+        "egobench export {params.run_dir} --ply {output.ply} > {log} 2>&1"
 
 
 rule render_video:
@@ -39,5 +39,5 @@ rule render_video:
         mem_mb=res("viewer", "mem_mb"),
         gpu=res("viewer", "gpu"),
     shell:
-        "{EGOBENCH} render {params.run_dir} --recording {input.recording} --video {output.video}"
+        "egobench render {params.run_dir} --recording {input.recording} --video {output.video}"
         " {params.args} --no-progress > {log} 2>&1"
