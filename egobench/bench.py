@@ -314,11 +314,10 @@ def run(args: argparse.Namespace) -> int:
     chosen = chosen or ["auto"]
     if args.what == "raster":
         backends = default_backends(chosen[0], args.device) if len(chosen) == 1 else tuple(chosen)
-        print(json.dumps(bench_raster(args.device, args.repeats, chosen[0], args.tile_size, backends=backends,
-                                      mode=args.mode), indent=2))
+        _report(bench_raster(args.device, args.repeats, chosen[0], args.tile_size, backends=backends, mode=args.mode))
         return 0
     if args.what == "cast":
-        print(json.dumps(bench_cast(args.device, args.repeats), indent=2))
+        _report(bench_cast(args.device, args.repeats))
         return 0
     for name in ("iterations", "points"):
         if getattr(args, name) < 1:
@@ -327,6 +326,12 @@ def run(args: argparse.Namespace) -> int:
     if min(sides) < 8:
         raise ValueError(f"--resolution: expected at least 8 pixels, got {min(sides)}")
     methods = tuple(args.method or ("no_motion_sampling", "ours"))
-    print(json.dumps(bench_train(args.device, chosen[0], sides, args.iterations, args.recording, args.points,
-                                 methods), indent=2))
+    _report(bench_train(args.device, chosen[0], sides, args.iterations, args.recording, args.points, methods))
     return 0
+
+
+def _report(result: dict) -> None:
+    """Print a benchmark's JSON with the machine it ran on (CPU model, kernel target, torch's ISA, versions)."""
+    from egobench.host import host_info
+
+    print(json.dumps({**result, "host": host_info()}, indent=2))

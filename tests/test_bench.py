@@ -85,6 +85,11 @@ def test_bench_train_cli_small(capsys):
     assert main(["bench", "train", "--resolution", "48", "--iterations", "2", "--points", "300"]) == 0
     rec = json.loads(capsys.readouterr().out)
     assert rec["benchmark"] == "train" and "300 points" in rec["recording"]
+    from egobench.host import cpu_model
+
+    # every number comes with the machine: CPU model, the kernels' LLVM target, torch's vector ISA
+    assert rec["host"]["cpu_model"] == cpu_model() and rec["host"]["kernel_target"]
+    assert rec["host"]["torch_cpu_capability"] in ("DEFAULT", "AVX2", "AVX512", "NO AVX", "ZVECTOR", "VSX")
     rows = {r["method"]: r for r in rec["results"]}
     assert set(rows) == {"no_motion_sampling", "ours"}
     for r in rows.values():
