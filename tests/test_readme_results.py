@@ -63,3 +63,11 @@ def test_the_held_out_psnr_table_is_results_csv():
             assert (mean, sd) == pytest.approx(tuple(stats.loc[(method, scene)]), abs=0.005), (method, scene)
             checked += 1
     assert checked >= 20
+
+
+def test_the_readme_is_a_front_page():
+    """At most ~150 lines: the two commands, what the run produces, the headline results, links."""
+    text = (REPO / "README.md").read_text()
+    assert len(text.splitlines()) <= 150
+    for link in ("docs/results.md", "docs/gpu-and-cluster.md", "docs/real-recordings.md", "docs/metrics.md"):
+        assert link in text and (REPO / link).is_file(), link
