@@ -1,0 +1,23 @@
+"""docs/architecture.md matches the tree: every module path it names exists, and every package and
+module of egobench is named there (a new module without a line in the package map fails)."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+DOC = (REPO / "docs" / "architecture.md").read_text()
+
+
+def test_every_named_path_exists():
+    named = set(re.findall(r"`(egobench/[A-Za-z0-9_/.]+)`", DOC))
+    assert len(named) >= 20
+    assert [n for n in sorted(named) if not (REPO / n.rstrip("/")).exists()] == []
+
+
+def test_every_package_and_module_is_named():
+    packages = sorted({p.parent.relative_to(REPO).as_posix() for p in (REPO / "egobench").rglob("__init__.py")} - {"egobench"})
+    assert [p for p in packages if f"`{p}/`" not in DOC] == []
+    modules = [p for p in (REPO / "egobench").rglob("*.py") if p.name != "__init__.py"]
+    assert [str(p.relative_to(REPO)) for p in modules if p.name not in DOC] == []
