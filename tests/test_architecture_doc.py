@@ -21,3 +21,16 @@ def test_every_package_and_module_is_named():
     assert [p for p in packages if f"`{p}/`" not in DOC] == []
     modules = [p for p in (REPO / "egobench").rglob("*.py") if p.name != "__init__.py"]
     assert [str(p.relative_to(REPO)) for p in modules if p.name not in DOC] == []
+
+
+def test_the_imports_picture_is_current():
+    """The "Imports" block is what scripts/layers.py reads from the code now (regenerate it with
+    `python scripts/layers.py`)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("layers", REPO / "scripts" / "layers.py")
+    layers = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(layers)
+    graph = layers.imports()
+    assert "train" in graph and "render" in graph["train"] and "train" not in graph["render"]
+    assert layers.render_doc(DOC, graph) == DOC, "docs/architecture.md's Imports block is stale"
