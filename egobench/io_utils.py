@@ -78,6 +78,17 @@ def read_csv(path: str | os.PathLike, what: str, **kwargs):
         raise ValueError(f"{path}: not a readable {what} ({type(exc).__name__}: {exc})") from exc
 
 
+def format_value(value: Any) -> str:
+    """A config value as the text of ``--set field=value`` (lists comma-joined, null -> none)."""
+    if value is None:
+        return "none"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (list, tuple)):
+        return ",".join(format_value(v) for v in value)
+    return str(value)
+
+
 def git_commit() -> str:
     """The commit of the egobench checkout this code runs from, or "unknown" (an installed copy)."""
     try:

@@ -89,7 +89,7 @@ def check_config(config: Mapping) -> list[str]:
 def check_sims(config: Mapping) -> None:
     """Build every sweep recording's SimConfig; ValueError naming the key of the first bad one."""
     from egobench.sim.config import SimConfig
-    from egobench.workflow_config import format_value
+    from egobench.io_utils import format_value
 
     sens = config.get("sensitivity") or {}
     for p in sweep_points(config):

@@ -17,6 +17,7 @@ from typing import Any, Mapping
 import yaml
 
 from egobench import sensitivity_workflow
+from egobench.io_utils import format_value
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SCHEMA_PATH = REPO_ROOT / "workflows" / "schemas" / "config.schema.yaml"
@@ -215,17 +216,6 @@ def fill_defaults(config: dict, schema: Mapping | None = None) -> dict:
     for err in cls(schema).iter_errors(config):
         raise ConfigError(f"{_key_path(err.absolute_path)}: {err.message}")
     return config
-
-
-def format_value(value: Any) -> str:
-    """A config value as the text of ``--set field=value`` (lists comma-joined, null -> none)."""
-    if value is None:
-        return "none"
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, (list, tuple)):
-        return ",".join(format_value(v) for v in value)
-    return str(value)
 
 
 def set_args(overrides: Mapping[str, Any]) -> str:

@@ -319,12 +319,13 @@ def test_raster_threads_env_gives_the_kernels_their_own_count():
 
 
 def test_stage_profiler_reports_every_stage_of_the_binned_scene():
-    """`python -m egobench.render.cpu_profile` (docs/cpu-rasterizer.md's profile): every stage is
+    """`python -m egobench.bench.cpu_profile` (docs/cpu-rasterizer.md's profile): every stage is
     timed, the sum is the sum of the listed stages, and the intersection count is the binning's."""
     import numpy as np
 
     from egobench import bench
-    from egobench.render import cpu_backend, cpu_kernels, cpu_profile
+    from egobench.bench import cpu_profile
+    from egobench.render import cpu_backend, cpu_kernels
 
     st = cpu_profile.stage_times(sigma_px=1.5, width=32, n=300, repeats=1)
     stages = ("project_fwd", "raster_setup(incl. bin_tiles)", "gaussian_table", "raster_fwd", "raster_bwd",

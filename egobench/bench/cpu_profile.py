@@ -1,6 +1,6 @@
 """Per-stage timing of the compiled CPU backend (3DGS) on a `egobench bench raster` scene.
 
-``python -m egobench.render.cpu_profile [--sigma 2.5] [--repeats 41] [--threads 1]``: times each
+``python -m egobench.bench.cpu_profile [--sigma 2.5] [--repeats 41] [--threads 1]``: times each
 stage of one forward + backward in isolation (median of repeats of process CPU time, or wall time
 with ``--wall``; stages are re-run on the same inputs, so each one's time excludes the others'),
 then the whole `render` + `loss.backward()` step of `egobench bench raster` and the part of it
