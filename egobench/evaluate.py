@@ -20,7 +20,6 @@ evaluated at the trajectory poses with velocities from the trajectory).
 from __future__ import annotations
 
 import argparse
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
@@ -207,17 +206,12 @@ def evaluate(recording_dir, run_dir, *, scene: str | None = None, paper_scene: s
     renders come back to the CPU for the image formation and the metrics (float64).
     ``scene_kind``: the table block of a real recording (simulated ones carry their kind).
     """
+    from egobench.data.reader import say_dropped
     from egobench.metrics import lpips_available
-    from egobench.perceptual import MIN_SIDE_PX
-
-    from egobench.data.reader import dropped_summary
 
     held = _held_out(recording_dir, run_dir, device)
-    if line := dropped_summary(held.recording):
-        print(f"egobench evaluate: note: {line}", file=sys.stderr)
-    ok_lpips, lpips_reason = lpips_available()
-    if ok_lpips and min(held.run.camera.width, held.run.camera.height) < MIN_SIDE_PX:
-        ok_lpips, lpips_reason = False, f"not computed: AlexNet needs images of at least {MIN_SIDE_PX} px a side"
+    say_dropped(held.recording, "evaluate")
+    ok_lpips, lpips_reason = lpips_available(min(held.run.camera.width, held.run.camera.height))
     notes: dict[str, str] = {} if ok_lpips else {"lpips": lpips_reason}
     notes["psnr_clean"] = "not computed: PSNR against clean ground-truth radiance needs the simulator's formation"
     if held.run.spec.pose_optimisation:

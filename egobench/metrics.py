@@ -208,6 +208,14 @@ def erode_mask_authors(mask) -> Tensor:
     return torch.from_numpy(eroded > 0.5)
 
 
+def _authors_mask(gt_mask) -> np.ndarray:
+    """`erode_mask_authors` as a numpy mask; ValueError when nothing is left of it."""
+    m = erode_mask_authors(gt_mask).numpy()
+    if not m.any():
+        raise ValueError("gt_mask: empty after the authors' 5 x 5 erosion")
+    return m
+
+
 def _as_png8(x: np.ndarray) -> np.ndarray:
     """What an 8-bit PNG of values in [0, 1] holds when read back /255 (``(x * 255).astype(uint8)`` truncates)."""
     return np.floor(np.clip(x, 0.0, 1.0) * 255.0) / 255.0
@@ -227,10 +235,7 @@ def depth_mse_authors(pred_depth, gt_depth, gt_mask) -> float:
     g = _to_tensor(gt_depth, "gt_depth").detach().cpu().to(torch.float64).numpy().squeeze()
     if p.ndim != 2 or p.shape != g.shape:
         raise ValueError(f"pred_depth, gt_depth: expected [H, W] of the same shape, got {list(p.shape)} and {list(g.shape)}")
-    p, g = _depth_png(p), _depth_png(g)
-    m = erode_mask_authors(gt_mask).numpy()
-    if not m.any():
-        raise ValueError("gt_mask: empty after the authors' 5 x 5 erosion")
+    p, g, m = _depth_png(p), _depth_png(g), _authors_mask(gt_mask)
     if (p[m] ** 2).sum() <= 1e-6:
         p = np.ones_like(g)
     scale = (g[m] * p[m]).sum() / (p[m] ** 2).sum()
@@ -246,18 +251,17 @@ def normal_cos_authors(pred_normal, gt_normal, gt_mask) -> float:
     if p.ndim != 3 or p.shape[-1] != 3 or p.shape != g.shape:
         raise ValueError(f"pred_normal, gt_normal: expected [H, W, 3] of the same shape, got {list(p.shape)} and {list(g.shape)}")
     decode = lambda n: (_as_png8((n + 1.0) / 2.0) - 0.5) * 2.0  # noqa: E731
-    m = erode_mask_authors(gt_mask).numpy()
-    if not m.any():
-        raise ValueError("gt_mask: empty after the authors' 5 x 5 erosion")
+    m = _authors_mask(gt_mask)
     return float((1.0 - (decode(p) * decode(g)).sum(-1))[m].mean())
 
 
 # ----------------------------------------------------------------------------- LPIPS
-def lpips_available() -> tuple[bool, str]:
-    """(True, "") when LPIPS (AlexNet, v0.1) can run offline; else (False, "not available: <why>")."""
+def lpips_available(side_px: int | None = None) -> tuple[bool, str]:
+    """(True, "") when LPIPS (AlexNet, v0.1) can run offline on images ``side_px`` a side; else
+    (False, the reason)."""
     from egobench.perceptual import available
 
-    return available()
+    return available(side_px)
 
 
 def lpips_alex(pred, target) -> float:

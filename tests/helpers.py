@@ -19,6 +19,16 @@ ARIA_RGB_PARAMS_1408 = [
 ]
 
 
+def small_recording(out: Path, kind: str, seed: int, n_frames: int, size: int = 32) -> Path:
+    """Simulate a small recording (``size`` px, ``n_frames`` frames, 1500 semi-dense points) into ``out``."""
+    from egobench.sim.capture import simulate_recording
+    from egobench.sim.config import SimConfig
+
+    cfg = SimConfig.from_overrides(kind, seed, {"n_frames": n_frames, "rectified_size": size, "n_semidense_points": 1500})
+    simulate_recording(cfg, out, progress=False)
+    return out
+
+
 def write_records(root: Path, recs: list[dict]) -> list[Path]:
     """Write run records as root/runNNN/eval.json; the paths deliberately do not carry the identity
     (tables and plots must read it from the records)."""

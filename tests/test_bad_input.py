@@ -20,13 +20,9 @@ ITERS = 30
 @pytest.fixture(scope="module")
 def rec_dir(tmp_path_factory):
     """A 16-frame, 32 px indoor recording (two held-out frames)."""
-    from egobench.sim.capture import simulate_recording
-    from egobench.sim.config import SimConfig
+    from tests.helpers import small_recording
 
-    cfg = SimConfig.from_overrides("indoor", 0, {"n_frames": 16, "rectified_size": 32, "n_semidense_points": 1500})
-    out = tmp_path_factory.mktemp("bad_input") / "indoor_0"
-    simulate_recording(cfg, out, progress=False)
-    return out
+    return small_recording(tmp_path_factory.mktemp("bad_input") / "indoor_0", "indoor", 0, n_frames=16)
 
 
 @pytest.fixture

@@ -82,13 +82,9 @@ def test_online_calibration_errors_name_the_line(tmp_path, shared_data):
 # ---------------------------------------------------------------------------------- recordings
 @pytest.fixture(scope="module")
 def rec_dir(tmp_path_factory):
-    from egobench.sim.capture import simulate_recording
-    from egobench.sim.config import SimConfig
+    from tests.helpers import small_recording
 
-    cfg = SimConfig.from_overrides("object", 2, {"n_frames": 6, "rectified_size": 32, "n_semidense_points": 1500})
-    out = tmp_path_factory.mktemp("rec") / "object_2"
-    simulate_recording(cfg, out, progress=False)
-    return out
+    return small_recording(tmp_path_factory.mktemp("rec") / "object_2", "object", 2, n_frames=6)
 
 
 @pytest.fixture

@@ -111,13 +111,20 @@ def frame_counts(rec: Recording) -> dict:
 
 def dropped_summary(rec: Recording) -> str | None:
     """One line naming how many frames of the file were dropped and why (None when none was)."""
-    dropped = rec.meta.get("dropped") or {}
-    n = sum(len(v) for v in dropped.values())
-    if n == 0:
+    counts = frame_counts(rec)
+    if counts["used"] == counts["in_file"]:
         return None
     parts = "; ".join(f"{len(v)}: {DROP_REASONS[k]} ({', '.join(v[:3])}{', ...' if len(v) > 3 else ''})"
-                      for k, v in dropped.items() if v)
-    return f"{rec.root}: {n} of {n + len(rec.frames)} frames dropped: {parts}"
+                      for k, v in counts["dropped"].items())
+    return f"{rec.root}: {counts['in_file'] - counts['used']} of {counts['in_file']} frames dropped: {parts}"
+
+
+def say_dropped(rec: Recording, verb: str) -> None:
+    """Name the frames the reader dropped on the console of ``egobench <verb>`` (the records keep them too)."""
+    import sys
+
+    if line := dropped_summary(rec):
+        print(f"egobench {verb}: note: {line}", file=sys.stderr)
 
 
 def _camera_maps(folder: Path, tf: TransformsFile, H: int, W: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -178,7 +178,8 @@ def _number(entry: dict, key: str, where: str, integer: bool = False, positive: 
     if positive and v <= 0:
         raise ValueError(f"{where}: field {key!r} must be > 0, got {v!r}")
     if (at_most is not None and v > at_most) or (at_least is not None and v < at_least):
-        raise ValueError(f"{where}: field {key!r} = {v!r} is implausible (expected {at_least or 0:g} to {at_most:g})")
+        low, high = at_least if at_least is not None else 0, at_most if at_most is not None else "any"
+        raise ValueError(f"{where}: field {key!r} = {v!r} is implausible (expected {low} to {high})")
     return v
 
 

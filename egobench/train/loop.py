@@ -25,6 +25,7 @@ from typing import Literal
 import torch
 from torch import Tensor
 
+from egobench.data.reader import say_dropped
 from egobench.data.recording import Recording
 from egobench.methods import MethodSpec, get_method
 from egobench.optim import GAUSSIAN_PARAMS
@@ -232,7 +233,7 @@ def train(recording_dir, method: str, config: TrainConfig, out_dir, *, resume: b
     spec = get_method(method)
     ckpt_path = Path(out_dir) / "checkpoint.pt"
     data = prepare_data(_recording_for(recording_dir, spec), spec, config, progress=progress)
-    _say_dropped(data.recording, "train")
+    say_dropped(data.recording, "train")
     device = torch.device(config.device)
     state = new_state(data, config, device)
     ctx = step_context(data, config, device)
@@ -256,15 +257,6 @@ def train(recording_dir, method: str, config: TrainConfig, out_dir, *, resume: b
     state.iteration = max(end_it, start_it)
     write_checkpoint(ckpt_path, _checkpoint_state(state, method, config, data, device))
     return _result(state, data, config, method, Path(out_dir), backend)
-
-
-def _say_dropped(recording: Recording, verb: str) -> None:
-    """Name the frames the reader dropped on the console (train.json and eval.json record them too)."""
-    from egobench.data.reader import dropped_summary
-
-    line = dropped_summary(recording)
-    if line:
-        print(f"egobench {verb}: note: {line}", file=sys.stderr)
 
 
 def _drop_stale_records(out_dir: Path) -> None:
