@@ -1,0 +1,95 @@
+"""Held-out coverage: how much of each held-out frame some training frame saw, from the ground-truth depth.
+
+A held-out frame tests novel-view synthesis only where the training frames saw its surfaces. In the
+paper's 90 deg view at 10 fps the neighbours of every 8th frame overlap it almost entirely; in a narrow
+view during a fast head turn they may not overlap it at all, and the frame then measures what a model
+invents for surfaces nobody photographed, the same for every method (issue 31). This needs no training:
+each sampled pixel of a held-out frame is lifted to 3D with its ground-truth depth and counted as seen
+when it projects inside the valid area of a training frame whose own ground-truth depth there agrees
+(the surface is not occluded in that frame).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from egobench.data.recording import Frame, Recording
+
+#: Relative depth agreement under which a projected point counts as the surface the training frame saw.
+DEPTH_TOLERANCE = 0.05
+#: Pixel stride of the sampled grid in the held-out frame.
+STRIDE_PX = 4
+
+
+def _gt_depth(recording: Recording, frame: Frame) -> np.ndarray:
+    """[H, W] float64 ground-truth z (metres, 0 = none) of a frame in the rectified online camera."""
+    path = Path(recording.ground_truth) / "depth" / f"{frame.index:05d}.npy"
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: ground-truth depth of frame {frame.index} is missing")
+    depth = np.load(path, allow_pickle=False).astype(np.float64)
+    if depth.shape != (recording.camera.height, recording.camera.width):
+        raise ValueError(f"{path}: expected shape {(recording.camera.height, recording.camera.width)}, got {depth.shape}")
+    return depth
+
+
+def _lift(recording: Recording, frame: Frame, depth: np.ndarray, stride: int) -> np.ndarray:
+    """World points [P, 3] of the valid pixels with depth on a ``stride`` grid of one frame."""
+    cam, mask = recording.camera, recording.mask.numpy().astype(bool)
+    v, u = np.mgrid[stride // 2:cam.height:stride, stride // 2:cam.width:stride]
+    z = depth[v, u]
+    keep = (z > 0) & mask[v, u]
+    u, v, z = u[keep], v[keep], z[keep]
+    Y = np.stack([(u - cam.cx) / cam.fx * z, (v - cam.cy) / cam.fy * z, z], axis=1)
+    T = frame.T_world_camera.numpy()
+    return Y @ T[:3, :3].T + T[:3, 3]
+
+
+def _seen_in(recording: Recording, frame: Frame, depth: np.ndarray, points_world: np.ndarray) -> np.ndarray:
+    """[P] bool: world points inside a frame's valid area whose ground-truth depth there agrees."""
+    cam, mask = recording.camera, recording.mask.numpy().astype(bool)
+    T = frame.T_world_camera.numpy()
+    Y = (points_world - T[:3, 3]) @ T[:3, :3]
+    z = Y[:, 2]
+    front = z > 1e-6
+    zs = np.where(front, z, 1.0)
+    u = np.rint(cam.fx * Y[:, 0] / zs + cam.cx).astype(np.int64)  # pixel centres at integer (u, v)
+    v = np.rint(cam.fy * Y[:, 1] / zs + cam.cy).astype(np.int64)
+    inside = front & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+    seen = np.zeros(len(points_world), bool)
+    ui, vi = u[inside], v[inside]
+    d = depth[vi, ui]
+    seen[inside] = mask[vi, ui] & (d > 0) & (np.abs(d - z[inside]) <= DEPTH_TOLERANCE * z[inside])
+    return seen
+
+
+def heldout_coverage(recording: Recording, stride: int = STRIDE_PX) -> dict[int, float]:
+    """{held-out frame index: fraction of its valid ground-truth pixels (``stride`` grid) that at least one
+    training frame saw}. Needs the recording's ground truth (simulated recordings)."""
+    if recording.ground_truth is None:
+        raise ValueError(f"{recording.root}: held-out coverage needs ground-truth depth (a simulated recording)")
+    train = [(f, _gt_depth(recording, f)) for f in recording.train_frames]
+    out: dict[int, float] = {}
+    for f in recording.test_frames:
+        pts = _lift(recording, f, _gt_depth(recording, f), stride)
+        if len(pts) == 0:
+            out[f.index] = 0.0
+            continue
+        seen = np.zeros(len(pts), bool)
+        for g, depth in train:
+            seen |= _seen_in(recording, g, depth, pts)
+        out[f.index] = float(seen.mean())
+    return out
+
+
+def covered_test_frames(recording: Recording, min_coverage: float) -> tuple[list[Frame], dict[int, float]]:
+    """(held-out frames with coverage >= ``min_coverage``, every held-out frame's coverage); with
+    ``min_coverage`` 0 every held-out frame (the paper's rule) and no ground truth needed."""
+    if not min_coverage > 0:
+        return list(recording.test_frames), {}
+    cov = heldout_coverage(recording)
+    return [f for f in recording.test_frames if cov[f.index] >= min_coverage], cov
+
+
+__all__ = ["heldout_coverage", "covered_test_frames", "DEPTH_TOLERANCE", "STRIDE_PX"]

@@ -1,0 +1,72 @@
+"""Held-out coverage (egobench.data.coverage): a held-out frame is covered where a training frame saw
+its surfaces; checked against poses whose answer is known, and against an independent dense count."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from egobench.data.coverage import _gt_depth, _lift, _seen_in, covered_test_frames, heldout_coverage
+from egobench.data.reader import load_recording
+from tests.helpers import small_recording
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory):
+    path = small_recording(tmp_path_factory.mktemp("cov") / "rec", "indoor", 5, n_frames=17, size=32)
+    return load_recording(path, "online")
+
+
+def _with_pose(rec, index: int, T: torch.Tensor):
+    frames = [dataclasses.replace(f, T_world_camera=T) if f.index == index else f for f in rec.frames]
+    return dataclasses.replace(rec, frames=frames)
+
+
+def test_a_frame_sees_itself_and_nothing_behind_it(recording):
+    f = recording.test_frames[0]
+    depth = _gt_depth(recording, f)
+    pts = _lift(recording, f, depth, 2)
+    assert len(pts) > 100
+    assert _seen_in(recording, f, depth, pts).mean() > 0.98  # its own surfaces, its own depth
+    turned = f.T_world_camera.clone()
+    turned[:3, :3] = turned[:3, :3] @ torch.diag(torch.tensor([-1.0, 1.0, -1.0], dtype=turned.dtype))  # 180 deg yaw
+    assert not _seen_in(recording, dataclasses.replace(f, T_world_camera=turned), depth, pts).any()
+
+
+def test_coverage_is_one_when_a_training_frame_shares_the_pose_and_less_when_it_turns_away(recording, monkeypatch):
+    import egobench.data.coverage as cov
+
+    test = recording.test_frames[1]  # frame 8: its neighbours 7 and 9 are training frames
+    same = _with_pose(recording, 7, test.T_world_camera.clone())
+    base = cov._gt_depth  # frame 7 now stands where 8 does; give it 8's ground-truth depth too
+    monkeypatch.setattr(cov, "_gt_depth", lambda rec, f: base(rec, test) if f.index == 7 else base(rec, f))
+    assert heldout_coverage(same)[test.index] > 0.98
+    monkeypatch.setattr(cov, "_gt_depth", base)
+    away = test.T_world_camera.clone()
+    away[:3, :3] = away[:3, :3] @ torch.diag(torch.tensor([-1.0, 1.0, -1.0], dtype=away.dtype))
+    # the held-out frame turned away: its surfaces (from its own depth, lifted with the turned pose)
+    # lie behind where it looks, in no training frame's view that the original depth agrees with
+    lone = _with_pose(recording, test.index, away)
+    assert heldout_coverage(lone)[test.index] < heldout_coverage(recording)[test.index]
+
+
+def test_coverage_matches_a_dense_reference_and_selects_frames(recording):
+    cov = heldout_coverage(recording, stride=1)
+    assert set(cov) == {f.index for f in recording.test_frames}
+    f = recording.test_frames[0]
+    pts = _lift(recording, f, _gt_depth(recording, f), 1)
+    seen = np.zeros(len(pts), bool)
+    for g in recording.train_frames:  # the same rule, one training frame at a time, no shortcuts
+        seen |= _seen_in(recording, g, _gt_depth(recording, g), pts)
+    assert cov[f.index] == pytest.approx(seen.mean(), abs=1e-12)
+    frames, all_cov = covered_test_frames(recording, 1.01)
+    assert frames == [] and all_cov.keys() == cov.keys()
+    assert covered_test_frames(recording, 0.0) == (list(recording.test_frames), {})
+
+
+def test_coverage_needs_ground_truth(recording):
+    with pytest.raises(ValueError, match="ground-truth depth"):
+        heldout_coverage(dataclasses.replace(recording, ground_truth=None))
