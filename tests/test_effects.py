@@ -89,3 +89,84 @@ def test_sample_hidden_effects_is_seeded_and_order_independent():
     c = sample_hidden_effects(["response", "noise", "white_balance"], seed=4)
     assert a == b and a != c
     assert all(EFFECTS[k].in_range(v) for k, v in a.items())
+
+
+# ------------------------------------------------------------------------------------------------
+# One home per effect: every user of an effect calls its hooks (issue 33)
+
+
+def _effect_name_branches(root) -> list[str]:
+    """`x == "<effect name>"` / `!=` comparisons in egobench/ outside egobench/effects/ (ast scan)."""
+    import ast
+    from pathlib import Path
+
+    found = []
+    for path in sorted(Path(root).rglob("*.py")):
+        if "effects" in path.relative_to(root).parts[:1]:
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Compare) and any(isinstance(op, (ast.Eq, ast.NotEq)) for op in node.ops):
+                for side in [node.left, *node.comparators]:
+                    if isinstance(side, ast.Constant) and side.value in EFFECTS:
+                        found.append(f"{path.relative_to(root)}:{node.lineno} == {side.value!r}")
+    return found
+
+
+def test_no_branch_on_an_effect_name_outside_its_own_file():
+    from pathlib import Path
+
+    import egobench
+
+    root = Path(egobench.__file__).parent
+    assert _effect_name_branches(root) == []
+    # the scan finds what it looks for: a planted branch is reported
+    probe = root.parent / "tests" / "fixtures" / "effect_branch_probe"
+    assert _effect_name_branches(probe) == ["probe.py:2 == 'vignette'"]
+
+
+def test_the_hooks_carry_what_the_sweeps_and_the_simulator_did_by_name():
+    e = EFFECTS
+    # the simulator: each effect's hidden value becomes its SimConfig fields
+    assert e["readout"].sim_overrides(0.3) == {"readout_scale": 1.3}
+    assert e["exposure_metadata"].sim_overrides(-0.2, 0.5) == {"exposure_metadata_error": -0.2,
+                                                                "exposure_metadata_fraction": 0.5}
+    assert e["white_balance"].sim_overrides([1.1, 1.0, 0.9]) == {"white_balance": (1.1, 1.0, 0.9)}
+    # sweep magnitudes: fractions of the range's low end, its middle and its top; log-deviations for the
+    # multiplicative parameters (noise: factor 0.5-2 around 1 -> |log 0.5| = log 2 both ways)
+    assert e["vignette"].sweep_magnitudes((0.5, 1.0)) == pytest.approx([0.1, 0.2, 0.35, 0.5])
+    assert e["noise"].sweep_magnitudes((0.5, 1.0)) == pytest.approx([0.346574, 0.693147])
+    # hidden values: the same sign draw for every effect; response is multiplicative in the synthetic
+    # sweep and additive in the trained one
+    draws = {name: eff.sweep_value(0.2, np.random.default_rng(5)) for name, eff in e.items()}
+    sign = 1.0 if np.random.default_rng(5).random() < 0.5 else -1.0
+    assert draws["readout"] == sign * 0.2 and draws["vignette"] == 0.2
+    assert draws["response"] == pytest.approx(2.2 * np.exp(sign * 0.2))
+    assert e["response"].trained_value(0.2, np.random.default_rng(5)) == pytest.approx(2.2 + sign * 0.2)
+    wb = e["white_balance"].trained_value(0.1, np.random.default_rng(5))
+    assert wb[1] == 1.0 and wb[0] * wb[2] == pytest.approx(1.0)
+    # parameter errors, in each effect's unit; a missing estimate is None, not an exception
+    assert e["exposure_blur"].parameter_error(0.008, {"exposure_s": 0.006}) == pytest.approx(0.25)
+    assert e["white_balance"].parameter_error((1.2, 1.0, 0.8), {"channel_gains_relative_to_green": [1.2, 1, 0.88]}) \
+        == pytest.approx(0.1)
+    assert e["distortion"].parameter_error(0.01, {}) is None
+    assert {n: x.error_unit for n, x in e.items()} == {
+        "readout": "fraction", "time_offset": "s", "exposure_blur": "relative", "vignette": "fraction",
+        "response": "gamma", "white_balance": "relative", "exposure_metadata": "fraction", "noise": "relative",
+        "distortion": "relative"}
+
+
+def test_synthetic_injection_hooks():
+    R = np.linspace(0.0, 1.0, 5)[:, None] * np.ones((5, 3))
+    t_model = (R - 0.5) * 0.01
+    t_true = EFFECTS["readout"].synth_row_times(t_model, R, 0.5, 0.01)
+    np.testing.assert_allclose(t_true[-1] - t_true[0], 0.015)  # the readout is 1.5 times longer
+    np.testing.assert_allclose(t_true[0], t_model[0])  # from the same read start
+    np.testing.assert_allclose(EFFECTS["time_offset"].synth_row_times(t_model, R, 0.002, 0.01), t_model + 0.002)
+    np.testing.assert_array_equal(EFFECTS["vignette"].synth_row_times(t_model, R, 0.3, 0.01), t_model)
+    k = np.ones(24)
+    affected = EFFECTS["exposure_metadata"].synth_exposure(k, np.random.default_rng(0), 0.2, 0.25)
+    assert 8 in affected and len(affected) == 6 and np.allclose(k[affected], 1.2) and (k == 1.2).sum() == 6
+    assert EFFECTS["noise"].synth_exposure(np.ones(24), np.random.default_rng(0), 0.2, 0.25) == []
+    # exposure blur averages the image over the exposure: a linear-in-time image keeps its mean
+    blurred = EFFECTS["exposure_blur"].synth_irradiance(lambda t, d: t[None, :, :, None] * np.ones(3), t_model, None, 0.008)
+    np.testing.assert_allclose(blurred[0, :, :, 0], t_model, atol=1e-15)

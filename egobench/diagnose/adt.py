@@ -18,10 +18,11 @@ import numpy as np
 
 from egobench.diagnose.core import DiagnosisConfig, diagnose_residuals
 from egobench.diagnose.signatures import DiagnosisContext, decode, encode
+from egobench.effects import EFFECTS
 
 RGB_STREAM = "214-1"
 #: Causes testable on the ADT pair (see module docstring).
-ADT_CAUSES = ("vignette", "response", "white_balance", "exposure_metadata", "noise")
+ADT_CAUSES = tuple(name for name, e in EFFECTS.items() if e.on_adt)
 
 
 def read_rgb_frames(vrs_path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict]:

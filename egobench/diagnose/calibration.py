@@ -34,16 +34,12 @@ import scipy.stats as sps
 
 from egobench.diagnose.estimators import BLOCK_PX, CauseResult, PhotometricFit, ResidualData
 from egobench.diagnose.signatures import frame_t_test, robust_sd, weighted_lstsq
+from egobench.effects import EFFECTS
+from egobench.effects.exposure_metadata import FLAG_MIN_LOG, FLAG_SIGMAS
 
 #: Offsets of the wrong centres of the vignette placebo, as fractions of (width, height).
 PLACEBO_CENTRE_OFFSETS = ((0.25, 0.0), (-0.25, 0.0), (0.0, 0.25), (0.0, -0.25),
                           (0.25, 0.25), (-0.25, 0.25), (0.25, -0.25), (-0.25, -0.25))
-#: Exposure metadata on a trained run: a frame is flagged when both halves deviate beyond this many
-#: robust standard deviations of the model's frame-to-frame error, and beyond FLAG_MIN_LOG. The floor
-#: is the largest single-frame scale that model error alone gave on the trained sweeps' cases without
-#: a metadata error (outdoor, 64 px, 800 iterations: 14 % on one frame of one null, all others <= 11 %;
-#: docs/diagnosis.md): single frames of a trained model can render that much too dark or bright.
-FLAG_SIGMAS, FLAG_MIN_LOG = 4.0, math.log(1.15)
 #: Power of the minimum detectable effect (probability of detecting an effect of that size).
 MDE_POWER = 0.8
 
@@ -292,18 +288,17 @@ def resolution_matched(data: ResidualData, sigma: float) -> ResidualData:
 
 
 #: Why white balance is not tested on a trained run.
-WB_UNTESTABLE = ("not identifiable from a trained run: a constant per-channel gain on every frame is absorbed "
-                 "exactly into the scene colours the model learns (render = k x shading x colour)")
+WB_UNTESTABLE = EFFECTS["white_balance"].trained_run_untestable
 #: Why sensor noise is not tested on a trained run.
-NOISE_UNTESTABLE = ("not identifiable from a trained run: the model's own high-frequency error adds residual "
-                    "variance at every signal level, exactly as a stronger sensor noise would")
+NOISE_UNTESTABLE = EFFECTS["noise"].trained_run_untestable
 
 
-def mark_noise_untestable(results: list[CauseResult]) -> None:
-    """Mark the noise cause of a trained run's round not testable (in place; NOISE_UNTESTABLE)."""
+def mark_untestable_on_trained_run(results: list[CauseResult]) -> None:
+    """Mark the causes a trained run cannot show not testable (in place; `Effect.trained_run_untestable`)."""
     for r in results:
-        if r.name == "noise" and r.testable:
-            r.testable, r.reason = False, NOISE_UNTESTABLE
+        reason = EFFECTS[r.name].trained_run_untestable if r.name in EFFECTS else None
+        if reason is not None and r.testable:
+            r.testable, r.reason = False, reason
 
 
 #: Smallest spread (std of log exposure x gain across frames) for the trained-run response test.
@@ -445,7 +440,7 @@ def calibrate_geometric(data: ResidualData, results: list[CauseResult], seed: in
     from egobench.diagnose.estimators import CAUSES
 
     for r in results:
-        if r.name == "distortion":
+        if EFFECTS[r.name].trained_placebo == "radial_centres":
             distortion_placebo(data, r)
     v = data.ctx.pixel_velocity_px_s
     if v is None or data.frames.size < 4:
@@ -459,7 +454,7 @@ def calibrate_geometric(data: ResidualData, results: list[CauseResult], seed: in
                 perms.append(perm)
                 break
     for r in results:
-        if not r.testable or r.name not in ("time_offset", "readout", "exposure_blur"):
+        if not r.testable or EFFECTS[r.name].trained_placebo != "velocity_permutation":
             continue
         cause = CAUSES[r.name]
         j, one_sided = cause.tested_index, cause.one_sided
@@ -483,7 +478,7 @@ def calibrate_geometric(data: ResidualData, results: list[CauseResult], seed: in
                                    "placebo_t_sd": float(tp.std(ddof=1)), "placebo": "velocity fields permuted across frames"}
         r.params["p_value_frames"] = r.p_value
         r.p_value = max(r.p_value, p)
-        if r.name == "exposure_blur":
+        if EFFECTS[r.name].tested_given_frame_shifts:
             blur_given_frame_shifts(data, r)
 
 
@@ -563,21 +558,7 @@ def smallest_testable(se: dict, ctx, alpha: float, m: int) -> dict:
         if not (s is not None and math.isfinite(s) and s > 0):
             continue
         d = _mde_multiplier(alpha, m, df) * s
-        if name == "vignette":
-            out[name] = {"corner_attenuation": 1.0 - math.exp(-d)}
-        elif name == "white_balance":
-            out[name] = {"channel_gain_relative": math.exp(d) - 1.0}
-        elif name == "response":
-            g = ctx.gamma_assumed
-            out[name] = {"gamma_deviation": max(abs(g / (1.0 - d) - g) if d < 1 else math.inf, abs(g / (1.0 + d) - g))}
-        elif name == "exposure_metadata":
-            out[name] = {"exposure_relative_error": math.exp(max(FLAG_SIGMAS * s, FLAG_MIN_LOG)) - 1.0}
-        elif name == "time_offset":
-            out[name] = {"time_offset_error_s": d}
-        elif name == "readout":
-            out[name] = {"readout_relative_error": d / ctx.readout_s if ctx.readout_s > 0 else math.inf}
-        elif name == "exposure_blur":
-            out[name] = {"exposure_s": math.sqrt(24.0 * d)}
-        elif name == "distortion":
-            out[name] = {"k0_error": d}
+        smallest = EFFECTS[name].smallest_testable(d, s, ctx) if name in EFFECTS else None
+        if smallest is not None:
+            out[name] = smallest
     return out

@@ -25,9 +25,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from egobench.diagnose.calibration import (calibrate_geometric, calibrate_photometric, geometric_standard_errors,
-                                           mark_noise_untestable)
+                                           mark_untestable_on_trained_run)
 from egobench.diagnose.estimators import CAUSES, CauseResult, Noise, ResidualData
 from egobench.diagnose.signatures import LEVEL, DiagnosisContext, box3, checkerboard, erode, holm, psnr
+from egobench.effects import EFFECTS
 
 NO_DISCREPANCY = "no significant discrepancy"
 #: Verdict of a trained run whose residual is mostly the model's own error and names no cause.
@@ -224,7 +225,7 @@ def _adjust_and_rank(testable: list[CauseResult], cfg: DiagnosisConfig) -> None:
         r.p_adjusted = p_adj
         r.effect_floor = cfg.effect_floor
         r.significant = p_adj < cfg.alpha and r.effect_rms >= cfg.effect_floor
-        if r.name == "noise" and "noise_std_factor" in r.params:
+        if EFFECTS[r.name].variance_model and "noise_std_factor" in r.params:
             r.significant &= _noise_factor_beyond_floor(r, cfg.noise_factor_floor)
         r.score = r.effect_rms * min(1.0, -math.log10(max(p_adj, 1e-300)) / 10.0) if r.significant else 0.0
     # Nested causes: when a cause's own extra term is significant GIVEN the cause it contains
@@ -242,10 +243,10 @@ def _name_noise(testable: list[CauseResult], rnd: int, measured: np.ndarray, cur
                 ctx: DiagnosisContext, split: _Split, cfg: DiagnosisConfig) -> NamedCause | None:
     """The noise cause when it is significant AND predicts held-out residuals better (NLL gain
     above the floor); otherwise None (a significant noise that does not is marked not significant)."""
-    noise = next((r for r in testable if r.name == "noise" and r.significant), None)
+    noise = next((r for r in testable if EFFECTS[r.name].variance_model and r.significant), None)
     if noise is None:
         return None
-    noise_cause: Noise = CAUSES["noise"]  # type: ignore[assignment]
+    noise_cause: Noise = CAUSES[noise.name]  # type: ignore[assignment]
     gain_nll = _noise_nll_gain(noise_cause, noise, measured, current, ctx, split.eval_idx, split.eval_mask)
     noise.params["held_out_nll_gain_nats_per_px"] = gain_nll
     if gain_nll > cfg.noise_nll_gain_floor:
@@ -385,7 +386,7 @@ def diagnose_residuals(
         if cfg.trained_run:
             se = calibrate_photometric(data, testable, int(cfg.placebo_draws), int(cfg.placebo_seed) + rnd)
             calibrate_geometric(data, testable, int(cfg.placebo_seed) + rnd)
-            mark_noise_untestable(testable)
+            mark_untestable_on_trained_run(testable)
             testable = [r for r in testable if r.testable]  # (white balance and noise are not identifiable on a trained run)
             if rnd == 1:
                 round1_se = {**se, **geometric_standard_errors(testable)}

@@ -10,6 +10,7 @@ import numpy as np
 
 from egobench.diagnose.core import Diagnosis
 from egobench.diagnose.estimators import CauseResult
+from egobench.effects import EFFECTS
 from egobench.io_utils import atomic_path, write_json
 
 LEVELS = 255.0
@@ -78,38 +79,8 @@ def signature_plot(path: Path, result: CauseResult) -> None:
     if not result.testable:
         ax.text(0.5, 0.5, f"not testable:\n{result.reason}", ha="center", va="center", fontsize=8)
         ax.axis("off")
-    elif result.name == "vignette":
-        ax.plot(p["binned"]["x"], p["binned"]["y"], "o", label="data (binned)")
-        ax.plot(p["curve_r"], p["curve"], "-", label="fit")
-        ax.set_xlabel(p["xlabel"]), ax.set_ylabel(p["ylabel"]), ax.legend(fontsize=7)
-    elif result.name == "response":
-        x = np.asarray(p["binned"]["x"])
-        ax.plot(x, p["binned"]["y"], "o", label="data (binned)")
-        ax.plot(x, p["slope"] * (x - p["x0"]), "-", label="fit")
-        ax.set_xlabel(p["xlabel"]), ax.set_ylabel(p["ylabel"]), ax.legend(fontsize=7)
-    elif result.name == "white_balance":
-        ax.bar(["R", "G", "B"], p["channel_log_ratio"], color=["tab:red", "tab:green", "tab:blue"])
-        ax.set_ylabel(p["ylabel"])
-    elif result.name == "exposure_metadata":
-        ax.plot(p["frame"], p["scale"], "o-")
-        flagged = [i for i, f in enumerate(p["frame"]) if f in set(p["flagged"])]
-        ax.plot([p["frame"][i] for i in flagged], [p["scale"][i] for i in flagged], "rs", label="flagged")
-        ax.set_xlabel(p["xlabel"]), ax.set_ylabel(p["ylabel"]), ax.legend(fontsize=7)
-    elif result.name == "noise":
-        ax.loglog(p["signal"], p["observed_var"], "o", label="observed")
-        ax.loglog(p["signal"], p["assumed_var"], "-", label="assumed")
-        ax.loglog(p["signal"], p["fitted_var"], "--", label="fitted")
-        ax.set_xlabel(p["xlabel"]), ax.set_ylabel(p["ylabel"]), ax.legend(fontsize=7)
-    elif result.name == "readout" and "row_time_ratio" in p:
-        r = np.asarray(p["row_time_ratio"])
-        ax.plot(r, np.asarray(p["time_shift_s"]) * 1e3, "o", label="per row band")
-        a, b = p["fit_a_b"]
-        ax.plot(r, (a + b * (r - 0.5)) * 1e3, "-", label="fit a + b (R - 1/2)")
-        ax.set_xlabel("row time ratio R(u)"), ax.set_ylabel("time shift (ms)"), ax.legend(fontsize=7)
-    elif result.name == "distortion" and "radius_px" in p:
-        ax.plot(p["radius_px"], p["displacement_px"], "o", label="per radial band")
-        ax.plot(p["radius_px"], p["fit_displacement_px"], "-", label="fit")
-        ax.set_xlabel("radius (px)"), ax.set_ylabel("radial displacement (px)"), ax.legend(fontsize=7)
+    elif result.name in EFFECTS and EFFECTS[result.name].plot_signature(ax, p):
+        pass
     else:  # time offset, blur: per-frame estimates against image speed
         ax.plot(p.get("speed_px_s", []), p.get("per_frame", []), "o", label="per frame")
         ax.axhline(p.get("pooled", 0.0), color="k", lw=1, label="pooled")

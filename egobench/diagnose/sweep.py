@@ -9,7 +9,6 @@ the false-alarm rate on null cases.
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,64 +37,21 @@ class SweepConfig:
 
 def magnitudes(effect: str) -> list[float]:
     """Magnitudes of the sweep for one effect, in the effect's parameter units (deviation from nominal)."""
-    e = EFFECTS[effect]
-    lo, hi = e.plausible_range
-    if effect in ("response", "noise", "white_balance"):  # multiplicative around the nominal value
-        nominal = e.nominal
-        lo_dev = min(abs(math.log(lo / nominal)), abs(math.log(hi / nominal)))
-        hi_dev = max(abs(math.log(lo / nominal)), abs(math.log(hi / nominal)))
-        devs = [f * lo_dev if lo_dev > 0 else f * hi_dev for f in FRACTIONS_OF_LO] + [0.5 * (lo_dev + hi_dev), hi_dev]
-        return sorted(set(round(d, 6) for d in devs if d > 0))
-    return [f * lo for f in FRACTIONS_OF_LO] + [0.5 * (lo + hi), hi]
+    return EFFECTS[effect].sweep_magnitudes(FRACTIONS_OF_LO)
 
 
 def hidden_value(effect: str, magnitude: float, rng: np.random.Generator):
     """A hidden value of ``magnitude`` with a random sign/direction where the effect allows one."""
-    e = EFFECTS[effect]
-    sign = 1.0 if rng.random() < 0.5 else -1.0
-    if effect == "response":
-        return e.nominal * math.exp(sign * magnitude)
-    if effect == "noise":
-        return e.nominal * math.exp(sign * magnitude)
-    if effect == "white_balance":
-        direction = rng.normal(size=3)
-        direction /= np.max(np.abs(direction))
-        return tuple(float(math.exp(magnitude * d)) for d in direction)
-    if e.sampling == "signed":
-        return sign * magnitude
-    return magnitude
+    return EFFECTS[effect].sweep_value(magnitude, rng)
 
 
 def parameter_error(effect: str, value, params: dict) -> float | None:
     """Absolute error of the estimate in the parameter's unit (relative for blur, noise, distortion, WB)."""
-    try:
-        if effect == "readout":
-            return abs(params["readout_relative_error"] - value)
-        if effect == "time_offset":
-            return abs(params["time_offset_error_s"] - value)
-        if effect == "exposure_blur":
-            return abs(params["exposure_s"] / value - 1.0)
-        if effect == "vignette":
-            return abs(params["corner_attenuation"] - value)
-        if effect == "response":
-            return abs(params["gamma"] - value)
-        if effect == "white_balance":
-            rel = np.asarray(value) / value[1]
-            return float(np.max(np.abs(np.asarray(params["channel_gains_relative_to_green"]) / rel - 1)))
-        if effect == "exposure_metadata":
-            return abs(params["median_exposure_relative_error"] - value)
-        if effect == "noise":
-            return abs(params["noise_std_factor"] / value - 1.0)
-        if effect == "distortion":
-            return abs(params["k0_error"] / value - 1.0)
-    except (KeyError, TypeError, ZeroDivisionError):
-        return None
-    return None
+    return EFFECTS[effect].parameter_error(value, params) if effect in EFFECTS else None
 
 
-ERROR_UNITS = {"readout": "fraction", "time_offset": "s", "exposure_blur": "relative", "vignette": "fraction",
-               "response": "gamma", "white_balance": "relative", "exposure_metadata": "fraction",
-               "noise": "relative", "distortion": "relative"}
+#: Unit of each effect's parameter error.
+ERROR_UNITS = {name: e.error_unit for name, e in EFFECTS.items()}
 
 
 def run_sweep(out_dir: str | Path, config: SweepConfig | None = None, diag: DiagnosisConfig | None = None,
@@ -117,7 +73,8 @@ def run_sweep(out_dir: str | Path, config: SweepConfig | None = None, diag: Diag
     for effect, magnitude, seed in iterator:
         rng = np.random.default_rng([seed, 31337, len(rows)])
         value = None if effect is None else hidden_value(effect, magnitude, rng)
-        kw = {"speed_px_s": (250.0, 600.0)} if effect == "exposure_blur" else {}
+        speed = None if effect is None else EFFECTS[effect].synth_speed_px_s
+        kw = {} if speed is None else {"speed_px_s": speed}
         case = make_case(effect, value, seed=1000 + seed, size=cfg.size, n_frames=cfg.n_frames, **kw)
         t0 = time.perf_counter()
         d = diagnose_residuals(case.measured, case.predicted, case.context, diag)

@@ -76,44 +76,29 @@ def _image_motion(rng: np.random.Generator, rel: np.ndarray, F: int,
 def _exposure_scales(rng: np.random.Generator, F: int, effect: str | None, value,
                      metadata_fraction: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int]]:
     """(true exposure x gain scale [F], analog gain [F], recorded scale [F], frames whose metadata is
-    wrong): with the exposure_metadata effect the recorded scale of those frames is x (1 + value)."""
+    wrong): the hidden effect may change the recorded scales (`Effect.synth_exposure`)."""
     k_true = rng.uniform(0.7, 1.4, F)
     gain = rng.uniform(1.0, 4.0, F)
     k_recorded = k_true.copy()
-    affected: list[int] = []
-    if effect == "exposure_metadata":
-        n_aff = max(2, int(round(metadata_fraction * F)))
-        pool = [f for f in range(F) if f != 8]
-        affected = sorted([8] + rng.choice(pool, n_aff - 1, replace=False).tolist()) if F > 8 else sorted(
-            rng.choice(F, n_aff, replace=False).tolist())
-        k_recorded[affected] *= 1.0 + float(value)
+    affected = [] if effect is None else EFFECTS[effect].synth_exposure(k_recorded, rng, value, metadata_fraction)
     return k_true, gain, k_recorded, affected
 
 
 def _row_times(R: np.ndarray, effect: str | None, value) -> tuple[np.ndarray, np.ndarray]:
     """Row times (model [H, W], true [H, W]) in s from the frame's pose time, R [H, W] the row time ratio."""
     t_model = (R - 0.5) * READOUT_S  # centre row at the frame's pose time
-    t_true = t_model.copy()
-    if effect == "readout":  # read start is right, the readout is (1 + e) times longer
-        t_true = -0.5 * READOUT_S + R * READOUT_S * (1.0 + float(value))
-    if effect == "time_offset":
-        t_true = t_model + float(value)
+    t_true = t_model.copy() if effect is None else EFFECTS[effect].synth_row_times(t_model, R, value, READOUT_S)
     return t_model, t_true
 
 
 def _photometric_truth(effect: str | None, value, H: int, W: int, gamma_assumed: float):
     """(modelled vignette [H, W], true vignette [H, W], true white balance [3], true noise, true gamma)."""
     vig_model = radial_vignette((H, W), MODELLED_VIGNETTE).numpy().astype(np.float64)
-    vig_true = vig_model.copy()
-    if effect == "vignette":
-        vig_true = vig_true * radial_vignette((H, W), float(value), power=4.0).numpy()
-    wb = np.ones(3)
-    if effect == "white_balance":
-        wb = np.asarray(value, dtype=np.float64)
-    noise = PoissonGaussianNoise(FULL_WELL_E, READ_NOISE_E)
-    noise_true = noise.scaled(float(value)) if effect == "noise" else noise
-    gamma_true = float(value) if effect == "response" else gamma_assumed
-    return vig_model, vig_true, wb, noise_true, gamma_true
+    truth = {"vignette": vig_model.copy(), "white_balance": np.ones(3),
+             "noise": PoissonGaussianNoise(FULL_WELL_E, READ_NOISE_E), "gamma": gamma_assumed}
+    if effect is not None:
+        EFFECTS[effect].synth_photometric(truth, value, (H, W))
+    return vig_model, truth["vignette"], truth["white_balance"], truth["noise"], truth["gamma"]
 
 
 def make_case(
@@ -146,21 +131,18 @@ def make_case(
     # exposure * gain normaliser the model uses (recorded), true scale, gains for noise
     k_true, gain, k_recorded, affected = _exposure_scales(rng, F, effect, value, metadata_fraction)
     t_model, t_true = _row_times(R, effect, value)
-    disp_true = np.zeros((H, W, 2))
-    if effect == "distortion":
+    def radial_field(k0_change: float) -> np.ndarray:  # [H, W, 2] px: the displacement of a change of k0
         radius, direction, _ = radial_coordinates(H, W, (cx, cy))
-        disp_true = float(value) * distortion_profile(radius, focal, None)[..., None] * direction
+        return k0_change * distortion_profile(radius, focal, None)[..., None] * direction
+
+    disp = None if effect is None else EFFECTS[effect].synth_displacement(value, radial_field)
+    disp_true = np.zeros((H, W, 2)) if disp is None else disp
 
     def image(t: np.ndarray, extra_disp: np.ndarray) -> np.ndarray:  # [F, H, W, 3] linear texture
         x = (np.stack([u_img, v_img], -1) - extra_disp)[None] + offsets[:, None, None, :] - vel * t[None, :, :, None]
         return tex(x)
 
-    if effect == "exposure_blur":
-        n_sub = 16
-        taus = ((np.arange(n_sub) + 0.5) / n_sub - 0.5) * float(value)
-        irr_true = np.mean([image(t_true + tau, disp_true) for tau in taus], axis=0)
-    else:
-        irr_true = image(t_true, disp_true)
+    irr_true = image(t_true, disp_true) if effect is None else EFFECTS[effect].synth_irradiance(image, t_true, disp_true, value)
     irr_model = image(t_model, np.zeros((H, W, 2)))
     vig_model, vig_true, wb, noise_true, gamma_true = _photometric_truth(effect, value, H, W, gamma_assumed)
 

@@ -23,17 +23,15 @@ from egobench.diagnose.sweep import ERROR_UNITS, parameter_error
 from egobench.effects import EFFECTS
 from egobench.io_utils import atomic_path, write_json
 
-#: Hidden magnitudes (deviation from nominal, the effect's unit; white balance and response:
-#: see `hidden_value`) at the sizes of issue 15's targets.
-DEFAULT_MAGNITUDES = {"vignette": (0.35,), "response": (0.45,), "white_balance": (0.12,), "exposure_metadata": (0.25,),
-                      "time_offset": (3e-3,), "readout": (0.4,), "exposure_blur": (8e-3,), "distortion": (0.008,),
-                      "noise": (0.5,)}
+#: Hidden magnitudes (deviation from nominal, the effect's unit; white balance and response: see
+#: `Effect.trained_value`) at the sizes of issue 15's targets (each effect's `trained_magnitudes`).
+DEFAULT_MAGNITUDES = {name: e.trained_magnitudes for name, e in EFFECTS.items()}
 #: A case's learned shading is called a vignette above the nulls' mean plus this many standard deviations.
 EXTENSION_SIGMAS = 3.0
 #: Setup fields of a sweep that a diagnosed run's should match (its nulls and retention depend on them).
 SETUP_FIELDS = ("method", "size", "n_frames", "iterations")
 #: Photometric effects (the default set of the sweep).
-PHOTOMETRIC = ("vignette", "response", "white_balance", "exposure_metadata")
+PHOTOMETRIC = tuple(name for name, e in EFFECTS.items() if e.in_trained_sweep)
 
 
 @dataclass
@@ -66,18 +64,8 @@ class TrainedSweepConfig:
 
 def hidden_value(effect: str, magnitude: float, rng: np.random.Generator):
     """A hidden value of ``magnitude`` with a random sign (response: gamma = 2.2 +- magnitude; white
-    balance: R and B gains exp(+-magnitude) in opposite directions, G = 1)."""
-    sign = 1.0 if rng.random() < 0.5 else -1.0
-    e = EFFECTS[effect]
-    if effect == "response":
-        return e.nominal + sign * magnitude
-    if effect == "noise":
-        return math.exp(sign * magnitude)
-    if effect == "white_balance":
-        return (math.exp(sign * magnitude), 1.0, math.exp(-sign * magnitude))
-    if e.sampling == "signed":
-        return sign * magnitude
-    return magnitude
+    balance: R and B gains exp(+-magnitude) in opposite directions, G = 1; `Effect.trained_value`)."""
+    return EFFECTS[effect].trained_value(magnitude, rng)
 
 
 def cases(cfg: TrainedSweepConfig) -> list[dict]:
@@ -112,7 +100,7 @@ def _run_case(case: dict, cfg: TrainedSweepConfig, case_dir: Path, diag: Diagnos
     run = case_dir / "run"
     tc = replace(preset_config("cpu"), max_side=0, device="cpu").scaled_to(cfg.iterations)
     train_once(rec, cfg.method, tc, run)
-    if case["effect"] == "vignette":  # the truth in the diagnosis's parametrisation (set on the case)
+    if case["effect"] is not None and EFFECTS[case["effect"]].hidden_on_raw_sensor:  # the truth as the view sees it
         case["value_in_view"] = vignette_in_view(rec, case["value"])
     if cfg.shading_extension:  # the model extension's learned shading (set on the case)
         from egobench.diagnose.extension import extension_gain
@@ -160,17 +148,13 @@ def vignette_in_view(recording_dir: str | Path, corner_attenuation: float) -> fl
     return float(1.0 - view[v, u])
 
 
-#: Estimate keys that differ from the effect registry's parameter name (egobench.effects).
-_ESTIMATE_KEY = {"exposure_metadata": "median_exposure_relative_error"}
-
-
 def retention(effect: str | None, truth, record: dict | None) -> float | None:
     """How much of a hidden effect survives training: round 1's estimate of it (named or not) over
     the truth, both as deviations from nominal (1: all of it, 0: absorbed, < 0: the wrong sign).
     None for effects without one scalar parameter (white balance) or without an estimate."""
     if effect not in EFFECTS or record is None or not record.get("rounds"):
         return None
-    key, nominal = _ESTIMATE_KEY.get(effect, EFFECTS[effect].parameter), EFFECTS[effect].nominal
+    key, nominal = EFFECTS[effect].estimate_key or EFFECTS[effect].parameter, EFFECTS[effect].nominal
     fit = next((r for r in record["rounds"][0] if r["name"] == effect), None)
     est = None if fit is None else fit.get("params", {}).get(key)
     if not isinstance(est, (int, float)) or not isinstance(truth, (int, float)) or truth == nominal:
@@ -182,8 +166,8 @@ def log_exposure_spread(record: dict | None) -> float | None:
     """Std of log(exposure x gain) across the fitted frames, from the response test's calibration
     (what a response error on a trained run is tested through); None where the test did not run."""
     rounds = (record or {}).get("rounds") or [[]]
-    fit = next((r for r in rounds[0] if r["name"] == "response"), None)
-    spread = ((fit or {}).get("params") or {}).get("calibration", {}).get("log_exposure_spread")
+    spreads = [((r.get("params") or {}).get("calibration") or {}).get("log_exposure_spread") for r in rounds[0]]
+    spread = next((x for x in spreads if x is not None), None)  # only the response test records one
     return float(spread) if isinstance(spread, (int, float)) else None
 
 
@@ -332,7 +316,7 @@ def _extension_summary(ok) -> dict | None:
             gain = g.extension_gain_db.astype(float)
             e["above_threshold_with_gain"] = float(((learned > thr) & (gain > 0)).mean())
             e["median_gain_db"] = float(gain.median())
-        if effect == "vignette" and "value_in_view" in g and g.value_in_view.notna().all():
+        if EFFECTS[effect].learned_by_shading_extension and "value_in_view" in g and g.value_in_view.notna().all():
             e["median_error"] = float(np.median(np.abs(learned - mean - g.value_in_view.astype(float))))
         out["effects"].append(e)
     return out

@@ -15,6 +15,7 @@ import re
 from dataclasses import dataclass, fields
 from typing import Any, Literal
 
+from egobench.effects import EFFECTS
 from egobench.sim.devices import DEVICES, get_device
 
 SceneKind = Literal["outdoor", "indoor", "object", "quest3"]
@@ -185,14 +186,15 @@ def _parse_field(key: str, value: Any) -> Any:
     flds = _field_types()
     if key not in flds:
         raise ValueError(f"SimConfig: unknown field {key!r}; known fields: {sorted(flds)}")
+    is_tuple = str(flds[key].type).startswith("tuple")  # (per-channel gains)
     if not isinstance(value, str):
-        return tuple(value) if key == "white_balance" and isinstance(value, list) else value
+        return tuple(value) if is_tuple and isinstance(value, list) else value
     default = flds[key].default if flds[key].default is not dataclasses.MISSING else None
     text = value.strip()
     try:
         if text.lower() in ("none", "null"):
             return None
-        if key == "white_balance":
+        if is_tuple:
             parts = [float(x) for x in text.strip("()[] ").split(",")]
             return tuple(parts)
         type_name = str(flds[key].type)
@@ -213,24 +215,12 @@ def _parse_field(key: str, value: Any) -> Any:
     return text
 
 
-#: Effect name (egobench.effects.EFFECTS) -> how its hidden value becomes SimConfig fields.
 def hidden_effect_overrides(name: str, value: Any, affected_fraction: float = 0.25) -> dict[str, Any]:
-    """SimConfig overrides that hide `value` of effect `name` (e.g. from Effect.sample_hidden)."""
-    table = {
-        "readout": lambda v: {"readout_scale": 1.0 + float(v)},  # relative error e: true = stated (1 + e)
-        "time_offset": lambda v: {"time_offset_s": float(v)},
-        "exposure_blur": lambda v: {"exposure_s": float(v)},
-        "vignette": lambda v: {"vignette_strength": float(v)},
-        "response": lambda v: {"response_gamma": float(v)},
-        "white_balance": lambda v: {"white_balance": tuple(float(x) for x in v)},
-        "exposure_metadata": lambda v: {"exposure_metadata_error": float(v),
-                                        "exposure_metadata_fraction": float(affected_fraction)},
-        "noise": lambda v: {"noise_std_factor": float(v)},
-        "distortion": lambda v: {"distortion_k0_delta": float(v)},
-    }
-    if name not in table:
-        raise ValueError(f"hidden effect: unknown name {name!r}; expected one of {sorted(table)}")
-    return table[name](value)
+    """SimConfig overrides that hide `value` of effect `name` (e.g. from Effect.sample_hidden): the
+    effect's own `sim_overrides` (egobench/effects/<name>.py)."""
+    if name not in EFFECTS:
+        raise ValueError(f"hidden effect: unknown name {name!r}; expected one of {sorted(EFFECTS)}")
+    return EFFECTS[name].sim_overrides(value, affected_fraction)
 
 
 # ----------------------------------------------------------------------------- validation steps

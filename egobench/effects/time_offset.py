@@ -1,0 +1,34 @@
+"""Camera-to-device clock offset: the calibrated offset is wrong by some milliseconds."""
+
+from __future__ import annotations
+
+from egobench.effects.base import Effect
+
+
+class TimeOffset(Effect):
+    trained_magnitudes = (3e-3,)
+    error_unit = "s"
+    trained_placebo = "velocity_permutation"
+
+    def sim_overrides(self, value, affected_fraction=0.25):
+        return {"time_offset_s": float(value)}
+
+    def _parameter_error(self, value, params):
+        return abs(params["time_offset_error_s"] - value)
+
+    def synth_row_times(self, t_model, R, value, readout_s):
+        return t_model + float(value)
+
+    def smallest_testable(self, d, se, ctx):
+        return {"time_offset_error_s": d}
+
+
+TIME_OFFSET = TimeOffset(
+    name="time_offset",
+    description="Camera-to-device clock offset (t_device = t_camera + time_offset_s). "
+    "Hidden: the calibrated offset is wrong by this many seconds.",
+    parameter="time_offset_error_s", unit="s", nominal=0.0,
+    plausible_range=(1e-3, 5e-3), sampling="signed",
+    signature="A whole-image shift along the image-space velocity, uniform over rows, proportional to "
+    "angular speed, and zero on quasi-static frames.",
+)

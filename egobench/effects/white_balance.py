@@ -1,0 +1,57 @@
+"""White balance: per-channel gains the sensor pipeline applies and a model does not."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from egobench.effects.base import Effect
+
+
+class WhiteBalance(Effect):
+    multiplicative = True
+    trained_magnitudes = (0.12,)
+    in_trained_sweep = True
+    on_adt = True
+    trained_run_untestable = ("not identifiable from a trained run: a constant per-channel gain on every frame is "
+                              "absorbed exactly into the scene colours the model learns (render = k x shading x colour)")
+
+    def sim_overrides(self, value, affected_fraction=0.25):
+        return {"white_balance": tuple(float(x) for x in value)}
+
+    def sweep_value(self, magnitude, rng):
+        rng.random()  # the sign draw every effect makes, unused: keeps the sweep's random streams
+        direction = rng.normal(size=3)
+        direction /= np.max(np.abs(direction))
+        return tuple(float(math.exp(magnitude * d)) for d in direction)
+
+    def trained_value(self, magnitude, rng):  # R and B gains exp(+-magnitude) in opposite directions, G = 1
+        sign = 1.0 if rng.random() < 0.5 else -1.0
+        return (math.exp(sign * magnitude), 1.0, math.exp(-sign * magnitude))
+
+    def _parameter_error(self, value, params):
+        rel = np.asarray(value) / value[1]
+        return float(np.max(np.abs(np.asarray(params["channel_gains_relative_to_green"]) / rel - 1)))
+
+    def synth_photometric(self, truth, value, shape):
+        truth["white_balance"] = np.asarray(value, dtype=np.float64)
+
+    def smallest_testable(self, d, se, ctx):
+        return {"channel_gain_relative": math.exp(d) - 1.0}
+
+    def plot_signature(self, ax, plot):
+        ax.bar(["R", "G", "B"], plot["channel_log_ratio"], color=["tab:red", "tab:green", "tab:blue"])
+        ax.set_ylabel(plot["ylabel"])
+        return True
+
+
+WHITE_BALANCE = WhiteBalance(
+    name="white_balance",
+    description="Per-channel gains (R, G, B) applied by the sensor pipeline and not modelled.",
+    parameter="channel_gains", unit="1", nominal=1.0,
+    plausible_range=(0.8, 1.25), sampling="log_uniform", size=3,
+    formation_switch="white_balance",
+    signature="A constant per-channel ratio between captured and predicted linear values: a colour "
+    "cast uniform over the image and all frames.",
+)
