@@ -15,8 +15,8 @@ from snakemake.utils import min_version, validate
 min_version("9.0")
 
 sys.path.insert(0, workflow.basedir)  # egobench importable without `pip install`
-from egobench import slurm_report
-from egobench import workflow_config as wc
+from egobench.workflow import slurm_report
+from egobench.workflow import config as wc
 
 
 # The default suite, unless --configfile names another (then it alone is used, not merged).

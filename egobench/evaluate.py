@@ -33,8 +33,8 @@ from egobench.data.reader import add_input_arguments, frame_counts
 from egobench.data.recording import Frame, Recording
 from egobench.host import host_info
 from egobench.io_utils import git_commit, read_json, write_json
-from egobench.methods import get_method
-from egobench.predict import (
+from egobench.model.methods import get_method
+from egobench.model.predict import (
     FrameMaps, RenderSettings, formation_model, frame_poses, method_normaliser, predict_frame, run_maps,
     render_frame, resize_map, sample_counts,
 )
@@ -234,8 +234,8 @@ def evaluate(recording_dir, run_dir, *, scene: str | None = None, paper_scene: s
 
 
 def _fidelity(held: _Held, pairs: list) -> dict:
-    """The model's transfer function on the held-out frames and its resolved wavelength (egobench.fidelity)."""
-    from egobench.fidelity import transfer_function
+    """The model's transfer function on the held-out frames and its resolved wavelength (egobench.analysis.fidelity)."""
+    from egobench.analysis.fidelity import transfer_function
 
     mask = held.maps.mask.cpu().numpy().astype(bool)
     return transfer_function([p for p, _ in pairs], [g for _, g in pairs], mask=mask).to_dict()

@@ -22,7 +22,7 @@ BEGIN, END = "<!-- layers:begin (scripts/layers.py) -->", "<!-- layers:end -->"
 
 
 def unit_of(module: str) -> str | None:
-    """'egobench.train.loop' -> 'train'; 'egobench.tables' -> 'tables'; other packages -> None."""
+    """'egobench.train.loop' -> 'train'; 'egobench.report.tables' -> 'tables'; other packages -> None."""
     parts = module.split(".")
     return parts[1] if parts[0] == "egobench" and len(parts) > 1 else None
 

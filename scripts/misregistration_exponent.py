@@ -1,5 +1,5 @@
 """How fast a misregistration costs PSNR on a real Aria frame: the measurement behind the exponent
-bound of egobench.sensitivity's model (module doc).
+bound of egobench.analysis.sensitivity's model (module doc).
 
     python scripts/misregistration_exponent.py ../shared/data/adt_sample/video.vrs
 
@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from egobench.sensitivity import misregistration_exponents  # noqa: E402
+from egobench.analysis.sensitivity import misregistration_exponents  # noqa: E402
 
 SHIFTS_PX = (0.125, 0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
 

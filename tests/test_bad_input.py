@@ -249,7 +249,7 @@ def test_preprocess_links_mps_files_inside_the_capture_and_copies_others(tmp_pat
 
 # ------------------------------------------------------------------------------------- D5: foreign bytes
 def test_random_bytes_are_not_a_checkpoint_rather_than_code(tmp_path):
-    from egobench.checkpoint import read_checkpoint
+    from egobench.train.checkpoint import read_checkpoint
 
     path = tmp_path / "checkpoint.pt"
     path.write_bytes(np.random.default_rng(0).integers(0, 256, 4096, dtype=np.uint8).tobytes())
@@ -326,7 +326,7 @@ def test_fuzzed_transforms_end_in_success_or_a_named_error(rec_dir, tmp_path, ou
     import cv2
 
     from egobench.data import load_recording
-    from egobench.methods import get_method
+    from egobench.model.methods import get_method
     from egobench.train.data import prepare_data
 
     root = tmp_path / "rec"

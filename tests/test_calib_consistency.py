@@ -1,4 +1,4 @@
-"""egobench.calib_consistency: the part of a calibration error a reconstruction cannot absorb."""
+"""egobench.analysis.calibration_inconsistency: the part of a calibration error a reconstruction cannot absorb."""
 
 import math
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from egobench.calib_consistency import absorbed_residual_px, project_world
+from egobench.analysis.calibration_inconsistency import absorbed_residual_px, project_world
 from egobench.camera.pinhole import Pinhole
 from egobench.geometry import so3_exp
 

@@ -148,8 +148,8 @@ def test_ground_truth_depth_matches_a_direct_cast(tiny):
 
 def test_temporal_samples_suffice():
     """Doubling the adaptive S changes the noise-free display by < half an 8-bit level on average."""
-    from egobench.formation import FormationConfig, FormationModel
-    from egobench.sim.calibration import make_calibrations
+    from egobench.model.formation import FormationConfig, FormationModel
+    from egobench.sim.camera_calibration import make_calibrations
     from egobench.sim.capture import (RawCamera, choose_temporal_samples, device_trajectory, capture_irradiance,
                                       motion_during_exposure_px, preview)
     from egobench.sim.devices import ARIA_RGB
@@ -256,7 +256,7 @@ def test_pixel_area_integration_band_limits_sub_pixel_motion():
     full-contrast edge jumps; integrating the pixel area (pixel_samples=4) splits them into
     quarter steps: the change is several times smaller in RMS and grows with the shift
     (towards the linear, band-limited response) instead of staying one jump."""
-    from egobench.sim.calibration import make_calibrations
+    from egobench.sim.camera_calibration import make_calibrations
     from egobench.sim.capture import (RawCamera, capture_irradiance, device_trajectory, motion_during_exposure_px,
                                       preview, subpixel_offsets)
     from egobench.sim.devices import ARIA_RGB

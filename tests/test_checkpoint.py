@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from egobench.checkpoint import read_checkpoint
+from egobench.train.checkpoint import read_checkpoint
 
 
 class _Payload:

@@ -68,7 +68,7 @@ def test_a_verb_imports_only_its_own_module():
     import subprocess
 
     code = ("import sys; from egobench import cli; p = cli.build_parser(only='tables'); "
-            "print(sorted(m for m in ('egobench.plots', 'egobench.diagnose.core', 'egobench.tables') if m in sys.modules)); "
+            "print(sorted(m for m in ('egobench.report.plots', 'egobench.diagnose.core', 'egobench.report.tables') if m in sys.modules)); "
             "print(sorted(next(a for a in p._actions if a.dest == 'verb').choices) == sorted(cli.VERBS))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split("\n")
-    assert out[0] == "['egobench.tables']" and out[1] == "True"
+    assert out[0] == "['egobench.report.tables']" and out[1] == "True"

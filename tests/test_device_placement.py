@@ -61,7 +61,7 @@ def dev(*shape, dtype=torch.float32, requires_grad: bool = False) -> torch.Tenso
 def no_value_checks(monkeypatch):
     """Switch off the data-dependent *value* validation (finite, positive: `bool(t.all())` needs data)
     of formation and geometry; shapes are still checked by the ops themselves."""
-    import egobench.formation as fm
+    import egobench.model.formation as fm
     import egobench.geometry.se3 as se3
 
     monkeypatch.setattr(fm, "_check_values", lambda *a, **k: None)
@@ -106,7 +106,7 @@ def test_harness_catches_a_cpu_tensor_meeting_a_device_tensor():
 
 # ----------------------------------------------------------------------------- formation (training loss path)
 def test_formation_predict_and_virtual_gain_stay_on_the_device(no_value_checks):
-    import egobench.formation as fm
+    import egobench.model.formation as fm
 
     model = fm.FormationModel(fm.FormationConfig.paper_trainer())
     with fake_accelerator():
@@ -148,7 +148,7 @@ def _frame():
 
 def test_velocity_poses_follow_a_trainable_twist_on_the_device(no_value_checks):
     """3DGS-on-the-move: host pose and times, twist trained on the GPU (was a device mix-up)."""
-    from egobench.motion_sampling import pixel_pose_index, sample_times_ns, velocity_poses
+    from egobench.model.motion_sampling import pixel_pose_index, sample_times_ns, velocity_poses
 
     frame = _frame()
     with fake_accelerator():
@@ -161,8 +161,8 @@ def test_velocity_poses_follow_a_trainable_twist_on_the_device(no_value_checks):
 
 
 def test_frame_poses_velocity_shift_with_device_twist(no_value_checks):
-    from egobench.methods import get_method
-    from egobench.predict import frame_poses
+    from egobench.model.methods import get_method
+    from egobench.model.predict import frame_poses
 
     frame = _frame()
     with fake_accelerator():
@@ -173,8 +173,8 @@ def test_frame_poses_velocity_shift_with_device_twist(no_value_checks):
 
 
 def test_frame_poses_velocity_shift_with_device_pose_delta(no_value_checks):
-    from egobench.methods import get_method
-    from egobench.predict import frame_poses
+    from egobench.model.methods import get_method
+    from egobench.model.predict import frame_poses
 
     frame = _frame()
     with fake_accelerator():
@@ -201,7 +201,7 @@ def _params(n: int) -> dict:
 
 
 def _densifier():
-    from egobench.optim import Densifier, DensifySchedule
+    from egobench.model.optim import Densifier, DensifySchedule
 
     return Densifier(DensifySchedule(grow_grad2d=2e-4, grow_scale3d=0.01, prune_opa=0.005, prune_scale3d=0.1,
                                      refine_start_iter=0, refine_stop_iter=100, refine_every=10, reset_every=50,
@@ -269,7 +269,7 @@ def test_evaluate_of_a_gpu_run_on_a_cpu_machine_names_the_fix(tmp_path):
 
 def test_evaluate_renders_on_the_requested_device(tmp_path, monkeypatch):
     """The Gaussians are rendered where asked (before: always on the CPU, whatever config.device)."""
-    import egobench.predict as predict_mod
+    import egobench.model.predict as predict_mod
     from egobench.evaluate import evaluate
     from egobench.render.types import RenderOutput
 

@@ -97,7 +97,7 @@ def _angle_deg(R: np.ndarray) -> float:
 
 
 def test_calibration_perturbations_have_the_stated_magnitudes():
-    from egobench.sim.calibration import make_calibrations
+    from egobench.sim.camera_calibration import make_calibrations
 
     cfg = SimConfig(kind="outdoor", seed=5, distortion_k0_delta=0.004, time_offset_s=0.002).validate()
     cals = make_calibrations(cfg)

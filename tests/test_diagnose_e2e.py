@@ -38,8 +38,8 @@ def test_simulated_null_and_hidden_vignette_through_the_cli(tmp_path):
     record = json.loads((out / "diagnosis.json").read_text())
     assert record["verdict"] == "vignette" and record["named"][0]["psnr_gain_db"] > 0
     # the hidden shading is defined at the RAW fisheye corner; compare with its rectified version
-    from egobench.formation import radial_vignette
-    from egobench.sim.calibration import make_calibrations
+    from egobench.model.formation import radial_vignette
+    from egobench.sim.camera_calibration import make_calibrations
     from egobench.sim.capture import _rig
     from egobench.sim.config import SimConfig
     from egobench.sim.devices import get_device

@@ -119,7 +119,7 @@ def test_model_error_numbers_match_a_known_white_error():
 
 
 def _photometric_fit(measured, predicted, ctx):
-    from egobench.diagnose.calibration import _cells
+    from egobench.diagnose.placebo import _cells
     from egobench.diagnose.estimators import ResidualData
 
     data = ResidualData(measured, predicted, ctx, np.arange(measured.shape[0]))
@@ -127,7 +127,7 @@ def _photometric_fit(measured, predicted, ctx):
 
 
 def test_exposure_split_half_placebo_is_uniformish_on_nulls_and_finds_the_affected_frames():
-    from egobench.diagnose.calibration import exposure_split_half
+    from egobench.diagnose.placebo import exposure_split_half
 
     p_null = []
     for seed in range(8):
@@ -159,7 +159,7 @@ def test_vignette_must_beat_wrong_centre_placebos():
     """A real vignette fits best about the principal point; an off-centre dark blob in every frame
     (model error tied to the image, e.g. a missed object in a corner) is what a radial term about a
     wrong centre fits better, so it is not named vignette."""
-    from egobench.diagnose.calibration import vignette_placebo
+    from egobench.diagnose.placebo import vignette_placebo
 
     case = make_case("vignette", 0.35, seed=2)
     _, fit, cells = _photometric_fit(case.measured, model_error(case.predicted, 1), case.context)
@@ -180,13 +180,13 @@ def test_response_statistic_is_unbiased_under_model_error():
     """Multiplicative model error biases the cell-level log-log slope (errors in variables), blur
     makes a model look like a response error (light leaks between cells); the per-frame slope on
     log MEASURED intensity after resolution matching is not fooled and still finds gamma 2.65."""
-    from egobench.diagnose.calibration import _radial, per_frame_photometric, render_blur, resolution_matched
+    from egobench.diagnose.placebo import _radial, per_frame_photometric, render_blur, resolution_matched
 
     def slope(measured, predicted, ctx):
         data, _, _ = _photometric_fit(measured, predicted, ctx)
         sigma = render_blur(data)
         fit = resolution_matched(data, sigma).photometric()
-        from egobench.diagnose.calibration import _cells
+        from egobench.diagnose.placebo import _cells
 
         cells = _cells(fit)
         est, _ = per_frame_photometric(fit, cells, *_radial(cells, ctx.principal_point, 48, 48))
@@ -298,7 +298,7 @@ def test_per_frame_pose_jitter_along_the_motion_is_not_exposure_blur():
     """A trained model's per-frame timing/pose errors are shifts along each frame's motion with
     varying sign; their second-order term mimics blur in every frame (a global shift cannot remove
     it). Tested given a per-frame shift, exposure blur is not significant; a real blur still is."""
-    from egobench.diagnose.calibration import blur_given_frame_shifts
+    from egobench.diagnose.placebo import blur_given_frame_shifts
     from egobench.diagnose.estimators import CAUSES, ResidualData
     from egobench.diagnose.signatures import warp
 
@@ -404,7 +404,7 @@ def _null_summary(path, mean=-0.05, sd=0.02, setup=None):
 
 def test_the_extensions_call_on_a_users_run_against_the_sweeps_nulls(tmp_path):
     from egobench.diagnose.extension import judge_shading, load_shading_null
-    from egobench.similarity import exposure_gain_ratio
+    from egobench.analysis.similarity import exposure_gain_ratio
 
     null = load_shading_null(_null_summary(tmp_path / "s.json"))
     assert null.threshold == pytest.approx(0.01) and null.n == 10
@@ -617,7 +617,7 @@ def test_frames_flagged_against_the_bulk_when_a_quarter_of_the_frames_are_off():
     one median/MAD over all frames straddles the two groups (threshold above the error); the bulk
     (shortest half, one reweighting step) flags only affected frames, most of them, and Gaussian
     frame scatter flags (almost) none."""
-    from egobench.diagnose.calibration import FLAG_SIGMAS, flag_frames_in_both_halves
+    from egobench.diagnose.placebo import FLAG_SIGMAS, flag_frames_in_both_halves
     from egobench.diagnose.signatures import robust_sd as _mad
 
     rng = np.random.default_rng(3)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from egobench.effects import EFFECTS, Effect, get_effect, sample_hidden_effects
-from egobench.formation import FormationConfig
+from egobench.model.formation import FormationConfig
 
 NAMES = ["readout", "time_offset", "exposure_blur", "vignette", "response", "white_balance",
          "exposure_metadata", "noise", "distortion"]

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from egobench.fidelity import transfer_function
+from egobench.analysis.fidelity import transfer_function
 
 from egobench.evaluate import RUN_SCHEMA, evaluate, held_out_error_by_level, held_out_psnr
 from egobench.io_utils import read_json
@@ -162,7 +162,7 @@ def test_transparent_model_has_no_geometry_instead_of_crashing(trained, tmp_path
     recorded as missing, with a note saying why, and PSNR is still measured."""
     import shutil
 
-    from egobench.checkpoint import read_checkpoint
+    from egobench.train.checkpoint import read_checkpoint
 
     rec, run = trained
     ck = read_checkpoint(run / "checkpoint.pt")

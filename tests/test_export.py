@@ -59,8 +59,8 @@ def _render(g, rec, mode):
 @pytest.mark.parametrize("method, mode", [("ours", "3dgs"), ("ours_2dgs", "2dgs")])
 def test_export_is_the_inria_layout_and_renders_as_the_run_at_the_reference_exposure(runs, tmp_path, method, mode):
     from egobench.export.ply import export_run, ply_properties
-    from egobench.methods import get_method
-    from egobench.predict import formation_model, predict_image
+    from egobench.model.methods import get_method
+    from egobench.model.predict import formation_model, predict_image
     from egobench.train.checkpoint import load_trained_run
 
     rec, run_dirs = runs
@@ -92,8 +92,8 @@ def test_linear_scene_colour_is_exported_through_the_response_per_gaussian(runs,
     error of 0.049 of the display range (0.026 where alpha > 0.99), against 0.21 for the linear
     colours exported unconverted."""
     from egobench.export.ply import export_run
-    from egobench.methods import get_method
-    from egobench.predict import formation_model, predict_image
+    from egobench.model.methods import get_method
+    from egobench.model.predict import formation_model, predict_image
     from egobench.train.checkpoint import load_trained_run
 
     rec, run_dirs = runs
@@ -147,7 +147,7 @@ def test_video_frames_panels_and_content(runs, tmp_path):
 
     from egobench.export.video import LABEL_PX, render_video
     from egobench.metrics import psnr
-    from egobench.predict import formation_model, method_normaliser, predict_frame, run_maps, RenderSettings
+    from egobench.model.predict import formation_model, method_normaliser, predict_frame, run_maps, RenderSettings
     from egobench.train.checkpoint import load_trained_run
 
     rec, run_dirs = runs

@@ -1,4 +1,4 @@
-"""The model transfer function (egobench.fidelity) against analytic cases: identity, Gaussian blur,
+"""The model transfer function (egobench.analysis.fidelity) against analytic cases: identity, Gaussian blur,
 a one-pixel shift, unrelated content."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from egobench.fidelity import transfer_function
+from egobench.analysis.fidelity import transfer_function
 
 
 def _noise_images(n: int, size: int = 128, seed: int = 0) -> list[np.ndarray]:

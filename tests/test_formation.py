@@ -1,4 +1,4 @@
-"""Tests of egobench.formation: analytic values, round trips, noise statistics, wiring."""
+"""Tests of egobench.model.formation: analytic values, round trips, noise statistics, wiring."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from egobench.camera.pinhole import Pinhole
-from egobench.formation import (
+from egobench.model.formation import (
     FormationConfig,
     FormationModel,
     GammaResponse,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from egobench.methods import METHODS, MethodSpec, get_method
+from egobench.model.methods import METHODS, MethodSpec, get_method
 
 EXPECTED = {
     # name: (calibration, formation, scene_gamma, motion_sampling, splat_mode, pose_optimisation, label)
@@ -67,7 +67,7 @@ def test_bad_names_and_switches():
 
 
 def test_render_exposure_samples():
-    from egobench.methods import get_method
+    from egobench.model.methods import get_method
 
     assert get_method("on_the_move").render_exposure_samples == 2  # velocity shift renders blur
     for name in ("ours", "no_motion_sampling", "splatfacto", "ours_2dgs"):

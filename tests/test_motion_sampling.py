@@ -11,7 +11,7 @@ import torch
 
 from egobench.camera.pinhole import Pinhole
 from egobench.data.recording import Frame, Recording, SparseDepth
-from egobench.motion_sampling import (
+from egobench.model.motion_sampling import (
     MOTION_WINDOW_S, estimate_motion, exposure_pose_samples, frame_twist_camera, n_pose_samples,
     pixel_pose_index, pose_samples, sample_times_ns, velocity_poses,
 )

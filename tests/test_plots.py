@@ -10,8 +10,8 @@ import cv2
 import numpy as np
 import pytest
 
-from egobench import plots as P
-from egobench import tables as T
+from egobench.report import plots as P
+from egobench.report import tables as T
 from egobench.cli import main as cli_main
 from tests.helpers import write_records
 

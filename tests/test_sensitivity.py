@@ -14,11 +14,11 @@ import pandas as pd
 import pytest
 import yaml
 
-from egobench import sensitivity as sens
-from egobench import sensitivity_workflow as sw
-from egobench import workflow_config as wc
+from egobench.analysis import sensitivity as sens
+from egobench.workflow import sensitivity as sw
+from egobench.workflow import config as wc
 from egobench.cli import main
-from egobench.tables import ci95, load_records
+from egobench.report.tables import ci95, load_records
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -339,7 +339,7 @@ def test_misregistration_exponent_of_a_sinusoid():
 
 
 def test_schema_ablation_names_are_methods():
-    from egobench.methods import METHODS
+    from egobench.model.methods import METHODS
 
     schema = wc.load_schema()["properties"]["sensitivity"]["properties"]["ablations"]
     assert set(schema["propertyNames"]["enum"]) == set(METHODS) - {"ours"}

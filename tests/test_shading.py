@@ -1,4 +1,4 @@
-"""egobench.shading: the learnable lens shading (model extension for an absorbed vignette)."""
+"""egobench.model.shading: the learnable lens shading (model extension for an absorbed vignette)."""
 
 import math
 from dataclasses import replace
@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from egobench.camera.pinhole import Pinhole
-from egobench.shading import KEY, corner_attenuation, learned_vignette, radius2, shading
+from egobench.model.shading import KEY, corner_attenuation, learned_vignette, radius2, shading
 
 CAM = Pinhole(width=9, height=7, fx=10.0, fy=10.0, cx=4.0, cy=3.0)
 
@@ -62,7 +62,7 @@ def test_a_learned_shading_recovers_a_vignette_the_trained_model_absorbs(tmp_pat
 
 def test_a_run_learning_a_shading_resumes_to_the_uninterrupted_result_and_renders_with_it(tmp_path):
     from egobench.data import load_recording
-    from egobench.predict import frame_maps, run_maps
+    from egobench.model.predict import frame_maps, run_maps
     from egobench.sim.plane import plane_recording
     from egobench.train import TrainConfig, train
     from egobench.train.checkpoint import load_trained_run

@@ -1,4 +1,4 @@
-"""egobench.similarity: analytic checks of each measure, and the verb on a tiny simulated recording."""
+"""egobench.analysis.similarity: analytic checks of each measure, and the verb on a tiny simulated recording."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from egobench import similarity as sim_measures
+from egobench.analysis import similarity as sim_measures
 from egobench.camera.pinhole import Pinhole
 from egobench.data.mps import CameraCalibration
 from egobench.data.recording import Frame, Recording, SparseDepth
@@ -297,7 +297,7 @@ def simulated(tmp_path_factory):
 def test_simulated_calibration_errors_match_the_drawn_rotation(simulated):
     from egobench.data.reader import load_recording
     from egobench.geometry import so3_exp
-    from egobench.motion_sampling import _sparse_points_camera
+    from egobench.model.motion_sampling import _sparse_points_camera
 
     res = json.loads((simulated / "sim.json").read_text())["recordings"][0]
     truth = json.loads((simulated / "rec" / "ground_truth" / "truth.json").read_text())

@@ -20,7 +20,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from egobench import slurm_report as sr
+from egobench.workflow import slurm_report as sr
 
 REPO = Path(__file__).resolve().parents[1]
 SNAKEMAKE = [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile")]

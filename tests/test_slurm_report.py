@@ -1,4 +1,4 @@
-"""egobench.slurm_report: SLURM jobs of a run from the executor plugin's logs and sacct rows.
+"""egobench.workflow.slurm_report: SLURM jobs of a run from the executor plugin's logs and sacct rows.
 
 The sacct rows and the slurmstepd message are copied from a real single-node SLURM 22.05
 (scripts/slurm_local.sh): job 12 was a `simulate` job killed over a 300 MB request.
@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from egobench import cli
-from egobench import slurm_report as sr
+from egobench.workflow import slurm_report as sr
 
 SACCT = """\
 12|FAILED|0:9|300M||00:00:04

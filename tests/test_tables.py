@@ -11,8 +11,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from egobench import paper_numbers as pn
-from egobench import tables as T
+from egobench.report import paper_numbers as pn
+from egobench.report import tables as T
 from egobench.cli import main as cli_main
 from tests.helpers import write_records
 

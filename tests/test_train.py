@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from egobench.optim import Densifier, DensifySchedule, make_adam
+from egobench.model.optim import Densifier, DensifySchedule, make_adam
 from egobench.sim.plane import plane_recording
 from egobench.train import (
     PAPER_ITERATIONS, TrainConfig, TrainingDiverged, parse_overrides, train,

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 import torch
 
-import egobench.predict as P
+import egobench.model.predict as P
 import egobench.train.data as T
 import egobench.train.initialise as I
 import egobench.train.loop as L
-from egobench.methods import get_method
+from egobench.model.methods import get_method
 from egobench.sim.plane import plane_recording
 from egobench.train import TrainConfig, load_image_store, prepare_data, train
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib
 import os
 import subprocess
 import sys
@@ -12,7 +13,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from egobench import workflow_config as wc
+from egobench.workflow import config as wc
 from egobench.io_utils import read_json
 
 REPO = Path(__file__).resolve().parents[1]
@@ -34,7 +35,7 @@ def load(name: str) -> dict:
 
 
 def test_schema_enums_match_the_package():
-    from egobench.methods import METHODS
+    from egobench.model.methods import METHODS
     from egobench.sim.config import SCENE_KINDS
 
     schema = wc.load_schema()
@@ -68,7 +69,7 @@ def test_default_suite_covers_every_table_row():
 
 def test_paper_suite_scale():
     suite = wc.load_suite(REPO / "config" / "paper.yaml")
-    from egobench import paper_numbers as pn
+    from egobench.report import paper_numbers as pn
 
     papers = {s.paper_scene for s in suite.scenes.values() if s.kind in ("outdoor", "indoor")}
     assert papers == set(pn.TABLE1_OUTDOOR_SCENES) | set(pn.TABLE1_INDOOR_SCENES)
@@ -296,7 +297,7 @@ def test_ci_suite_runs_end_to_end(tmp_path):
         assert pd.isna(row["delta_psnr_mean"].iloc[0])
     else:
         assert len(row) == 1 and np.isfinite(row["delta_psnr_mean"].iloc[0])
-    assert all((root / "figures" / f).is_file() for f in __import__("egobench.plots").plots.OUTPUT_FILES)
+    assert all((root / "figures" / f).is_file() for f in importlib.import_module("egobench.report.plots").OUTPUT_FILES)
     assert (root / "diagnosis" / "outdoor_0" / "ours" / "diagnosis.json").is_file()
     assert (root / "motion_stats" / "motion_stats.json").is_file()
     # The viewer outputs: the PLY holds every Gaussian of the run; the video one frame per recording
@@ -379,7 +380,7 @@ def test_aria_scene_inputs_are_checked(tmp_path):
 
 
 def test_paper_suite_points_at_the_released_scenes_by_name(tmp_path):
-    from egobench import paper_numbers as pn
+    from egobench.report import paper_numbers as pn
 
     config = load("paper.yaml")
     names = [s["aria_scene"] for s in config["scenes"] if "aria_scene" in s]

@@ -399,7 +399,7 @@ def test_the_object_scene_has_natural_image_statistics():
     to -2.8) and a one-pixel shift costs little (above 22 dB with one ray per pixel, no pixel integration:
     24.5-24.9 dB on seeds 0-3). The 4 cm checkerboard mat it had gave slopes of +0.07 to +0.66 and 16.4-16.5
     dB here, and capped every trained model near 20 dB (issue 31)."""
-    from egobench.similarity import misregistration_psnr_db, power_spectrum, spectrum_measures
+    from egobench.analysis.similarity import misregistration_psnr_db, power_spectrum, spectrum_measures
 
     for seed in (0, 1):
         lum = _object_view_luminance(seed)

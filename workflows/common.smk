@@ -1,7 +1,7 @@
 # Helpers shared by the workflow files: config -> targets. The logic lives in
-# egobench/workflow_config.py (unit-tested); this file only adapts it to Snakemake.
-import egobench.tables
-import egobench.plots
+# egobench/workflow/config.py (unit-tested); this file only adapts it to Snakemake.
+import egobench.report.tables
+import egobench.report.plots
 
 
 def res(step, key):
@@ -14,11 +14,11 @@ def eval_records():
 
 
 def table_files():
-    return [f"{R}/tables/{name}" for name in egobench.tables.OUTPUT_FILES]
+    return [f"{R}/tables/{name}" for name in egobench.report.tables.OUTPUT_FILES]
 
 
 def figure_files():
-    return [f"{R}/figures/{name}" for name in egobench.plots.OUTPUT_FILES]
+    return [f"{R}/figures/{name}" for name in egobench.report.plots.OUTPUT_FILES]
 
 
 def all_outputs():

@@ -221,7 +221,7 @@ def bench_train(device: str = "cpu", backend: str = "auto", sides: tuple[int, ..
     import tempfile
     from pathlib import Path
 
-    from egobench.methods import get_method
+    from egobench.model.methods import get_method
     from egobench.sim.plane import plane_recording
     from egobench.train import TrainConfig, train
 

@@ -12,7 +12,7 @@ from egobench.diagnose.core import DiagnosisConfig, diagnose_residuals
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("recording", nargs="?", help="recording folder (not needed with --sweep or --adt)")
-    parser.add_argument("--method", default="ours", help="method whose model is diagnosed (egobench.methods)")
+    parser.add_argument("--method", default="ours", help="method whose model is diagnosed (egobench.model.methods)")
     parser.add_argument("--out", required=True, help="output folder: report.md, diagnosis.json, figures/")
     parser.add_argument("--run", default=None, help="trained run folder: diagnose its renders")
     parser.add_argument("--train", action="store_true", help="train --method first (into OUT/run) and diagnose it")
@@ -94,7 +94,7 @@ def _train_for_diagnosis(args: argparse.Namespace, rec: Path, out: Path) -> Path
     from dataclasses import replace
 
     from egobench.data.reader import recording_from_args
-    from egobench.methods import get_method
+    from egobench.model.methods import get_method
     from egobench.train import preset_config, train
 
     config = replace(preset_config(args.preset), max_side=0, device=args.device or "cpu")
@@ -129,7 +129,7 @@ def _diagnose_recording(args: argparse.Namespace, cfg: DiagnosisConfig, out: Pat
         if not (recording_root(rec) / "ground_truth" / "truth.json").is_file():
             raise ValueError(f"{rec}: no ground_truth/truth.json (not simulated): pass --run RUN_DIR or --train")
         src = ground_truth_source(rec, max_frames=args.max_frames, progress=not args.no_progress)
-    if source == "run":  # the null includes the trained model's own error (egobench.diagnose.calibration)
+    if source == "run":  # the null includes the trained model's own error (egobench.diagnose.placebo)
         from dataclasses import replace
 
         cfg = replace(cfg, trained_run=True)
@@ -165,8 +165,8 @@ def _shading_extension(args: argparse.Namespace, rec: Path, run_dir: Path | None
     from egobench.data.reader import recording_from_args
     from egobench.diagnose.extension import (extension_gain, judge_shading, learned_shading_of, load_shading_null,
                                              run_setup)
-    from egobench.methods import get_method
-    from egobench.similarity import exposure_gain_ratio
+    from egobench.model.methods import get_method
+    from egobench.analysis.similarity import exposure_gain_ratio
 
     if run_dir is None:
         raise ValueError("--shading-null: the model extension needs a trained run (--run RUN_DIR or --train)")

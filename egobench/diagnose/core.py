@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from egobench.diagnose.calibration import (calibrate_geometric, calibrate_photometric, geometric_standard_errors,
+from egobench.diagnose.placebo import (calibrate_geometric, calibrate_photometric, geometric_standard_errors,
                                            mark_untestable_on_trained_run)
 from egobench.diagnose.estimators import CAUSES, CauseResult, Noise, ResidualData
 from egobench.diagnose.signatures import LEVEL, DiagnosisContext, box3, checkerboard, erode, holm, psnr
@@ -316,7 +316,7 @@ def model_error_summary(measured: np.ndarray, predicted: np.ndarray, extended: n
                         split: _Split, cfg: DiagnosisConfig, se: dict, n_testable: int) -> dict:
     """How much of a trained run's held-out residual is the model's own error (not noise, not a
     named cause), in dB, and the smallest effect of each kind still testable on this run."""
-    from egobench.diagnose.calibration import smallest_testable
+    from egobench.diagnose.placebo import smallest_testable
 
     def mse(pred, idx):
         m = np.broadcast_to(split.eval_mask[None, :, :, None], pred[idx].shape)

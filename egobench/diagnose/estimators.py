@@ -395,7 +395,7 @@ class ResponseGamma(Cause):
     def apply(self, predicted, result, ctx, frames, measured=None, fit_mask=None):
         i = result.internal
         log_factor = np.full((1, 1, 1, 1), i["log_global"])
-        if "exposure_slope" in i:  # trained run (egobench.diagnose.calibration): k_f^(a - 1) per frame
+        if "exposure_slope" in i:  # trained run (egobench.diagnose.placebo): k_f^(a - 1) per frame
             log_k = np.log(np.maximum(ctx.exposure_s * ctx.gain, 1e-12))[np.asarray(frames)]
             log_factor = log_factor + (i["exposure_slope"] * (log_k - i["log_k_mean"]))[:, None, None, None]
         return _photometric_apply(predicted, log_factor, ctx.gamma_assumed, power=i["c"], log_p0=i["log_p0"])

@@ -1,4 +1,4 @@
-"""The model extension on a user's trained run: a lens shading learned with the scene (`egobench.shading`),
+"""The model extension on a user's trained run: a lens shading learned with the scene (`egobench.model.shading`),
 judged against the null cases of a trained-run sweep of the same setup (issue 15, docs/diagnosis.md).
 
 A trained model absorbs an unstated vignette, so its residual cannot show one; the extension takes it

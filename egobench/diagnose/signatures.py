@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from scipy import stats as sps
 
-from egobench.formation import DEFAULT_GAMMA, GammaResponse
+from egobench.model.formation import DEFAULT_GAMMA, GammaResponse
 
 #: One 8-bit display level.
 LEVEL = 1.0 / 255.0

@@ -123,7 +123,7 @@ def pipeline_noise_reference(
     predicted: np.ndarray,  # [F, H, W, 3] display prediction in the rectified camera
     rect,  # egobench.camera.Rectification raw -> rectified (the measured images' rig)
     raw_valid,  # [H_s, W_s] bool tensor: raw pixels with a valid ray
-    noise,  # egobench.formation.PoissonGaussianNoise the model assumes
+    noise,  # egobench.model.formation.PoissonGaussianNoise the model assumes
     gain: np.ndarray,  # [F] analog gains of the frames
     gamma: float,  # response gamma of the display values
     seed: int = 0,
@@ -138,7 +138,7 @@ def pipeline_noise_reference(
     rectification of a 77 px raw image onto 64 px removes ~65 % of the high-passed noise
     variance, which an analytic per-pixel model would miss (a false "noise" alarm).
     """
-    from egobench.formation import GammaResponse, quantise
+    from egobench.model.formation import GammaResponse, quantise
 
     F_, H, W, _ = predicted.shape
     src, dst = rect.src, rect.dst
@@ -175,7 +175,7 @@ def run_context(recording_dir: str | Path, rec, frames, predicted: np.ndarray, v
     The assumed noise is the device profile's; on a recording with an MPS calibration of that
     camera, the noise test is calibrated like the ground-truth path (`pipeline_noise_reference`:
     one draw of the assumed noise through 8-bit raw, the bilinear rectification and 8-bit)."""
-    from egobench.formation import PoissonGaussianNoise
+    from egobench.model.formation import PoissonGaussianNoise
     from egobench.sim.devices import get_device
 
     meta = dict(meta)
@@ -226,8 +226,8 @@ def _recast_setup(root: Path, info: dict, config, rec, gamma: float) -> tuple[_R
     ValueError when the online calibration on disk is not the simulator's."""
     from egobench.data.layout import MPS_SLAM, ONLINE_CALIBRATION_FILE
     from egobench.data.mps import read_online_calibration
-    from egobench.formation import FormationConfig, FormationModel, PoissonGaussianNoise, radial_vignette
-    from egobench.sim.calibration import make_calibrations
+    from egobench.model.formation import FormationConfig, FormationModel, PoissonGaussianNoise, radial_vignette
+    from egobench.sim.camera_calibration import make_calibrations
     from egobench.sim.capture import RawCamera, _rig, sampled_raw_pixels, view_readout_rows
     from egobench.sim.devices import get_device
     from egobench.sim.world import make_scene
@@ -341,7 +341,7 @@ def run_source(recording_dir: str | Path, run_dir: str | Path, max_frames: int |
     from tqdm import tqdm
 
     from egobench.data import load_recording
-    from egobench.predict import (
+    from egobench.model.predict import (
         RenderSettings, formation_model, method_normaliser, predict_frame, run_maps, sample_counts,
     )
     from egobench.train.checkpoint import load_trained_run

@@ -4,7 +4,7 @@ statistics (the "ground-truth prediction" path of issue 6 without running the fu
 A band-limited log-normal colour texture T(x) is seen by a rolling-shutter camera whose image
 motion is a per-frame affine velocity field v_f(u) (translation + rotation + zoom, px/s); the
 image of frame f at time t is I_f(u, t) = T(u + o_f - v_f(u) t). Both the measurement and the
-model's prediction are produced from the same scene with egobench.formation's components
+model's prediction are produced from the same scene with egobench.model.formation's components
 (gamma response, Poisson-Gaussian noise, radial vignette, quantisation); exactly one effect
 differs between them. Row times follow docs/architecture.md: t(u) = read_start + R(u) readout,
 with the centre-row pose time as the origin of the model's clock.
@@ -20,7 +20,7 @@ import torch
 
 from egobench.diagnose.signatures import DiagnosisContext, distortion_profile, radial_coordinates
 from egobench.effects import EFFECTS
-from egobench.formation import GammaResponse, PoissonGaussianNoise, quantise, radial_vignette
+from egobench.model.formation import GammaResponse, PoissonGaussianNoise, quantise, radial_vignette
 
 #: Sensor of the synthetic cases (Aria-like, egobench.sim.devices.ARIA_RGB noise profile).
 FULL_WELL_E, READ_NOISE_E = 6000.0, 2.0

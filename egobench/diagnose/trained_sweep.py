@@ -48,7 +48,7 @@ class TrainedSweepConfig:
     iterations: int = 800  # CPU preset, schedule scaled (300: 26.6 dB median held out, 800: 31.5 dB at 40 px)
     method: str = "ours"
     magnitudes: dict = field(default_factory=lambda: dict(DEFAULT_MAGNITUDES))
-    # also train each case with the learnable lens shading (egobench.shading) and call a vignette when the
+    # also train each case with the learnable lens shading (egobench.model.shading) and call a vignette when the
     # learned corner attenuation exceeds the nulls' mean + EXTENSION_SIGMAS sd (trained runs absorb it)
     shading_extension: bool = True
 
@@ -133,8 +133,8 @@ def vignette_in_view(recording_dir: str | Path, corner_attenuation: float) -> fl
     from egobench.data.layout import MPS_SLAM, ONLINE_CALIBRATION_FILE, recording_root
     from egobench.data.mps import read_online_calibration
     from egobench.diagnose.sources import recording_rectification
-    from egobench.formation import radial_vignette
-    from egobench.shading import farthest_corner
+    from egobench.model.formation import radial_vignette
+    from egobench.model.shading import farthest_corner
     from egobench.sim.devices import get_device
 
     rec = load_recording(recording_dir, "online")
@@ -325,7 +325,7 @@ def _extension_summary(ok) -> dict | None:
 def _extension_lines(x: dict | None) -> list[str]:
     if not x:
         return []
-    out = ["", f"Vignette through the model extension (a lens shading learned with the scene, `egobench.shading`): "
+    out = ["", f"Vignette through the model extension (a lens shading learned with the scene, `egobench.model.shading`): "
            f"the {x['n_null']} nulls learn a corner attenuation of {x['null_mean']:.3f} +- {x['null_sd']:.3f} "
            f"(threshold {x['threshold']:.3f}, {x['null_above']} null(s) above it).", "",
            "| effect | n | above the threshold | above it with a held-out gain > 0 | median held-out gain of the "

@@ -107,9 +107,9 @@ class Effect:
     #: Its hidden value is set on the raw sensor; a diagnosis of the rectified view sees it reparametrised
     #: (the trained sweep converts the truth, `vignette_in_view`).
     hidden_on_raw_sensor: ClassVar[bool] = False
-    #: The model extension (a lens shading learned with the scene, egobench.shading) is meant to learn it.
+    #: The model extension (a lens shading learned with the scene, egobench.model.shading) is meant to learn it.
     learned_by_shading_extension: ClassVar[bool] = False
-    #: The placebo that calibrates its null on a trained run (egobench.diagnose.calibration):
+    #: The placebo that calibrates its null on a trained run (egobench.diagnose.placebo):
     #: "velocity_permutation" (motion-driven causes), "radial_centres" (static radial causes), or None.
     trained_placebo: ClassVar[str | None] = None
     #: On a trained run, also tested given a separate shift along the motion in every frame.

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 
 from egobench.effects.base import Effect
-from egobench.formation import radial_vignette
+from egobench.model.formation import radial_vignette
 
 
 class Vignette(Effect):

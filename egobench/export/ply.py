@@ -39,7 +39,7 @@ def ply_properties(mode: str = "3dgs", n_rest: int = 0) -> list[str]:
 
 def display_colours(colors: Tensor, spec) -> tuple[Tensor, str]:
     """[N, 3] scene colours -> (display colours at k = 1 without shading, what they mean)."""
-    from egobench.predict import formation_model
+    from egobench.model.predict import formation_model
 
     if not spec.formation:
         return colors, "the trained colour (no image formation model)"

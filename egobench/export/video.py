@@ -2,7 +2,7 @@
 
 Every frame (or every ``--every``-th) of the recording is rendered as the run predicts it (the
 method's rolling-shutter poses and exposure samples, and its image formation at the frame's own
-exposure and gain, `egobench.predict.predict_frame`), at the run's training resolution. Panels
+exposure and gain, `egobench.model.predict.predict_frame`), at the run's training resolution. Panels
 side by side: this run, optionally a second run (``--compare``, e.g. w/o motion sampling, each
 run with its own calibration stream of the recording) and the captured frames (``--captured``).
 Encoded with OpenCV's MPEG-4 writer (opencv-python-headless, nothing downloaded).
@@ -37,7 +37,7 @@ class _Panel:
 
 def _run_panel(run_dir, recording_dir, device: str | None):
     from egobench.data import load_recording
-    from egobench.predict import RenderSettings, formation_model, method_normaliser, run_maps
+    from egobench.model.predict import RenderSettings, formation_model, method_normaliser, run_maps
     from egobench.train.checkpoint import check_run_complete, load_trained_run
 
     run = load_trained_run(run_dir, device, f"render {run_dir}")
@@ -53,7 +53,7 @@ def _run_panel(run_dir, recording_dir, device: str | None):
 
 def _predict(panel: _Panel, timestamp_ns: int) -> np.ndarray:
     """[H, W, 3] uint8: the panel's image of the frame at ``timestamp_ns``."""
-    from egobench.predict import predict_frame, resize_map, sample_counts
+    from egobench.model.predict import predict_frame, resize_map, sample_counts
 
     held = panel.run
     frame = next((f for f in panel.recording.frames if f.timestamp_ns == timestamp_ns), None)

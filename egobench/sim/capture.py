@@ -14,7 +14,7 @@ Per frame (docs/architecture.md conventions):
    S < P every temporal sample takes all P positions (S x P rays). Without area integration
    (P = 1) geometric edges alias: a 0.01 px shift moves edge pixels by several 8-bit levels,
    which breaks first-order (band-limited) residual models such as egobench.diagnose.
-3. Image formation (egobench.formation): exposure x gain x sensitivity, lens shading (the
+3. Image formation (egobench.model.formation): exposure x gain x sensitivity, lens shading (the
    device's calibrated vignette times any hidden extra shading), white balance, clipping at
    full well, Poisson-Gaussian noise, response (gamma), 8-bit; optionally JPEG.
 4. Rectification to the pinhole (f = 0.5 W) with the ONLINE and with the FACTORY calibration.
@@ -72,9 +72,9 @@ from egobench.sim.devices import SEMIDENSE_NOISE, DeviceProfile, get_device
 if TYPE_CHECKING:  # annotations only (these modules are imported lazily)
     from egobench.camera import Rectification
     from egobench.data.mps import CalibrationRecord
-    from egobench.formation import FormationModel, PoissonGaussianNoise
+    from egobench.model.formation import FormationModel, PoissonGaussianNoise
     from egobench.geometry import Trajectory
-    from egobench.sim.calibration import CalibrationSet
+    from egobench.sim.camera_calibration import CalibrationSet
 
 #: Rays per Scene.cast call (bounds memory) on the CPU, and on a GPU (fewer, larger kernels).
 CAST_CHUNK = 1 << 16
@@ -318,7 +318,7 @@ def capture_irradiance(scene, trajectory, raw: RawCamera, read_start_ns: int, ex
     the pixel area once. Invalid raw pixels (outside the lens model) are 0. ``device``: where rays
     are built and cast (SimConfig.compute_device); the result comes back on the CPU.
     """
-    from egobench.formation import exposure_sample_times_ns
+    from egobench.model.formation import exposure_sample_times_ns
 
     H, W = raw.valid.shape
     P = int(raw.pixel_samples)
@@ -703,7 +703,7 @@ def simulate_recording(config: SimConfig, out_dir: str | Path, progress: bool = 
 # ----------------------------------------------------------------------------------------
 def calibrated_vignette(cal: CameraCalibration, dev: DeviceProfile) -> Tensor:
     """[H_raw, W_raw] the device's calibrated lens shading for `cal` (radial about its principal point)."""
-    from egobench.formation import radial_vignette
+    from egobench.model.formation import radial_vignette
 
     p = cal.params
     return radial_vignette((cal.height, cal.width), 1.0 - dev.vignette_corner, dev.vignette_power,
@@ -757,7 +757,7 @@ class PhotometricTruth:
 def _photometric_truth(config: SimConfig, dev: DeviceProfile, true_cal: CameraCalibration,
                        raw_hw: tuple[int, int]) -> PhotometricTruth:
     """Response, noise, lens shading and white balance the raw frames are formed with."""
-    from egobench.formation import FormationConfig, FormationModel, PoissonGaussianNoise, radial_vignette
+    from egobench.model.formation import FormationConfig, FormationModel, PoissonGaussianNoise, radial_vignette
 
     gamma = config.response_gamma if config.response_gamma is not None else dev.response_gamma
     formation = FormationModel(FormationConfig.ground_truth(gamma=gamma, noise=config.noise))
@@ -845,7 +845,7 @@ class CaptureSetup:
 
 def build_capture_setup(config: SimConfig) -> CaptureSetup:
     """Device, calibrations, scene, trajectory, clocks, raw camera, formation, rigs, hidden frames, semi-dense points."""
-    from egobench.sim.calibration import make_calibrations
+    from egobench.sim.camera_calibration import make_calibrations
     from egobench.sim.world import make_scene
 
     dev = get_device(config.device_name)
@@ -895,7 +895,7 @@ def _noise_generator(config: SimConfig) -> torch.Generator:
 
 def _restore_run(setup: CaptureSetup, out_dir: Path, states: list[dict]) -> CaptureRun:
     """A fresh run, advanced past the frames earlier runs completed (`states`: their state records in order)."""
-    from egobench.sim.calibration import calibration_record
+    from egobench.sim.camera_calibration import calibration_record
 
     config = setup.config
     run = CaptureRun(result=CaptureResult(path=out_dir, n_frames=config.n_frames, time_s=0.0),
@@ -1105,7 +1105,7 @@ def _write_stream_frame(setup: CaptureSetup, run: CaptureRun, name: str, cal: Ca
                         visible: Tensor, partial: Path) -> None:
     """Frame k in the stream of calibration `name`: rectified image, transforms entry, sparse depth (online: calibration line)."""
     from egobench.data.transforms import frame_entry, write_png
-    from egobench.sim.calibration import calibration_record
+    from egobench.sim.camera_calibration import calibration_record
 
     k = frame.index
     rect, pin = setup.rigs[name]
@@ -1191,7 +1191,7 @@ def _write_mps_files(setup: CaptureSetup, calib_lines: list[CalibrationRecord], 
     from egobench.data.layout import (FACTORY_CALIBRATION_FILE, MPS_SLAM, ONLINE_CALIBRATION_FILE, POINTS_FILE,
                                       TRAJECTORY_FILE, link_mps_files)
     from egobench.data.mps import write_calibration_json, write_online_calibration, write_semidense_points
-    from egobench.sim.calibration import calibration_record
+    from egobench.sim.camera_calibration import calibration_record
 
     mps_dir = partial / MPS_SLAM
     setup.trajectory.to_mps_csv(mps_dir / TRAJECTORY_FILE)
@@ -1204,7 +1204,7 @@ def _write_mps_files(setup: CaptureSetup, calib_lines: list[CalibrationRecord], 
 
 def _truth_json(setup: CaptureSetup, truth_frames: list[dict]) -> dict:
     """ground_truth/truth.json: the true calibration, calibration errors, hidden effects, units, frame records."""
-    from egobench.sim.calibration import calibration_record
+    from egobench.sim.camera_calibration import calibration_record
 
     config, dev, cals, clocks = setup.config, setup.device, setup.cals, setup.clocks
     noise_model = setup.photometric.noise_model

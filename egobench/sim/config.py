@@ -4,7 +4,7 @@ Fields fall in four groups: what is simulated (scene, device, motion, size), the
 protocol, the *hidden effects* (physical truth that differs from what the recorded metadata
 or calibration states; names follow `egobench.effects.EFFECTS`), and the calibration error
 magnitudes (online = VIBA: tiny; factory: the documented perturbations of
-`egobench.sim.calibration`).
+`egobench.sim.camera_calibration`).
 """
 
 from __future__ import annotations
@@ -77,7 +77,7 @@ class SimConfig:
     read_noise_e: float | None = None  # read noise electrons; None = device
     noise_std_factor: float = 1.0  # every noise std times this (effects "noise": full well / f^2, read noise / f)
     distortion_k0_delta: float = 0.0  # true k0 = stated (online) k0 + delta (unmodelled distortion)
-    # --- calibration error magnitudes (see egobench.sim.calibration for the sources) -------
+    # --- calibration error magnitudes (see egobench.sim.camera_calibration for the sources) -------
     online_rotation_deg: float = 0.01  # VIBA extrinsic rotation error
     online_translation_mm: float = 0.1  # VIBA extrinsic translation error
     online_focal_frac: float = 1e-4  # VIBA relative focal error

@@ -65,7 +65,7 @@ class DeviceProfile:
     time_offset_s: float  # TimeOffsetSec_Device_Camera: t_device = t_camera + offset
     response_gamma: float  # camera response: display = linear ** (1 / gamma)
     vignette_corner: float  # lens shading at the image corner relative to the centre (1 = none)
-    vignette_power: float  # exponent of egobench.formation.radial_vignette ((1 + c r^2)^(-power/2); 4 = cos^4 law)
+    vignette_power: float  # exponent of egobench.model.formation.radial_vignette ((1 + c r^2)^(-power/2); 4 = cos^4 law)
     noise: NoiseProfile
     sensitivity: float  # normalised signal per (cd/m^2 * s) at gain 1 (see ARIA_RGB notes)
     auto_exposure: AutoExposure = field(default_factory=AutoExposure)

@@ -1,4 +1,4 @@
-"""The one trainer: every method of `egobench.methods` is a set of switches read here.
+"""The one trainer: every method of `egobench.model.methods` is a set of switches read here.
 
 Modules, one concern each:
     config      `TrainConfig`, presets, ``--set`` overrides
@@ -10,7 +10,7 @@ Modules, one concern each:
     loop        `train_step` and `train`
     record      train.json
     cli         ``egobench train``
-The per-frame render path (poses, rolling-shutter gather, formation) is `egobench.predict`,
+The per-frame render path (poses, rolling-shutter gather, formation) is `egobench.model.predict`,
 shared with evaluation and diagnosis.
 """
 

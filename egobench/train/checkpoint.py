@@ -1,27 +1,61 @@
 """Run checkpoints: ``checkpoint.pt`` written atomically, read without executing code
-(`egobench.checkpoint.read_checkpoint`: a checkpoint is tensors, numbers, strings and containers),
+(`read_checkpoint`: torch.load with weights_only=True, a checkpoint is tensors, numbers, strings and
+containers, and a truncated, foreign or tampered file is a one-line ValueError naming the file),
 matched against a method and config for ``--resume auto``, and loaded as a trained model for
 evaluation and diagnosis (`load_trained_run`)."""
 
 from __future__ import annotations
 
+import pickle
+import re
+import struct
 import sys
+import zipfile
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
 
 from egobench.camera.pinhole import Pinhole
-from egobench.checkpoint import read_checkpoint
 from egobench.io_utils import atomic_path
-from egobench.methods import MethodSpec, get_method
+from egobench.model.methods import MethodSpec, get_method
 from egobench.train.config import TrainConfig
 
 CHECKPOINT_FORMAT = "egobench.checkpoint/1"
 
 
+def read_checkpoint(path: str | Path) -> dict:
+    """The checkpoint dict at ``path`` (tensors on the CPU); ValueError if unreadable or not a dict."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: checkpoint not found")
+    try:
+        ck = torch.load(path, map_location="cpu", weights_only=True)
+    except (pickle.UnpicklingError, RuntimeError, EOFError, OSError, zipfile.BadZipFile, ValueError,
+            AttributeError, TypeError, KeyError, IndexError, struct.error) as exc:
+        raise ValueError(f"{path}: unreadable checkpoint: {_why_unreadable(path, exc)}; delete it and train again") from None
+    if not isinstance(ck, dict):
+        raise ValueError(f"{path}: unreadable checkpoint: expected a dict of tensors, got {type(ck).__name__}")
+    return ck
+
+
+def _why_unreadable(path: Path, exc: BaseException) -> str:
+    """Why ``torch.load(weights_only=True)`` refused ``path``: code refused, or not a checkpoint at all."""
+    text = str(exc)
+    if re.search(r"\bGLOBAL\b|allowed global|Unsupported global", text):
+        return "it holds objects other than tensors and plain containers (refused: loading it could run code)"
+    lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+    detail = next((ln for ln in lines if ln.startswith(("Unsupported", "invalid load key"))), lines[0] if lines else "")
+    with open(path, "rb") as fh:
+        head = fh.read(2)
+    kind = ("a zip archive" if head == b"PK" or zipfile.is_zipfile(path) else
+            "a pickle stream" if head[:1] == b"\x80" else None)
+    what = f"{kind} that is truncated or corrupt" if kind else "neither a torch zip archive nor a pickle (foreign bytes)"
+    return f"not a checkpoint: {what} ({type(exc).__name__}: {detail[:160]})"
+
+
 def read_run_checkpoint(path: str | Path) -> dict:
-    """The training checkpoint at ``path`` (read safely by `egobench.checkpoint.read_checkpoint`).
+    """The training checkpoint at ``path`` (read safely by `read_checkpoint`).
     FileNotFoundError if it is missing; ValueError naming the file if it cannot be read or is not an
     egobench training checkpoint."""
     path = Path(path)
@@ -88,7 +122,7 @@ class TrainedRun:
 def load_trained_run(run_dir: str | Path, device: str | None, where: str) -> TrainedRun:
     """The run in ``run_dir`` ready to render on ``device`` (default: its training device,
     `render_device`); ``where`` names the caller in errors."""
-    from egobench.predict import gaussians_from_params
+    from egobench.model.predict import gaussians_from_params
 
     run_dir = Path(run_dir)
     ck = read_run_checkpoint(run_dir / "checkpoint.pt")

@@ -13,7 +13,7 @@ from egobench.train.config import PRESETS, TrainConfig, parse_overrides, preset_
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--recording", required=True,
                         help="recording: a rectified stream folder (<label>-rectified-<focal>-h<size>) or the folder holding it")
-    parser.add_argument("--method", required=True, help="method name (egobench.methods)")
+    parser.add_argument("--method", required=True, help="method name (egobench.model.methods)")
     parser.add_argument("--seed", type=int, default=0, help="random seed")
     parser.add_argument("--out", required=True, help="run folder (checkpoint.pt, train.json)")
     parser.add_argument("--iterations", type=int, default=None, help="iterations (schedule scaled to it)")
@@ -38,7 +38,7 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
 
 def run(args: argparse.Namespace) -> int:
     from egobench.data.reader import recording_from_args
-    from egobench.methods import get_method
+    from egobench.model.methods import get_method
     from egobench.train.loop import TrainingDiverged, train
 
     config = config_from_args(args)

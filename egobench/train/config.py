@@ -31,7 +31,7 @@ class TrainConfig:
     lr_colors: float = 2.5e-3  # Adam lr of colours (RGB, scene-colour space)
     lr_pose: float = 1e-4  # Adam lr of per-frame pose corrections (se(3), methods with pose_optimisation)
     lr_twist: float = 1e-3  # Adam lr of per-frame velocities (velocity_shift methods)
-    # Model extension (egobench.shading): a radial lens shading exp(a2 r^2 + a4 r^4) on top of the stated
+    # Model extension (egobench.model.shading): a radial lens shading exp(a2 r^2 + a4 r^4) on top of the stated
     # vignette, learned with the scene; its centre can be moved (fractions of width / height: a placebo)
     learn_shading: bool = False
     lr_shading: float = 1e-2  # Adam lr of the shading coefficients

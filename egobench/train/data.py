@@ -16,8 +16,8 @@ from torch import Tensor
 
 from egobench.camera.pinhole import Pinhole
 from egobench.data.recording import Frame, Recording
-from egobench.methods import MethodSpec
-from egobench.predict import FrameMaps, frame_maps, method_normaliser, resize_map, sample_counts
+from egobench.model.methods import MethodSpec
+from egobench.model.predict import FrameMaps, frame_maps, method_normaliser, resize_map, sample_counts
 from egobench.train.config import TrainConfig
 
 

@@ -6,7 +6,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from egobench.methods import MethodSpec
+from egobench.model.methods import MethodSpec
 from egobench.train.config import TrainConfig
 from egobench.train.data import TrainingData, image_to_float
 
@@ -28,7 +28,7 @@ def scene_colour_from_image(pixel: Tensor, k: Tensor, vignette: Tensor, spec: Me
     """Invert the method's formation for initial colours: pixel [P, 3] display -> scene colour."""
     if not spec.formation:
         return pixel
-    from egobench.formation import GammaResponse
+    from egobench.model.formation import GammaResponse
 
     resp = GammaResponse(spec.response_gamma)
     lin = resp.decode(pixel) / (k[:, None] * vignette[:, None]).clamp_min(1e-3)

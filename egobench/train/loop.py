@@ -2,9 +2,9 @@
 
 Each iteration picks a training frame (seeded permutation per epoch), renders it under the
 method's pose model (centre-row pose; adaptive rolling-shutter pose samples after the warm-up;
-or the velocity-shift model of the 3DGS-on-the-move baseline; `egobench.predict`), applies the
+or the velocity-shift model of the 3DGS-on-the-move baseline; `egobench.model.predict`), applies the
 method's image formation, takes the loss 0.8 L1 + 0.2 (1 - SSIM) on valid-mask pixels, steps
-Adam per parameter group and gsplat 1.5.3's densification (`egobench.optim`). Deterministic on
+Adam per parameter group and gsplat 1.5.3's densification (`egobench.model.optim`). Deterministic on
 the CPU for a seed; resumable from a checkpoint to the identical result.
 
 Timing method (``raster_time_share`` in train.json): wall time inside `render()` (forward) plus
@@ -27,9 +27,9 @@ from torch import Tensor
 
 from egobench.data.reader import say_dropped
 from egobench.data.recording import Recording
-from egobench.methods import MethodSpec, get_method
-from egobench.optim import GAUSSIAN_PARAMS
-from egobench.predict import (
+from egobench.model.methods import MethodSpec, get_method
+from egobench.model.optim import GAUSSIAN_PARAMS
+from egobench.model.predict import (
     RenderSettings, formation_model, frame_poses, gaussians_from_params, mean_rgb, predict_image, render_frame,
 )
 from egobench.train.checkpoint import checkpoint_matches, resumable_checkpoint, write_checkpoint
@@ -90,7 +90,7 @@ def step_context(data: TrainingData, config: TrainConfig, device: torch.device) 
 
 
 def _shading_r2(data: TrainingData, config: TrainConfig, device: torch.device) -> Tensor | None:
-    from egobench.shading import radius2_of
+    from egobench.model.shading import radius2_of
 
     return radius2_of(data.camera, config).to(device) if config.learn_shading else None
 
@@ -145,7 +145,7 @@ def _vignette(state: TrainState, ctx: StepContext) -> Tensor:
     """The stated vignette, times the learnable shading when the run learns one."""
     if ctx.shading_r2 is None:
         return ctx.vignette
-    from egobench.shading import KEY, shading
+    from egobench.model.shading import KEY, shading
 
     return ctx.vignette * shading(ctx.shading_r2, state.extra[KEY])
 

@@ -53,7 +53,7 @@ def train_record(result: "TrainResult", state: TrainState, data: TrainingData, c
 
 def _learned_shading(state: TrainState, config: TrainConfig) -> dict | None:
     """The learned lens shading's coefficients and corner attenuation (None without learn_shading)."""
-    from egobench.shading import KEY, corner_attenuation
+    from egobench.model.shading import KEY, corner_attenuation
 
     if KEY not in state.extra:
         return None

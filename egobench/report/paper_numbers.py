@@ -1,7 +1,7 @@
 """The paper's published numbers (Lv et al., SIGGRAPH 2025), transcribed from ``paper.tex``.
 
 Each table keeps the LaTeX label it was copied from. Method keys are egobench's method names
-(``egobench/methods.py``, which also holds the row labels); scene keys are the paper's scene names in lower case. The values are
+(``egobench/model/methods.py``, which also holds the row labels); scene keys are the paper's scene names in lower case. The values are
 exactly as printed (including the paper's ``20.449``); ``tests/test_tables.py`` re-parses the
 ``.tex`` and checks every number.
 """

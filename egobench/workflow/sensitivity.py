@@ -126,7 +126,7 @@ def similarity_path(root: str, scene: str) -> str:
 
 def output_files(root: str) -> list[str]:
     """What `egobench sensitivity` writes (the sensitivity target)."""
-    from egobench.sensitivity import OUTPUT_FILES
+    from egobench.analysis.sensitivity import OUTPUT_FILES
 
     return [f"{root}/sensitivity/{name}" for name in OUTPUT_FILES]
 

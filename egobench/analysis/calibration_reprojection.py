@@ -1,4 +1,4 @@
-"""Calibration geometry shared by `egobench.similarity` and `egobench.calib_consistency`: frame
+"""Calibration geometry shared by `egobench.analysis.similarity` and `egobench.analysis.calibration_inconsistency`: frame
 changes of points, where a rectified image shows a point under another calibration, the online
 calibration nearest a time, the simulator's frame numbers, and a robust median/p90 summary."""
 

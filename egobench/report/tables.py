@@ -25,7 +25,7 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 import pandas as pd
 
-from egobench import paper_numbers as pn
+from egobench.report import paper_numbers as pn
 from egobench.io_utils import atomic_path, read_json
 
 RUN_SCHEMA = "egobench.run/1"
@@ -33,7 +33,7 @@ RUN_SCHEMA = "egobench.run/1"
 METRICS = (pn.PSNR, pn.SSIM, pn.LPIPS, pn.DEPTH, pn.NORMAL, pn.OWN_DEPTH, pn.OWN_NORMAL)
 #: Reference method of each compared method in the gains table (default: ``ours``).
 GAIN_REFERENCE = {"2dgs_no_motion_sampling": "ours_2dgs"}
-#: Table of each group in egobench.methods' row labels ("aria", "dtc", "quest3").
+#: Table of each group in egobench.model.methods' row labels ("aria", "dtc", "quest3").
 LABEL_TABLE = {"table1_outdoor": "aria", "table1_indoor": "aria", "table2": "dtc", "table3": "quest3"}
 #: Table groups: name -> (scene kind, paper table): the one place that says which paper table a
 #: simulated scene kind is compared with.
@@ -68,9 +68,9 @@ PAPER_BLOCK = "paper"
 
 
 def method_label(method: str, group: str | None = None) -> str:
-    """The paper's row label of a method (egobench/methods.py), or its key if unregistered."""
+    """The paper's row label of a method (egobench/model/methods.py), or its key if unregistered."""
     try:
-        from egobench.methods import get_method
+        from egobench.model.methods import get_method
 
         spec = get_method(method)
     except (ImportError, ValueError):
@@ -90,7 +90,7 @@ class RunRecord:
     scene: str  # our scene name, e.g. "outdoor_0"
     scene_kind: str  # outdoor | indoor | object | quest3 ("unknown" when the record has none)
     paper_scene: str | None  # the paper's scene column this scene stands for
-    method: str  # method key (egobench/methods.py)
+    method: str  # method key (egobench/model/methods.py)
     seed: int
     metrics: dict[str, float | None]  # METRICS: psnr, ssim, lpips, the authors' depth/normal, egobench's own
     train: dict[str, Any] = field(default_factory=dict)  # iterations, time_s, iters_per_s, ...
@@ -198,7 +198,7 @@ def records_frame(records: Sequence[RunRecord]) -> pd.DataFrame:
         for k in ("iterations", "time_s", "iters_per_s", "raster_time_share", "num_gaussians"):
             row[f"train_{k}"] = r.train.get(k)
         row["num_frames"] = r.recording_stats.get(NUM_FRAMES_KEY)
-        # the model's resolved wavelength on the held-out frames (egobench.fidelity); older records lack it
+        # the model's resolved wavelength on the held-out frames (egobench.analysis.fidelity); older records lack it
         row["resolved_wavelength_px"] = (r.raw.get("fidelity") or {}).get("resolved_wavelength_px")
         row["head_speed_deg_s_p50"] = r.head_speed_deg_s
         host = ((r.raw.get("host") or {}).get("train") or {})  # where the training arithmetic ran

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from egobench.calib_projection import frame_number, from_camera, median_p90, observed_in_test_px, online_at, to_camera
+from egobench.analysis.calibration_reprojection import frame_number, from_camera, median_p90, observed_in_test_px, online_at, to_camera
 from egobench.camera.pinhole import Pinhole
 
 #: Frames with fewer observations of a point than this leave its residual undefined.
@@ -76,7 +76,7 @@ def absorbed_residual_px(u_obs: Tensor, valid: Tensor, pinhole: Pinhole, T_world
 
 def _world_points(recording, frames: list, every: int, max_per_frame: int) -> Tensor:
     """Sparse-depth points of every ``every``-th frame, in the world [P, 3] float64."""
-    from egobench.motion_sampling import _sparse_points_camera
+    from egobench.model.motion_sampling import _sparse_points_camera
 
     chunks = []
     for f in frames[::every]:

@@ -31,9 +31,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from egobench import paper_numbers as pn  # noqa: E402
+from egobench.report import paper_numbers as pn  # noqa: E402
 from egobench.io_utils import atomic_path  # noqa: E402
-from egobench.tables import GROUPS, RunRecord, gains_frame, load_records, method_label  # noqa: E402
+from egobench.report.tables import GROUPS, RunRecord, gains_frame, load_records, method_label  # noqa: E402
 
 FIGURES = ("gains", "psnr_vs_head_speed", "qualitative", "motion_displacement", "gain3x")
 #: Every file `make_plots` writes (relative to the output folder): the workflow's outputs.

@@ -18,7 +18,7 @@ from torch import Tensor
 
 from egobench.camera.pinhole import Pinhole
 from egobench.data.recording import Frame, Recording
-from egobench.methods import MethodSpec
+from egobench.model.methods import MethodSpec
 
 if TYPE_CHECKING:  # pragma: no cover
     from egobench.render.types import Gaussians, RenderOutput
@@ -54,10 +54,10 @@ def frame_maps(recording: Recording, camera: Pinhole) -> FrameMaps:
 
 def run_maps(recording: Recording, run) -> FrameMaps:
     """`frame_maps` at a trained run's camera, its vignette times the lens shading the run learned
-    (`egobench.shading`; unchanged for runs without one)."""
+    (`egobench.model.shading`; unchanged for runs without one)."""
     from dataclasses import replace
 
-    from egobench.shading import learned_vignette
+    from egobench.model.shading import learned_vignette
 
     maps = frame_maps(recording, run.camera)
     return replace(maps, vignette=learned_vignette(maps.vignette, run.camera, run.checkpoint.get("extra") or {}, run.config))
@@ -65,7 +65,7 @@ def run_maps(recording: Recording, run) -> FrameMaps:
 
 def exposure_normaliser(recording: Recording) -> Tensor:
     """k [F] over all frames of the recording (exposure*gain / median), float32."""
-    from egobench.formation import exposure_gain_normaliser
+    from egobench.model.formation import exposure_gain_normaliser
 
     exposure = torch.tensor([f.exposure_s for f in recording.frames], dtype=torch.float64)
     gain = torch.tensor([f.gain for f in recording.frames], dtype=torch.float64)
@@ -84,7 +84,7 @@ def sample_counts(recording: Recording, frames: list[Frame], spec: MethodSpec, m
 
     A frame whose sparse depth is empty gets 1 sample (as the released code: it cannot see motion).
     """
-    from egobench.motion_sampling import estimate_motion
+    from egobench.model.motion_sampling import estimate_motion
 
     if spec.motion_sampling == "centre":
         return [1] * len(frames)
@@ -108,7 +108,7 @@ def gaussians_from_params(params: dict) -> "Gaussians":
 
 def formation_model(spec: MethodSpec):
     """The trainer's image formation model for ``spec`` (its response gamma)."""
-    from egobench.formation import FormationConfig, FormationModel
+    from egobench.model.formation import FormationConfig, FormationModel
 
     return FormationModel(FormationConfig.paper_trainer(gamma=spec.response_gamma))
 
@@ -130,7 +130,7 @@ def frame_poses(recording: Recording, frame: Frame, spec: MethodSpec, n: int, ro
     pose-optimising / velocity-shift methods.
     """
     from egobench.geometry import se3_exp
-    from egobench.motion_sampling import exposure_pose_samples, pixel_pose_index
+    from egobench.model.motion_sampling import exposure_pose_samples, pixel_pose_index
 
     if spec.motion_sampling == "velocity_shift":
         return _velocity_shift_poses(recording, frame, n, row_time_ratio, pose_delta, twist, n_exposure_samples)
@@ -150,7 +150,7 @@ def _velocity_shift_poses(recording: Recording, frame: Frame, n: int, row_time_r
                           n_exposure_samples: int) -> tuple[Tensor, Tensor | None]:
     """3DGS-on-the-move: the centre pose moved by a constant twist over the pinhole row times."""
     from egobench.geometry import se3_exp
-    from egobench.motion_sampling import (
+    from egobench.model.motion_sampling import (
         frame_twist_camera, linear_row_time_ratio, pixel_pose_index, sample_times_ns, velocity_poses,
     )
 

@@ -7,7 +7,7 @@ images area-resized). Per recording (keys of `measure_recording`):
 
 - ``rs_shift_px_median`` / ``_p90``: image motion during the rolling-shutter readout. Each frame's
   sparse-depth points are projected with the camera pose at read start and at read end
-  (`egobench.motion_sampling._displacements_px`: Chebyshev pixel distance, points inside the image
+  (`egobench.model.motion_sampling._displacements_px`: Chebyshev pixel distance, points inside the image
   at both times); a simulated recording's true read start and true readout (ground_truth/truth.json)
   are used, else the stream's stated ones. Pooled over points and frames.
 - ``calib_error_px_median`` / ``_p90``: where the factory stream's model predicts a point versus
@@ -20,10 +20,10 @@ images area-resized). Per recording (keys of `measure_recording`):
   ``calib_error_{online,factory}_vs_true_px_*``: against the true calibration (simulated recordings).
 - ``calib_inconsistency_px_median`` / ``_p90``: what of that error a reconstruction cannot absorb,
   the residual after each point's best 3-D position over the frames that see it
-  (`egobench.calib_consistency`); ``calib_unabsorbed_fraction``: its median over the median error
+  (`egobench.analysis.calibration_inconsistency`); ``calib_unabsorbed_fraction``: its median over the median error
   on the same observations.
 - ``motion_samples_median``, ``frac_frames_multi_sample``: 'ours'' pose-sample counts on the
-  training frames (`egobench.predict.sample_counts`, TrainConfig.cpu()'s cap and rule).
+  training frames (`egobench.model.predict.sample_counts`, TrainConfig.cpu()'s cap and rule).
 - ``exposure_ratio`` (max / min of exposure_s x gain), ``scene_dynamic_range_stops``
   (log2 p99 / p1 of the ground-truth linear radiance's luminance over valid pixels; null without).
 - ``texture_hf_fraction`` (power above half the Nyquist frequency, luminance, Hann window, mean
@@ -56,8 +56,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from egobench.calib_consistency import calibration_inconsistency
-from egobench.calib_projection import (frame_number, from_camera, median_p90, observed_in_test_px, online_at,
+from egobench.analysis.calibration_inconsistency import calibration_inconsistency
+from egobench.analysis.calibration_reprojection import (frame_number, from_camera, median_p90, observed_in_test_px, online_at,
                                         to_camera)
 from egobench.data.recording import Frame, Recording
 
@@ -100,7 +100,7 @@ def rs_shift_px(recording: Recording, truth: dict | None = None, pixel_scale: fl
 
     ``truth``: a truth.json dict; its frames' ``read_start_true_ns`` and ``hidden_effects.readout_true_s``
     replace the stream's stated clocks where the frame number matches."""
-    from egobench.motion_sampling import _displacements_px
+    from egobench.model.motion_sampling import _displacements_px
 
     true_start, readout_true_ns = {}, None
     if truth is not None:
@@ -183,7 +183,7 @@ def calibration_reprojection_px(points_device: Tensor, reference, test, pinhole,
 
 def _frame_points_device(recording: Recording, frame: Frame) -> Tensor | None:
     """The frame's sparse-depth points in the device frame [P, 3] float64 (None without points)."""
-    from egobench.motion_sampling import _sparse_points_camera
+    from egobench.model.motion_sampling import _sparse_points_camera
 
     if frame.sparse_depth is None or len(frame.sparse_depth.z) == 0:
         return None
@@ -254,8 +254,8 @@ def calibration_errors(online_rec: Recording, factory_rec: Recording | None, cal
 # ----------------------------------------------------------------------------------------
 def motion_samples(recording: Recording, pixel_scale: float = 1.0, config=None) -> dict:
     """'ours'' rolling-shutter pose-sample counts on the training frames, at the training resolution."""
-    from egobench.methods import get_method
-    from egobench.predict import sample_counts
+    from egobench.model.methods import get_method
+    from egobench.model.predict import sample_counts
     from egobench.train.config import TrainConfig
 
     config = TrainConfig.cpu() if config is None else config

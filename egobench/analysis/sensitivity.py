@@ -7,7 +7,7 @@ in ``recordings`` with keys such as ``rs_shift_px_median``, ``calib_error_px_med
 ``scene_dynamic_range_stops``, and the paper's values in ``paper``; a flat dict of the keys works too).
 
 Per recording (one point of a curve): Δ = PSNR(ablation) − PSNR(ours) paired by training seed on
-that recording, the mean over seeds and its 95 % t-interval (`egobench.tables.ci95`), at x = the
+that recording, the mean over seeds and its 95 % t-interval (`egobench.report.tables.ci95`), at x = the
 recording's measured effect size.
 
 Model of a curve (the prediction at the paper's operating point x*)::
@@ -52,9 +52,9 @@ from typing import Mapping, Sequence
 import numpy as np
 import pandas as pd
 
-from egobench import paper_numbers as pn
+from egobench.report import paper_numbers as pn
 from egobench.io_utils import atomic_path, read_json
-from egobench.tables import GROUPS, RunRecord, ci95, identical_by_construction, load_records, method_label
+from egobench.report.tables import GROUPS, RunRecord, ci95, identical_by_construction, load_records, method_label
 
 OUTPUT_FILES = ("sensitivity.csv", "prediction.csv", "sensitivity.png", "sensitivity.pdf")
 REFERENCE = "ours"
@@ -402,7 +402,7 @@ def sensitivity_figure(curve: pd.DataFrame, pred: pd.DataFrame):
 def write_outputs(records: Sequence[RunRecord], similarity: Mapping, sweeps: Sequence[Sweep], out_dir: str | Path,
                   n_boot: int = 2000, seed: int = 0) -> list[Path]:
     """Write every file of OUTPUT_FILES into ``out_dir`` (atomically)."""
-    from egobench.plots import save_figure
+    from egobench.report.plots import save_figure
 
     out = Path(out_dir)
     curve = curve_frame(records, similarity, sweeps)

@@ -16,10 +16,10 @@ from typing import Any, Mapping
 
 import yaml
 
-from egobench import sensitivity_workflow
+from egobench.workflow import sensitivity as sensitivity_workflow
 from egobench.io_utils import format_value
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
+REPO_ROOT = Path(__file__).resolve().parents[2]
 SCHEMA_PATH = REPO_ROOT / "workflows" / "schemas" / "config.schema.yaml"
 #: SimConfig fields the workflow sets itself (from the scene entry), not through `sim:`.
 WORKFLOW_SIM_FIELDS = ("kind", "seed", "name")
@@ -116,7 +116,7 @@ def check_config(config: Mapping, schema: Mapping | None = None, check_sim: bool
 
 def _check_paper_scenes(scenes: list) -> list[str]:
     """A paper_scene must name one of the paper's table columns (case-insensitive), else its cell stays empty."""
-    from egobench.paper_numbers import PAPER_SCENES
+    from egobench.report.paper_numbers import PAPER_SCENES
 
     messages = []
     for i, scene in enumerate(scenes):
@@ -275,7 +275,7 @@ class Suite:
         self.root = f"{config.get('results_dir', 'results').rstrip('/')}/{self.name}"
         d = config.get("defaults") or {}
         self.scenes: dict[str, Scene] = {s["name"]: self._entry(s, d) for s in config["scenes"]}
-        # `snakemake sensitivity` recordings (egobench.sensitivity_workflow): not part of `all`
+        # `snakemake sensitivity` recordings (egobench.workflow.sensitivity): not part of `all`
         self.sensitivity_scenes: dict[str, Scene] = {s["name"]: self._entry(s, d)
                                                      for s in sensitivity_workflow.scenes(config)}
         diag = config.get("diagnose") or {}
@@ -358,7 +358,7 @@ class Suite:
         """The suite's scenes and the sensitivity sweep's recordings (the scene wildcard's values)."""
         return [*self.scenes, *self.sensitivity_scenes]
 
-    # ---- `snakemake sensitivity` (egobench.sensitivity_workflow) ---------------------------
+    # ---- `snakemake sensitivity` (egobench.workflow.sensitivity) ---------------------------
     def sensitivity_records(self) -> list[str]:
         """eval.json of every sweep run ('ours' and the ablation, every seed, every swept value)."""
         return [f"{self.run_dir(s.name, m, seed)}/eval.json"
@@ -416,7 +416,7 @@ class Suite:
 
     def needs_factory_stream(self, scene: str) -> bool:
         """True when a method of the scene trains on the factory calibration (preprocess it too)."""
-        from egobench.methods import get_method
+        from egobench.model.methods import get_method
 
         return any(get_method(m).calibration == "factory" for m in self._scene(scene).methods)
 
