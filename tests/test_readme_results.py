@@ -28,7 +28,7 @@ def test_the_gains_table_is_gains_csv():
     gains = pd.read_csv(TABLES / "gains.csv").set_index(["group", "method"])
     rows = _markdown_table("| table | method | vs | egobench ΔPSNR")
     assert len(rows) == len(gains)
-    for table, method, ref, delta, seeds, paper, sign, p_holm, ratio, magnitude, _ in rows:
+    for table, method, ref, delta, seeds, paper, sign, p_holm, ratio, magnitude in rows:
         g = gains.loc[(table, method)]
         mean, low, high = (float(x) for x in re.findall(r"[+-]\d+\.\d+", delta))
         assert (mean, low, high) == pytest.approx(
@@ -41,7 +41,7 @@ def test_the_gains_table_is_gains_csv():
 
 
 def test_the_counts_sentence_is_the_counts_of_gains_csv():
-    from egobench.tables import reproduction_counts
+    from egobench.report.tables import reproduction_counts
 
     c = reproduction_counts(pd.read_csv(TABLES / "gains.csv"))
     text = " ".join((REPO / "README.md").read_text().split())
@@ -71,3 +71,24 @@ def test_the_readme_is_a_front_page():
     assert len(text.splitlines()) <= 150
     for link in ("docs/results.md", "docs/gpu-and-cluster.md", "docs/real-recordings.md", "docs/metrics.md"):
         assert link in text and (REPO / link).is_file(), link
+
+
+def test_the_committed_run_is_the_protocols_confirmatory_run():
+    """Every run of the committed suite was trained at one commit that contains docs/protocol.md (the
+    protocol was fixed before the run), on the protocol's seeds and recordings, and nothing else."""
+    import subprocess
+
+    results = pd.read_csv(TABLES / "results.csv")
+    assert results.git_commit.nunique() == 1
+    commit = results.git_commit.iloc[0]
+    git = ["git", "-C", str(REPO)]
+    if subprocess.run(git + ["cat-file", "-e", f"{commit}^{{commit}}"], capture_output=True).returncode != 0:
+        pytest.skip(f"commit {commit} is not in this clone's history (a shallow clone)")
+    protocol_commit = subprocess.run(git + ["log", "--diff-filter=A", "--format=%H", "--", "docs/protocol.md"],
+                                     capture_output=True, text=True, check=True).stdout.split()[-1]
+    assert subprocess.run(git + ["merge-base", "--is-ancestor", protocol_commit, commit]).returncode == 0
+    protocol = (REPO / "docs" / "protocol.md").read_text()
+    seeds = sorted(int(s) for s in re.search(r"Training seeds: ([\d, ]+)", protocol).group(1).replace(",", " ").split())
+    per_pair = results.groupby(["scene", "method"]).seed.apply(lambda s: sorted(s.astype(int)))
+    assert all(v == seeds for v in per_pair), per_pair
+    assert len(per_pair) == 22
