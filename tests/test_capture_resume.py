@@ -105,7 +105,8 @@ def test_the_resumed_run_uses_the_saved_noise_state(reference, tmp_path):
     images (so the byte-identity above is due to the restored state, not to luck)."""
     import torch
 
-    from egobench.sim.capture import _encode_generator, partial_dir, simulate_recording
+    from egobench.sim.capture import partial_dir, simulate_recording
+    from egobench.sim.capture.resume import _encode_generator
 
     cfg = _config("fixed")
     out = tmp_path / "rec"

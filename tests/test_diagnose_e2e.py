@@ -40,7 +40,7 @@ def test_simulated_null_and_hidden_vignette_through_the_cli(tmp_path):
     # the hidden shading is defined at the RAW fisheye corner; compare with its rectified version
     from egobench.model.formation import radial_vignette
     from egobench.sim.camera_calibration import make_calibrations
-    from egobench.sim.capture import _rig
+    from egobench.sim.capture.setup import _rig
     from egobench.sim.config import SimConfig
     from egobench.sim.devices import get_device
 

@@ -92,7 +92,7 @@ def recording_rectification(recording_dir: str | Path, calibration: str, device,
 
     Simulated recordings rectify each stream with its own calibration (online: the first line of
     mps/slam/online_calibration.jsonl; factory: factory_calibration.json) onto the stored pinhole,
-    without rotation (egobench.sim.capture._rig)."""
+    without rotation (egobench.sim.capture.setup._rig)."""
     from egobench.camera import Rectification
     from egobench.data.layout import FACTORY_CALIBRATION_FILE, MPS_SLAM, ONLINE_CALIBRATION_FILE, recording_root
     from egobench.data.mps import read_calibration_json, read_online_calibration
@@ -228,7 +228,8 @@ def _recast_setup(root: Path, info: dict, config, rec, gamma: float) -> tuple[_R
     from egobench.data.mps import read_online_calibration
     from egobench.model.formation import FormationConfig, FormationModel, PoissonGaussianNoise, radial_vignette
     from egobench.sim.camera_calibration import make_calibrations
-    from egobench.sim.capture import RawCamera, _rig, sampled_raw_pixels, view_readout_rows
+    from egobench.sim.capture import RawCamera, sampled_raw_pixels, view_readout_rows
+    from egobench.sim.capture.setup import _rig
     from egobench.sim.devices import get_device
     from egobench.sim.world import make_scene
 
