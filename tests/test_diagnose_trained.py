@@ -17,6 +17,7 @@ import pytest
 
 from egobench.diagnose.core import NO_DISCREPANCY, RECONSTRUCTION_ERROR, DiagnosisConfig, diagnose_residuals
 from egobench.diagnose.synthetic import make_case
+from egobench.effects import EFFECTS
 
 TRAINED = DiagnosisConfig(trained_run=True)
 
@@ -289,7 +290,18 @@ def test_badly_fitted_trained_run_through_the_cli_says_reconstruction_error_domi
     me = record["model_error"]
     assert record["verdict"] == RECONSTRUCTION_ERROR and record["named"] == []
     assert me["dominates"] and me["held_out_psnr_db"] < 25 and me["model_error_over_noise_db"] > 10
-    assert "reconstruction error versus physics" in (out / "report.md").read_text()
+    text = (out / "report.md").read_text()
+    assert "reconstruction error versus physics" in text
+    # identifiability said aloud, before any name: every cause has its row; white balance and noise
+    # cannot be shown by a trained run, with the reason; the rows precede the ranking
+    start = text.index("## Identifiability on this recording")
+    ident = text[start:text.index("\n## ", start + 1)]
+    assert start < text.index("## Ranking")
+    rows = {line.split(" | ")[0].strip("| "): line for line in ident.splitlines() if line.startswith("| ")}
+    assert set(EFFECTS) <= set(rows)
+    assert "| no: not identifiable from a trained run" in rows["white_balance"]
+    assert "| no: not identifiable from a trained run" in rows["noise"]
+    assert "| yes |" in rows["readout"] and "=" in rows["readout"].split(" | ")[2]  # its smallest testable size
     src = run_source(rec, out / "run", progress=False)
     assert diagnose_residuals(src.measured, src.predicted, src.context).verdict not in (NO_DISCREPANCY, RECONSTRUCTION_ERROR)
 

@@ -115,6 +115,22 @@ def model_error_markdown(me: dict, config) -> list[str]:
     return lines + [""]
 
 
+def identifiability_markdown(d: Diagnosis) -> list[str]:
+    """Before any name: for every cause, whether this recording can show it (round 1's testability and
+    its reason), the smallest effect it could reveal, and when a recording can show it at all
+    (`Effect.identifiability`)."""
+    smallest = (d.model_error or {}).get("smallest_testable", {})
+    lines = ["## Identifiability on this recording (before any name)", "",
+             "| cause | can this recording show it | smallest effect it could reveal | when a recording can show it |",
+             "|---|---|---|---|"]
+    for r in d.ranking:
+        shown = "yes" if r.testable else f"no: {r.reason}"
+        small = "; ".join(f"{k}={_fmt(v)}" for k, v in smallest.get(r.name, {}).items()) or "-"
+        rule = EFFECTS[r.name].identifiability if r.name in EFFECTS else ""
+        lines.append(f"| {r.name} | {shown} | {small} | {rule} |")
+    return lines + [""]
+
+
 def markdown(d: Diagnosis, title: str) -> str:
     lines = [f"# {title}", ""]
     lines.append(f"**Verdict: {d.verdict}**" + (f" (p_adj {d.named[0].p_adjusted:.2g})" if d.named else ""))
@@ -123,6 +139,7 @@ def markdown(d: Diagnosis, title: str) -> str:
               f"- runtime {d.runtime_s:.1f} s; alpha {d.config.alpha} (Holm over {len(d.rounds[0]) if d.rounds else 0} causes); "
               f"effect floor {d.config.effect_floor * LEVELS:.2f} levels",
               f"- photometric cells trimmed as off-model content (round 1): {100 * d.unmodelled_fraction:.1f} %", ""]
+    lines += identifiability_markdown(d)
     if d.model_error is not None:
         lines += model_error_markdown(d.model_error, d.config)
     if d.named:

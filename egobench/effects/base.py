@@ -118,6 +118,8 @@ class Effect:
     trained_run_untestable: ClassVar[str | None] = None
     #: A variance model (named by its held-out likelihood gain), not a mean model of the residual.
     variance_model: ClassVar[bool] = False
+    #: When a recording can show it at all (said in every diagnosis report before any name).
+    identifiability: ClassVar[str] = ""
     #: Tested on the Aria Digital Twin pair (real vs twin images: photometric causes only).
     on_adt: ClassVar[bool] = False
     #: Unit of `parameter_error`.

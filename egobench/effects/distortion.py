@@ -6,6 +6,9 @@ from egobench.effects.base import Effect
 
 
 class Distortion(Effect):
+    identifiability = (
+        "only when points reach the outer image in some views and the centre in others (a static radial "
+        "displacement)")
     trained_magnitudes = (0.008,)
     trained_placebo = "radial_centres"
 

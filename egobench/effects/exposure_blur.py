@@ -13,6 +13,9 @@ SYNTH_SUBSAMPLES = 16
 
 
 class ExposureBlur(Effect):
+    identifiability = (
+        "only with motion during the exposure: blur length is speed x exposure, so short exposures or "
+        "still frames show nothing")
     trained_magnitudes = (8e-3,)
     synth_speed_px_s = (250.0, 600.0)  # blur needs fast image motion to show at a few ms
     trained_placebo = "velocity_permutation"

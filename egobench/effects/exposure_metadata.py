@@ -15,6 +15,9 @@ FLAG_SIGMAS, FLAG_MIN_LOG = 4.0, math.log(1.15)
 
 
 class ExposureMetadata(Effect):
+    identifiability = (
+        "only when the recorded exposure x gain varies or some frames are wrong against the others; a "
+        "model-error floor of 15 % on single frames applies on trained runs")
     trained_magnitudes = (0.25,)
     in_trained_sweep = True
     on_adt = True

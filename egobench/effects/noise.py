@@ -8,6 +8,9 @@ from egobench.effects.base import Effect
 
 
 class Noise(Effect):
+    identifiability = (
+        "not on a trained run: the model's own high-frequency error adds variance at every signal level; "
+        "against ground truth or a twin only")
     multiplicative = True
     trained_magnitudes = (0.5,)
     on_adt = True

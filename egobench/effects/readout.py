@@ -10,6 +10,9 @@ from egobench.effects.base import Effect
 
 
 class Readout(Effect):
+    identifiability = (
+        "only with image motion during the readout: the shear grows with row time and image speed, so "
+        "quasi-static frames show nothing")
     trained_magnitudes = (0.4,)
     error_unit = "fraction"
     trained_placebo = "velocity_permutation"

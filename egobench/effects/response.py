@@ -10,6 +10,10 @@ from egobench.effects.base import Effect
 
 
 class Response(Effect):
+    identifiability = (
+        "on a trained run only through exposure x gain changes across frames (std of log exposure x gain "
+        "at least 0.05) or a known non-flat vignette; a fixed exposure lets the colours absorb any tone "
+        "curve")
     multiplicative = True
     trained_magnitudes = (0.45,)
     in_trained_sweep = True

@@ -6,6 +6,8 @@ from egobench.effects.base import Effect
 
 
 class TimeOffset(Effect):
+    identifiability = (
+        "only with image motion: a shift along the image velocity, zero on still frames")
     trained_magnitudes = (3e-3,)
     error_unit = "s"
     trained_placebo = "velocity_permutation"

@@ -9,6 +9,9 @@ from egobench.model.formation import radial_vignette
 
 
 class Vignette(Effect):
+    identifiability = (
+        "only when the views move points across the image (a surface seen near the centre in one frame "
+        "and near a corner in another); a trained model otherwise absorbs the shading into the colours")
     trained_magnitudes = (0.35,)
     in_trained_sweep = True
     on_adt = True

@@ -10,6 +10,9 @@ from egobench.effects.base import Effect
 
 
 class WhiteBalance(Effect):
+    identifiability = (
+        "never on a trained run: a constant per-channel gain is absorbed exactly into the colours the "
+        "model learns; only against an independent reference of the scene's colours (a twin, a chart)")
     multiplicative = True
     trained_magnitudes = (0.12,)
     in_trained_sweep = True
