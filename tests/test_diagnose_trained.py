@@ -665,3 +665,32 @@ def test_the_metadata_estimate_is_on_the_frames_the_split_half_test_flags():
     assert split and named.params["flagged_frames"] == split
     assert set(split) <= {800 + f for f in case.affected_frames}
     assert all(abs(e - 0.25) < 0.08 for e in named.params["exposure_relative_error"]), named.params
+
+
+def test_readout_must_follow_the_true_row_times():
+    """On a trained run a readout error must also beat wrong row times (`row_time_placebo`: read along
+    the columns, row bands scrambled). A hidden readout error beats all of them; a model error in one
+    corner that follows the motion (a region rendered late) gives the uncalibrated readout statistic
+    p < 1e-5 but is as strong read along the columns, so it is not called a readout error."""
+    from egobench.diagnose.estimators import CAUSES, ResidualData
+    from egobench.diagnose.placebo import row_time_placebo
+    from egobench.diagnose.signatures import warp
+
+    def fitted(case):
+        d = ResidualData(case.measured, case.predicted, case.context, np.arange(case.measured.shape[0]))
+        r = CAUSES["readout"].fit(d)
+        p_uncalibrated = r.p_value
+        row_time_placebo(d, r)
+        return p_uncalibrated, r.params["calibration_row_time"]
+
+    _, c = fitted(make_case("readout", 0.5, seed=3, speed_px_s=(250.0, 600.0)))
+    assert c["placebo_exceed"] == 0 and c["p_value_placebo"] < 0.01
+    null = make_case(None, seed=4, speed_px_s=(250.0, 600.0))
+    H, W = null.measured.shape[1:3]
+    corner = np.zeros((H, W), bool)
+    corner[: H // 3, : W // 3] = True
+    late, _ = warp(null.predicted, null.context.pixel_velocity_px_s.astype(np.float64) * 4e-3 * corner[None, :, :, None])
+    null.measured = np.where(corner[None, :, :, None], late, null.measured).astype(np.float32)
+    p_uncalibrated, c = fitted(null)
+    assert p_uncalibrated < 1e-5 and c["p_value_placebo"] > 0.05
+    assert max(abs(t) for t in c["placebo_t"]) > 0.8 * abs(c["first_order_t"])  # as strong along the columns

@@ -101,7 +101,8 @@ def model_error_markdown(me: dict, config) -> list[str]:
              f"- reconstruction error dominates: {'yes' if me['dominates'] else 'no'} ({me['rule']})",
              f"- naming rules on a trained run: placebo-calibrated p (exposure metadata: split-half frame-label "
              f"shuffles; response: per-frame scale vs permuted exposure metadata; vignette: frames as units and "
-             f"wrong-centre placebos; timing: permuted velocity fields; white balance: not identifiable, absorbed "
+             f"wrong-centre placebos; timing: permuted velocity fields, readout also wrong row times; white balance: "
+             f"not identifiable, absorbed "
              f"into the scene colours), held-out gain > {config.gain_floor_db} dB", "",
              "| cause | smallest effect testable on this run (of what training left in the residual) "
              "| smallest hidden effect testable (over the retention of a trained sweep, `--retention`) |",

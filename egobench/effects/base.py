@@ -112,6 +112,8 @@ class Effect:
     #: The placebo that calibrates its null on a trained run (egobench.diagnose.placebo):
     #: "velocity_permutation" (motion-driven causes), "radial_centres" (static radial causes), or None.
     trained_placebo: ClassVar[str | None] = None
+    #: On a trained run, a readout-like cause must also beat wrong row times (`row_time_placebo`).
+    trained_row_time_placebo: ClassVar[bool] = False
     #: On a trained run, also tested given a separate shift along the motion in every frame.
     tested_given_frame_shifts: ClassVar[bool] = False
     #: Why a trained run cannot show it (not tested there), or None.

@@ -16,6 +16,7 @@ class Readout(Effect):
     trained_magnitudes = (0.4,)
     error_unit = "fraction"
     trained_placebo = "velocity_permutation"
+    trained_row_time_placebo = True
 
     def sim_overrides(self, value, affected_fraction=0.25):
         return {"readout_scale": 1.0 + float(value)}  # relative error e: true = stated (1 + e)
