@@ -92,3 +92,14 @@ def test_the_committed_run_is_the_protocols_confirmatory_run():
     per_pair = results.groupby(["scene", "method"]).seed.apply(lambda s: sorted(s.astype(int)))
     assert all(v == seeds for v in per_pair), per_pair
     assert len(per_pair) == 22
+
+
+def test_the_sensitivity_predictions_in_the_readme_are_prediction_csv():
+    pred = pd.read_csv(REPO / "results" / "default" / "sensitivity" / "prediction.csv")
+    text = " ".join((REPO / "README.md").read_text().split())
+    shown = 0
+    for r in pred.itertuples():
+        if pd.notna(r.predicted_delta_psnr):
+            assert f"{r.predicted_delta_psnr:.2f} [{r.predicted_ci95_low:.2f}, {r.predicted_ci95_high:.2f}]" in text, r.ablation
+            shown += 1
+    assert shown == 2
