@@ -484,6 +484,16 @@ def calibrate_geometric(data: ResidualData, results: list[CauseResult], seed: in
             row_time_placebo(data, r)
 
 
+def beat_placebos(t_real: float, t_placebo: list[float]) -> tuple[float, int, float]:
+    """(p, exceed, p_tail) of a statistic against a few placebo statistics: the larger of the rank p
+    (1 + exceed) / (1 + n) when a placebo's |t| is as large, and the normal tail of |t| against the
+    placebos' |t| (a handful of placebos cannot give a small rank p alone)."""
+    exceed = int(sum(abs(t) >= abs(t_real) for t in t_placebo))
+    a = np.abs(np.asarray(t_placebo))
+    p_tail = float(sps.norm.sf((abs(t_real) - a.mean()) / max(float(a.std(ddof=1)), 1e-12)))
+    return max((1 + exceed) / (1 + len(t_placebo)) if exceed else 0.0, p_tail), exceed, p_tail
+
+
 #: Row-time bands of the row-time placebo, and how many band orders it tries.
 ROW_TIME_BANDS, ROW_TIME_SCRAMBLES = 8, 6
 
@@ -535,10 +545,7 @@ def row_time_placebo(data: ResidualData, r: CauseResult) -> None:
         d = copy.copy(data)
         d.ctx = dc_replace(data.ctx, row_time_ratio=R.astype(np.asarray(data.ctx.row_time_ratio).dtype))
         t_placebo.append(t_of(d))
-    exceed = int(sum(abs(t) >= abs(t_real) for t in t_placebo))
-    a = np.abs(np.asarray(t_placebo))
-    p_tail = float(sps.norm.sf((abs(t_real) - a.mean()) / max(float(a.std(ddof=1)), 1e-12)))
-    p = max((1 + exceed) / (1 + len(t_placebo)) if exceed else 0.0, p_tail)
+    p, exceed, p_tail = beat_placebos(t_real, t_placebo)
     r.params["calibration_row_time"] = {"p_value_placebo": p, "first_order_t": t_real, "placebo_t": t_placebo,
                                         "placebo_exceed": exceed, "p_tail": p_tail,
                                         "placebo": "row time read along the columns, and the row bands scrambled"}
@@ -572,10 +579,7 @@ def distortion_placebo(data: ResidualData, r: CauseResult) -> None:
         d = copy.copy(data)
         d.ctx = dc_replace(data.ctx, principal_point=(cx + ox * W, cy + oy * H))
         t_placebo.append(t_of(d))
-    exceed = int(sum(abs(t) >= abs(t_real) for t in t_placebo))
-    a = np.abs(np.asarray(t_placebo))
-    p_tail = float(sps.norm.sf((abs(t_real) - a.mean()) / max(float(a.std(ddof=1)), 1e-12)))
-    p = max((1 + exceed) / (1 + len(t_placebo)) if exceed else 0.0, p_tail)
+    p, exceed, p_tail = beat_placebos(t_real, t_placebo)
     r.params["calibration"] = {"p_value_placebo": p, "first_order_t": t_real, "placebo_centre_t": t_placebo,
                                "placebo_exceed": exceed, "p_tail": p_tail}
     r.p_value = max(r.p_value, p)
