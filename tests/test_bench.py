@@ -117,3 +117,15 @@ def test_bench_cast_record(capsys):
     assert main(["bench", "cast", "--repeats", "1"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["benchmark"] == "cast" and out["rays"] == 128 * 128 * 8
+
+
+def test_bench_raster_both_gives_the_2dgs_to_3dgs_ratio_and_thread_speedups():
+    rec = bench.bench_raster_both("cpu", repeats=1, backend="cpu", backends=("cpu",), cases=((16, 40, 2.5), (24, 60)))
+    assert rec["mode"] == "both" and rec["3dgs"]["mode"] == "3dgs" and rec["2dgs"]["mode"] == "2dgs"
+    for row, a, b in zip(rec["ratio_2dgs_to_3dgs"], rec["3dgs"]["cases"], rec["2dgs"]["cases"]):
+        assert row["image"] == a["image"] == b["image"]
+        assert row["ratio_2dgs_to_3dgs"] == pytest.approx(b["median_ms"] / a["median_ms"], abs=1e-3)
+    for mode in ("3dgs", "2dgs"):
+        by = rec[mode]["thread_scaling"]["by_threads"]
+        assert rec["thread_speedup"][mode]["speedup_2_vs_1"] == pytest.approx(
+            by["1"]["median_ms"] / by["2"]["median_ms"], abs=1e-3)

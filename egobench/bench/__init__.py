@@ -142,6 +142,19 @@ def _time_backends(g, cam, T, w, backends, tile_size, device, repeats, **kw) -> 
     return out
 
 
+def bench_raster_both(device: str = "cpu", **kw) -> dict:
+    """3DGS and 2DGS on the same scenes: both records, and per case the 2DGS / 3DGS time ratio (first
+    backend) and each mode's thread speed-up, side by side (issue 32's targets)."""
+    r3, r2 = bench_raster(device, mode="3dgs", **kw), bench_raster(device, mode="2dgs", **kw)
+    ratios = [{"image": a["image"], "sigma_px_median": a["scene"]["sigma_px_median"], "ms_3dgs": a["median_ms"],
+               "ms_2dgs": b["median_ms"], "ratio_2dgs_to_3dgs": round(b["median_ms"] / a["median_ms"], 3)}
+              for a, b in zip(r3["cases"], r2["cases"])]
+    speedup = {m: {k: v for k, v in r.get("thread_scaling", {}).items() if k.startswith("speedup_")}
+               for m, r in (("3dgs", r3), ("2dgs", r2))}
+    return {"benchmark": "raster", "mode": "both", "ratio_2dgs_to_3dgs": ratios, "thread_speedup": speedup,
+            "3dgs": r3, "2dgs": r2}
+
+
 def bench_raster(device: str = "cpu", repeats: int = 7, backend: str = "auto", tile_size: int | None = None,
                  cases: tuple[tuple, ...] = RASTER_CASES, backends: tuple[str, ...] | None = None,
                  scaling_threads: tuple[int, ...] = (1, 2), mode: str = "3dgs") -> dict:
@@ -189,6 +202,9 @@ def bench_raster(device: str = "cpu", repeats: int = 7, backend: str = "auto", t
             torch.set_num_threads(before)
         result["thread_scaling"] = {"backend": backends[0], "image": case["image"],
                                     "sigma_px_median": spec.sigma_px_median, "by_threads": scaling}
+        first, last = str(scaling_threads[0]), str(scaling_threads[-1])
+        result["thread_scaling"][f"speedup_{last}_vs_{first}"] = round(
+            scaling[first]["median_ms"] / scaling[last]["median_ms"], 3)
 
     # rolling shutter: K = 8 samples over a 16 ms readout at 300 deg/s, on the last scene
     K, readout_s, speed = 8, 0.016, 300.0
@@ -291,7 +307,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--tile-size", type=int, default=None,
                         help="tile size in pixels (default: each backend's, see egobench.render.render)")
     parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
-    parser.add_argument("--mode", choices=["3dgs", "2dgs"], default="3dgs", help="raster benchmark: splat type")
+    parser.add_argument("--mode", choices=["3dgs", "2dgs", "both"], default="3dgs",
+                        help="raster benchmark: splat type (both: each, with the 2DGS / 3DGS time ratio per case)")
     train = parser.add_argument_group("train benchmark")
     train.add_argument("--resolution", type=int, action="append",
                        help="training image side in pixels (repeatable; default 64 and 128; paper: 2400)")
@@ -314,7 +331,9 @@ def run(args: argparse.Namespace) -> int:
     chosen = chosen or ["auto"]
     if args.what == "raster":
         backends = default_backends(chosen[0], args.device) if len(chosen) == 1 else tuple(chosen)
-        _report(bench_raster(args.device, args.repeats, chosen[0], args.tile_size, backends=backends, mode=args.mode))
+        kw = dict(repeats=args.repeats, backend=chosen[0], tile_size=args.tile_size, backends=backends)
+        _report(bench_raster_both(args.device, **kw) if args.mode == "both" else
+                bench_raster(args.device, mode=args.mode, **kw))
         return 0
     if args.what == "cast":
         _report(bench_cast(args.device, args.repeats))
