@@ -69,13 +69,6 @@ def _load(recording_dir, calibration: str) -> Recording:
     return load_recording(recording_dir, calibration=calibration)
 
 
-def _gt_file(recording: Recording, kind: str, frame: Frame) -> Path | None:
-    if recording.ground_truth is None:
-        return None
-    p = Path(recording.ground_truth) / kind / f"{frame.index:05d}.npy"
-    return p if p.is_file() else None
-
-
 @dataclass
 class _Held:
     """A trained run set up to predict the held-out frames of a recording."""
@@ -111,7 +104,7 @@ def _geometry_recording(held: _Held, recording_dir, geometry_recording, notes: d
     """The online-calibration recording to measure depth and normals in, or None when there is no
     ground truth (or it cannot be had: a note says why)."""
     rec, first = held.recording, held.frames[0]
-    if _gt_file(rec, "depth", first) is None and _gt_file(rec, "normal", first) is None:
+    if rec.ground_truth_file("depth", first) is None and rec.ground_truth_file("normal", first) is None:
         notes.setdefault("geometry", "no ground-truth depth/normal in this recording")
         return None
     if geometry_recording is not None:
@@ -322,7 +315,7 @@ def _geometry(run: TrainedRun, geo_rec: Recording, frame: Frame, n: int, scale: 
     if gf is None:
         return out
     cam = geo_rec.camera if abs(scale - 1) < 1e-12 else geo_rec.camera.scaled(scale)
-    d_path, n_path = _gt_file(geo_rec, "depth", gf), _gt_file(geo_rec, "normal", gf)
+    d_path, n_path = geo_rec.ground_truth_file("depth", gf), geo_rec.ground_truth_file("normal", gf)
     pose_spec = get_method("ours") if run.spec.models_rolling_shutter else get_method("no_motion_sampling")
     poses, ppi = frame_poses(geo_rec, gf, pose_spec, n, resize_map(geo_rec.row_time_ratio.float(), cam))
     o = render_frame(run.gaussians, cam, poses, ppi, run.spec, RenderSettings.of(run.config),

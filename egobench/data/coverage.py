@@ -11,9 +11,9 @@ when it projects inside the valid area of a training frame whose own ground-trut
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
+import torch
 
 from egobench.data.recording import Frame, Recording
 
@@ -25,9 +25,9 @@ STRIDE_PX = 4
 
 def _gt_depth(recording: Recording, frame: Frame) -> np.ndarray:
     """[H, W] float64 ground-truth z (metres, 0 = none) of a frame in the rectified online camera."""
-    path = Path(recording.ground_truth) / "depth" / f"{frame.index:05d}.npy"
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: ground-truth depth of frame {frame.index} is missing")
+    path = recording.ground_truth_file("depth", frame)
+    if path is None:
+        raise FileNotFoundError(f"{recording.ground_truth}/depth: ground-truth depth of frame {frame.index} is missing")
     depth = np.load(path, allow_pickle=False).astype(np.float64)
     if depth.shape != (recording.camera.height, recording.camera.width):
         raise ValueError(f"{path}: expected shape {(recording.camera.height, recording.camera.width)}, got {depth.shape}")
@@ -40,8 +40,8 @@ def _lift(recording: Recording, frame: Frame, depth: np.ndarray, stride: int) ->
     v, u = np.mgrid[stride // 2:cam.height:stride, stride // 2:cam.width:stride]
     z = depth[v, u]
     keep = (z > 0) & mask[v, u]
-    u, v, z = u[keep], v[keep], z[keep]
-    Y = np.stack([(u - cam.cx) / cam.fx * z, (v - cam.cy) / cam.fy * z, z], axis=1)
+    rays = cam.unproject(torch.from_numpy(np.stack([u[keep], v[keep]], axis=1).astype(np.float64))).numpy()
+    Y = rays * z[keep][:, None]
     T = frame.T_world_camera.numpy()
     return Y @ T[:3, :3].T + T[:3, 3]
 
@@ -51,11 +51,9 @@ def _seen_in(recording: Recording, frame: Frame, depth: np.ndarray, points_world
     cam, mask = recording.camera, recording.mask.numpy().astype(bool)
     T = frame.T_world_camera.numpy()
     Y = (points_world - T[:3, 3]) @ T[:3, :3]
-    z = Y[:, 2]
-    front = z > 1e-6
-    zs = np.where(front, z, 1.0)
-    u = np.rint(cam.fx * Y[:, 0] / zs + cam.cx).astype(np.int64)  # pixel centres at integer (u, v)
-    v = np.rint(cam.fy * Y[:, 1] / zs + cam.cy).astype(np.int64)
+    pix, front = cam.project(torch.from_numpy(Y))
+    uv = np.rint(pix.numpy()).astype(np.int64)  # pixel centres at integer (u, v)
+    u, v, front, z = uv[:, 0], uv[:, 1], front.numpy(), Y[:, 2]
     inside = front & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
     seen = np.zeros(len(points_world), bool)
     ui, vi = u[inside], v[inside]
@@ -83,13 +81,4 @@ def heldout_coverage(recording: Recording, stride: int = STRIDE_PX) -> dict[int,
     return out
 
 
-def covered_test_frames(recording: Recording, min_coverage: float) -> tuple[list[Frame], dict[int, float]]:
-    """(held-out frames with coverage >= ``min_coverage``, every held-out frame's coverage); with
-    ``min_coverage`` 0 every held-out frame (the paper's rule) and no ground truth needed."""
-    if not min_coverage > 0:
-        return list(recording.test_frames), {}
-    cov = heldout_coverage(recording)
-    return [f for f in recording.test_frames if cov[f.index] >= min_coverage], cov
-
-
-__all__ = ["heldout_coverage", "covered_test_frames", "DEPTH_TOLERANCE", "STRIDE_PX"]
+__all__ = ["heldout_coverage", "DEPTH_TOLERANCE", "STRIDE_PX"]

@@ -80,6 +80,13 @@ class Recording:
     def test_frames(self) -> list[Frame]:
         return [f for f in self.frames if f.index % HOLDOUT_EVERY == 0]
 
+    def ground_truth_file(self, kind: str, frame: Frame) -> Path | None:
+        """The frame's ground-truth map ``kind`` ("depth", "normal", "radiance"; .npy), or None if absent."""
+        if self.ground_truth is None:
+            return None
+        path = Path(self.ground_truth) / kind / f"{frame.index:05d}.npy"
+        return path if path.is_file() else None
+
     def load_image(self, frame: Frame) -> Tensor:
         """The frame's image as float32 [H, W, 3] in 0..1 (gamma-encoded, as captured)."""
         import cv2

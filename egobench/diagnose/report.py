@@ -79,9 +79,7 @@ def signature_plot(path: Path, result: CauseResult) -> None:
     if not result.testable:
         ax.text(0.5, 0.5, f"not testable:\n{result.reason}", ha="center", va="center", fontsize=8)
         ax.axis("off")
-    elif result.name in EFFECTS and EFFECTS[result.name].plot_signature(ax, p):
-        pass
-    else:  # time offset, blur: per-frame estimates against image speed
+    elif not EFFECTS[result.name].plot_signature(ax, p):  # time offset, blur: per-frame estimates vs image speed
         ax.plot(p.get("speed_px_s", []), p.get("per_frame", []), "o", label="per frame")
         ax.axhline(p.get("pooled", 0.0), color="k", lw=1, label="pooled")
         ax.set_xlabel("mean image speed (px/s)"), ax.set_ylabel("per-frame estimate"), ax.legend(fontsize=7)

@@ -141,18 +141,21 @@ class Effect:
             return sorted(set(round(d, 6) for d in devs if d > 0))
         return [f * lo for f in fractions_of_lo] + [0.5 * (lo + hi), hi]
 
+    @staticmethod
+    def draw_sign(rng: np.random.Generator) -> float:
+        """+1 or -1, a fair coin from ``rng`` (every effect's hidden value draws it, used or not)."""
+        return 1.0 if rng.random() < 0.5 else -1.0
+
     def _signed(self, sign: float, magnitude: float) -> Value:
         return sign * magnitude if self.sampling == "signed" else magnitude
 
     def sweep_value(self, magnitude: float, rng: np.random.Generator) -> Value:
         """The synthetic sweep's hidden value of ``magnitude`` (a random sign where the effect has one)."""
-        sign = 1.0 if rng.random() < 0.5 else -1.0
-        return self._signed(sign, magnitude)
+        return self._signed(self.draw_sign(rng), magnitude)
 
     def trained_value(self, magnitude: float, rng: np.random.Generator) -> Value:
         """The trained sweep's hidden value of ``magnitude`` (a random sign where the effect has one)."""
-        sign = 1.0 if rng.random() < 0.5 else -1.0
-        return self._signed(sign, magnitude)
+        return self._signed(self.draw_sign(rng), magnitude)
 
     def parameter_error(self, value: Value, params: dict) -> float | None:
         """Error of a diagnosis estimate ``params`` against the hidden ``value`` (`error_unit`), or None."""

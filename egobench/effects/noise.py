@@ -22,11 +22,11 @@ class Noise(Effect):
         return {"noise_std_factor": float(value)}
 
     def sweep_value(self, magnitude, rng):
-        sign = 1.0 if rng.random() < 0.5 else -1.0
+        sign = self.draw_sign(rng)
         return self.nominal * math.exp(sign * magnitude)
 
     def trained_value(self, magnitude, rng):
-        sign = 1.0 if rng.random() < 0.5 else -1.0
+        sign = self.draw_sign(rng)
         return math.exp(sign * magnitude)
 
     def _parameter_error(self, value, params):

@@ -24,11 +24,11 @@ class Response(Effect):
         return {"response_gamma": float(value)}
 
     def sweep_value(self, magnitude, rng):
-        sign = 1.0 if rng.random() < 0.5 else -1.0
+        sign = self.draw_sign(rng)
         return self.nominal * math.exp(sign * magnitude)
 
     def trained_value(self, magnitude, rng):  # gamma = 2.2 +- magnitude
-        sign = 1.0 if rng.random() < 0.5 else -1.0
+        sign = self.draw_sign(rng)
         return self.nominal + sign * magnitude
 
     def _parameter_error(self, value, params):

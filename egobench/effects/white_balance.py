@@ -24,13 +24,13 @@ class WhiteBalance(Effect):
         return {"white_balance": tuple(float(x) for x in value)}
 
     def sweep_value(self, magnitude, rng):
-        rng.random()  # the sign draw every effect makes, unused: keeps the sweep's random streams
+        self.draw_sign(rng)  # unused: keeps the sweep's random streams
         direction = rng.normal(size=3)
         direction /= np.max(np.abs(direction))
         return tuple(float(math.exp(magnitude * d)) for d in direction)
 
     def trained_value(self, magnitude, rng):  # R and B gains exp(+-magnitude) in opposite directions, G = 1
-        sign = 1.0 if rng.random() < 0.5 else -1.0
+        sign = self.draw_sign(rng)
         return (math.exp(sign * magnitude), 1.0, math.exp(-sign * magnitude))
 
     def _parameter_error(self, value, params):
