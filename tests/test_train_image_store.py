@@ -131,6 +131,7 @@ def test_init_colours_read_the_store_as_float(toy):
     assert float(colors.max()) <= 4.0 and not torch.all(colors == 0.5)
 
 
+@pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_cuda_store_pinned_and_matches_cpu(toy, tmp_path):
     data = prepare_data(toy, SPEC, TrainConfig(max_side=0, device="cuda"), progress=False)

@@ -1,0 +1,60 @@
+#!/usr/bin/env bash
+# The GPU path's checks in one call (issue 30): on a bare CUDA machine, from the repository root,
+# install the wheels carried in .whl/ (gsplat, snakemake, jsonschema, ... : whatever the image
+# lacks), JIT-build gsplat's CUDA extension, then run, each under its own share of the time:
+#   pytest -m cuda; bench raster --device cuda; bench train --device cuda at 2400 px / 1M Gaussians
+#   (with and without motion sampling); config/paper_smoke.yaml end to end, as far as time allows.
+# Writes OUT_DIR/summary.txt (one line per step: exit code, seconds) and OUT_DIR/logs.tar.gz (each
+# step's log, the benchmarks' JSON, the smoke run's tables and logs).
+#   usage: bash scripts/gpu_check.sh OUT_DIR [BUDGET_SECONDS]     (EGOBENCH_CACHE: LPIPS weights)
+set -u
+OUT=${1:?usage: gpu_check.sh OUT_DIR [BUDGET_SECONDS]}
+BUDGET=${2:-560}
+LOGS=/tmp/gpu_check_logs
+mkdir -p "$OUT" "$LOGS"
+START=$SECONDS
+
+left() { echo $((BUDGET - (SECONDS - START))); }
+
+# step NAME SECONDS CMD...: run CMD with at most SECONDS (and never past the budget), log to LOGS/NAME.log
+step() {
+  local name=$1 want=$2 budget t began rc
+  shift 2
+  budget=$(left)
+  t=$((want < budget ? want : budget))
+  if ((t < 5)); then echo "$name: skipped (no time left)" | tee -a "$OUT/summary.txt"; return; fi
+  began=$SECONDS
+  timeout -k 5 "$t" "$@" >"$LOGS/$name.log" 2>&1
+  rc=$?
+  echo "$name: rc=$rc in $((SECONDS - began)) s (limit $t s)" | tee -a "$OUT/summary.txt"
+  tail -n 4 "$LOGS/$name.log" | sed 's/^/    /' >>"$OUT/summary.txt"
+}
+
+export PYTHONUNBUFFERED=1 MAX_JOBS=16 TORCH_CUDA_ARCH_LIST=9.0 TORCH_EXTENSIONS_DIR=/tmp/torch_ext VERBOSE=1
+export PYTHONPATH=$PWD:/tmp/site PATH=/tmp/site/bin:$PATH
+
+step env 30 bash -c 'nvidia-smi; nvcc --version; lscpu | head -20; python3 -c "
+import torch, numpy, numba
+print(\"torch\", torch.__version__, \"cuda\", torch.version.cuda, torch.cuda.get_device_name(0))
+print(\"numpy\", numpy.__version__, \"numba\", numba.__version__)"'
+step install 90 python3 -m pip install --no-index --no-deps --no-compile --no-cache-dir --upgrade \
+  --target /tmp/site .whl/*.whl
+step gsplat_build 300 python3 -c "
+import time; t = time.time()
+from gsplat.cuda._backend import _C
+print('gsplat extension:', _C, f'{time.time() - t:.1f} s')
+assert _C is not None"
+step pytest_cuda 100 python3 -m pytest -m cuda -v -p no:cacheprovider --continue-on-collection-errors
+step bench_raster 45 bash -c "python3 -m egobench.cli bench raster --device cuda --mode both \
+  --backend gsplat --backend torch --repeats 7 > $LOGS/bench_raster.json"
+step bench_train 150 bash -c "python3 -m egobench.cli bench train --device cuda --resolution 2400 \
+  --points 1000000 --iterations 30 > $LOGS/bench_train.json"
+SMOKE=$(($(left) - 30))
+step paper_smoke "$SMOKE" python3 -m snakemake --cores 16 --resources gpu=1 --keep-going \
+  --configfile config/paper_smoke.yaml
+
+# what the smoke run left (small files only; recordings and checkpoints stay on the machine)
+find results/paper_smoke .snakemake/log -type f \( -name '*.csv' -o -name '*.json' -o -name '*.tex' \
+  -o -name '*.md' -o -name '*.log' -o -name '*.txt' \) -size -2M 2>/dev/null >"$LOGS/smoke_files.txt"
+tar -czf "$OUT/logs.tar.gz" -C "$PWD" -T "$LOGS/smoke_files.txt" -C / "${LOGS#/}" 2>>"$OUT/summary.txt"
+echo "total: $((SECONDS - START)) s" | tee -a "$OUT/summary.txt"
