@@ -1,12 +1,13 @@
 #!/usr/bin/env bash
 # The GPU path's checks in one call (issue 30): on a bare CUDA machine, from the repository root,
-# install the wheels carried in .whl/ (gsplat, snakemake, jsonschema, ... : whatever the image
-# lacks), JIT-build gsplat's CUDA extension, then run, each under its own share of the time:
-#   pytest -m cuda; bench raster --device cuda; bench train --device cuda at 2400 px / 1M Gaussians
-#   (with and without motion sampling); config/paper_smoke.yaml end to end, as far as time allows.
+# install the wheels carried in .whl/ (scripts/gpu_wheels.sh: what the image lacks), JIT-build gsplat's CUDA extension, then run, each under its own share of the time:
+#   pytest -m cuda; bench raster, bench cast (rays/s by chunk size) and bench train at 2400 px / 1M
+#   Gaussians (with and without motion sampling); two simulated frames at the paper's resolution
+#   (s/frame); config/paper_smoke.yaml end to end, as far as time allows.
 # Writes OUT_DIR/summary.txt (one line per step: exit code, seconds) and OUT_DIR/logs.tar.gz (each
 # step's log, the benchmarks' JSON, the smoke run's tables and logs).
 #   usage: bash scripts/gpu_check.sh OUT_DIR [BUDGET_SECONDS]     (EGOBENCH_CACHE: LPIPS weights)
+#   STEPS="install gsplat_build paper_smoke" bash scripts/gpu_check.sh ...   runs only the steps named
 set -u
 OUT=${1:?usage: gpu_check.sh OUT_DIR [BUDGET_SECONDS]}
 BUDGET=${2:-560}
@@ -20,6 +21,7 @@ left() { echo $((BUDGET - (SECONDS - START))); }
 step() {
   local name=$1 want=$2 budget t began rc
   shift 2
+  [[ " ${STEPS:-all} " == *" all "* || " ${STEPS:-all} " == *" $name "* ]] || return 0
   budget=$(left)
   t=$((want < budget ? want : budget))
   if ((t < 5)); then echo "$name: skipped (no time left)" | tee -a "$OUT/summary.txt"; return; fi
@@ -30,7 +32,7 @@ step() {
   tail -n 4 "$LOGS/$name.log" | sed 's/^/    /' >>"$OUT/summary.txt"
 }
 
-export PYTHONUNBUFFERED=1 MAX_JOBS=16 TORCH_CUDA_ARCH_LIST=9.0 TORCH_EXTENSIONS_DIR=/tmp/torch_ext VERBOSE=1
+export PYTHONUNBUFFERED=1 MAX_JOBS=16 TORCH_CUDA_ARCH_LIST=9.0 TORCH_EXTENSIONS_DIR=/tmp/torch_ext
 export PYTHONPATH=$PWD:/tmp/site PATH=/tmp/site/bin:$PATH
 
 step env 30 bash -c 'nvidia-smi; nvcc --version; lscpu | head -20; python3 -c "
@@ -39,7 +41,7 @@ print(\"torch\", torch.__version__, \"cuda\", torch.version.cuda, torch.cuda.get
 print(\"numpy\", numpy.__version__, \"numba\", numba.__version__)"'
 step install 90 python3 -m pip install --no-index --no-deps --no-compile --no-cache-dir --upgrade \
   --target /tmp/site .whl/*.whl
-step gsplat_build 300 python3 -c "
+step gsplat_build 300 env VERBOSE=1 python3 -c "
 import time; t = time.time()
 from gsplat.cuda._backend import _C
 print('gsplat extension:', _C, f'{time.time() - t:.1f} s')
@@ -47,8 +49,12 @@ assert _C is not None"
 step pytest_cuda 100 python3 -m pytest -m cuda -v -p no:cacheprovider --continue-on-collection-errors
 step bench_raster 45 bash -c "python3 -m egobench.cli bench raster --device cuda --mode both \
   --backend gsplat --backend torch --repeats 7 > $LOGS/bench_raster.json"
+step bench_cast 60 bash -c "python3 -m egobench.cli bench cast --device cuda --side 512 --repeats 3 \
+  --chunk 65536 --chunk 262144 --chunk 1048576 --chunk 4194304 --chunk 8388608 > $LOGS/bench_cast.json"
 step bench_train 150 bash -c "python3 -m egobench.cli bench train --device cuda --resolution 2400 \
   --points 1000000 --iterations 30 > $LOGS/bench_train.json"
+step sim_frames 150 python3 -m egobench.cli simulate --out /tmp/sim2400 --kind outdoor --seed 0 \
+  --set n_frames=2 --set rectified_size=2400 --set compute_device=cuda
 SMOKE=$(($(left) - 30))
 step paper_smoke "$SMOKE" python3 -m snakemake --cores 16 --resources gpu=1 --keep-going \
   --configfile config/paper_smoke.yaml

@@ -274,9 +274,11 @@ def bench_train(device: str = "cpu", backend: str = "auto", sides: tuple[int, ..
 
 
 def bench_cast(device: str = "cpu", repeats: int = 7, kind: str = "indoor", side: int = 128,
-               samples: int = 8) -> dict:
+               samples: int = 8, chunks: tuple[int, ...] = ()) -> dict:
     """The ray-casting benchmark record: side x side x samples rays from near the walk region's
-    centre in random directions through `Scene.cast` (texture footprint of a side-pixel image)."""
+    centre in random directions through `Scene.cast` (texture footprint of a side-pixel image).
+    ``chunks``: also time `cast_chunked` over the same rays with each chunk size (rays per
+    Scene.cast call, as the simulator's frames are cast), to show where per-call overhead ends."""
     import numpy as np
 
     from egobench.sim.world import make_scene
@@ -286,15 +288,36 @@ def bench_cast(device: str = "cpu", repeats: int = 7, kind: str = "indoor", side
     n = side * side * samples
     eye = torch.tensor(scene.walk_region.center_point, dtype=torch.float32)
     origins = (eye + 0.01 * torch.tensor(rng.normal(size=(n, 3)), dtype=torch.float32)).contiguous().to(device)
-    directions = torch.tensor(rng.normal(size=(n, 3)), dtype=torch.float32).to(device)
+    directions = torch.nn.functional.normalize(torch.tensor(rng.normal(size=(n, 3)), dtype=torch.float32), dim=-1)
+    directions = directions.to(device)
     timing = time_fwd_bwd(lambda: scene.cast(origins, directions, pixel_angle_rad=1 / side), device, repeats,
                           warmup=1)
+    by_chunk = {str(c): _time_cast_chunked(scene, origins, directions, 1 / side, c, device, repeats) for c in chunks}
     return {"benchmark": "cast", "device": device, "torch": torch.__version__, "threads": torch.get_num_threads(),
             "scene": f"{kind}_0", "rays": n, "image": f"{side}x{side}", "temporal_samples": samples,
             "median_ms": timing["median_ms"], "min_ms": timing["min_ms"],
             "cpu_median_ms": timing["cpu_median_ms"], "repeats": repeats,
-            "rays_per_s": round(n / (timing["median_ms"] * 1e-3)),
+            "rays_per_s": round(n / (timing["median_ms"] * 1e-3)), "by_chunk": by_chunk,
             "note": "wall time of one Scene.cast call, median of repeats after 1 warm-up; noisy on a shared machine"}
+
+
+def _time_cast_chunked(scene, origins, directions, pixel_angle_rad: float, chunk: int, device: str,
+                       repeats: int) -> dict:
+    """`cast_chunked` over all rays with ``chunk`` rays per Scene.cast call: median ms and rays/s."""
+    from egobench.sim.capture import raw
+
+    if chunk < 1:
+        raise ValueError(f"--chunk: expected a positive integer, got {chunk}")
+    saved = raw.CAST_CHUNK, raw.CAST_CHUNK_GPU
+    raw.CAST_CHUNK = raw.CAST_CHUNK_GPU = chunk
+    try:
+        t = time_fwd_bwd(lambda: raw.cast_chunked(scene, origins, directions, pixel_angle_rad=pixel_angle_rad),
+                         device, repeats, warmup=1)
+    finally:
+        raw.CAST_CHUNK, raw.CAST_CHUNK_GPU = saved
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+    return {"median_ms": t["median_ms"], "rays_per_s": round(origins.shape[0] / (t["median_ms"] * 1e-3))}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -309,6 +332,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
     parser.add_argument("--mode", choices=["3dgs", "2dgs", "both"], default="3dgs",
                         help="raster benchmark: splat type (both: each, with the 2DGS / 3DGS time ratio per case)")
+    parser.add_argument("--side", type=int, default=128, help="cast benchmark: image side (rays: side^2 x 8)")
+    parser.add_argument("--chunk", type=int, action="append", default=[],
+                        help="cast benchmark: also time the chunked cast with this many rays per call (repeatable)")
     train = parser.add_argument_group("train benchmark")
     train.add_argument("--resolution", type=int, action="append",
                        help="training image side in pixels (repeatable; default 64 and 128; paper: 2400)")
@@ -336,7 +362,7 @@ def run(args: argparse.Namespace) -> int:
                 bench_raster(args.device, mode=args.mode, **kw))
         return 0
     if args.what == "cast":
-        _report(bench_cast(args.device, args.repeats))
+        _report(bench_cast(args.device, args.repeats, side=args.side, chunks=tuple(args.chunk)))
         return 0
     for name in ("iterations", "points"):
         if getattr(args, name) < 1:
