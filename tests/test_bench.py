@@ -119,6 +119,44 @@ def test_bench_cast_record(capsys):
     assert out["benchmark"] == "cast" and out["rays"] == 128 * 128 * 8
 
 
+def test_bench_cast_times_each_chunk_size_and_restores_the_simulators():
+    """--chunk N times the chunked cast with N rays a call; the simulator's chunk sizes come back after."""
+    from egobench.sim.capture import raw
+
+    before = raw.CAST_CHUNK, raw.CAST_CHUNK_GPU
+    rec = bench.bench_cast("cpu", repeats=1, side=8, samples=2, chunks=(16, 1000))
+    assert set(rec["by_chunk"]) == {"16", "1000"} and (raw.CAST_CHUNK, raw.CAST_CHUNK_GPU) == before
+    for c in rec["by_chunk"].values():
+        assert c["rays_per_s"] == round(128 / (c["median_ms"] * 1e-3))
+    with pytest.raises(ValueError, match="--chunk: expected a positive integer"):
+        bench.bench_cast("cpu", repeats=1, side=8, samples=2, chunks=(0,))
+
+
+def test_chunked_cast_does_not_depend_on_the_chunk_size():
+    """Splitting the rays into Scene.cast calls of any size gives the same radiance, bit for bit
+    (the GPU's chunk size changed from 2^18 to 2^22 rays on that ground)."""
+    import numpy as np
+
+    from egobench.sim.capture import raw
+    from egobench.sim.world import make_scene
+
+    scene = make_scene("outdoor", 0)
+    rng = np.random.default_rng(3)
+    n = 3000
+    o = torch.tensor(scene.walk_region.center_point, dtype=torch.float32).expand(n, 3).contiguous()
+    d = torch.nn.functional.normalize(torch.tensor(rng.normal(size=(n, 3)), dtype=torch.float32), dim=-1)
+    saved = raw.CAST_CHUNK
+    try:
+        outs = []
+        for chunk in (n, 257, 64):
+            raw.CAST_CHUNK = chunk
+            outs.append(raw.cast_chunked(scene, o, d, ("radiance", "depth_t"), pixel_angle_rad=1e-3))
+    finally:
+        raw.CAST_CHUNK = saved
+    for other in outs[1:]:
+        assert torch.equal(other["radiance"], outs[0]["radiance"]) and torch.equal(other["depth_t"], outs[0]["depth_t"])
+
+
 def test_bench_raster_both_gives_the_2dgs_to_3dgs_ratio_and_thread_speedups():
     rec = bench.bench_raster_both("cpu", repeats=1, backend="cpu", backends=("cpu",), cases=((16, 40, 2.5), (24, 60)))
     assert rec["mode"] == "both" and rec["3dgs"]["mode"] == "3dgs" and rec["2dgs"]["mode"] == "2dgs"
