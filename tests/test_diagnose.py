@@ -2,17 +2,13 @@
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
 
 from egobench.diagnose.core import NO_DISCREPANCY, DiagnosisConfig, diagnose_residuals
-from egobench.diagnose.signatures import (
-    distortion_profile, frame_t_test, holm, partial_f_test, warp, weighted_lstsq,
-)
 from egobench.diagnose.synthetic import make_case
 from egobench.effects import EFFECTS
+from egobench.residual.signatures import distortion_profile, frame_t_test, holm, partial_f_test, warp, weighted_lstsq
 
 FAST = {"speed_px_s": (250.0, 600.0)}  # "exposure 4-10 ms under fast motion"
 
@@ -175,7 +171,7 @@ def test_bad_input_names_the_argument():
 def test_a_new_prediction_gets_its_own_geometric_view():
     """`with_prediction` must not carry the old prediction's cached geometric view: the blur test
     'given the refined shift' fits on the shifted prediction, not on the original one."""
-    from egobench.diagnose.estimators import ResidualData
+    from egobench.residual.estimation import ResidualData
 
     case = make_case(None, seed=2)
     data = ResidualData(case.measured, case.predicted, case.context, np.arange(case.measured.shape[0]))

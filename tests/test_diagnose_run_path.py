@@ -33,8 +33,8 @@ def _reconstruction_like(predicted: np.ndarray, sigma_px: float = 0.5) -> np.nda
 
 def test_run_path_noise_reference_matches_the_ground_truth_pipeline(null_recording):
     from egobench.data import load_recording
-    from egobench.diagnose.signatures import box3, erode
     from egobench.diagnose.sources import run_context
+    from egobench.residual.signatures import box3, erode
 
     root, src = null_recording
     rec = load_recording(root)

@@ -109,7 +109,7 @@ def test_model_error_numbers_match_a_known_white_error():
     d = diagnose_residuals(case.measured, pred, case.context, TRAINED)
     me = d.model_error
     assert d.verdict == RECONSTRUCTION_ERROR
-    from egobench.diagnose.signatures import checkerboard, erode
+    from egobench.residual.signatures import checkerboard, erode
 
     held = case.context.held_out
     scored = (erode(case.context.valid, 2) & checkerboard(48, 48, 1))[None, :, :, None]
@@ -121,7 +121,7 @@ def test_model_error_numbers_match_a_known_white_error():
 
 def _photometric_fit(measured, predicted, ctx):
     from egobench.diagnose.placebo import _cells
-    from egobench.diagnose.estimators import ResidualData
+    from egobench.residual.estimation import ResidualData
 
     data = ResidualData(measured, predicted, ctx, np.arange(measured.shape[0]))
     return data, data.photometric(), _cells(data.photometric())
@@ -310,9 +310,10 @@ def test_per_frame_pose_jitter_along_the_motion_is_not_exposure_blur():
     """A trained model's per-frame timing/pose errors are shifts along each frame's motion with
     varying sign; their second-order term mimics blur in every frame (a global shift cannot remove
     it). Tested given a per-frame shift, exposure blur is not significant; a real blur still is."""
+    from egobench.diagnose.estimators import CAUSES
     from egobench.diagnose.placebo import blur_given_frame_shifts
-    from egobench.diagnose.estimators import CAUSES, ResidualData
-    from egobench.diagnose.signatures import warp
+    from egobench.residual.estimation import ResidualData
+    from egobench.residual.signatures import warp
 
     null = make_case(None, seed=4, speed_px_s=(250.0, 600.0))
     F = null.measured.shape[0]
@@ -334,7 +335,7 @@ def test_distortion_must_beat_wrong_centre_placebos():
     """A radial displacement about an off-centre point in every frame (model error tied to the
     image) passes the frame-level distortion test but not the wrong-centre placebos; a real k0
     error (radial about the principal point) is still named, its estimate within 10 %."""
-    from egobench.diagnose.signatures import warp
+    from egobench.residual.signatures import warp
 
     null = make_case(None, seed=3)
     v, u = np.mgrid[0:48, 0:48].astype(np.float64)
@@ -415,8 +416,8 @@ def _null_summary(path, mean=-0.05, sd=0.02, setup=None):
 
 
 def test_the_extensions_call_on_a_users_run_against_the_sweeps_nulls(tmp_path):
-    from egobench.diagnose.extension import judge_shading, load_shading_null
     from egobench.analysis.similarity import exposure_gain_ratio
+    from egobench.diagnose.extension import judge_shading, load_shading_null
 
     null = load_shading_null(_null_summary(tmp_path / "s.json"))
     assert null.threshold == pytest.approx(0.01) and null.n == 10
@@ -485,7 +486,8 @@ def test_a_weaker_cause_is_not_named_when_the_strongest_does_not_generalise(monk
     from types import SimpleNamespace
 
     from egobench.diagnose.core import _name_mean_cause
-    from egobench.diagnose.estimators import CAUSES, CauseResult
+    from egobench.diagnose.estimators import CAUSES
+    from egobench.residual.estimation import CauseResult
 
     gains = {"time_offset": 0.0, "vignette": 1.0}  # held-out "PSNR" gain each extension would give
     for name in gains:
@@ -514,8 +516,8 @@ def test_a_contained_cause_is_named_with_its_container_and_scored_apart_from_wro
     """Time offset named while readout (which contains it) is not significant: the name carries
     readout as its "or"; the sweep counts that apart from a wrong name."""
     from egobench.diagnose.core import NamedCause, _note_containing_causes
-    from egobench.diagnose.estimators import CauseResult
     from egobench.diagnose.trained_sweep import _row
+    from egobench.residual.estimation import CauseResult
 
     def named(readout_significant):
         c = NamedCause("time_offset", 1, 1e-8, 0.006, {"time_offset_error_s": -0.0029}, 0.25)
@@ -630,7 +632,7 @@ def test_frames_flagged_against_the_bulk_when_a_quarter_of_the_frames_are_off():
     (shortest half, one reweighting step) flags only affected frames, most of them, and Gaussian
     frame scatter flags (almost) none."""
     from egobench.diagnose.placebo import FLAG_SIGMAS, flag_frames_in_both_halves
-    from egobench.diagnose.signatures import robust_sd as _mad
+    from egobench.residual.signatures import robust_sd as _mad
 
     rng = np.random.default_rng(3)
     # the left halves' log scales of a trained outdoor run (64 px, 48 frames, 800 iterations, sorted;
@@ -672,9 +674,10 @@ def test_readout_must_follow_the_true_row_times():
     the columns, row bands scrambled). A hidden readout error beats all of them; a model error in one
     corner that follows the motion (a region rendered late) gives the uncalibrated readout statistic
     p < 1e-5 but is as strong read along the columns, so it is not called a readout error."""
-    from egobench.diagnose.estimators import CAUSES, ResidualData
+    from egobench.diagnose.estimators import CAUSES
     from egobench.diagnose.placebo import row_time_placebo
-    from egobench.diagnose.signatures import warp
+    from egobench.residual.estimation import ResidualData
+    from egobench.residual.signatures import warp
 
     def fitted(case):
         d = ResidualData(case.measured, case.predicted, case.context, np.arange(case.measured.shape[0]))

@@ -14,6 +14,6 @@ CLI (`egobench.diagnose.cli`): ``egobench diagnose RECORDING --method M --out DI
 from __future__ import annotations
 
 from egobench.diagnose.core import NO_DISCREPANCY, Diagnosis, DiagnosisConfig, NamedCause, diagnose_residuals
-from egobench.diagnose.signatures import DiagnosisContext
+from egobench.residual.signatures import DiagnosisContext
 
 __all__ = ["NO_DISCREPANCY", "Diagnosis", "DiagnosisConfig", "DiagnosisContext", "NamedCause", "diagnose_residuals"]

@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from egobench.diagnose.core import DiagnosisConfig, diagnose_residuals
-from egobench.diagnose.signatures import DiagnosisContext, decode, encode
 from egobench.effects import EFFECTS
+from egobench.residual.signatures import DiagnosisContext, decode, encode
 
 RGB_STREAM = "214-1"
 #: Causes testable on the ADT pair (see module docstring).

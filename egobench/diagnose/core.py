@@ -24,11 +24,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from egobench.diagnose.estimators import CAUSES
 from egobench.diagnose.placebo import (calibrate_geometric, calibrate_photometric, geometric_standard_errors,
-                                           mark_untestable_on_trained_run)
-from egobench.diagnose.estimators import CAUSES, CauseResult, Noise, ResidualData
-from egobench.diagnose.signatures import LEVEL, DiagnosisContext, box3, checkerboard, erode, holm, psnr
+                                       mark_untestable_on_trained_run)
 from egobench.effects import EFFECTS
+from egobench.effects.noise import NoiseCause
+from egobench.residual.estimation import CauseResult, ResidualData
+from egobench.residual.signatures import LEVEL, DiagnosisContext, box3, checkerboard, erode, holm, psnr
 
 NO_DISCREPANCY = "no significant discrepancy"
 #: Verdict of a trained run whose residual is mostly the model's own error and names no cause.
@@ -162,7 +164,7 @@ def _noise_factor_beyond_floor(result: CauseResult, floor: float) -> bool:
     return all((h - 1.0) * (f - 1.0) > 0 and abs(h - 1.0) > floor for h in halves)
 
 
-def _noise_nll_gain(noise_cause: Noise, noise: CauseResult, measured: np.ndarray, current: np.ndarray,
+def _noise_nll_gain(noise_cause: NoiseCause, noise: CauseResult, measured: np.ndarray, current: np.ndarray,
                     ctx: DiagnosisContext, eval_idx: np.ndarray, eval_mask: np.ndarray) -> float:
     """Held-out Gaussian NLL gain (nats/pixel) of the fitted noise over the assumed one.
 
@@ -246,7 +248,7 @@ def _name_noise(testable: list[CauseResult], rnd: int, measured: np.ndarray, cur
     noise = next((r for r in testable if EFFECTS[r.name].variance_model and r.significant), None)
     if noise is None:
         return None
-    noise_cause: Noise = CAUSES[noise.name]  # type: ignore[assignment]
+    noise_cause: NoiseCause = CAUSES[noise.name]  # type: ignore[assignment]
     gain_nll = _noise_nll_gain(noise_cause, noise, measured, current, ctx, split.eval_idx, split.eval_mask)
     noise.params["held_out_nll_gain_nats_per_px"] = gain_nll
     if gain_nll > cfg.noise_nll_gain_floor:
@@ -306,7 +308,7 @@ def _noise_variance(pred: np.ndarray, ctx: DiagnosisContext, idx: np.ndarray) ->
     if ctx.noise_reference is not None:
         ref = ctx.noise_reference[idx]
         return np.broadcast_to(np.mean(ref**2, axis=(1, 2), keepdims=True), pred.shape)
-    noise: Noise = CAUSES["noise"]  # type: ignore[assignment]
+    noise: NoiseCause = CAUSES["noise"]  # type: ignore[assignment]
     if ctx.noise_shot is None:
         return np.full(pred.shape, ctx.quantisation_level**2 / 12.0)
     return noise.variance(pred, None, ctx, idx)

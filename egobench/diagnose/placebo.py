@@ -32,10 +32,10 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.stats as sps
 
-from egobench.diagnose.estimators import BLOCK_PX, CauseResult, PhotometricFit, ResidualData
-from egobench.diagnose.signatures import frame_t_test, robust_sd, weighted_lstsq
 from egobench.effects import EFFECTS
 from egobench.effects.exposure_metadata import FLAG_MIN_LOG, FLAG_SIGMAS
+from egobench.residual.estimation import BLOCK_PX, CauseResult, PhotometricFit, ResidualData
+from egobench.residual.signatures import frame_t_test, robust_sd, weighted_lstsq
 
 #: Offsets of the wrong centres of the vignette placebo, as fractions of (width, height).
 PLACEBO_CENTRE_OFFSETS = ((0.25, 0.0), (-0.25, 0.0), (0.0, 0.25), (0.0, -0.25),
@@ -233,10 +233,10 @@ BLUR_SIGMAS_PX = tuple(round(0.1 * k, 1) for k in range(21))
 
 def _blur_linear(display: np.ndarray, sigma: float, gamma: float) -> np.ndarray:
     """Gaussian blur of display images [f, H, W, 3] in linear space (light spreads linearly)."""
-    from egobench.diagnose.estimators import _gaussian
-    from egobench.diagnose.signatures import decode, encode
+    from egobench.residual.estimation import gaussian_lowpass
+    from egobench.residual.signatures import decode, encode
 
-    return np.clip(encode(_gaussian(decode(display, gamma), sigma), gamma), 0.0, 1.0) if sigma > 0 else display
+    return np.clip(encode(gaussian_lowpass(decode(display, gamma), sigma), gamma), 0.0, 1.0) if sigma > 0 else display
 
 
 def render_blur(data: ResidualData) -> float:
@@ -255,19 +255,20 @@ def _noise_after_blur(data: ResidualData):
     blur also averages the measurement noise away, which must not count as a better match. With a
     pipeline noise reference, that reference blurred; else the analytic variance x sum of squared
     kernel weights."""
-    from egobench.diagnose.estimators import CAUSES, _gaussian
+    from egobench.diagnose.estimators import CAUSES
+    from egobench.residual.estimation import gaussian_lowpass
 
     m = data.usable
     if data.ctx.noise_reference is not None:
         ref = data.ctx.noise_reference[data.frames]
-        return lambda s: float(np.mean((_gaussian(ref, s) if s > 0 else ref)[m] ** 2))
+        return lambda s: float(np.mean((gaussian_lowpass(ref, s) if s > 0 else ref)[m] ** 2))
     if data.ctx.noise_shot is None:
         var = data.ctx.quantisation_level**2 / 12.0
     else:
         var = float(np.mean(CAUSES["noise"].variance(data.p, None, data.ctx, data.frames)[m]))
     delta = np.zeros((1, 15, 15, 1))
     delta[0, 7, 7, 0] = 1.0
-    return lambda s: var * (float(np.sum(_gaussian(delta, s) ** 2)) if s > 0 else 1.0)
+    return lambda s: var * (float(np.sum(gaussian_lowpass(delta, s) ** 2)) if s > 0 else 1.0)
 
 
 def resolution_matched(data: ResidualData, sigma: float) -> ResidualData:
@@ -275,7 +276,7 @@ def resolution_matched(data: ResidualData, sigma: float) -> ResidualData:
     predicted at the same resolution, so photometric statistics see no leakage between cells."""
     import copy
 
-    from egobench.diagnose.signatures import decode
+    from egobench.residual.signatures import decode
 
     if sigma <= 0:
         return data
@@ -590,15 +591,15 @@ def blur_given_frame_shifts(data: ResidualData, r: CauseResult) -> None:
     (in place: p-value = the larger of both). A trained model's per-frame pose/timing errors are
     shifts along each frame's motion with varying sign; their second-order term (1/2) d^T H d is
     positive whatever the sign, exactly the blur signature, which one global shift cannot remove."""
-    from egobench.diagnose.estimators import CAUSES, ExposureBlur
-    from egobench.diagnose.signatures import warp
+    from egobench.diagnose.estimators import CAUSES
+    from egobench.residual.signatures import warp
 
     if not r.testable or data.velocity is None:
         return
     est, _ = CAUSES["time_offset"].first_order(data)  # per-frame time shift dt_f [f, 1], s
     shifted, inside = warp(data.p, data.velocity * est[:, 0][:, None, None, None])
     shifted_data = data.with_prediction(np.clip(shifted, 0.0, 1.0), inside)
-    given = super(ExposureBlur, CAUSES["exposure_blur"]).fit(shifted_data)
+    given = CAUSES["exposure_blur"].fit_unconditioned(shifted_data)
     if not given.testable:
         return
     r.params["p_value_given_frame_shifts"] = given.p_value

@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 
 from egobench.diagnose.core import Diagnosis
-from egobench.diagnose.estimators import CauseResult
 from egobench.effects import EFFECTS
 from egobench.io_utils import atomic_path, write_json
+from egobench.residual.estimation import CauseResult
 
 LEVELS = 255.0
 

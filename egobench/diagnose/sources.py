@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from egobench.diagnose.signatures import DiagnosisContext
 from egobench.io_utils import read_json
+from egobench.residual.signatures import DiagnosisContext
 
 #: Time step of the finite-difference image velocity, ns (1 ms).
 VELOCITY_DT_NS = 1_000_000
@@ -342,9 +342,8 @@ def run_source(recording_dir: str | Path, run_dir: str | Path, max_frames: int |
     from tqdm import tqdm
 
     from egobench.data import load_recording
-    from egobench.model.predict import (
-        RenderSettings, formation_model, method_normaliser, predict_frame, run_maps, sample_counts,
-    )
+    from egobench.model.predict import (RenderSettings, formation_model, method_normaliser, predict_frame, run_maps,
+                                        sample_counts)
     from egobench.train.checkpoint import load_trained_run
 
     run = load_trained_run(run_dir, device, f"diagnose run {run_dir}")

@@ -18,9 +18,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from egobench.diagnose.signatures import DiagnosisContext, distortion_profile, radial_coordinates
 from egobench.effects import EFFECTS
 from egobench.model.formation import GammaResponse, PoissonGaussianNoise, quantise, radial_vignette
+from egobench.residual.signatures import DiagnosisContext, distortion_profile, radial_coordinates
 
 #: Sensor of the synthetic cases (Aria-like, egobench.sim.devices.ARIA_RGB noise profile).
 FULL_WELL_E, READ_NOISE_E = 6000.0, 2.0

@@ -7,8 +7,9 @@ formation rather than geometry/timing) and its residual signature; and, as hooks
 the synthetic cases, the sweeps and the diagnosis call instead of branching on its name: how the
 simulator hides it (`sim_overrides`), the sweeps' magnitudes and hidden values, how a synthetic case
 injects it (``synth_*``), its parameter error, the smallest effect a run can reveal, and its
-signature plot. The defaults below are "this effect does not take part"; a subclass overrides what
-concerns it. Estimators live with the diagnosis (``egobench/diagnose/estimators.py``), keyed by name.
+signature plot; and its estimator, ``cause_class`` (a `Cause` of egobench.residual.estimation: how
+the diagnosis tests, estimates and models it), defined in the same file. The defaults below are
+"this effect does not take part"; a subclass overrides what concerns it.
 """
 
 from __future__ import annotations
@@ -94,6 +95,9 @@ class Effect:
     def sim_overrides(self, value: Value, affected_fraction: float = 0.25) -> dict[str, Any]:
         """SimConfig overrides that hide ``value`` of this effect."""
         raise NotImplementedError(f"Effect {self.name}: sim_overrides")
+
+    #: The diagnosis's estimator of this effect (an egobench.residual.estimation.Cause subclass).
+    cause_class: ClassVar[type]
 
     # ---- the sweeps ---------------------------------------------------------------------------
     #: Sweep magnitudes are log-deviations from the nominal value (a multiplicative parameter).

@@ -2,10 +2,63 @@
 
 from __future__ import annotations
 
+import numpy as np
+
 from egobench.effects.base import Effect
+from egobench.residual.estimation import GeometricCause
+from egobench.residual.signatures import distortion_profile, radial_coordinates
+
+
+class DistortionCause(GeometricCause):
+    """Lens distortion wrong: a static radial displacement, k0 error of the rectifying calibration. theta = [dk0]."""
+
+    name = "distortion"
+    needs_velocity = False
+
+    def _profile(self, ctx, H, W):
+        radius, direction, _ = radial_coordinates(H, W, ctx.principal_point)
+        g = distortion_profile(radius, ctx.focal_px, ctx.lens_radial_k)
+        return g[..., None] * direction  # [H, W, 2] displacement per unit dk0
+
+    def regressors(self, data):
+        H, W = data.p.shape[1:3]
+        d = self._profile(data.ctx, H, W)
+        gx, gy = data.grad
+        return [-(gx * d[None, :, :, 0:1] + gy * d[None, :, :, 1:2])]
+
+    def displacement(self, theta, ctx, frames, shape):
+        d = self._profile(ctx, shape[1], shape[2])
+        return [(1.0, np.broadcast_to(d[None] * theta[0], (shape[0], shape[1], shape[2], 2)))]
+
+    def step_sizes(self, ctx):
+        return np.array([1e-3])
+
+    def describe(self, theta, ctx):
+        return {"k0_error": float(theta[0])}
+
+    def plot_data(self, data, est, info, theta):
+        out = super().plot_data(data, est, info, theta)
+        H, W = data.p.shape[1:3]
+        radius, _, _ = radial_coordinates(H, W, data.ctx.principal_point)
+        x = self.regressors(data)[0]
+        rr = np.broadcast_to(radius[None, :, :, None], x.shape)
+        g = np.broadcast_to(distortion_profile(radius, data.ctx.focal_px, data.ctx.lens_radial_k)[None, :, :, None], x.shape)
+        m = data.usable & (g > 1e-6)
+        # displacement per radial band: slope of residual on the unit-displacement regressor, times the profile
+        edges = np.quantile(rr[m], np.linspace(0, 1, 9))
+        band = np.clip(np.searchsorted(edges, rr[m], side="right") - 1, 0, 7)
+        xm, rm = x[m], data.r[m]
+        num = np.bincount(band, weights=xm * rm, minlength=8)
+        den = np.bincount(band, weights=xm * xm, minlength=8)
+        gm = np.bincount(band, weights=g[m], minlength=8) / np.maximum(np.bincount(band, minlength=8), 1)
+        out["radius_px"] = ((edges[:-1] + edges[1:]) / 2).tolist()
+        out["displacement_px"] = (num / np.maximum(den, 1e-300) * gm).tolist()
+        out["fit_displacement_px"] = (theta[0] * gm).tolist()
+        return out
 
 
 class Distortion(Effect):
+    cause_class = DistortionCause  # the diagnosis's estimator (egobench.residual.estimation)
     identifiability = (
         "only when points reach the outer image in some views and the centre in others (a static radial "
         "displacement)")

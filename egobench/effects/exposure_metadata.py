@@ -4,7 +4,12 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from egobench.effects.base import Effect
+from egobench.residual.estimation import (DISPLAY_MAX, DISPLAY_MIN, Cause, CauseResult, ResidualData, own_term,
+                                          photometric_apply)
+from egobench.residual.signatures import decode
 
 #: A frame of a trained run is flagged when both halves of it deviate beyond this many robust standard
 #: deviations of the model's frame-to-frame error, and beyond FLAG_MIN_LOG. The floor is the largest
@@ -14,7 +19,55 @@ from egobench.effects.base import Effect
 FLAG_SIGMAS, FLAG_MIN_LOG = 4.0, math.log(1.15)
 
 
+class ExposureMetadataCause(Cause):
+    """Per-frame exposure/gain metadata error: a global per-frame scale."""
+
+    name = "exposure_metadata"
+
+    def fit(self, data: ResidualData) -> CauseResult:
+        fit = data.photometric()
+        if not fit.testable:
+            return self._untestable("too few usable photometric cells")
+        f, p, q = fit.test("frame")
+        beta = fit.coefs("frame")
+        dev = beta - fit.log_global
+        spread = 1.4826 * float(np.median(np.abs(dev))) + 1e-12
+        flagged = np.flatnonzero((np.abs(dev) > max(4.0 * spread, 0.03)))
+        scale = np.exp(dev)
+        errors = (1.0 / scale[flagged] - 1.0).tolist()  # recorded = true x (1 + e): measured / predicted = 1 / (1 + e)
+        res = CauseResult(self.name, self.kind, True, statistic=f, statistic_kind=f"F({q}, {fit.dof})", p_value=p,
+                          params={"frame_scale": {int(data.ctx.frame_index[fr]): float(s) for fr, s in zip(data.frames, scale)},
+                                  "flagged_frames": [int(data.ctx.frame_index[data.frames[i]]) for i in flagged],
+                                  "exposure_relative_error": errors,
+                                  "median_exposure_relative_error": float(np.median(errors)) if errors else 0.0,
+                                  "global_gain": math.exp(fit.log_global), "note": "global_gain: median frame gain of the joint fit"},
+                          internal={"log_scale": dict(zip(data.frames.tolist(), dev.tolist())),
+                                    "log_global": fit.own_global("frame")})
+        res.effect_rms = self._effect(data, self.apply(data.p, own_term(res), data.ctx, data.frames))
+        res.plot = {"frame": [int(data.ctx.frame_index[fr]) for fr in data.frames], "scale": scale.tolist(),
+                    "flagged": res.params["flagged_frames"], "xlabel": "frame", "ylabel": "measured / predicted (linear)"}
+        return res
+
+    def apply(self, predicted, result, ctx, frames, measured=None, fit_mask=None):
+        i = result.internal
+        logs = np.zeros(len(frames))
+        for j, fr in enumerate(np.asarray(frames).tolist()):  # loop over frames, not pixels
+            if fr in i["log_scale"]:
+                logs[j] = i["log_scale"][fr]
+            elif measured is not None:  # a frame not fitted (held out): its own scale from the fit pixels
+                lin_m = decode(measured[j], ctx.gamma_assumed)
+                lin_p = decode(predicted[j], ctx.gamma_assumed) * math.exp(i["log_global"])
+                m = (predicted[j] > DISPLAY_MIN) & (predicted[j] < DISPLAY_MAX) & (measured[j] < 0.985)
+                if fit_mask is not None:
+                    m &= np.broadcast_to(fit_mask[..., None], m.shape)
+                m &= np.broadcast_to(ctx.valid[..., None], m.shape)
+                if m.any():
+                    logs[j] = math.log(max(lin_m[m].sum(), 1e-12) / max(lin_p[m].sum(), 1e-12))
+        return photometric_apply(predicted, (i["log_global"] + logs)[:, None, None, None], ctx.gamma_assumed)
+
+
 class ExposureMetadata(Effect):
+    cause_class = ExposureMetadataCause  # the diagnosis's estimator (egobench.residual.estimation)
     identifiability = (
         "only when the recorded exposure x gain varies or some frames are wrong against the others; a "
         "model-error floor of 15 % on single frames applies on trained runs")

@@ -7,9 +7,46 @@ import math
 import numpy as np
 
 from egobench.effects.base import Effect
+from egobench.residual.estimation import Cause, CauseResult, ResidualData, binned_means, own_term, photometric_apply
+
+
+class ResponseCause(Cause):
+    """Camera response wrong: log measured-linear is a power of log predicted-linear."""
+
+    name = "response"
+
+    def fit(self, data: ResidualData) -> CauseResult:
+        fit = data.photometric()
+        if not fit.testable:
+            return self._untestable("too few usable photometric cells")
+        f, p, q = fit.test("response")
+        c = float(fit.coefs("response")[0])
+        gamma_true = data.ctx.gamma_assumed / (1.0 + c) if 1.0 + c > 0.05 else float("inf")
+        res = CauseResult(self.name, self.kind, True, statistic=f, statistic_kind=f"F({q}, {fit.dof})", p_value=p,
+                          params={"gamma": gamma_true, "gamma_assumed": data.ctx.gamma_assumed,
+                                  "log_log_slope_minus_1": c, "global_gain": math.exp(fit.log_global), "note": "global_gain: median frame gain of the joint fit"},
+                          internal={"c": c, "log_p0": fit.log_p0, "log_global": fit.own_global("response")})
+        if not math.isfinite(gamma_true):
+            res.params["gamma"] = None
+            res.reason = "log-log slope <= 0.05: not a gamma curve"
+        res.effect_rms = self._effect(data, self.apply(data.p, own_term(res), data.ctx, data.frames))
+        k = fit.keep
+        res.plot = {"binned": binned_means(fit.log_p[k], fit.partial_residual("response")[k] - fit.log_global, fit.w[k]),
+                    "slope": c, "x0": fit.log_p0,
+                    "xlabel": "log predicted linear intensity", "ylabel": "log(measured / predicted), linear"}
+        return res
+
+    def apply(self, predicted, result, ctx, frames, measured=None, fit_mask=None):
+        i = result.internal
+        log_factor = np.full((1, 1, 1, 1), i["log_global"])
+        if "exposure_slope" in i:  # trained run (egobench.diagnose.placebo): k_f^(a - 1) per frame
+            log_k = np.log(np.maximum(ctx.exposure_s * ctx.gain, 1e-12))[np.asarray(frames)]
+            log_factor = log_factor + (i["exposure_slope"] * (log_k - i["log_k_mean"]))[:, None, None, None]
+        return photometric_apply(predicted, log_factor, ctx.gamma_assumed, power=i["c"], log_p0=i["log_p0"])
 
 
 class Response(Effect):
+    cause_class = ResponseCause  # the diagnosis's estimator (egobench.residual.estimation)
     identifiability = (
         "on a trained run only through exposure x gain changes across frames (std of log exposure x gain "
         "at least 0.05) or a known non-flat vignette; a fixed exposure lets the colours absorb any tone "

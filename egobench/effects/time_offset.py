@@ -2,10 +2,33 @@
 
 from __future__ import annotations
 
+import numpy as np
+
 from egobench.effects.base import Effect
+from egobench.residual.estimation import GeometricCause, velocity_term
+
+
+class TimeOffsetCause(GeometricCause):
+    """Camera time offset: a shift along the image motion, uniform over rows. theta = [dt_s]."""
+
+    name = "time_offset"
+
+    def regressors(self, data):
+        return [velocity_term(data)]
+
+    def displacement(self, theta, ctx, frames, shape):
+        return [(1.0, ctx.pixel_velocity_px_s[frames].astype(np.float64) * theta[0])]
+
+    def step_sizes(self, ctx):
+        return np.array([2e-4])
+
+    def describe(self, theta, ctx):
+        return {"time_offset_error_s": float(theta[0]),
+                "sign": "positive: the camera exposed later (device clock) than the model assumes"}
 
 
 class TimeOffset(Effect):
+    cause_class = TimeOffsetCause  # the diagnosis's estimator (egobench.residual.estimation)
     identifiability = (
         "only with image motion: a shift along the image velocity, zero on still frames")
     trained_magnitudes = (3e-3,)

@@ -4,11 +4,50 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from egobench.effects.base import Effect
 from egobench.model.formation import radial_vignette
+from egobench.residual.estimation import Cause, CauseResult, ResidualData, binned_means, own_term, photometric_apply
+from egobench.residual.signatures import radial_coordinates
+
+
+class VignetteCause(Cause):
+    """Unmodelled lens shading: radial, multiplicative, the same in every frame."""
+
+    name = "vignette"
+
+    def fit(self, data: ResidualData) -> CauseResult:
+        fit = data.photometric()
+        if not fit.testable:
+            return self._untestable("too few usable photometric cells")
+        f, p, q = fit.test("vignette")
+        a = fit.coefs("vignette")
+        corner = 1.0 - math.exp(float(a[0] + a[1]))
+        res = CauseResult(self.name, self.kind, True, statistic=f, statistic_kind=f"F({q}, {fit.dof})", p_value=p,
+                          params={"corner_attenuation": corner, "log_shading_r2_r4": a.tolist(),
+                                  "global_gain": math.exp(fit.log_global), "note": "global_gain: median frame gain of the joint fit"},
+                          internal={"a": a, "log_global": fit.own_global("vignette")})
+        res.effect_rms = self._effect(data, self.apply(data.p, own_term(res), data.ctx, data.frames))
+        pr = fit.partial_residual("vignette")
+        k = fit.keep
+        rr = np.sqrt(fit.r2[k])
+        res.plot = {"binned": binned_means(rr, pr[k] - fit.log_global, fit.w[k]),
+                    "curve_r": np.linspace(0, 1, 21).tolist(),
+                    "curve": (a[0] * np.linspace(0, 1, 21) ** 2 + a[1] * np.linspace(0, 1, 21) ** 4).tolist(),
+                    "xlabel": "radius / corner radius", "ylabel": "log(measured / predicted), linear"}
+        return res
+
+    def apply(self, predicted, result, ctx, frames, measured=None, fit_mask=None):
+        H, W = predicted.shape[1:3]
+        _, _, r = radial_coordinates(H, W, ctx.principal_point)
+        a = result.internal["a"]
+        log_v = a[0] * r**2 + a[1] * r**4
+        return photometric_apply(predicted, result.internal["log_global"] + log_v[None, :, :, None], ctx.gamma_assumed)
 
 
 class Vignette(Effect):
+    cause_class = VignetteCause  # the diagnosis's estimator (egobench.residual.estimation)
     identifiability = (
         "only when the views move points across the image (a surface seen near the centre in one frame "
         "and near a corner in another); a trained model otherwise absorbs the shading into the colours")

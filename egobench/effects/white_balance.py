@@ -7,9 +7,41 @@ import math
 import numpy as np
 
 from egobench.effects.base import Effect
+from egobench.residual.estimation import Cause, CauseResult, ResidualData, own_term, photometric_apply
+
+
+class WhiteBalanceCause(Cause):
+    """Per-channel gains: a constant colour cast (tested relative to green)."""
+
+    name = "white_balance"
+
+    def fit(self, data: ResidualData) -> CauseResult:
+        fit = data.photometric()
+        if not fit.testable:
+            return self._untestable("too few usable photometric cells")
+        f, p, q = fit.test("white_balance")
+        g = fit.coefs("white_balance")
+        rel = np.exp([g[0], 0.0, g[1]])
+        res = CauseResult(self.name, self.kind, True, statistic=f, statistic_kind=f"F({q}, {fit.dof})", p_value=p,
+                          params={"channel_gains_relative_to_green": rel.tolist(),
+                                  "channel_gains": (rel * math.exp(fit.log_global)).tolist(),
+                                  "global_gain": math.exp(fit.log_global), "note": "global_gain: median frame gain of the joint fit"},
+                          internal={"log_gain": np.log(rel), "log_global": fit.own_global("white_balance")})
+        res.effect_rms = self._effect(data, self.apply(data.p, own_term(res), data.ctx, data.frames))
+        k = fit.keep
+        pr = fit.partial_residual("white_balance")[k] - fit.log_global
+        means = [float(np.average(pr[fit.cidx[k] == c], weights=fit.w[k][fit.cidx[k] == c])) if np.any(fit.cidx[k] == c) else 0.0
+                 for c in range(3)]
+        res.plot = {"channel_log_ratio": means, "xlabel": "channel", "ylabel": "log(measured / predicted) - global"}
+        return res
+
+    def apply(self, predicted, result, ctx, frames, measured=None, fit_mask=None):
+        log = result.internal["log_gain"] + result.internal["log_global"]
+        return photometric_apply(predicted, log[None, None, None, :], ctx.gamma_assumed)
 
 
 class WhiteBalance(Effect):
+    cause_class = WhiteBalanceCause  # the diagnosis's estimator (egobench.residual.estimation)
     identifiability = (
         "never on a trained run: a constant per-channel gain is absorbed exactly into the colours the "
         "model learns; only against an independent reference of the scene's colours (a twin, a chart)")

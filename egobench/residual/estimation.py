@@ -1,0 +1,469 @@
+"""How a candidate cause is tested in a residual: the shared estimation machinery.
+
+Each effect's own estimator (`Cause` subclass) lives in its file under egobench/effects/; this
+module holds what they share. A cause tests its physical signature in the residual between
+measured and predicted images (`fit` -> `CauseResult`: statistic, p-value, effect size, parameter
+estimate, plot data) and extends the prediction with its estimated parameter (`apply`).
+
+Photometric causes (vignette, response, white balance, exposure metadata) share one weighted
+regression of block-level log ratios log(sum measured_linear / sum predicted_linear) on
+frame dummies, channel dummies, a radial polynomial and log intensity (`PhotometricFit`); each is
+the partial F-test of its own regressors (type-III), so they are tested jointly and do not
+masquerade as each other. Blocks (4 x 4 px) are the units, which absorbs pixel-scale correlation.
+
+Geometric causes (readout, time offset, exposure blur, distortion; `GeometricCause`) regress the
+pixel residual on their first-order signature (-grad(prediction) . displacement) frame by frame
+and test the per-frame slopes across frames (frames are the units: robust to spatially
+correlated model error). Their parameters are then refined by Gauss-Newton on the warped
+prediction, which is also how `apply` re-renders the prediction under the corrected model
+(bilinear warp of the predicted image by the corrected displacement field; docs/diagnosis.md).
+
+Noise compares the high-passed residual variance in flat regions with the assumed
+Poisson-Gaussian model; it does not change the mean prediction (its gain is a held-out
+log-likelihood gain, not PSNR).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from egobench.residual.signatures import (LEVEL, DiagnosisContext, block_sum, decode, encode, encode_slope, erode,
+                                          frame_t_test, gradients, partial_f_test, radial_coordinates, robust_sd, warp,
+                                          weighted_lstsq)
+
+#: Display range used for fits: darker pixels are dominated by noise/quantisation in log
+#: space, brighter ones may be clipped.
+DISPLAY_MIN, DISPLAY_MAX = 0.04, 0.95
+#: Block size (pixels) of the photometric regression cells.
+BLOCK_PX = 4
+#: Gaussian sigma (pixels) of the low-pass applied to measured and predicted images before the
+#: geometric fits (ResidualData.geometric); 0 = none. Measured through the simulator (48 px,
+#: pixel_samples=4): 0.8 px improved a time-offset estimate (2.77 vs 2.56 ms of 3) but attenuated
+#: the readout row slope (0.25 vs 0.35 of 0.4), so it is off.
+GEOMETRIC_PREFILTER_PX = 0.0
+
+
+def gaussian_lowpass(x: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian low-pass over the image axes of x [F, H, W, C] (edge replication)."""
+    import cv2
+
+    F, H, W, C = x.shape
+    out = np.empty_like(x, dtype=np.float64)
+    for f in range(F):  # one separable filter per frame
+        out[f] = cv2.GaussianBlur(np.ascontiguousarray(x[f], dtype=np.float64), (0, 0), sigmaX=sigma, sigmaY=sigma,
+                                  borderType=cv2.BORDER_REPLICATE).reshape(H, W, C)
+    return out
+
+
+@dataclass
+class CauseResult:
+    """One candidate cause tested on one residual."""
+
+    name: str  # effect name (egobench.effects.EFFECTS key)
+    kind: str  # "photometric" | "geometric" | "noise"
+    testable: bool  # False when the context lacks what the signature needs (reason says what)
+    reason: str = ""  # why untestable, or notes on the estimate
+    statistic: float = 0.0  # value of the test statistic
+    statistic_kind: str = ""  # e.g. "F(2, 4000)", "t(13)"
+    p_value: float = 1.0  # raw p-value
+    p_adjusted: float = 1.0  # Holm-adjusted over the library (filled by the engine)
+    effect_rms: float = 0.0  # RMS change of the display prediction (0..1 units) when the cause is applied; noise: RMS std change
+    effect_floor: float = 0.0  # practical-significance floor on effect_rms
+    params: dict = field(default_factory=dict)  # estimated parameter(s), JSON-ready, named with units
+    significant: bool = False  # p_adjusted < alpha and effect_rms >= effect_floor
+    score: float = 0.0  # ranking key: effect size x saturating significance
+    plot: dict = field(default_factory=dict)  # signature plot data (lists), see report.py
+    internal: dict = field(default_factory=dict)  # arrays needed by apply (not serialised)
+
+    def to_dict(self) -> dict:
+        return {k: v for k, v in self.__dict__.items() if k not in ("internal", "plot")}
+
+
+class ResidualData:
+    """Measured and predicted stacks of some frames, with the derived quantities the causes share."""
+
+    def __init__(self, measured: np.ndarray, predicted: np.ndarray, ctx: DiagnosisContext, frames: np.ndarray,
+                 border_px: int = 2, pixel_mask: np.ndarray | None = None) -> None:
+        self.ctx = ctx
+        self.frames = np.asarray(frames, dtype=np.int64)  # [f] positions in the context arrays
+        self.m = np.asarray(measured, dtype=np.float64)  # [f, H, W, 3]
+        self.p = np.asarray(predicted, dtype=np.float64)  # [f, H, W, 3]
+        self.r = self.m - self.p
+        g = ctx.gamma_assumed
+        self.m_lin = decode(self.m, g)
+        self.p_lin = decode(self.p, g)
+        H, W = self.m.shape[1:3]
+        self.valid = erode(ctx.valid, border_px)  # [H, W]
+        self.usable_all = ((self.p > DISPLAY_MIN) & (self.p < DISPLAY_MAX) & (self.m < 0.985) & (self.m > 0.005)
+                           & self.valid[None, :, :, None])  # ignoring pixel_mask (noise neighbourhoods)
+        self.pixel_fraction = 1.0 if pixel_mask is None else float(np.mean(pixel_mask))
+        if pixel_mask is not None:  # statistics on these pixels only (e.g. even checkerboard; odd ones score the gain)
+            self.valid = self.valid & pixel_mask
+        in_range = (self.p > DISPLAY_MIN) & (self.p < DISPLAY_MAX) & (self.m < 0.985) & (self.m > 0.005)
+        self.usable = in_range & self.valid[None, :, :, None]  # [f, H, W, 3]
+        self._grad = None
+        self._photometric = None
+        self._geometric = None
+
+    def with_prediction(self, predicted: np.ndarray, inside: np.ndarray | None = None) -> "ResidualData":
+        """The same measured frames against another prediction [f, H, W, 3]; pixels outside
+        ``inside`` [f, H, W] (e.g. warped from beyond the border) are not usable."""
+        import copy
+
+        out = copy.copy(self)
+        out.p = np.asarray(predicted, dtype=np.float64)
+        out.r = out.m - out.p
+        out.p_lin = decode(out.p, self.ctx.gamma_assumed)
+        in_range = (out.p > DISPLAY_MIN) & (out.p < DISPLAY_MAX)
+        out.usable = self.usable & in_range & (True if inside is None else inside[..., None])
+        out.usable_all = self.usable_all & in_range
+        out._grad = None
+        out._photometric = None
+        out._geometric = None  # a cached view of the old prediction would be stale
+        return out
+
+    def geometric(self) -> "ResidualData":
+        """The view the geometric causes fit on: measured and predicted low-passed by a Gaussian of
+        GEOMETRIC_PREFILTER_PX (display values; usable pixels need their whole footprint usable).
+
+        Ray-cast images (egobench.sim) are not band-limited even with pixel-area integration:
+        a sub-pixel shift moves edge pixels in steps; the low-pass turns those steps into the
+        smooth first-order response the signatures assume (gradients of the filtered image are
+        not noisy, so the slopes are not attenuated). A shift commutes with the filter, so the
+        parameters keep their meaning."""
+        if self._geometric is None:
+            sigma = GEOMETRIC_PREFILTER_PX
+            if sigma <= 0:
+                self._geometric = self
+            else:
+                out = self.with_prediction(gaussian_lowpass(self.p, sigma))
+                out.m = gaussian_lowpass(self.m, sigma)
+                out.r = out.m - out.p
+                rad = int(math.ceil(2 * sigma))
+                ok = erode(self.usable_all.all(axis=-1), rad)  # [f, H, W]
+                out.usable = out.usable & ok[..., None] & self.valid[None, :, :, None]
+                out._geometric = out
+                self._geometric = out
+        return self._geometric
+
+    @property
+    def grad(self) -> tuple[np.ndarray, np.ndarray]:
+        if self._grad is None:
+            self._grad = gradients(self.p)
+        return self._grad
+
+    @property
+    def velocity(self) -> np.ndarray | None:  # [f, H, W, 2]
+        v = self.ctx.pixel_velocity_px_s
+        return None if v is None else v[self.frames].astype(np.float64)
+
+    def photometric(self) -> "PhotometricFit":
+        if self._photometric is None:
+            self._photometric = PhotometricFit(self)
+        return self._photometric
+
+
+# ============================================================================ photometric
+class PhotometricFit:
+    """Weighted regression of block log ratios (see module docstring). Cells with robust |z| > 5 are trimmed."""
+
+    def __init__(self, data: ResidualData, block: int = BLOCK_PX) -> None:
+        ctx = data.ctx
+        f_count = data.m.shape[0]
+        H, W = data.m.shape[1:3]
+        mask = data.usable.astype(np.float64)  # [f, H, W, 3]
+        n = block_sum(mask, block)  # [f, hb, wb, 3]
+        sm = block_sum(data.m_lin * mask, block)
+        sp = block_sum(data.p_lin * mask, block)
+        var_lin = ctx.noise_var_linear(data.p_lin, data.frames) + (LEVEL / encode_slope(data.p_lin, ctx.gamma_assumed)) ** 2 / 12.0
+        sv = block_sum(var_lin * mask, block)
+        _, _, r_norm = radial_coordinates(H, W, ctx.principal_point)
+        r2 = block_sum(np.broadcast_to((r_norm**2)[None, :, :, None], mask.shape) * mask, block)
+        r4 = block_sum(np.broadcast_to((r_norm**4)[None, :, :, None], mask.shape) * mask, block)
+        ok = (n >= 0.75 * block * block * data.pixel_fraction) & (sp > 0) & (sm > 0)
+        var_y = sv / np.maximum(sp, 1e-12) ** 2 + 1e-8
+        y = np.log(np.maximum(sm, 1e-12) / np.maximum(sp, 1e-12)) + 0.5 * var_y  # second-order bias correction
+        log_p = np.log(np.maximum(sp, 1e-12) / np.maximum(n, 1))
+        fidx = np.broadcast_to(np.arange(f_count)[:, None, None, None], ok.shape)
+        cidx = np.broadcast_to(np.arange(3)[None, None, None, :], ok.shape)
+        self.cell_ok = ok  # [f, hb, wb, 3]
+        sel = ok.ravel()
+        self.n_cells = int(sel.sum())
+        self.y = y.ravel()[sel]
+        self.w = 1.0 / var_y.ravel()[sel]
+        self.fidx = fidx.ravel()[sel]
+        self.cidx = cidx.ravel()[sel]
+        self.r2 = (r2 / np.maximum(n, 1)).ravel()[sel]
+        self.r4 = (r4 / np.maximum(n, 1)).ravel()[sel]
+        self.log_p = log_p.ravel()[sel]
+        self.log_p0 = float(np.average(self.log_p, weights=self.w)) if self.n_cells else 0.0
+        self.n_frames = f_count
+        self.trimmed = np.zeros(self.n_cells, dtype=bool)
+        self.testable = self.n_cells > f_count + 8
+        if not self.testable:
+            return
+        self._fit()
+        # Trim cells far off the model (unmodelled content such as a person absent from a simulation).
+        res = (self.y - self.X @ self.coef) * np.sqrt(self.w)
+        scale = robust_sd(res) + 1e-12
+        self.trimmed = np.abs(res) > 5.0 * scale
+        if self.trimmed.any() and (~self.trimmed).sum() > f_count + 8:
+            self._fit()
+        trimmed_map = np.zeros(ok.size, dtype=bool)
+        trimmed_map[np.flatnonzero(sel)[self.trimmed]] = True
+        self.trimmed_map = trimmed_map.reshape(ok.shape).any(axis=-1)  # [f, hb, wb]
+
+    # column blocks of the design matrix
+    def _design(self) -> dict[str, np.ndarray]:
+        frame = np.zeros((self.n_cells, self.n_frames))
+        frame[np.arange(self.n_cells), self.fidx] = 1.0
+        wb = np.stack([(self.cidx == 0).astype(float), (self.cidx == 2).astype(float)], axis=1)
+        vig = np.stack([self.r2, self.r4], axis=1)
+        resp = (self.log_p - self.log_p0)[:, None]
+        return {"frame": frame, "white_balance": wb, "vignette": vig, "response": resp}
+
+    def _fit(self) -> None:
+        keep = ~self.trimmed
+        blocks = self._design()
+        self.blocks = blocks
+        self.X = np.concatenate(list(blocks.values()), axis=1)
+        self.names = list(blocks)
+        self.slices = {}
+        start = 0
+        for name, b in blocks.items():
+            self.slices[name] = slice(start, start + b.shape[1])
+            start += b.shape[1]
+        self.coef, self.rss = weighted_lstsq(self.X[keep], self.y[keep], self.w[keep])
+        self.dof = int(keep.sum()) - self.X.shape[1]
+        self.keep = keep
+
+    def test(self, block: str) -> tuple[float, float, int]:
+        """Partial F-test of one regressor block -> (F, p, q)."""
+        keep = self.keep
+        cols = [b for name, b in self.blocks.items() if name != block]
+        if block == "frame":  # H0: one common scale for every frame (an intercept)
+            cols = [np.ones((self.n_cells, 1))] + cols
+            q = self.n_frames - 1
+        else:
+            q = self.blocks[block].shape[1]
+        Xr = np.concatenate(cols, axis=1)
+        _, rss_r = weighted_lstsq(Xr[keep], self.y[keep], self.w[keep])
+        f, p = partial_f_test(self.rss, rss_r, q, self.dof)
+        return f, p, q
+
+    def coefs(self, block: str) -> np.ndarray:
+        return self.coef[self.slices[block]]
+
+    @property
+    def log_global(self) -> float:
+        """Median per-frame log scale: an overall gain (a nuisance every photometric extension carries)."""
+        return float(np.median(self.coefs("frame")))
+
+    def own_global(self, block: str) -> float:
+        """Log gain that best accompanies this block alone (weighted mean of y minus its term, kept cells)."""
+        term = self.blocks[block] @ self.coefs(block)
+        if block == "frame":
+            term = term - self.log_global
+        k = self.keep
+        return float(np.average((self.y - term)[k], weights=self.w[k]))
+
+    def partial_residual(self, block: str) -> np.ndarray:
+        """y minus every other block's contribution (cells) -> [n_cells]."""
+        return self.y - self.X @ self.coef + self.blocks[block] @ self.coefs(block)
+
+
+def photometric_apply(predicted: np.ndarray, log_factor: np.ndarray, gamma: float, power: float = 0.0,
+                       log_p0: float = 0.0) -> np.ndarray:
+    """Display [f, H, W, 3] -> display with linear * exp(log_factor + power * (log linear - log_p0)), clipped."""
+    lin = decode(predicted, gamma)
+    log_lin = np.log(np.clip(lin, 1e-6, None))
+    out = lin * np.exp(log_factor + power * (log_lin - log_p0))
+    return np.clip(encode(out, gamma), 0.0, 1.0)
+
+
+def own_term(result: "CauseResult") -> "CauseResult":
+    """The result without the shared global gain, so that effect_rms measures the cause's own term."""
+    internal = dict(result.internal)
+    internal["log_global"] = 0.0
+    return CauseResult(result.name, result.kind, result.testable, internal=internal)
+
+
+class Cause:
+    """Base class of a candidate cause."""
+
+    name = ""
+    kind = "photometric"
+    mean_affecting = True
+    nests: tuple[str, ...] = ()  # causes whose model is a special case of this one's (ranking rule in core)
+
+    def fit(self, data: ResidualData) -> CauseResult:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def apply(self, predicted: np.ndarray, result: CauseResult, ctx: DiagnosisContext, frames: np.ndarray,
+              measured: np.ndarray | None = None, fit_mask: np.ndarray | None = None) -> np.ndarray:
+        """Extend the prediction predicted [f, H, W, 3] (frames: positions in ctx) with the estimate."""
+        raise NotImplementedError  # pragma: no cover
+
+    def _untestable(self, reason: str) -> CauseResult:
+        return CauseResult(self.name, self.kind, testable=False, reason=reason)
+
+    @staticmethod
+    def _effect(data: ResidualData, new_pred: np.ndarray, extra_mask: np.ndarray | None = None) -> float:
+        m = data.usable if extra_mask is None else data.usable & extra_mask
+        if not m.any():
+            return 0.0
+        return float(np.sqrt(np.mean((new_pred - data.p)[m] ** 2)))
+
+
+def binned_means(x: np.ndarray, y: np.ndarray, w: np.ndarray, bins: int = 12) -> dict:
+    """Weighted means of y in quantile bins of x (for signature plots)."""
+    if x.size == 0:
+        return {"x": [], "y": []}
+    edges = np.unique(np.quantile(x, np.linspace(0, 1, bins + 1)))
+    idx = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, max(len(edges) - 2, 0))
+    sw = np.bincount(idx, weights=w, minlength=len(edges) - 1)
+    xm = np.bincount(idx, weights=w * x, minlength=len(edges) - 1) / np.maximum(sw, 1e-300)
+    ym = np.bincount(idx, weights=w * y, minlength=len(edges) - 1) / np.maximum(sw, 1e-300)
+    keep = sw > 0
+    return {"x": xm[keep].tolist(), "y": ym[keep].tolist()}
+
+
+# ============================================================================ geometric
+class GeometricCause(Cause):
+    """Shared machinery: per-frame first-order slopes, frame-level test, Gauss-Newton refinement."""
+
+    kind = "geometric"
+    needs_velocity = True
+    n_params = 1
+    one_sided = False
+
+    def displacement(self, theta: np.ndarray, ctx: DiagnosisContext, frames: np.ndarray, shape) -> list[tuple[float, np.ndarray]]:
+        """[(weight, displacement [f, H, W, 2])]: the prediction is the weighted sum of warps."""
+        raise NotImplementedError  # pragma: no cover
+
+    def regressors(self, data: ResidualData) -> list[np.ndarray]:
+        """First-order signature regressors, each [f, H, W, 3] (residual ~ sum theta_k x_k)."""
+        raise NotImplementedError  # pragma: no cover
+
+    def warp_prediction(self, predicted, theta, ctx, frames) -> tuple[np.ndarray, np.ndarray]:
+        parts = self.displacement(np.asarray(theta, dtype=np.float64), ctx, frames, predicted.shape)
+        inside = np.ones(predicted.shape[:3], dtype=bool)
+        if len(parts) == 1:
+            out, inside = warp(predicted, parts[0][1])
+            return out.astype(np.float64), inside
+        # several instants (exposure integral): average irradiance, i.e. in linear space
+        lin = decode(predicted, ctx.gamma_assumed)
+        acc = np.zeros_like(lin)
+        for weight, disp in parts:
+            w_img, ins = warp(lin, disp)
+            acc += weight * w_img
+            inside &= ins
+        return encode(np.clip(acc, 0.0, None), ctx.gamma_assumed), inside
+
+    def apply(self, predicted, result, ctx, frames, measured=None, fit_mask=None):
+        out, _ = self.warp_prediction(predicted, result.internal["theta"], ctx, frames)
+        return np.clip(out, 0.0, 1.0)
+
+    def fit(self, data: ResidualData) -> CauseResult:
+        if self.needs_velocity and data.velocity is None:
+            return self._untestable("no per-pixel image velocity in the context")
+        raw_data, data = data, data.geometric()  # statistics on the pre-filtered stacks; effect on the images
+        est, info = self.first_order(data)
+        j = self.tested_index
+        test = frame_t_test(est[:, j], info[:, j], one_sided=self.one_sided)
+        theta0 = self.initial_theta(est, info)
+        theta = self.refine(data, theta0)
+        res = CauseResult(self.name, self.kind, True, statistic=test.t, statistic_kind=f"t({test.df})",
+                          p_value=test.p_value, internal={"theta": theta, "theta_first_order": theta0,
+                                                          "frame_se": test.se, "frame_df": test.df})
+        new_pred, inside = self.warp_prediction(raw_data.p, theta, data.ctx, data.frames)
+        res.effect_rms = self._effect(raw_data, np.clip(new_pred, 0, 1), inside[..., None])
+        res.params = self.describe(theta, data.ctx)
+        res.params["first_order_estimate"] = self.describe(theta0, data.ctx)
+        res.plot = self.plot_data(data, est, info, theta)
+        return res
+
+    def first_order(self, data: ResidualData) -> tuple[np.ndarray, np.ndarray]:
+        """Per-frame least-squares slopes of the residual on the signature regressors -> (est [f, k], info [f, k])."""
+        xs = self.regressors(data)
+        mask = data.usable
+        k = len(xs)
+        f_count = data.m.shape[0]
+        est = np.zeros((f_count, k))
+        info = np.zeros((f_count, k))
+        for f in range(f_count):  # one small k x k solve per frame
+            m = mask[f]
+            if m.sum() < 20:
+                continue
+            # nuisance columns: a constant and the prediction itself (partials out global and
+            # multiplicative intensity mismatch, e.g. shading, which correlates with curvature)
+            pf = data.p[f][m]
+            X = np.stack([x[f][m] for x in xs] + [np.ones_like(pf), pf - pf.mean()], axis=1)
+            y = data.r[f][m]
+            XtX = X.T @ X
+            if np.linalg.cond(XtX) > 1e12:
+                continue
+            coef = np.linalg.solve(XtX, X.T @ y)
+            resid_var = float(np.mean((y - X @ coef) ** 2)) + 1e-12
+            cov = np.linalg.inv(XtX) * resid_var
+            est[f] = coef[:k]
+            info[f] = 1.0 / np.maximum(np.diag(cov)[:k], 1e-300)
+        return est, info
+
+    tested_index = 0
+
+    def initial_theta(self, est: np.ndarray, info: np.ndarray) -> np.ndarray:
+        w = info / np.maximum(info.sum(axis=0, keepdims=True), 1e-300)
+        return np.sum(w * est, axis=0)
+
+    def step_sizes(self, ctx: DiagnosisContext) -> np.ndarray:
+        raise NotImplementedError  # pragma: no cover
+
+    def refine(self, data: ResidualData, theta: np.ndarray, iterations: int = 3) -> np.ndarray:
+        """Gauss-Newton on the warped prediction (numeric Jacobian), pooled over the frames."""
+        theta = np.asarray(theta, dtype=np.float64).copy()
+        eps = self.step_sizes(data.ctx)
+        for _ in range(iterations):
+            base, inside = self.warp_prediction(data.p, theta, data.ctx, data.frames)
+            cols = []
+            for i in range(len(theta)):
+                d = np.zeros_like(theta)
+                d[i] = eps[i]
+                plus, ins_p = self.warp_prediction(data.p, theta + d, data.ctx, data.frames)
+                minus, ins_m = self.warp_prediction(data.p, theta - d, data.ctx, data.frames)
+                inside &= ins_p & ins_m
+                cols.append((plus - minus) / (2 * eps[i]))
+            m = data.usable & inside[..., None]
+            if m.sum() < 20:
+                break
+            J = np.stack([c[m] for c in cols], axis=1)
+            r = (data.m - base)[m]
+            JtJ = J.T @ J
+            if np.linalg.cond(JtJ) > 1e12:
+                break
+            delta = np.linalg.solve(JtJ, J.T @ r)
+            theta = self.constrain(theta + delta)
+            if np.all(np.abs(delta) < 0.01 * eps):
+                break
+        return theta
+
+    def constrain(self, theta: np.ndarray) -> np.ndarray:
+        return theta
+
+    def describe(self, theta: np.ndarray, ctx: DiagnosisContext) -> dict:
+        raise NotImplementedError  # pragma: no cover
+
+    def plot_data(self, data, est, info, theta) -> dict:
+        speed = np.linalg.norm(data.velocity, axis=-1).mean(axis=(1, 2)) if data.velocity is not None else np.zeros(len(est))
+        return {"frame": [int(data.ctx.frame_index[f]) for f in data.frames], "speed_px_s": speed.tolist(),
+                "per_frame": est[:, self.tested_index].tolist(), "pooled": float(theta[self.tested_index])}
+
+
+def velocity_term(data: ResidualData) -> np.ndarray:
+    """-grad(prediction) . velocity: [f, H, W, 3] (residual per second of time shift)."""
+    gx, gy = data.grad
+    v = data.velocity
+    return -(gx * v[..., 0:1] + gy * v[..., 1:2])
