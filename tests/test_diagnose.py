@@ -44,7 +44,7 @@ MID_RANGE = {
 }
 
 
-@pytest.mark.parametrize("effect", list(EFFECTS))
+@pytest.mark.parametrize("effect", list(MID_RANGE))  # issue 6's nine; a new effect brings its own test
 def test_hidden_effect_mid_range_is_named_estimated_and_improved(effect):
     value = MID_RANGE[effect]
     assert EFFECTS[effect].in_range(value)

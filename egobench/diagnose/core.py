@@ -235,7 +235,7 @@ def _adjust_and_rank(testable: list[CauseResult], cfg: DiagnosisConfig) -> None:
     # contained cause cannot explain the residual, so the general one outranks it.
     by_name = {r.name: r for r in testable}
     for r in testable:
-        for inner in CAUSES[r.name].nests:
+        for inner in sorted(contained_causes(r.name)):
             o = by_name.get(inner)
             if r.significant and o is not None and o.significant and o.score >= r.score:
                 r.score = o.score * (1.0 + 1e-9) + 1e-12
@@ -291,13 +291,19 @@ def _name_mean_cause(testable: list[CauseResult], rnd: int, measured: np.ndarray
     return None
 
 
+def contained_causes(name: str) -> set[str]:
+    """Causes whose model is a special case of cause ``name``'s: its own `nests` and every cause that
+    declares itself `nested_in` it."""
+    return set(CAUSES[name].nests) | {other for other, c in CAUSES.items() if name in c.nested_in}
+
+
 def _note_containing_causes(cause: NamedCause, testable: list[CauseResult]) -> None:
     """A named cause that a more general one contains (time offset in readout) is also explained by
     that one when its extra term is not significant: say so in the named cause's params ("or")."""
     alternatives = [{"cause": r.name, "p_adjusted": r.p_adjusted,
                      "note": f"{r.name} contains {cause.name}; its extra term is not significant here, so "
                              f"{r.name} would explain the same residual"}
-                    for r in testable if cause.name in CAUSES[r.name].nests and not r.significant]
+                    for r in testable if cause.name in contained_causes(r.name) and not r.significant]
     if alternatives:
         cause.params["or"] = alternatives
 

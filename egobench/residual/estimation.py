@@ -298,6 +298,7 @@ class Cause:
     kind = "photometric"
     mean_affecting = True
     nests: tuple[str, ...] = ()  # causes whose model is a special case of this one's (ranking rule in core)
+    nested_in: tuple[str, ...] = ()  # the converse, declared by the special case (a new effect's own file)
 
     def fit(self, data: ResidualData) -> CauseResult:  # pragma: no cover - interface
         raise NotImplementedError
