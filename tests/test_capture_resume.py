@@ -106,14 +106,14 @@ def test_the_resumed_run_uses_the_saved_noise_state(reference, tmp_path):
     import torch
 
     from egobench.sim.capture import partial_dir, simulate_recording
-    from egobench.sim.capture.resume import _encode_generator
+    from egobench.sim.capture.resume import encode_generator
 
     cfg = _config("fixed")
     out = tmp_path / "rec"
     simulate_recording(cfg, out, progress=False, stop_after=3)
     st_path = partial_dir(out) / ".resume" / "00002.json"
     st = json.loads(st_path.read_text())
-    st["noise_generator"] = _encode_generator(torch.Generator().manual_seed(int(cfg.seed) * 7919 + 17))
+    st["noise_generator"] = encode_generator(torch.Generator().manual_seed(int(cfg.seed) * 7919 + 17))
     st_path.write_text(json.dumps(st))
     simulate_recording(cfg, out, progress=False, resume=True)
     same = [(out / f"{_on()}/images/{k:05d}.png").read_bytes() == (reference["fixed"] / f"{_on()}/images/{k:05d}.png").read_bytes()

@@ -40,13 +40,13 @@ def test_simulated_null_and_hidden_vignette_through_the_cli(tmp_path):
     # the hidden shading is defined at the RAW fisheye corner; compare with its rectified version
     from egobench.model.formation import radial_vignette
     from egobench.sim.camera_calibration import make_calibrations
-    from egobench.sim.capture.setup import _rig
+    from egobench.sim.capture.setup import rectification_rig
     from egobench.sim.config import SimConfig
     from egobench.sim.devices import get_device
 
     cfg = SimConfig.from_dict(json.loads((rec / "recording.json").read_text())["sim_config"])
     cal = make_calibrations(cfg).online
-    rect, _ = _rig(cal, cfg.rectified_size, cfg.focal_ratio())
+    rect, _ = rectification_rig(cal, cfg.rectified_size, cfg.focal_ratio())
     v_raw = radial_vignette((cal.height, cal.width), 0.35, get_device(cfg.device_name).vignette_power,
                             centre=(float(cal.params[1]), float(cal.params[2])))
     corner_true = 1.0 - float(rect.warp_vignette(v_raw)[0, 0])

@@ -297,7 +297,7 @@ def simulated(tmp_path_factory):
 def test_simulated_calibration_errors_match_the_drawn_rotation(simulated):
     from egobench.data.reader import load_recording
     from egobench.geometry import so3_exp
-    from egobench.model.motion_sampling import _sparse_points_camera
+    from egobench.model.motion_sampling import sparse_points_camera
 
     res = json.loads((simulated / "sim.json").read_text())["recordings"][0]
     truth = json.loads((simulated / "rec" / "ground_truth" / "truth.json").read_text())
@@ -307,7 +307,7 @@ def test_simulated_calibration_errors_match_the_drawn_rotation(simulated):
     # independent expectation: same intrinsics, so only the camera rotation moves the point
     expected = []
     for f in rec.frames:
-        X = _sparse_points_camera(rec, f)
+        X = sparse_points_camera(rec, f)
         u0, _ = rec.camera.project(X)
         u1, _ = rec.camera.project(X @ R_err)  # R_err^T X, row vectors
         expected.append((u0 - u1).norm(dim=-1))

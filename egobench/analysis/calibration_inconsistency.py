@@ -76,13 +76,13 @@ def absorbed_residual_px(u_obs: Tensor, valid: Tensor, pinhole: Pinhole, T_world
 
 def _world_points(recording, frames: list, every: int, max_per_frame: int) -> Tensor:
     """Sparse-depth points of every ``every``-th frame, in the world [P, 3] float64."""
-    from egobench.model.motion_sampling import _sparse_points_camera
+    from egobench.model.motion_sampling import sparse_points_camera
 
     chunks = []
     for f in frames[::every]:
         if f.sparse_depth is None or len(f.sparse_depth.z) == 0:
             continue
-        p_c = _sparse_points_camera(recording, f)
+        p_c = sparse_points_camera(recording, f)
         stride = max(1, len(p_c) // max_per_frame)
         chunks.append(from_camera(f.T_world_camera, p_c[::stride][:max_per_frame]))
     return torch.cat(chunks) if chunks else torch.zeros(0, 3, dtype=torch.float64)

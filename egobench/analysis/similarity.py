@@ -7,7 +7,7 @@ images area-resized). Per recording (keys of `measure_recording`):
 
 - ``rs_shift_px_median`` / ``_p90``: image motion during the rolling-shutter readout. Each frame's
   sparse-depth points are projected with the camera pose at read start and at read end
-  (`egobench.model.motion_sampling._displacements_px`: Chebyshev pixel distance, points inside the image
+  (`egobench.model.motion_sampling.displacements_px`: Chebyshev pixel distance, points inside the image
   at both times); a simulated recording's true read start and true readout (ground_truth/truth.json)
   are used, else the stream's stated ones. Pooled over points and frames.
 - ``calib_error_px_median`` / ``_p90``: where the factory stream's model predicts a point versus
@@ -100,7 +100,7 @@ def rs_shift_px(recording: Recording, truth: dict | None = None, pixel_scale: fl
 
     ``truth``: a truth.json dict; its frames' ``read_start_true_ns`` and ``hidden_effects.readout_true_s``
     replace the stream's stated clocks where the frame number matches."""
-    from egobench.model.motion_sampling import _displacements_px
+    from egobench.model.motion_sampling import displacements_px
 
     true_start, readout_true_ns = {}, None
     if truth is not None:
@@ -115,7 +115,7 @@ def rs_shift_px(recording: Recording, truth: dict | None = None, pixel_scale: fl
             t0, t1 = float(true_start[k]), true_start[k] + readout_true_ns
         else:
             t0, t1 = float(f.read_start_ns), float(f.read_end_ns)
-        disp, valid = _displacements_px(recording, f, torch.tensor([t0], dtype=torch.float64),
+        disp, valid = displacements_px(recording, f, torch.tensor([t0], dtype=torch.float64),
                                         torch.tensor([t1], dtype=torch.float64))
         out.append(disp[valid].numpy() * pixel_scale)
     return np.concatenate(out) if out else np.zeros(0)
@@ -183,11 +183,11 @@ def calibration_reprojection_px(points_device: Tensor, reference, test, pinhole,
 
 def _frame_points_device(recording: Recording, frame: Frame) -> Tensor | None:
     """The frame's sparse-depth points in the device frame [P, 3] float64 (None without points)."""
-    from egobench.model.motion_sampling import _sparse_points_camera
+    from egobench.model.motion_sampling import sparse_points_camera
 
     if frame.sparse_depth is None or len(frame.sparse_depth.z) == 0:
         return None
-    return from_camera(frame.T_device_camera, _sparse_points_camera(recording, frame))
+    return from_camera(frame.T_device_camera, sparse_points_camera(recording, frame))
 
 
 def _camera_label(recording: Recording) -> str:

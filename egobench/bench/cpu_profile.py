@@ -51,7 +51,7 @@ def stage_times(sigma_px: float = 2.5, width: int = 128, n: int = 20000, repeats
     g = bench.bench_scene(spec)
     T = torch.eye(4)[None]
     wts = torch.randn(1, width, width, 3, generator=torch.Generator().manual_seed(1))
-    cb._set_threads()
+    cb.set_threads()
     means, quats, scales = (t.detach().numpy() for t in (g.means, g.quats, g.scales))
     opac = torch.sigmoid(g.opacity_logits).detach().numpy()
     lo = F.logsigmoid(g.opacity_logits).detach().numpy()

@@ -152,7 +152,7 @@ def _unmodelled_figure(path: Path, measured: np.ndarray, trimmed: np.ndarray) ->
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from egobench.diagnose.report import _savefig
+    from egobench.diagnose.report import save_png
 
     n = trimmed.shape[0]
     fig, axes = plt.subplots(1, n, figsize=(3 * n, 3), squeeze=False)
@@ -163,4 +163,4 @@ def _unmodelled_figure(path: Path, measured: np.ndarray, trimmed: np.ndarray) ->
         ax.imshow(trimmed[i], cmap="Reds", alpha=0.45, extent=(0, W, H, 0), vmin=0, vmax=1)
         ax.set_title("off-model cells (red)", fontsize=8)
         ax.axis("off")
-    _savefig(fig, path)
+    save_png(fig, path)

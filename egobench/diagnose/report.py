@@ -33,7 +33,7 @@ def _summary(params: dict) -> str:
     return "; ".join(f"{k}={_fmt(v)}" for k, v in params.items() if k not in skip)
 
 
-def _savefig(fig, path: Path) -> None:
+def save_png(fig, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     with atomic_path(path) as tmp:
@@ -63,7 +63,7 @@ def residual_maps(path: Path, measured: np.ndarray, predicted: np.ndarray, exten
                 ax.imshow(img, cmap="RdBu_r", vmin=-0.08, vmax=0.08)
             ax.set_title(title, fontsize=8)
             ax.axis("off")
-    _savefig(fig, path)
+    save_png(fig, path)
 
 
 def signature_plot(path: Path, result: CauseResult) -> None:
@@ -84,7 +84,7 @@ def signature_plot(path: Path, result: CauseResult) -> None:
         ax.axhline(p.get("pooled", 0.0), color="k", lw=1, label="pooled")
         ax.set_xlabel("mean image speed (px/s)"), ax.set_ylabel("per-frame estimate"), ax.legend(fontsize=7)
     ax.set_title(title, fontsize=8)
-    _savefig(fig, path)
+    save_png(fig, path)
 
 
 def model_error_markdown(me: dict, config) -> list[str]:

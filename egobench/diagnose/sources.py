@@ -92,7 +92,7 @@ def recording_rectification(recording_dir: str | Path, calibration: str, device,
 
     Simulated recordings rectify each stream with its own calibration (online: the first line of
     mps/slam/online_calibration.jsonl; factory: factory_calibration.json) onto the stored pinhole,
-    without rotation (egobench.sim.capture.setup._rig)."""
+    without rotation (egobench.sim.capture.setup.rectification_rig)."""
     from egobench.camera import Rectification
     from egobench.data.layout import FACTORY_CALIBRATION_FILE, MPS_SLAM, ONLINE_CALIBRATION_FILE, recording_root
     from egobench.data.mps import read_calibration_json, read_online_calibration
@@ -229,7 +229,7 @@ def _recast_setup(root: Path, info: dict, config, rec, gamma: float) -> tuple[_R
     from egobench.model.formation import FormationConfig, FormationModel, PoissonGaussianNoise, radial_vignette
     from egobench.sim.camera_calibration import make_calibrations
     from egobench.sim.capture import RawCamera, sampled_raw_pixels, view_readout_rows
-    from egobench.sim.capture.setup import _rig
+    from egobench.sim.capture.setup import rectification_rig
     from egobench.sim.devices import get_device
     from egobench.sim.world import make_scene
 
@@ -244,7 +244,7 @@ def _recast_setup(root: Path, info: dict, config, rec, gamma: float) -> tuple[_R
     cal_model = replace(cals.true, params=params)
     # the measured frames' pixel-area integration (recordings from before `pixel_samples` existed: 1)
     raw = RawCamera.build(cal_model, int(info["sim_config"].get("pixel_samples", 1)))
-    rect, _pin = _rig(cal_online, config.rectified_size, config.focal_ratio())  # the measured images' rectification
+    rect, _pin = rectification_rig(cal_online, config.rectified_size, config.focal_ratio())  # the measured images' rectification
     if config.raw_roi:
         raw = raw.restricted_to(sampled_raw_pixels([rect], raw.valid.shape))
     if config.readout_window == "view":  # the same ROI readout as the capture (the online view's rows)
@@ -322,8 +322,8 @@ def ground_truth_source(recording_dir: str | Path, max_frames: int | None = None
         if ref is not None:
             noise_ref.append(ref)
         measured.append(rec.load_image(f).numpy())
-        depth_file = root / "ground_truth" / "depth" / f"{f.index:05d}.npy"
-        depth = np.load(depth_file).astype(np.float64) if depth_file.is_file() else np.zeros(rec.vignette.shape)
+        depth_file = rec.ground_truth_file("depth", f)
+        depth = np.load(depth_file).astype(np.float64) if depth_file is not None else np.zeros(rec.vignette.shape)
         velocity.append(pixel_velocity(rec, f, depth))
     lens_k = tuple(float(x) for x in cal_online.params[3:9])
     meta = {"recording": str(root), "source": "ground_truth re-cast (simulator world, model's assumptions)",

@@ -69,7 +69,7 @@ def camera_poses_at(recording: Recording, frame: Frame, t_ns: Tensor | np.ndarra
     return T_world_device @ frame.T_device_camera.to(torch.float64)
 
 
-def _sparse_points_camera(recording: Recording, frame: Frame) -> Tensor:
+def sparse_points_camera(recording: Recording, frame: Frame) -> Tensor:
     """The frame's sparse-depth points in its centre-row camera frame, [P, 3] float64."""
     sd = frame.sparse_depth
     if sd is None or len(sd.z) == 0:
@@ -85,12 +85,12 @@ def _sparse_points_camera(recording: Recording, frame: Frame) -> Tensor:
     return torch.stack([x, y, z], dim=-1)
 
 
-def _displacements_px(recording: Recording, frame: Frame, t0_ns: Tensor, t1_ns: Tensor) -> tuple[Tensor, Tensor]:
+def displacements_px(recording: Recording, frame: Frame, t0_ns: Tensor, t1_ns: Tensor) -> tuple[Tensor, Tensor]:
     """Chebyshev pixel displacement of the sparse points between times t0 and t1 (each [K]).
 
     Returns (disp [K, P] float64, valid [K, P] bool): valid = in front and inside the image at both times.
     """
-    p_c = _sparse_points_camera(recording, frame)  # [P, 3] in the frame's centre camera
+    p_c = sparse_points_camera(recording, frame)  # [P, 3] in the frame's centre camera
     K = t0_ns.shape[0]
     T_wc = camera_poses_at(recording, frame, torch.cat([t0_ns, t1_ns]))  # [2K, 4, 4]
     T_c0 = frame.T_world_camera.to(torch.float64)
@@ -131,7 +131,7 @@ def estimate_motion(
     t_c = float(frame.timestamp_ns)
     if rule == "code":
         half = MOTION_WINDOW_S * 1e9 / 2
-        disp, valid = _displacements_px(
+        disp, valid = displacements_px(
             recording, frame, torch.tensor([t_c - half], dtype=torch.float64), torch.tensor([t_c + half], dtype=torch.float64)
         )
         n_points = int(valid.sum())
@@ -148,7 +148,7 @@ def estimate_motion(
             starts.append(edges[:-1])
             ends.append(edges[1:])
             owner.append(torch.full((n,), n))
-        disp, valid = _displacements_px(recording, frame, torch.cat(starts), torch.cat(ends))
+        disp, valid = displacements_px(recording, frame, torch.cat(starts), torch.cat(ends))
         med = _nan_median(disp, valid) * pixel_scale  # [sum n]
         med = torch.nan_to_num(med, nan=0.0)  # a bracket with no visible point cannot ask for more samples
         owner_t = torch.cat(owner)

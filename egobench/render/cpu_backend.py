@@ -57,7 +57,7 @@ def unsupported_reason(mode: str, dtype: torch.dtype = torch.float32) -> str | N
     return None
 
 
-def _np(t: Tensor) -> np.ndarray:
+def contiguous_numpy(t: Tensor) -> np.ndarray:
     return t.detach().contiguous().numpy()
 
 
@@ -79,14 +79,14 @@ def raster_threads() -> int:
     return int(value)
 
 
-def _set_threads() -> None:
+def set_threads() -> None:
     """numba's thread count: `raster_threads`, at most numba's pool size."""
     import numba
 
     numba.set_num_threads(max(1, min(raster_threads(), numba.config.NUMBA_NUM_THREADS)))
 
 
-def _pose_grad(gv_parts: np.ndarray, dt: torch.dtype) -> Tensor:
+def pose_grad(gv_parts: np.ndarray, dt: torch.dtype) -> Tensor:
     """Per-chunk partial dL/d viewmat[:3, :4] [chunks, I, 12] -> dL/d viewmats [I, 4, 4], summed in
     chunk order (deterministic for any thread count)."""
     part = gv_parts[0].copy()
@@ -120,8 +120,8 @@ def raster_setup(means2d: Tensor, radii: Tensor, depths: Tensor, colors: Tensor,
     I, N = depths.shape
     _, H, W = pix_view.shape
     tiles_x, tiles_y = math.ceil(W / tile_size), math.ceil(H / tile_size)
-    m2 = _np(means2d)
-    flat_ids, bin_start = ck.bin_tiles(m2, _np(radii), _np(depths), tile_size, tiles_x, tiles_y, bin_needed)
+    m2 = contiguous_numpy(means2d)
+    flat_ids, bin_start = ck.bin_tiles(m2, contiguous_numpy(radii), contiguous_numpy(depths), tile_size, tiles_x, tiles_y, bin_needed)
     if flat_ids.shape[0] >= 2**31 - 1:  # per-pixel indices are int32
         raise ValueError(f"render(backend='cpu'): {flat_ids.shape[0]} tile intersections exceed 2^31 - 1; "
                          "use a larger tile_size or backend='torch'")
@@ -129,7 +129,7 @@ def raster_setup(means2d: Tensor, radii: Tensor, depths: Tensor, colors: Tensor,
     feats = torch.cat([colors.detach()[None].expand(I, N, 3), depths.detach()[..., None]]
                       + ([normals.detach()] if normals.shape[1] else []), -1).reshape(I * N, -1)
     centres = (np.arange(max(W, H) + tile_size) + 0.5).astype(m2.dtype)
-    return RasterSetup(flat_ids, bin_start, bins, _np(feats), tiles_x, ck.column_group(tile_size),
+    return RasterSetup(flat_ids, bin_start, bins, contiguous_numpy(feats), tiles_x, ck.column_group(tile_size),
                        ck.compute_constants(m2.dtype), centres)
 
 
@@ -170,12 +170,12 @@ class _Project(torch.autograd.Function):
 
         I, N = viewmats.shape[0], means.shape[0]
         dt = means.dtype
-        m2 = np.empty((I, N, 2), dtype=_np(means).dtype)
+        m2 = np.empty((I, N, 2), dtype=contiguous_numpy(means).dtype)
         con = np.empty((I, N, 3), dtype=m2.dtype)
         dep = np.empty((I, N), dtype=m2.dtype)
         rad = np.empty((I, N, 2), dtype=np.int32)
         nrm = np.zeros((I, N, 3) if want_normal else (I, 0, 3), dtype=m2.dtype)
-        ck.project_fwd(_np(means), _np(quats), _np(scales), _np(opac), _np(viewmats), cam, width, height,
+        ck.project_fwd(contiguous_numpy(means), contiguous_numpy(quats), contiguous_numpy(scales), contiguous_numpy(opac), contiguous_numpy(viewmats), cam, width, height,
                        EPS2D, NEAR_PLANE, FAR_PLANE, want_normal, m2, con, dep, rad, nrm)
         ctx.save_for_backward(means, quats, scales, viewmats)
         ctx.args = (cam, width, height, want_normal)
@@ -193,7 +193,7 @@ class _Project(torch.autograd.Function):
         I, N = viewmats.shape[0], means.shape[0]
 
         def z(g, shape):
-            return np.zeros(shape, dtype=np.float64) if g is None else _np(g).astype(np.float64, copy=False)
+            return np.zeros(shape, dtype=np.float64) if g is None else contiguous_numpy(g).astype(np.float64, copy=False)
 
         g_m2, g_con = z(g_m2, (I, N, 2)), z(g_con, (I, N, 3))
         g_dep = z(g_dep, (I, N))
@@ -201,12 +201,12 @@ class _Project(torch.autograd.Function):
         gm, gq, gs = np.empty((N, 3)), np.empty((N, 4)), np.empty((N, 3))
         n_chunks = max(1, math.ceil(N / ck.CHUNK))
         gv_parts = np.zeros((n_chunks, I, 12))
-        _set_threads()
-        ck.project_bwd(_np(means).astype(np.float64), _np(quats).astype(np.float64),
-                       _np(scales).astype(np.float64), _np(viewmats).astype(np.float64), cam, width, height,
+        set_threads()
+        ck.project_bwd(contiguous_numpy(means).astype(np.float64), contiguous_numpy(quats).astype(np.float64),
+                       contiguous_numpy(scales).astype(np.float64), contiguous_numpy(viewmats).astype(np.float64), cam, width, height,
                        EPS2D, NEAR_PLANE, FAR_PLANE, want_normal, g_m2, g_con, g_dep, g_nrm, gm, gq, gs, gv_parts)
         dt = means.dtype
-        gv = _pose_grad(gv_parts, dt) if ctx.needs_input_grad[3] else None
+        gv = pose_grad(gv_parts, dt) if ctx.needs_input_grad[3] else None
         return (torch.from_numpy(gm).to(dt), torch.from_numpy(gq).to(dt), torch.from_numpy(gs).to(dt), gv,
                 None, None, None, None, None)
 
@@ -223,14 +223,14 @@ class _Rasterize(torch.autograd.Function):
         I, N = depths.shape
         Iout, H, W = pix_view.shape
         st = raster_setup(means2d, radii, depths, colors, normals, pix_view, bin_needed, tile_size)
-        m2 = _np(means2d)
+        m2 = contiguous_numpy(means2d)
         Cf = st.feats.shape[1]
         out_feat = np.zeros((Iout, H, W, Cf), dtype=m2.dtype)
         out_T = np.zeros((Iout, H, W), dtype=m2.dtype)
         out_last = np.zeros((Iout, H, W), dtype=np.int32)
-        _set_threads()
+        set_threads()
         tab = np.empty((I * N, ck.TAB_COLS), dtype=m2.dtype)
-        ck.gaussian_table(m2, _np(conics), _np(radii), _np(log_opac), tab)
+        ck.gaussian_table(m2, contiguous_numpy(conics), contiguous_numpy(radii), contiguous_numpy(log_opac), tab)
         ck.raster_fwd(tab, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, tile_size,
                       st.tiles_x, st.cw, st.kc, st.centres, out_feat, out_T, out_last)
         ctx.state = (tab, st, pix_view, tile_size, out_T, out_last, absgrad_target)
@@ -245,10 +245,10 @@ class _Rasterize(torch.autograd.Function):
         tab, st, pix_view, ts, out_T, out_last, ab = ctx.state
         I, N, dt = ctx.shapes
         Cf = st.feats.shape[1]
-        gF = np.zeros(out_T.shape + (Cf,), out_T.dtype) if g_feat is None else _np(g_feat)
-        gT = np.zeros(out_T.shape, out_T.dtype) if g_T is None else _np(g_T)
+        gF = np.zeros(out_T.shape + (Cf,), out_T.dtype) if g_feat is None else contiguous_numpy(g_feat)
+        gT = np.zeros(out_T.shape, out_T.dtype) if g_T is None else contiguous_numpy(g_T)
         isect = np.zeros((st.flat_ids.shape[0], 6 + Cf), st.kc.dtype)
-        _set_threads()
+        set_threads()
         ck.raster_bwd(tab, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, ts, st.tiles_x, st.cw,
                       st.kc, st.centres, out_T, out_last, gF, gT, isect)
         per = reduce_intersections(isect, st.flat_ids, I, N, dt, ab)

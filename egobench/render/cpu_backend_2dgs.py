@@ -17,9 +17,9 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from egobench.camera.pinhole import Pinhole
-from egobench.render.cpu_backend import (NEAR_PLANE, FAR_PLANE, _np, _pose_grad, _set_threads, camera_array,
+from egobench.render.cpu_backend import (NEAR_PLANE, FAR_PLANE, contiguous_numpy, pose_grad, set_threads, camera_array,
                                          composite_output, pixel_views, raster_setup, reduce_intersections)
-from egobench.render.torch_backend import _densify_carrier_2dgs
+from egobench.render.torch_backend import densify_carrier_2dgs
 from egobench.render.types import Gaussians, RenderOutput
 
 
@@ -32,12 +32,12 @@ class _Project2DGS(torch.autograd.Function):
         from egobench.render import cpu_kernels_2dgs as k2
 
         I, N = viewmats.shape[0], means.shape[0]
-        dt = _np(means).dtype
+        dt = contiguous_numpy(means).dtype
         m2, tsl = np.empty((I, N, 2), dt), np.empty((I, N, 9), dt)
         dep, nrm = np.empty((I, N), dt), np.empty((I, N, 3), dt)
         rad = np.empty((I, N, 2), dtype=np.int32)
-        _set_threads()
-        k2.project_fwd_2dgs(_np(means), _np(quats), _np(scales), _np(viewmats), cam, width, height, NEAR_PLANE,
+        set_threads()
+        k2.project_fwd_2dgs(contiguous_numpy(means), contiguous_numpy(quats), contiguous_numpy(scales), contiguous_numpy(viewmats), cam, width, height, NEAR_PLANE,
                             FAR_PLANE, m2, tsl, dep, rad, nrm)
         ctx.save_for_backward(means, quats, scales, viewmats)
         ctx.cam = cam
@@ -53,16 +53,16 @@ class _Project2DGS(torch.autograd.Function):
         I, N = viewmats.shape[0], means.shape[0]
 
         def f64(g, shape):
-            return np.zeros(shape) if g is None else _np(g).astype(np.float64, copy=False)
+            return np.zeros(shape) if g is None else contiguous_numpy(g).astype(np.float64, copy=False)
 
         grads = (f64(g_m2, (I, N, 2)), f64(g_tsl, (I, N, 9)), f64(g_dep, (I, N)), f64(g_nrm, (I, N, 3)))
         gm, gq, gs = np.empty((N, 3)), np.empty((N, 4)), np.empty((N, 3))
         gv_parts = np.zeros((max(1, math.ceil(N / k2.CHUNK)), I, 12))
-        _set_threads()
-        k2.project_bwd_2dgs(*(_np(t).astype(np.float64) for t in (means, quats, scales, viewmats)), ctx.cam,
+        set_threads()
+        k2.project_bwd_2dgs(*(contiguous_numpy(t).astype(np.float64) for t in (means, quats, scales, viewmats)), ctx.cam,
                             NEAR_PLANE, FAR_PLANE, *grads, gm, gq, gs, gv_parts)
         dt = means.dtype
-        gv = _pose_grad(gv_parts, dt) if ctx.needs_input_grad[3] else None
+        gv = pose_grad(gv_parts, dt) if ctx.needs_input_grad[3] else None
         return (torch.from_numpy(gm).to(dt), torch.from_numpy(gq).to(dt), torch.from_numpy(gs).to(dt), gv,
                 None, None, None)
 
@@ -79,12 +79,12 @@ class _Rasterize2DGS(torch.autograd.Function):
         I, N = depths.shape
         Iout, H, W = pix_view.shape
         st = raster_setup(means2d, radii, depths, colors, normals, pix_view, bin_needed, tile_size)
-        m2, tsl_np, lo = _np(means2d), _np(tsl), _np(log_opac)
+        m2, tsl_np, lo = contiguous_numpy(means2d), contiguous_numpy(tsl), contiguous_numpy(log_opac)
         Cf = st.feats.shape[1]
         out_feat = np.zeros((Iout, H, W, Cf + 1), dtype=m2.dtype)  # + distortion
         out_T = np.zeros((Iout, H, W), dtype=m2.dtype)
         out_last = np.zeros((Iout, H, W), dtype=np.int32)
-        _set_threads()
+        set_threads()
         k2.raster_fwd_2dgs(m2, tsl_np, lo, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, tile_size,
                            st.tiles_x, st.cw, st.kc, st.centres, out_feat, out_T, out_last)
         ctx.state = (m2, tsl_np, lo, st, pix_view, tile_size, out_feat, out_T, out_last, absgrad_target)
@@ -101,13 +101,13 @@ class _Rasterize2DGS(torch.autograd.Function):
         Cf = st.feats.shape[1]
         g_state = np.zeros(out_T.shape + (Cf + 2,), out_T.dtype)  # dL/dF, 2 dL/d distortion, forward depth
         if g_feat is not None:
-            g_state[..., :Cf] = _np(g_feat)
+            g_state[..., :Cf] = contiguous_numpy(g_feat)
         if g_dist is not None:
-            g_state[..., Cf] = 2.0 * _np(g_dist)
+            g_state[..., Cf] = 2.0 * contiguous_numpy(g_dist)
         g_state[..., Cf + 1] = out_feat[..., k2.DEPTH_CH]
-        gT = np.zeros(out_T.shape, out_T.dtype) if g_T is None else _np(g_T)
+        gT = np.zeros(out_T.shape, out_T.dtype) if g_T is None else contiguous_numpy(g_T)
         isect = np.zeros((st.flat_ids.shape[0], 12 + Cf), st.kc.dtype)
-        _set_threads()
+        set_threads()
         k2.raster_bwd_2dgs(m2, tsl_np, lo, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, ts, st.tiles_x,
                            st.cw, st.kc, st.centres, out_T, out_last, g_state, gT, isect)
         per = reduce_intersections(isect, st.flat_ids, I, N, dt, ab)
@@ -128,7 +128,7 @@ def render_cpu_2dgs(gaussians: Gaussians, camera: Pinhole, viewmats: Tensor, *, 
     if means2d_out.requires_grad:
         means2d_out.retain_grad()
     # gsplat's gradient_2dgs carrier: zeros added to the ray transforms' translation column
-    tsl3, carrier = _densify_carrier_2dgs(tsl.reshape(I, -1, 3, 3), tsl.requires_grad)
+    tsl3, carrier = densify_carrier_2dgs(tsl.reshape(I, -1, 3, 3), tsl.requires_grad)
     ts = int(tile_size)
     pix_view, bin_needed = pixel_views(pixel_pose_index, I, H, W, ts)
     holder = [means2d_out] if absgrad and means2d_out.requires_grad else None

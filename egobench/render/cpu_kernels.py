@@ -54,7 +54,7 @@ CHUNK = 256  # Gaussians per chunk of the projection backward's pose-gradient pa
 
 
 @njit(cache=True, inline="always")
-def _rotmat(qw, qx, qy, qz, R):
+def quat_rotmat(qw, qx, qy, qz, R):
     """Normalised quaternion -> rotation matrix R [3, 3] (filled in place; scratch reused: no
     allocation per Gaussian), the normalised components and 1/|q|."""
     nrm = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
@@ -96,7 +96,7 @@ def _clip_limits(cam, width, height):
 
 
 @njit(cache=True, inline="always")
-def _camera_point(V, means, n):
+def camera_point(V, means, n):
     """Camera-frame centre (x, y, z) of Gaussian n under world-to-camera V [4, 4]."""
     x = V[0, 0] * means[n, 0] + V[0, 1] * means[n, 1] + V[0, 2] * means[n, 2] + V[0, 3]
     y = V[1, 0] * means[n, 0] + V[1, 1] * means[n, 1] + V[1, 2] * means[n, 2] + V[1, 3]
@@ -117,7 +117,7 @@ def project_fwd(means, quats, scales, opac, viewmats, cam, width, height, eps2d,
     for ch in prange(n_chunks):
         R = np.empty((3, 3))  # scratch, reused for every Gaussian of the chunk
         for n in range(ch * CHUNK, min(N, (ch + 1) * CHUNK)):
-            R, _, _, _, _, _ = _rotmat(quats[n, 0], quats[n, 1], quats[n, 2], quats[n, 3], R)
+            R, _, _, _, _, _ = quat_rotmat(quats[n, 0], quats[n, 1], quats[n, 2], quats[n, 3], R)
             ax = _argmin3(scales[n, 0], scales[n, 1], scales[n, 2])
             ext = EXTENT_SIGMAS
             op = opac[n]
@@ -125,7 +125,7 @@ def project_fwd(means, quats, scales, opac, viewmats, cam, width, height, eps2d,
                 ext = min(ext, math.sqrt(2.0 * math.log(op / ALPHA_MIN)))
             for i in range(I):
                 V = viewmats[i]
-                x, y, z = _camera_point(V, means, n)
+                x, y, z = camera_point(V, means, n)
                 in_depth = z >= near and z <= far
                 zs = z if in_depth else 1.0
                 inv_z = 1.0 / zs
@@ -235,7 +235,7 @@ def _cov2d_rows_grad(g00, g11, g01, A0, A1, Mc, j00, j11, tx, ty, gMc):
 
 
 @njit(cache=True, inline="always")
-def _normal_grad(V, R, ax, x, y, z, g_normals, i, n, gnw):
+def normal_grad(V, R, ax, x, y, z, g_normals, i, n, gnw):
     """Normal sgn * V[:3, :3] R[:, ax] (facing the camera at (x, y, z)): fills gnw [3] = dL/dR[:, ax]
     from g_normals[i, n] [3] -> sgn."""
     nx = V[0, 0] * R[0, ax] + V[0, 1] * R[1, ax] + V[0, 2] * R[2, ax]
@@ -249,7 +249,7 @@ def _normal_grad(V, R, ax, x, y, z, g_normals, i, n, gnw):
 
 
 @njit(cache=True, inline="always")
-def _add_view_and_mean_grads(V, R, scales, means, n, gpc, gMc, sgn, g_normals, i, ax, want_normal, gv, gm):
+def add_view_and_mean_grads(V, R, scales, means, n, gpc, gMc, sgn, g_normals, i, ax, want_normal, gv, gm):
     """p_c = V m + t, Mc = V R diag(s), normal = sgn V R[:, ax]: adds dL/dV[:3, :4] (row-major) to
     gv [12] and dL/dm to gm [3], from gpc = dL/dp_c, gMc [3, 3], g_normals[i, n] [3]."""
     for r in range(3):
@@ -266,7 +266,7 @@ def _add_view_and_mean_grads(V, R, scales, means, n, gpc, gMc, sgn, g_normals, i
 
 
 @njit(cache=True, inline="always")
-def _add_rot_scale_grads(V, R, scales, n, gMc, gnw, ax, gR, gs):
+def add_rot_scale_grads(V, R, scales, n, gMc, gnw, ax, gR, gs):
     """Mc = V R diag(s): adds dL/dR to gR [3, 3] (with the normal's gnw on column ax) and dL/ds to gs [3]."""
     for b in range(3):
         for c in range(3):
@@ -277,7 +277,7 @@ def _add_rot_scale_grads(V, R, scales, n, gMc, gnw, ax, gR, gs):
 
 
 @njit(cache=True, inline="always")
-def _quat_grad(gR, qw, qx, qy, qz, qinv, g_quats, n):
+def quat_grad(gR, qw, qx, qy, qz, qinv, g_quats, n):
     """dL/dR [3, 3] -> g_quats[n] = dL/dq through R(q / |q|) (qw..qz normalised, qinv = 1/|q|)."""
     gw = 2.0 * (qx * (gR[2, 1] - gR[1, 2]) + qy * (gR[0, 2] - gR[2, 0]) + qz * (gR[1, 0] - gR[0, 1]))
     gxx = (2.0 * qy * (gR[0, 1] + gR[1, 0]) + 2.0 * qz * (gR[0, 2] + gR[2, 0])
@@ -316,7 +316,7 @@ def project_bwd(means, quats, scales, viewmats, cam, width, height, eps2d, near,
         gMc = np.empty((3, 3))
         gnw = np.empty(3)
         for n in range(ch * CHUNK, min(N, (ch + 1) * CHUNK)):
-            R, qw, qx, qy, qz, qinv = _rotmat(quats[n, 0], quats[n, 1], quats[n, 2], quats[n, 3], R)
+            R, qw, qx, qy, qz, qinv = quat_rotmat(quats[n, 0], quats[n, 1], quats[n, 2], quats[n, 3], R)
             ax = _argmin3(scales[n, 0], scales[n, 1], scales[n, 2])
             gR[:] = 0.0
             gs[:] = 0.0
@@ -325,7 +325,7 @@ def project_bwd(means, quats, scales, viewmats, cam, width, height, eps2d, near,
                 if not _has_upstream_grad(g_means2d, g_conics, g_depths, g_normals, i, n, want_normal):
                     continue
                 V = viewmats[i]
-                x, y, z = _camera_point(V, means, n)
+                x, y, z = camera_point(V, means, n)
                 in_depth = z >= near and z <= far
                 zs = z if in_depth else 1.0
                 inv_z = 1.0 / zs
@@ -353,14 +353,14 @@ def project_bwd(means, quats, scales, viewmats, cam, width, height, eps2d, near,
                 if in_depth:
                     gz -= g_inv_z * inv_z * inv_z
                 gnw[:] = 0.0
-                sgn = _normal_grad(V, R, ax, x, y, z, g_normals, i, n, gnw) if want_normal else 0.0
-                _add_view_and_mean_grads(V, R, scales, means, n, (gx, gy, gz), gMc, sgn, g_normals, i, ax,
+                sgn = normal_grad(V, R, ax, x, y, z, g_normals, i, n, gnw) if want_normal else 0.0
+                add_view_and_mean_grads(V, R, scales, means, n, (gx, gy, gz), gMc, sgn, g_normals, i, ax,
                                          want_normal, g_view_parts[ch, i], gm)
-                _add_rot_scale_grads(V, R, scales, n, gMc, gnw, ax, gR, gs)
+                add_rot_scale_grads(V, R, scales, n, gMc, gnw, ax, gR, gs)
             for b in range(3):
                 g_means[n, b] = gm[b]
                 g_scales[n, b] = gs[b]
-            _quat_grad(gR, qw, qx, qy, qz, qinv, g_quats, n)
+            quat_grad(gR, qw, qx, qy, qz, qinv, g_quats, n)
 
 
 def bin_tiles(means2d, radii, depths, tile_size, tiles_x, tiles_y, bin_needed):
@@ -677,7 +677,7 @@ def _footprint_tab(tab, g, x0, y0, ts, W, H):
 
 
 @njit(cache=True, inline="always")
-def _bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout):
+def bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout):
     """Bin b (image i, tile t) -> (i, output image o, tile pixel bounds x0, y0, x1, y1)."""
     i, t = b // n_tiles, b % n_tiles
     o = 0 if Iout == 1 else i
@@ -699,7 +699,7 @@ def _start_tile_fwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, one, T, row_active):
 
 
 @njit(cache=True, inline="always")
-def _retire_stopped(row_active, sbuf, ra, rb, ca, cb, ts, cw):
+def retire_stopped(row_active, sbuf, ra, rb, ca, cb, ts, cw):
     """Subtracts the pixels the last Gaussian stopped (sbuf) in rows [ra, rb), columns [ca, cb) from row_active."""
     for q in range(ca // cw, (cb - 1) // cw + 1):
         for r in range(ra, rb):
@@ -709,7 +709,7 @@ def _retire_stopped(row_active, sbuf, ra, rb, ca, cb, ts, cw):
 
 
 @njit(cache=True, inline="always")
-def _finish_tile_fwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, T, last, acc, out_feat, out_T, out_last):
+def finish_tile_fwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, T, last, acc, out_feat, out_T, out_last):
     """Writes the tile's state (|T|, last, accumulated features) to the output pixels whose view is i."""
     for v in range(y0, y1):
         for u in range(x0, x1):
@@ -756,7 +756,7 @@ def _write_isect_grad(isect_grad, k, half, gmx, gmy, ga, gb, gc, glo, gf):
 
 
 @njit(cache=True, inline="always")
-def _feature_dot(ebuf, gF, feats, g, pa, pb, zero):
+def feature_dot(ebuf, gF, feats, g, pa, pb, zero):
     """ebuf[p] = sum_c dL/dF[c, p] * feats[g, c] over state entries [pa, pb) (dL/dw through the features)."""
     for pp in range(pa, pb):
         ebuf[np.uint64(pp)] = zero
@@ -767,7 +767,7 @@ def _feature_dot(ebuf, gF, feats, g, pa, pb, zero):
 
 
 @njit(cache=True, inline="always")
-def _add_feature_grads(gf, wbuf, gF, pa, pb, zero):
+def add_feature_grads(gf, wbuf, gF, pa, pb, zero):
     """gf[c] += sum_p w[p] * dL/dF[c, p] over state entries [pa, pb)."""
     for c in range(gf.shape[0]):
         sc = zero
@@ -777,7 +777,7 @@ def _add_feature_grads(gf, wbuf, gF, pa, pb, zero):
 
 
 @njit(cache=True, inline="always")
-def _trim_rows_active(ra, rb, row_active):
+def trim_rows_active(ra, rb, row_active):
     """Rows [ra, rb) narrowed to start and end at rows with pixels still compositing."""
     while ra < rb and row_active[ra] == 0:
         ra += 1
@@ -787,7 +787,7 @@ def _trim_rows_active(ra, rb, row_active):
 
 
 @njit(cache=True, inline="always")
-def _trim_rows_composited(ra, rb, k, row_last):
+def trim_rows_composited(ra, rb, k, row_last):
     """Rows [ra, rb) narrowed to start and end at rows where intersection k was composited or reached."""
     while ra < rb and k >= row_last[ra]:
         ra += 1
@@ -807,7 +807,7 @@ def _tile_base(centres, x0, y0, ts, cw, kc):
 
 
 @njit(cache=True, inline="always")
-def _tile_state_fwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, Cf, kc, centres):
+def tile_state_fwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, Cf, kc, centres):
     """Per-tile state of the forward (compute dtype, `_state_index` layout) -> (T [P] (1 at the pixels
     whose view is i), acc [Cf, P], last [P] int32, pixel centres cxt, cyt [P], weights wbuf [P],
     stop flags sbuf [P] int32, row_active [ts] pixels still compositing per row, their number)."""
@@ -822,7 +822,7 @@ def _tile_state_fwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, Cf, kc, centres):
 
 
 @njit(cache=True, inline="always", fastmath=FASTMATH)
-def _accumulate_features(acc, wbuf, feats, g, pa, pb):
+def accumulate_features(acc, wbuf, feats, g, pa, pb):
     """acc[c, p] += w[p] * feats[g, c] over state entries [pa, pb)."""
     for c in range(feats.shape[1]):  # one loop per channel: an inner channel loop would stop the vectorizer
         fc = feats[g, c]
@@ -831,7 +831,7 @@ def _accumulate_features(acc, wbuf, feats, g, pa, pb):
 
 
 @njit(cache=True, inline="always")
-def _tile_state_bwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, Cf, kc, centres, out_T, out_last, g_T, g_feat, k_begin):
+def tile_state_bwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, Cf, kc, centres, out_T, out_last, g_T, g_feat, k_begin):
     """Per-tile state of the backward, loaded from the forward's results (`_start_tile_bwd`) -> (T,
     gTT, suffix, gF [Cf, P], last, cxt, cyt, ebuf, wbuf, gf [Cf], row_last [ts], one past the last
     intersection to visit)."""
@@ -848,7 +848,7 @@ def _tile_state_bwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, Cf, kc, centres, out
 
 
 @njit(cache=True, inline="always", fastmath=FASTMATH)
-def _composite_pixel(s, Tp, last_p, k1, kc):
+def composite_pixel(s, Tp, last_p, k1, kc):
     """One front-to-back step at a pixel with transmittance Tp (> 0 while compositing, -T once
     stopped, 0 for pixels of other views) and exponent s = sigma - log o: gsplat's rules (alpha =
     min(0.999, exp(-s)), skip alpha <= 1/255, stop before T <= 1e-4) -> (weight w, new T, new
@@ -864,7 +864,7 @@ def _composite_pixel(s, Tp, last_p, k1, kc):
 
 
 @njit(cache=True, inline="always", fastmath=FASTMATH)
-def _uncomposite_pixel(s, Tp, last_p, k32, kc):
+def uncomposite_pixel(s, Tp, last_p, k32, kc):
     """Back-to-front step of `raster_bwd`'s pixel loop: T before intersection k32 recovered by division
     (as gsplat) -> (weight w (0 unless composited), T before, T_exc, alpha / (1 - alpha),
     whether the exponent gets a gradient (composited and alpha below the clamp))."""
@@ -878,7 +878,7 @@ def _uncomposite_pixel(s, Tp, last_p, k32, kc):
 
 
 @njit(cache=True, inline="always", fastmath=FASTMATH)
-def _exponent_grad(e, w, a_ratio, live, sp, gTT_p, zero):
+def exponent_grad(e, w, a_ratio, live, sp, gTT_p, zero):
     """dL/ds of a pair from e = dL/dw, the suffix sp = sum_{j>k} e_j w_j and dL/dT_final T_final:
     -> (G, the suffix including this pair); G = 0 where the pair did not get a gradient."""
     G = a_ratio * (sp + gTT_p) - e * w
@@ -910,8 +910,8 @@ def raster_fwd(tab, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles
     ts = tile_size
     for jb in prange(bins.shape[0]):
         b = bins[jb]
-        i, o, x0, y0, x1, y1 = _bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout)
-        T, acc, last, cxt, cyt, wbuf, sbuf, row_active, n_active = _tile_state_fwd(pix_view, o, i, x0, y0, x1, y1,
+        i, o, x0, y0, x1, y1 = bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout)
+        T, acc, last, cxt, cyt, wbuf, sbuf, row_active, n_active = tile_state_fwd(pix_view, o, i, x0, y0, x1, y1,
                                                                                    ts, cw, Cf, kc, centres)
         for k in range(bin_start[b], bin_start[b + 1]):
             if n_active == 0:
@@ -923,7 +923,7 @@ def raster_fwd(tab, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles
             mx, my, A, B, C, lo = tab[g, 0], tab[g, 1], tab[g, 2], tab[g, 3], tab[g, 4], tab[g, 5]
             hA, hC = kc[0] * A, kc[0] * C
             ra, rb, ca, cb = _footprint_tab(tab, g, x0, y0, ts, W, H)
-            ra, rb = _trim_rows_active(ra, rb, row_active)
+            ra, rb = trim_rows_active(ra, rb, row_active)
             if ra >= rb or ca >= cb:
                 continue
             k1 = np.int32(k + 1)
@@ -938,14 +938,14 @@ def raster_fwd(tab, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles
                 for pp in range(pa, pb):  # unsigned index: no wraparound test; branch-free: vectorizes
                     p = np.uint64(pp)
                     s = _exponent(cxt[p] - mx, cyt[p] - my, hA, B, hC, lo)
-                    wbuf[p], T[p], last[p], stop = _composite_pixel(s, T[p], last[p], k1, kc)
+                    wbuf[p], T[p], last[p], stop = composite_pixel(s, T[p], last[p], k1, kc)
                     sbuf[p] = 1 if stop else 0
                     stopped += 1 if stop else 0
-                _accumulate_features(acc, wbuf, feats, g, pa, pb)
+                accumulate_features(acc, wbuf, feats, g, pa, pb)
                 if stopped:
                     n_active -= stopped
-                    _retire_stopped(row_active, sbuf, qra, qrb, q * cw, q * cw + 1, ts, cw)
-        _finish_tile_fwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, T, last, acc, out_feat, out_T, out_last)
+                    retire_stopped(row_active, sbuf, qra, qrb, q * cw, q * cw + 1, ts, cw)
+        finish_tile_fwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, T, last, acc, out_feat, out_T, out_last)
 
 
 @njit(cache=True, parallel=True, fastmath=FASTMATH)
@@ -960,8 +960,8 @@ def raster_bwd(tab, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles
     zero = kc[3]
     for jb in prange(bins.shape[0]):
         b = bins[jb]
-        i, o, x0, y0, x1, y1 = _bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout)
-        T, gTT, suffix, gF, last, cxt, cyt, ebuf, wbuf, gf, row_last, k_end = _tile_state_bwd(
+        i, o, x0, y0, x1, y1 = bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout)
+        T, gTT, suffix, gF, last, cxt, cyt, ebuf, wbuf, gf, row_last, k_end = tile_state_bwd(
             pix_view, o, i, x0, y0, x1, y1, ts, cw, Cf, kc, centres, out_T, out_last, g_T, g_feat, bin_start[b])
         for k in range(k_end - 1, bin_start[b] - 1, -1):
             g = flat_ids[k]
@@ -971,7 +971,7 @@ def raster_bwd(tab, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles
             mx, my, A, B, C, lo = tab[g, 0], tab[g, 1], tab[g, 2], tab[g, 3], tab[g, 4], tab[g, 5]
             hA, hC = kc[0] * A, kc[0] * C
             ra, rb, ca, cb = _footprint_tab(tab, g, x0, y0, ts, W, H)
-            ra, rb = _trim_rows_composited(ra, rb, k, row_last)
+            ra, rb = trim_rows_composited(ra, rb, k, row_last)
             gmx = zero
             gmy = zero
             ga = zero
@@ -999,9 +999,9 @@ def raster_bwd(tab, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles
                         dx = cxt[p] - mx
                         dy = cyt[p] - my
                         s = _exponent(dx, dy, hA, B, hC, lo)
-                        w, T[p], T_exc, a_ratio, live = _uncomposite_pixel(s, T[p], last[p], k32, kc)
+                        w, T[p], T_exc, a_ratio, live = uncomposite_pixel(s, T[p], last[p], k32, kc)
                         e = gF[0, p] * f0 + gF[1, p] * f1 + gF[2, p] * f2 + gF[3, p] * f3
-                        G, suffix[p] = _exponent_grad(e, w, a_ratio, live, suffix[p], gTT[p], zero)
+                        G, suffix[p] = exponent_grad(e, w, a_ratio, live, suffix[p], gTT[p], zero)
                         gmx -= G * (A * dx + B * dy)
                         gmy -= G * (B * dx + C * dy)
                         ga += G * dx * dx
@@ -1017,22 +1017,22 @@ def raster_bwd(tab, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles
                     gf[2] += s2
                     gf[3] += s3
                     continue
-                _feature_dot(ebuf, gF, feats, g, pa, pb, zero)
+                feature_dot(ebuf, gF, feats, g, pa, pb, zero)
                 for pp in range(pa, pb):
                     p = np.uint64(pp)
                     dx = cxt[p] - mx
                     dy = cyt[p] - my
                     s = _exponent(dx, dy, hA, B, hC, lo)
-                    w, T[p], T_exc, a_ratio, live = _uncomposite_pixel(s, T[p], last[p], k32, kc)
+                    w, T[p], T_exc, a_ratio, live = uncomposite_pixel(s, T[p], last[p], k32, kc)
                     wbuf[p] = w
-                    G, suffix[p] = _exponent_grad(ebuf[p], w, a_ratio, live, suffix[p], gTT[p], zero)
+                    G, suffix[p] = exponent_grad(ebuf[p], w, a_ratio, live, suffix[p], gTT[p], zero)
                     gmx -= G * (A * dx + B * dy)
                     gmy -= G * (B * dx + C * dy)
                     ga += G * dx * dx
                     gb += G * dx * dy
                     gc += G * dy * dy
                     glo -= G
-                _add_feature_grads(gf, wbuf, gF, pa, pb, zero)
+                add_feature_grads(gf, wbuf, gF, pa, pb, zero)
             _write_isect_grad(isect_grad, k, kc[0], gmx, gmy, ga, gb, gc, glo, gf)
 
 

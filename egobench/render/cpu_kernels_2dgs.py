@@ -23,12 +23,12 @@ import numpy as np
 from numba import njit, prange
 
 from egobench.render import cpu_kernels as ck
-from egobench.render.cpu_kernels import (CHUNK, EXTENT_SIGMAS, FASTMATH, SIGMA_ROW, _accumulate_features,
-                                         _add_feature_grads, _add_rot_scale_grads, _add_view_and_mean_grads,
-                                         _bin_tile, _camera_point, _composite_pixel, _exponent_grad, _feature_dot,
-                                         _finish_tile_fwd, _normal_grad, _quat_grad, _retire_stopped, _rotmat,
-                                         _tile_state_bwd, _tile_state_fwd, _trim_rows_active, _trim_rows_composited,
-                                         _uncomposite_pixel)
+from egobench.render.cpu_kernels import (CHUNK, EXTENT_SIGMAS, FASTMATH, SIGMA_ROW, accumulate_features,
+                                         add_feature_grads, add_rot_scale_grads, add_view_and_mean_grads,
+                                         bin_tile, camera_point, composite_pixel, exponent_grad, feature_dot,
+                                         finish_tile_fwd, normal_grad, quat_grad, retire_stopped, quat_rotmat,
+                                         tile_state_bwd, tile_state_fwd, trim_rows_active, trim_rows_composited,
+                                         uncomposite_pixel)
 
 
 def _follow_helper_edits() -> None:
@@ -62,7 +62,7 @@ def _ray_transform(V, R, scales, means, n, cam, M):
     """Fills M [3, 3] = K [R_c[:, 0] s0 | R_c[:, 1] s1 | mean_c] (R_c = V[:3, :3] R) -> camera-frame
     centre (x, y, z)."""
     fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
-    x, y, z = _camera_point(V, means, n)
+    x, y, z = camera_point(V, means, n)
     for c in range(2):
         t0 = (V[0, 0] * R[0, c] + V[0, 1] * R[1, c] + V[0, 2] * R[2, c]) * scales[n, c]
         t1 = (V[1, 0] * R[0, c] + V[1, 1] * R[1, c] + V[1, 2] * R[2, c]) * scales[n, c]
@@ -96,7 +96,7 @@ def project_fwd_2dgs(means, quats, scales, viewmats, cam, width, height, near, f
         gnw = np.zeros(3)
         zero_g = np.zeros((1, 1, 3))
         for n in range(ch * CHUNK, min(N, (ch + 1) * CHUNK)):
-            R, _, _, _, _, _ = _rotmat(quats[n, 0], quats[n, 1], quats[n, 2], quats[n, 3], R)
+            R, _, _, _, _, _ = quat_rotmat(quats[n, 0], quats[n, 1], quats[n, 2], quats[n, 3], R)
             for i in range(I):
                 V = viewmats[i]
                 x, y, z = _ray_transform(V, R, scales, means, n, cam, M)
@@ -114,7 +114,7 @@ def project_fwd_2dgs(means, quats, scales, viewmats, cam, width, height, near, f
                 for r in range(3):
                     for c in range(3):
                         tsl[i, n, r * 3 + c] = M[r, c]
-                sgn = _normal_grad(V, R, 2, x, y, z, zero_g, 0, 0, gnw)
+                sgn = normal_grad(V, R, 2, x, y, z, zero_g, 0, 0, gnw)
                 for r in range(3):
                     normals[i, n, r] = sgn * (V[r, 0] * R[0, 2] + V[r, 1] * R[1, 2] + V[r, 2] * R[2, 2])
 
@@ -176,7 +176,7 @@ def project_bwd_2dgs(means, quats, scales, viewmats, cam, near, far, g_means2d, 
         gpc = np.empty(3)
         gnw = np.empty(3)
         for n in range(ch * CHUNK, min(N, (ch + 1) * CHUNK)):
-            R, qw, qx, qy, qz, qinv = _rotmat(quats[n, 0], quats[n, 1], quats[n, 2], quats[n, 3], R)
+            R, qw, qx, qy, qz, qinv = quat_rotmat(quats[n, 0], quats[n, 1], quats[n, 2], quats[n, 3], R)
             gR[:] = 0.0
             gs[:] = 0.0
             gm[:] = 0.0
@@ -191,14 +191,14 @@ def project_bwd_2dgs(means, quats, scales, viewmats, cam, near, far, g_means2d, 
                 _ray_transform_grad(M, valid, d_s, g_means2d, g_tsl, i, n, cam, gMc, gpc)
                 gpc[2] += g_depths[i, n]
                 gnw[:] = 0.0
-                sgn = _normal_grad(V, R, 2, x, y, z, g_normals, i, n, gnw)
-                _add_view_and_mean_grads(V, R, scales, means, n, gpc, gMc, sgn, g_normals, i, 2, True,
+                sgn = normal_grad(V, R, 2, x, y, z, g_normals, i, n, gnw)
+                add_view_and_mean_grads(V, R, scales, means, n, gpc, gMc, sgn, g_normals, i, 2, True,
                                          g_view_parts[ch, i], gm)
-                _add_rot_scale_grads(V, R, scales, n, gMc, gnw, 2, gR, gs)
+                add_rot_scale_grads(V, R, scales, n, gMc, gnw, 2, gR, gs)
             for b in range(3):
                 g_means[n, b] = gm[b]
                 g_scales[n, b] = gs[b]
-            _quat_grad(gR, qw, qx, qy, qz, qinv, g_quats, n)
+            quat_grad(gR, qw, qx, qy, qz, qinv, g_quats, n)
 
 
 # ------------------------------------------------------------------------------------------
@@ -309,8 +309,8 @@ def raster_fwd_2dgs(means2d, tsl, log_opac, feats, flat_ids, bin_start, bins, pi
     one = kc[1]
     for jb in prange(bins.shape[0]):
         b = bins[jb]
-        i, o, x0, y0, x1, y1 = _bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout)
-        T, acc, last, cxt, cyt, wbuf, sbuf, row_active, n_active = _tile_state_fwd(pix_view, o, i, x0, y0, x1, y1,
+        i, o, x0, y0, x1, y1 = bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout)
+        T, acc, last, cxt, cyt, wbuf, sbuf, row_active, n_active = tile_state_fwd(pix_view, o, i, x0, y0, x1, y1,
                                                                                    ts, cw, Cf + 1, kc, centres)
         lxt, lyt, ox, oy = _tile_local(cxt, cyt, x0, y0, ts)
         cc = np.empty(9, kc.dtype)
@@ -319,7 +319,7 @@ def raster_fwd_2dgs(means2d, tsl, log_opac, feats, flat_ids, bin_start, bins, pi
                 break
             gi, n, mx, my, lo, c9, _ = _surfel(means2d, tsl, log_opac, flat_ids[k], N, ox, oy, cc)
             ra, rb, ca, cb = _footprint_2dgs(tsl, gi, n, mx, my, lo, x0, y0, ts, W, H)
-            ra, rb = _trim_rows_active(ra, rb, row_active)
+            ra, rb = trim_rows_active(ra, rb, row_active)
             if ra >= rb or ca >= cb:
                 continue
             zk = feats[flat_ids[k], DEPTH_CH]
@@ -331,16 +331,16 @@ def raster_fwd_2dgs(means2d, tsl, log_opac, feats, flat_ids, bin_start, bins, pi
                     p = np.uint64(pp)
                     s, _, _, _, _, _ = _surfel_exponent(lxt[p], lyt[p], cxt[p] - mx, cyt[p] - my, c9, lo, kc)
                     Tp = T[p]
-                    w, T[p], last[p], stop = _composite_pixel(s, Tp, last[p], k1, kc)
+                    w, T[p], last[p], stop = composite_pixel(s, Tp, last[p], k1, kc)
                     wbuf[p] = w
                     acc[Cf, p] += (w + w) * (zk * (one - Tp) - acc[DEPTH_CH, p])  # before the depth update
                     sbuf[p] = 1 if stop else 0
                     stopped += 1 if stop else 0
-                _accumulate_features(acc, wbuf, feats, flat_ids[k], pa, pb)
+                accumulate_features(acc, wbuf, feats, flat_ids[k], pa, pb)
             if stopped:
                 n_active -= stopped
-                _retire_stopped(row_active, sbuf, ra, rb, ca, cb, ts, cw)
-        _finish_tile_fwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, T, last, acc, out_feat, out_T, out_last)
+                retire_stopped(row_active, sbuf, ra, rb, ca, cb, ts, cw)
+        finish_tile_fwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, T, last, acc, out_feat, out_T, out_last)
 
 
 @njit(cache=True, inline="always")
@@ -381,8 +381,8 @@ def raster_bwd_2dgs(means2d, tsl, log_opac, feats, flat_ids, bin_start, bins, pi
     half, one, zero = kc[0], kc[1], kc[3]
     for jb in prange(bins.shape[0]):
         b = bins[jb]
-        i, o, x0, y0, x1, y1 = _bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout)
-        T, gTT, suffix, gF, last, cxt, cyt, ebuf, wbuf, _, row_last, k_end = _tile_state_bwd(
+        i, o, x0, y0, x1, y1 = bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout)
+        T, gTT, suffix, gF, last, cxt, cyt, ebuf, wbuf, _, row_last, k_end = tile_state_bwd(
             pix_view, o, i, x0, y0, x1, y1, ts, cw, Cf + 2, kc, centres, out_T, out_last, g_T, g_state, bin_start[b])
         gf = np.empty(Cf, kc.dtype)  # feature gradients only (gF's last two rows are distortion state)
         lxt, lyt, ox, oy = _tile_local(cxt, cyt, x0, y0, ts)
@@ -394,7 +394,7 @@ def raster_bwd_2dgs(means2d, tsl, log_opac, feats, flat_ids, bin_start, bins, pi
             g = flat_ids[k]
             gi, n, mx, my, lo, c9, up_vp = _surfel(means2d, tsl, log_opac, g, N, ox, oy, cc)
             ra, rb, ca, cb = _footprint_2dgs(tsl, gi, n, mx, my, lo, x0, y0, ts, W, H)
-            ra, rb = _trim_rows_composited(ra, rb, k, row_last)
+            ra, rb = trim_rows_composited(ra, rb, k, row_last)
             zk = feats[g, DEPTH_CH]
             k32 = np.int32(k)
             a0 = a1 = a2 = a3 = a4 = a5 = a6 = a7 = a8 = gmx = gmy = glo = gz = zero
@@ -403,12 +403,12 @@ def raster_bwd_2dgs(means2d, tsl, log_opac, feats, flat_ids, bin_start, bins, pi
                 ca, cb = 0, 0
             for q in range(ca // cw, (cb - 1) // cw + 1 if cb > ca else 0):
                 pa, pb = q * ts * cw + ra * cw, q * ts * cw + rb * cw
-                _feature_dot(ebuf, gF, feats, g, pa, pb, zero)
+                feature_dot(ebuf, gF, feats, g, pa, pb, zero)
                 for pp in range(pa, pb):
                     p = np.uint64(pp)
                     lx, ly, dx, dy = lxt[p], lyt[p], cxt[p] - mx, cyt[p] - my
                     s, X, Y, iz, g3, use3 = _surfel_exponent(lx, ly, dx, dy, c9, lo, kc)
-                    w, T[p], T_exc, a_ratio, live = _uncomposite_pixel(s, T[p], last[p], k32, kc)
+                    w, T[p], T_exc, a_ratio, live = uncomposite_pixel(s, T[p], last[p], k32, kc)
                     wbuf[p] = w
                     gD2, wa, za = gF[Cf, p], w_after[p], z_after[p]
                     W_exc = one - T_exc
@@ -417,7 +417,7 @@ def raster_bwd_2dgs(means2d, tsl, log_opac, feats, flat_ids, bin_start, bins, pi
                     gz += gD2 * w * (W_exc - wa)
                     w_after[p] = wa + w
                     z_after[p] = za + w * zk
-                    G, suffix[p] = _exponent_grad(e, w, a_ratio, live, suffix[p], gTT[p], zero)
+                    G, suffix[p] = exponent_grad(e, w, a_ratio, live, suffix[p], gTT[p], zero)
                     G3 = half * G if use3 else zero
                     G2 = half * G - G3
                     t = (G3 + G3) * iz * iz
@@ -434,6 +434,6 @@ def raster_bwd_2dgs(means2d, tsl, log_opac, feats, flat_ids, bin_start, bins, pi
                     gmx -= (G2 + G2) * (dx + dx)  # d/dm of FILTER_2D |pixel - m|^2
                     gmy -= (G2 + G2) * (dy + dy)
                     glo -= G
-                _add_feature_grads(gf, wbuf, gF, pa, pb, zero)
+                add_feature_grads(gf, wbuf, gF, pa, pb, zero)
             ac[0], ac[1], ac[2], ac[3], ac[4], ac[5], ac[6], ac[7], ac[8] = a0, a1, a2, a3, a4, a5, a6, a7, a8
             _write_surfel_grad(isect_grad, k, ac, up_vp, tsl, gi, n, ox, oy, gmx, gmy, glo, gf, gz, Cf)

@@ -22,7 +22,7 @@ import torch
 from torch import Tensor
 
 from egobench.camera.pinhole import Pinhole
-from egobench.render.torch_backend import _face_camera, gsplat_K, quat_to_rotmat
+from egobench.render.torch_backend import face_camera, gsplat_K, quat_to_rotmat
 from egobench.render.types import Gaussians, RenderOutput
 
 NEAR_PLANE = 0.01
@@ -43,7 +43,7 @@ def _shortest_axis_normals(g: Gaussians, viewmats: Tensor) -> Tensor:
     n_world = torch.gather(R, 2, axis[:, None, None].expand(-1, 3, 1))[..., 0]
     R_cw, t_cw = viewmats[:, :3, :3], viewmats[:, :3, 3]
     means_c = torch.einsum("iab,nb->ina", R_cw, g.means) + t_cw[:, None, :]
-    return _face_camera(torch.einsum("iab,nb->ina", R_cw, n_world), means_c)
+    return face_camera(torch.einsum("iab,nb->ina", R_cw, n_world), means_c)
 
 
 def render_gsplat(

@@ -105,7 +105,7 @@ def _viewmat_parts(viewmats: Tensor) -> tuple[Tensor, Tensor]:
     return viewmats[:, :3, :3], viewmats[:, :3, 3]  # [I, 3, 3], [I, 3]
 
 
-def _face_camera(normals_c: Tensor, means_c: Tensor) -> Tensor:
+def face_camera(normals_c: Tensor, means_c: Tensor) -> Tensor:
     """Flip normals [I, N, 3] so that dot(-n, mean_c) > 0 (gsplat's rule)."""
     cos = -(normals_c * means_c).sum(-1, keepdim=True)
     return torch.where(cos > 0, normals_c, -normals_c)
@@ -182,7 +182,7 @@ def project_3dgs(
         # shortest axis of each Gaussian, in camera frame, facing the camera
         axis = torch.argmin(scales.detach(), dim=-1)  # [N]
         n_world = torch.gather(R, 2, axis[:, None, None].expand(-1, 3, 1))[..., 0]  # [N, 3]
-        normals = _face_camera(torch.einsum("iab,nb->ina", R_cw, n_world), means_cT.permute(1, 2, 0))
+        normals = face_camera(torch.einsum("iab,nb->ina", R_cw, n_world), means_cT.permute(1, 2, 0))
     return Projection(means2d=means2d, depths=z, radii=radii, conics=conics, normals=normals)
 
 
@@ -220,7 +220,7 @@ def project_2dgs(
         m2 = means2d.detach()
         inside = (m2[..., 0] + rx > 0) & (m2[..., 0] - rx < width) & (m2[..., 1] + ry > 0) & (m2[..., 1] - ry < height)
         radii = (radius * (valid & inside)[..., None]).to(torch.int32)
-    normals = _face_camera(R_c[..., 2], means_c)
+    normals = face_camera(R_c[..., 2], means_c)
     return Projection(means2d=means2d, depths=z, radii=radii, ray_transforms=T_sl, normals=normals)
 
 
@@ -740,7 +740,7 @@ class RasterResult:
     densify_2dgs: Tensor | None = None  # [I, N, 2] 2DGS: zeros whose gradient is gsplat's gradient_2dgs
 
 
-def _densify_carrier_2dgs(T_sl: Tensor, track: bool) -> tuple[Tensor, Tensor | None]:
+def densify_carrier_2dgs(T_sl: Tensor, track: bool) -> tuple[Tensor, Tensor | None]:
     """gsplat 1.5.3's 2DGS densification signal: a zero [I, N, 2] leaf whose gradient is
     (dL/dM[0, 2], dL/dM[1, 2]) * z, with M = T_sl the ray transform (its translation column is the
     homogeneous projected centre, so this is the image-plane gradient of the centre at fixed depth;
@@ -864,7 +864,7 @@ def _gather_intersections(mode: str, proj: Projection, means2d_g: Tensor, log_op
     if mode == "3dgs":
         geom = proj.conics.reshape(-1, 3)
     else:
-        T_sl, densify_2dgs = _densify_carrier_2dgs(proj.ray_transforms, proj.ray_transforms.requires_grad)
+        T_sl, densify_2dgs = densify_carrier_2dgs(proj.ray_transforms, proj.ray_transforms.requires_grad)
         geom = T_sl.reshape(-1, 9)
     n_geom = geom.shape[1]
     per_view = [means2d_g.reshape(-1, 2), geom]  # [I * N, ...]

@@ -121,8 +121,9 @@ def contact_sheet(recording_dir: str | Path, out_png: str | Path, n: int = 8) ->
             rec.vignette.numpy(), cmap="gray", vmin=0, vmax=1)
         axes[r, c].set_title("R(u)" if c == 0 else "vignette", fontsize=7)
         r += 1
-        if rec.ground_truth is not None:
-            d = np.load(rec.ground_truth / "depth" / f"{fr.image_path.stem}.npy").astype(np.float32)
+        depth_file = rec.ground_truth_file("depth", fr)
+        if depth_file is not None:
+            d = np.load(depth_file).astype(np.float32)
             axes[r, c].imshow(d, cmap="magma")
             axes[r, c].set_title("GT depth", fontsize=7)
     for ax in axes.ravel():

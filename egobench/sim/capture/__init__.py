@@ -43,7 +43,7 @@ sample schedules), `auto_exposure`, `semidense` (SLAM points), `setup` (what eve
 `frame` (one frame and the state it carries over), `resume` (the partial folder), `recording`
 (`simulate_recording` and the files written at the end).
 
-Code path: `simulate_recording` -> `build_capture_setup` (once: `CaptureSetup`) and `_restore_run` (the
+Code path: `simulate_recording` -> `build_capture_setup` (once: `CaptureSetup`) and `restore_run` (the
 `CaptureRun` records and carried state, advanced past resumed frames) -> per frame `capture_raw_frame`
 (steps 1-3), `_write_ground_truth` (5), `visible_semidense` and `_write_stream_frame` per calibration
 (4, 6), the frame's state file -> `_write_recording_files`.

@@ -18,7 +18,7 @@ from egobench.data.mps import CameraCalibration
 from egobench.sim.capture.auto_exposure import AutoExposureState
 from egobench.sim.capture.raw import (
     FLOAT16_MAX,
-    _as_T,
+    as_transform,
     camera_poses,
     capture_irradiance,
     choose_temporal_samples,
@@ -27,8 +27,8 @@ from egobench.sim.capture.raw import (
     paired_temporal_samples,
     preview,
 )
-from egobench.sim.capture.resume import _decode_generator, _encode_generator
-from egobench.sim.capture.setup import CaptureResult, CaptureSetup, _jpeg, _to_uint8
+from egobench.sim.capture.resume import decode_generator, encode_generator
+from egobench.sim.capture.setup import CaptureResult, CaptureSetup, jpeg_roundtrip, to_uint8
 from egobench.sim.config import SimConfig
 
 if TYPE_CHECKING:  # annotations only (these modules are imported lazily)
@@ -57,7 +57,7 @@ def _noise_generator(config: SimConfig) -> torch.Generator:
     return torch.Generator().manual_seed(int(config.seed) * 7919 + 17)
 
 
-def _restore_run(setup: CaptureSetup, out_dir: Path, states: list[dict]) -> CaptureRun:
+def restore_run(setup: CaptureSetup, out_dir: Path, states: list[dict]) -> CaptureRun:
     """A fresh run, advanced past the frames earlier runs completed (`states`: their state records in order)."""
     from egobench.sim.camera_calibration import calibration_record
 
@@ -78,7 +78,7 @@ def _restore_run(setup: CaptureSetup, out_dir: Path, states: list[dict]) -> Capt
         run.auto_exposure.log_eg = last["auto_exposure"]["log_eg"]
         held = last["auto_exposure"]["held"]
         run.auto_exposure.held = None if held is None else (float(held[0]), float(held[1]))
-        _decode_generator(run.noise_generator, last["noise_generator"])
+        decode_generator(run.noise_generator, last["noise_generator"])
         run.elapsed_before_s = float(last["elapsed_s"])
     run.result.resumed_from = len(states)
     return run
@@ -92,7 +92,7 @@ def _record_truth(run: CaptureRun, truth: dict) -> None:
     run.result.gains.append(truth["gain"])
 
 
-def _frame_state(run: CaptureRun, k: int, config_hash: str, t_begin: float) -> dict:
+def frame_state(run: CaptureRun, k: int, config_hash: str, t_begin: float) -> dict:
     """The state file of frame k: what later frames depend on (written last, after the frame's files)."""
     return {
         "frame": k, "config_hash": config_hash,
@@ -100,7 +100,7 @@ def _frame_state(run: CaptureRun, k: int, config_hash: str, t_begin: float) -> d
         "tracking_timestamp_us": run.calib_lines[-1].tracking_timestamp_us, "truth": run.truth_frames[-1],
         "auto_exposure": {"log_eg": run.auto_exposure.log_eg,
                           "held": None if run.auto_exposure.held is None else list(run.auto_exposure.held)},
-        "noise_generator": _encode_generator(run.noise_generator),
+        "noise_generator": encode_generator(run.noise_generator),
         "elapsed_s": run.elapsed_before_s + time.perf_counter() - t_begin,
     }
 
@@ -147,10 +147,10 @@ def _form_raw_image(setup: CaptureSetup, irradiance: Tensor, exposure_s: float, 
                                              white_balance=photometric.white_balance,
                                              noise=photometric.noise_model if config.noise else None,
                                              generator=generator)
-    raw8 = _to_uint8(display)
+    raw8 = to_uint8(display)
     raw8[~setup.raw.valid.numpy()] = 0
     if config.jpeg:
-        raw8 = _jpeg(raw8, config.jpeg_quality)
+        raw8 = jpeg_roundtrip(raw8, config.jpeg_quality)
     return raw8
 
 
@@ -193,7 +193,7 @@ def truth_depth_normal(setup: CaptureSetup, read_start_true_ns: int, exposure_tr
     gt_valid = rays.valid
     t_pix = (read_start_true_ns
              + torch.round((rays.row_time_ratio * setup.clocks.readout_true_s + exposure_true_s / 2) * 1e9).to(torch.int64))
-    Tp = camera_poses(setup.trajectory, _as_T(setup.cals.online), t_pix[gt_valid])  # [n, 4, 4]
+    Tp = camera_poses(setup.trajectory, as_transform(setup.cals.online), t_pix[gt_valid])  # [n, 4, 4]
     d_cam = rays.rays_cam[gt_valid]  # [n, 3] z = 1
     d_world = torch.einsum("nij,nj->ni", Tp[:, :3, :3], d_cam)
     norm = d_world.norm(dim=-1, keepdim=True)
@@ -226,7 +226,7 @@ def visible_semidense(setup: CaptureSetup, t_ns: int) -> Tensor:
     from egobench.geometry import se3_inverse, transform_points
 
     clean = setup.semidense.clean_world
-    T_mid = camera_poses(setup.trajectory, _as_T(setup.cals.true), [t_ns])[0]
+    T_mid = camera_poses(setup.trajectory, as_transform(setup.cals.true), [t_ns])[0]
     visible = torch.zeros(clean.shape[0], dtype=torch.bool)
     if clean.shape[0]:
         vec = clean - T_mid[:3, 3]
@@ -279,10 +279,10 @@ def _write_stream_frame(setup: CaptureSetup, run: CaptureRun, name: str, cal: Ca
     k = frame.index
     rect, pin = setup.rigs[name]
     stream = partial / setup.streams[name]
-    write_png(stream / "images" / f"{k:05d}.png", _to_uint8(rect.warp(frame.image_raw_01)))
+    write_png(stream / "images" / f"{k:05d}.png", to_uint8(rect.warp(frame.image_raw_01)))
     read_start, read_end, timestamp = stream_frame_times_ns(cal, setup.clocks.read_start_cam_ns[k],
                                                             setup.clocks.readout_stated_s, frame.exposure_recorded_s)
-    T_dc = _as_T(cal)
+    T_dc = as_transform(cal)
     T_wc = camera_poses(setup.trajectory, T_dc, [timestamp])[0]
     run.frames_out[name].append(frame_entry(k, pin, T_dc.numpy(), T_wc.numpy(), timestamp, read_start, read_end,
                                             frame.exposure_recorded_s, frame.exposure.gain))
@@ -306,7 +306,7 @@ def _truth_frame_record(setup: CaptureSetup, frame: RawFrame) -> dict:
     }
 
 
-def _simulate_frame(setup: CaptureSetup, run: CaptureRun, k: int, partial: Path) -> None:
+def simulate_frame(setup: CaptureSetup, run: CaptureRun, k: int, partial: Path) -> None:
     """Frame k: raw capture, ground truth, both streams' files, and its records in `run`."""
     frame = capture_raw_frame(setup, run, k, partial)
     _write_ground_truth(setup, frame, partial)

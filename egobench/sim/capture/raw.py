@@ -57,7 +57,7 @@ def device_trajectory(look_trajectory, device: DeviceProfile):
     return Trajectory(look_trajectory.t_ns, look_trajectory.T_world_device @ T_look_device)
 
 
-def _as_T(cal: CameraCalibration) -> Tensor:  # [4, 4] float64
+def as_transform(cal: CameraCalibration) -> Tensor:  # [4, 4] float64
     return torch.as_tensor(cal.T_device_camera, dtype=torch.float64)
 
 
@@ -273,7 +273,7 @@ def capture_irradiance(scene, trajectory, raw: RawCamera, read_start_ns: int, ex
     S = paired_temporal_samples(int(n_samples), P)
     t_rows = row_start_times_ns(read_start_ns, readout_s, H, raw.readout_rows)  # [H]
     t = exposure_sample_times_ns(t_rows, exposure_s, S)  # [H, S] int64
-    T = camera_poses(trajectory, _as_T(raw.calibration), t.reshape(-1)).reshape(H, S, 4, 4)
+    T = camera_poses(trajectory, as_transform(raw.calibration), t.reshape(-1)).reshape(H, S, 4, 4)
     time_idx, sub_idx = sample_schedule(S, P)  # [n], [n]
     n = int(time_idx.numel())
     R = T[:, time_idx, :3, :3].to(device=device, dtype=torch.float32)  # [H, n, 3, 3]
@@ -314,7 +314,7 @@ def preview(scene, trajectory, raw: RawCamera, t_ns: int, grid: int = PREVIEW_GR
     vv, uu = torch.meshgrid(iv, iu, indexing="ij")
     ok = raw.valid[vv, uu]
     rays = raw.rays_cam[vv, uu][ok]  # [n, 3]
-    T = camera_poses(trajectory, _as_T(raw.calibration), [t_ns])[0]
+    T = camera_poses(trajectory, as_transform(raw.calibration), [t_ns])[0]
     d = (rays @ T[:3, :3].T).to(torch.float32)
     o = T[:3, 3].to(torch.float32).expand_as(d).contiguous()
     hit = scene.cast(o.to(device), d.to(device))
@@ -337,7 +337,7 @@ def motion_during_exposure_px(trajectory, raw: RawCamera, points_world: Tensor, 
     a, b = readout_range(raw.readout_rows, H)
     t_rows = row_start_times_ns(read_start_ns, readout_s, H, raw.readout_rows)[[a, (a + b) // 2, b]]
     t_end = t_rows + int(round(exposure_s * 1e9))
-    T = camera_poses(trajectory, _as_T(raw.calibration), torch.cat([t_rows, t_end]))
+    T = camera_poses(trajectory, as_transform(raw.calibration), torch.cat([t_rows, t_end]))
     from egobench.geometry import se3_inverse, transform_points
 
     pc = transform_points(se3_inverse(T)[:, None], points_world[None])  # [6, P, 3]

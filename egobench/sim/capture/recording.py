@@ -10,14 +10,14 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
-from egobench.sim.capture.frame import CaptureRun, _frame_state, _restore_run, _simulate_frame
+from egobench.sim.capture.frame import CaptureRun, frame_state, restore_run, simulate_frame
 from egobench.sim.capture.resume import (
     PARTIAL_SCHEMA,
     RESUME_SUBDIR,
-    _drop_frames_from,
-    _finalise,
-    _frame_state_path,
-    _read_partial,
+    drop_frames_from,
+    finalise,
+    frame_state_path,
+    read_partial,
     frame_dirs,
     partial_dir,
     sim_config_hash,
@@ -64,7 +64,7 @@ def simulate_recording(config: SimConfig, out_dir: str | Path, progress: bool = 
     if partial.exists():
         why = "resume is off"
         if resume:
-            states, why = _read_partial(partial, chash)
+            states, why = read_partial(partial, chash)
         if why is not None:
             if resume is True:
                 raise ValueError(f"{partial}: cannot resume: {why}")
@@ -214,18 +214,18 @@ def _simulate_into(config: SimConfig, out_dir: Path, partial: Path, chash: str, 
 
     setup = build_capture_setup(config)
     if resuming:  # frames already completed by an earlier run: their records and the state after the last one
-        _drop_frames_from(partial, len(states), frame_dirs(config))
-    run = _restore_run(setup, out_dir, states)
+        drop_frames_from(partial, len(states), frame_dirs(config))
+    run = restore_run(setup, out_dir, states)
     _make_folders(config, partial)
     end = config.n_frames if stop_after is None else min(config.n_frames, stop_after)
     for k in _frame_indices(config, len(states), end, progress):
-        _simulate_frame(setup, run, k, partial)
+        simulate_frame(setup, run, k, partial)
         # the frame's state, written last: a frame without it is redone by a resumed run
-        write_json(_frame_state_path(partial, k), _frame_state(run, k, chash, t_begin), indent=None)
+        write_json(frame_state_path(partial, k), frame_state(run, k, chash, t_begin), indent=None)
     if end < config.n_frames:  # stopped by stop_after: the partial folder stays for a later run
         run.result.complete, run.result.path = False, partial
         run.result.time_s = run.elapsed_before_s + time.perf_counter() - t_begin
         return run.result
     _write_recording_files(setup, run, partial, t_begin)
-    _finalise(partial, out_dir)
+    finalise(partial, out_dir)
     return run.result

@@ -58,11 +58,11 @@ def sim_config_hash(config: SimConfig) -> str:
     return hashlib.sha1(blob.encode()).hexdigest()
 
 
-def _frame_state_path(partial: Path, k: int) -> Path:
+def frame_state_path(partial: Path, k: int) -> Path:
     return partial / RESUME_SUBDIR / f"{k:05d}.json"
 
 
-def _read_partial(partial: Path, config_hash: str) -> tuple[list[dict], str | None]:
+def read_partial(partial: Path, config_hash: str) -> tuple[list[dict], str | None]:
     """-> (state records of the completed frames 0..m-1 in order, None), or ([], why the partial
     folder cannot be resumed). Frame m is the first without a readable state file of this config."""
     from egobench.io_utils import read_json
@@ -80,7 +80,7 @@ def _read_partial(partial: Path, config_hash: str) -> tuple[list[dict], str | No
                     f"this run: {config_hash[:12]})")
     states: list[dict] = []
     while True:
-        path = _frame_state_path(partial, len(states))
+        path = frame_state_path(partial, len(states))
         if not path.is_file():
             break
         try:
@@ -93,7 +93,7 @@ def _read_partial(partial: Path, config_hash: str) -> tuple[list[dict], str | No
     return states, None
 
 
-def _drop_frames_from(partial: Path, first: int, dirs: tuple[str, ...]) -> None:
+def drop_frames_from(partial: Path, first: int, dirs: tuple[str, ...]) -> None:
     """Remove the per-frame files and state files of frames >= `first` (half-written or stale) and
     the temporary files an interrupted atomic write left anywhere in the partial folder."""
     for sub in dirs + (RESUME_SUBDIR,):
@@ -109,15 +109,15 @@ def _drop_frames_from(partial: Path, first: int, dirs: tuple[str, ...]) -> None:
             f.unlink()
 
 
-def _encode_generator(generator: torch.Generator) -> str:
+def encode_generator(generator: torch.Generator) -> str:
     return base64.b64encode(generator.get_state().numpy().tobytes()).decode("ascii")
 
 
-def _decode_generator(generator: torch.Generator, text: str) -> None:
+def decode_generator(generator: torch.Generator, text: str) -> None:
     generator.set_state(torch.frombuffer(bytearray(base64.b64decode(text)), dtype=torch.uint8).clone())
 
 
-def _finalise(partial: Path, out_dir: Path) -> None:
+def finalise(partial: Path, out_dir: Path) -> None:
     """Drop the resume state and move the finished partial folder onto `out_dir` (replacing it)."""
     state = partial / RESUME_SUBDIR
     trash = out_dir.parent / f".{out_dir.name}.partial-state.tmp"

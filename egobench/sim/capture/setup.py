@@ -49,11 +49,11 @@ class CaptureResult:
     resumed_from: int = 0  # frames taken over from an earlier run's partial folder
 
 
-def _to_uint8(display: Tensor) -> np.ndarray:
+def to_uint8(display: Tensor) -> np.ndarray:
     return (display.clamp(0, 1) * 255.0).round().to(torch.uint8).numpy()
 
 
-def _jpeg(img: np.ndarray, quality: int) -> np.ndarray:
+def jpeg_roundtrip(img: np.ndarray, quality: int) -> np.ndarray:
     import cv2
 
     ok, buf = cv2.imencode(".jpg", cv2.cvtColor(img, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
@@ -62,7 +62,7 @@ def _jpeg(img: np.ndarray, quality: int) -> np.ndarray:
     return cv2.cvtColor(cv2.imdecode(buf, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
 
 
-def _rig(cal: CameraCalibration, rect_size: int, focal_ratio: float):
+def rectification_rig(cal: CameraCalibration, rect_size: int, focal_ratio: float):
     """(Rectification, pinhole) of a calibration: pinhole f = focal_ratio * W, centred, same axes."""
     from egobench.camera import Rectification
 
@@ -228,7 +228,7 @@ def build_capture_setup(config: SimConfig) -> CaptureSetup:
     scene = make_scene(config.kind, config.seed, sun_scale=config.sun_scale, grain=config.grain)
     trajectory = _device_motion(config, dev, scene)
     clocks = _frame_clocks(config, dev, trajectory, cals.true)
-    rigs = {name: _rig(cal, config.rectified_size, config.focal_ratio())
+    rigs = {name: rectification_rig(cal, config.rectified_size, config.focal_ratio())
             for name, cal in (("online", cals.online), ("factory", cals.factory))}
     raw = RawCamera.build(cals.true, config.pixel_samples)
     if config.raw_roi:
