@@ -271,7 +271,8 @@ def test_timing_causes_must_follow_the_true_motion():
     case = make_case("exposure_blur", 8e-3, seed=2, speed_px_s=(250.0, 600.0))
     d = diagnose_residuals(case.measured, case.predicted, case.context, TRAINED)
     assert d.verdict == "exposure_blur" and abs(d.named[0].params["exposure_s"] / 8e-3 - 1) < 0.25
-    assert d.named[0].params["calibration"]["p_value_placebo"] < 1e-6
+    cal = d.named[0].params["calibration"]
+    assert cal["placebo_exceed"] == 0 and cal["placebo_n"] == 999 and cal["p_value_placebo"] == pytest.approx(1e-3)
 
 
 @pytest.mark.slow
@@ -667,6 +668,34 @@ def test_the_metadata_estimate_is_on_the_frames_the_split_half_test_flags():
     assert split and named.params["flagged_frames"] == split
     assert set(split) <= {800 + f for f in case.affected_frames}
     assert all(abs(e - 0.25) < 0.08 for e in named.params["exposure_relative_error"]), named.params
+
+
+def test_the_placebo_p_is_a_sequential_rank_p_that_heavy_tails_cannot_shrink():
+    """`sequential_rank_p` (Besag-Clifford): stops at the 10th placebo as extreme (p = 10 / n), else
+    (1 + exceed) / 1000 after 999. On heavy-tailed placebo statistics (a poorly fitted run's: Student
+    t with 2 df) the old normal tail of the real t against 19 placebos called t = 5 significant at
+    alpha 0.01 on most seeds; the rank p does not."""
+    import scipy.stats as sps
+
+    from egobench.diagnose.placebo import sequential_rank_p
+
+    p, exceed, ts = sequential_rank_p(1.0, lambda k: 5.0 if k % 2 else -5.0)
+    assert (p, exceed, len(ts)) == (1.0, 10, 10)
+    p, exceed, ts = sequential_rank_p(3.0, lambda k: 2.0, one_sided=True)
+    assert (p, exceed, len(ts)) == (pytest.approx(1e-3), 0, 999)
+    p, exceed, ts = sequential_rank_p(-3.0, lambda k: 2.5, one_sided=True)  # one-sided: t >= t_real
+    assert (p, exceed, len(ts)) == (1.0, 10, 10)
+    old_significant, new_significant = 0, 0
+    for seed in range(20):
+        rng = np.random.default_rng(seed)
+        draws = rng.standard_t(2, size=999)
+        first = draws[:19]
+        z = (5.0 - first.mean()) / first.std(ddof=1)
+        old_significant += int(2 * sps.norm.sf(abs(z)) < 0.01)
+        p, exceed, ts = sequential_rank_p(5.0, lambda k: draws[k])
+        assert p == (exceed / len(ts) if exceed == 10 else (1 + exceed) / 1000)
+        new_significant += int(p < 0.01)
+    assert old_significant >= 10 and new_significant == 0, (old_significant, new_significant)
 
 
 def test_readout_must_follow_the_true_row_times():
