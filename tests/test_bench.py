@@ -106,6 +106,26 @@ def test_bench_train_rejects_bad_arguments(flag, value):
     assert main(["bench", "train", flag, value]) != 0
 
 
+def test_bench_train_pairs_2dgs_with_its_3dgs_twin_and_times_thread_counts():
+    rec = bench.bench_train("cpu", sides=(16,), iterations=2, methods=("ours", "ours_2dgs"), threads=(1, 2))
+    rows = {(r["method"], r["threads"]): r["iters_per_s"] for r in rec["results"]}
+    assert set(rows) == {("ours", 1), ("ours", 2), ("ours_2dgs", 1), ("ours_2dgs", 2)}
+    assert [(x["method_2dgs"], x["method_3dgs"], x["threads"]) for x in rec["ratio_2dgs_to_3dgs"]] == [
+        ("ours_2dgs", "ours", 1), ("ours_2dgs", "ours", 2)]
+    for x in rec["ratio_2dgs_to_3dgs"]:
+        assert x["ratio_2dgs_to_3dgs"] == round(rows[("ours", x["threads"])] / rows[("ours_2dgs", x["threads"])], 3)
+    for x in rec["thread_speedup"]:
+        assert x["speedup_2_vs_1"] == round(rows[(x["method"], 2)] / rows[(x["method"], 1)], 3)
+    assert torch.get_num_threads() == rec["threads"]  # restored
+
+
+@pytest.mark.parametrize("value", ["0", "1,x", "-2"])
+def test_bench_train_rejects_bad_thread_counts(value):
+    from egobench.cli import main
+
+    assert main(["bench", "train", "--scaling", value]) != 0
+
+
 def test_bench_cast_record(capsys):
     """`egobench bench cast` (the simulator's ray-casting time; was a wall-clock bound in test_world)."""
     from egobench.cli import main

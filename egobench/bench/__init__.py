@@ -228,11 +228,14 @@ def bench_raster(device: str = "cpu", repeats: int = 7, backend: str = "auto", t
 
 def bench_train(device: str = "cpu", backend: str = "auto", sides: tuple[int, ...] = (64, 128),
                 iterations: int = 30, recording: str | None = None, n_points: int = 4000,
-                methods: tuple[str, ...] = ("no_motion_sampling", "ours")) -> dict:
-    """The training benchmark record: one row per (resolution, method) with iterations/s, the
-    rasterizer's share of the step time, the Gaussian count and peak memory (CUDA: the allocator's
+                methods: tuple[str, ...] = ("no_motion_sampling", "ours"), threads: tuple[int, ...] = ()) -> dict:
+    """The training benchmark record: one row per (resolution, method[, threads]) with iterations/s,
+    the rasterizer's share of the step time, the Gaussian count and peak memory (CUDA: the allocator's
     peak for that run; CPU: the process's max RSS so far). No densification (refine_start_frac=1),
-    so the Gaussian count stays ``n_points`` (or the recording's semi-dense point count)."""
+    so the Gaussian count stays ``n_points`` (or the recording's semi-dense point count).
+    ``threads`` (CPU): time every case at each of these torch thread counts. The record's
+    ``ratio_2dgs_to_3dgs`` pairs each 2DGS method with its 3DGS twin (time per iteration), and
+    ``thread_speedup`` gives each case's it/s at the last thread count over the first."""
     import resource
     import tempfile
     from pathlib import Path
@@ -249,18 +252,24 @@ def bench_train(device: str = "cpu", backend: str = "auto", sides: tuple[int, ..
         for side in sides:
             rec = recording or plane_recording(Path(tmp) / f"rec{side}", size=side, n_frames=17, angular_speed_rad_s=6.0,
                                              frame_interval_s=0.01, n_points=n_points)
-            for method in methods:
+            for method, n_threads in [(m, t) for m in methods for t in (threads or (0,))]:
                 cfg = TrainConfig(iterations=iterations, max_side=side, device=device, backend=backend,
                                   motion_warmup_frac=0.0, refine_start_frac=1.0)
                 if device.startswith("cuda"):
                     torch.cuda.reset_peak_memory_stats()
-                res = train(rec, method, cfg, Path(tmp) / f"{method}{side}", progress=False)
+                before = torch.get_num_threads()
+                torch.set_num_threads(n_threads or before)
+                try:
+                    res = train(rec, method, cfg, Path(tmp) / f"{method}{side}t{n_threads}", progress=False)
+                finally:
+                    torch.set_num_threads(before)
                 if device.startswith("cuda"):
                     peak, kind = torch.cuda.max_memory_allocated() / 2**20, "cuda max_memory_allocated"
                 else:
                     peak, kind = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, "process max RSS (cumulative)"
                 results.append({
-                    "method": method, "motion_sampling": get_method(method).motion_sampling == "adaptive",
+                    "method": method, "threads": n_threads or before,
+                    "motion_sampling": get_method(method).motion_sampling == "adaptive",
                     "splat_mode": get_method(method).splat_mode, "resolution": side,
                     "iterations": iterations, "iters_per_s": round(res.iters_per_s, 3),
                     "raster_time_share": round(res.raster_time_share, 3), "num_gaussians": res.num_gaussians,
@@ -270,7 +279,32 @@ def bench_train(device: str = "cpu", backend: str = "auto", sides: tuple[int, ..
     return {"benchmark": "train", "device": device, "backend": backend, "torch": torch.__version__,
             "threads": torch.get_num_threads(),
             "recording": str(recording) if recording else f"plane_recording (17 frames, textured plane, {n_points} points)",
-            "results": results}
+            "results": results, "ratio_2dgs_to_3dgs": train_2dgs_ratios(results),
+            "thread_speedup": train_thread_speedups(results)}
+
+
+#: Each 2DGS method and the 3DGS method it differs from only in the splat.
+TWIN_3DGS = {"ours_2dgs": "ours", "2dgs_no_motion_sampling": "no_motion_sampling"}
+
+
+def train_2dgs_ratios(rows: list[dict]) -> list[dict]:
+    """Time per iteration of each 2DGS method over its 3DGS twin's, per (resolution, threads)."""
+    speed = {(r["method"], r["resolution"], r["threads"]): r["iters_per_s"] for r in rows}
+    return [{"method_2dgs": m2, "method_3dgs": m3, "resolution": side, "threads": t,
+             "ratio_2dgs_to_3dgs": round(speed[(m3, side, t)] / speed[(m2, side, t)], 3)}
+            for (m2, side, t) in speed for m3 in [TWIN_3DGS.get(m2)] if (m3, side, t) in speed]
+
+
+def train_thread_speedups(rows: list[dict]) -> list[dict]:
+    """it/s at the most threads over it/s at the fewest, per (method, resolution) timed at several."""
+    out = []
+    for method, side in dict.fromkeys((r["method"], r["resolution"]) for r in rows):
+        by_t = {r["threads"]: r["iters_per_s"] for r in rows if (r["method"], r["resolution"]) == (method, side)}
+        if len(by_t) > 1:
+            lo, hi = min(by_t), max(by_t)
+            out.append({"method": method, "resolution": side, "threads": [lo, hi],
+                        f"speedup_{hi}_vs_{lo}": round(by_t[hi] / by_t[lo], 3)})
+    return out
 
 
 def bench_cast(device: str = "cpu", repeats: int = 7, kind: str = "indoor", side: int = 128,
@@ -344,6 +378,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     train.add_argument("--recording", default=None, help="a recording folder instead of the synthetic one")
     train.add_argument("--method", action="append",
                        help="method to train (repeatable; default no_motion_sampling and ours; e.g. ours_2dgs)")
+    train.add_argument("--scaling", default="",
+                       help="train benchmark: comma-separated torch thread counts to time every case at (e.g. 1,2)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -371,7 +407,12 @@ def run(args: argparse.Namespace) -> int:
     if min(sides) < 8:
         raise ValueError(f"--resolution: expected at least 8 pixels, got {min(sides)}")
     methods = tuple(args.method or ("no_motion_sampling", "ours"))
-    _report(bench_train(args.device, chosen[0], sides, args.iterations, args.recording, args.points, methods))
+    parts = [t.strip() for t in args.scaling.split(",") if t.strip()]
+    if not all(t.isdigit() for t in parts) or any(int(t) < 1 for t in parts):
+        raise ValueError(f"--scaling: expected comma-separated positive thread counts, got {args.scaling!r}")
+    threads = tuple(int(t) for t in parts)
+    _report(bench_train(args.device, chosen[0], sides, args.iterations, args.recording, args.points, methods,
+                        threads))
     return 0
 
 
