@@ -483,6 +483,7 @@ def calibrate_geometric(data: ResidualData, results: list[CauseResult], seed: in
     if v is None or data.frames.size < 4:
         return
     perms = _Derangements(data.frames.size, seed)
+    data.share_derivatives()  # every placebo below is a shallow copy with another velocity field
     for r in results:
         if not r.testable or EFFECTS[r.name].trained_placebo != "velocity_permutation":
             continue
@@ -570,6 +571,7 @@ def row_time_placebo(data: ResidualData, r: CauseResult) -> None:
         est, info = cause.first_order(d)
         return frame_t_test(est[:, j], info[:, j]).t
 
+    data.share_derivatives()
     t_real = t_of(data)
     t_placebo = []
     for R in row_time_maps(np.asarray(data.ctx.row_time_ratio, dtype=np.float64), np.asarray(data.ctx.valid, bool)):

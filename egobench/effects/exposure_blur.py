@@ -24,7 +24,7 @@ class ExposureBlurCause(GeometricCause):
 
     def regressors(self, data):
         # residual ~ (T^2 / 24) v^T H v for a box exposure centred on the model time
-        return [directional_second_derivative(data.p, data.velocity)]
+        return [directional_second_derivative(data.p, data.velocity, data.hess)]
 
     def initial_theta(self, est, info):
         beta = super().initial_theta(est, info)[0]

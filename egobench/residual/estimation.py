@@ -31,8 +31,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from egobench.residual.signatures import (LEVEL, DiagnosisContext, block_sum, decode, encode, encode_slope, erode,
-                                          frame_t_test, gradients, partial_f_test, radial_coordinates, robust_sd, warp,
-                                          weighted_lstsq)
+                                          frame_t_test, gradients, hessian, partial_f_test, radial_coordinates, robust_sd,
+                                          warp, weighted_lstsq)
 
 #: Display range used for fits: darker pixels are dominated by noise/quantisation in log
 #: space, brighter ones may be clipped.
@@ -105,6 +105,7 @@ class ResidualData:
         in_range = (self.p > DISPLAY_MIN) & (self.p < DISPLAY_MAX) & (self.m < 0.985) & (self.m > 0.005)
         self.usable = in_range & self.valid[None, :, :, None]  # [f, H, W, 3]
         self._grad = None
+        self._hess = None
         self._photometric = None
         self._geometric = None
 
@@ -121,6 +122,7 @@ class ResidualData:
         out.usable = self.usable & in_range & (True if inside is None else inside[..., None])
         out.usable_all = self.usable_all & in_range
         out._grad = None
+        out._hess = None
         out._photometric = None
         out._geometric = None  # a cached view of the old prediction would be stale
         return out
@@ -154,6 +156,18 @@ class ResidualData:
         if self._grad is None:
             self._grad = gradients(self.p)
         return self._grad
+
+    @property
+    def hess(self) -> tuple[np.ndarray, ...]:
+        """The prediction's second derivatives (`signatures.hessian`), cached."""
+        if self._hess is None:
+            self._hess = hessian(self.p, self.grad)
+        return self._hess
+
+    def share_derivatives(self) -> "ResidualData":
+        """Compute and cache the prediction's derivatives, so shallow copies (the placebos' contexts) reuse them."""
+        _ = self.grad, self.hess
+        return self
 
     @property
     def velocity(self) -> np.ndarray | None:  # [f, H, W, 2]
@@ -389,30 +403,7 @@ class GeometricCause(Cause):
 
     def first_order(self, data: ResidualData) -> tuple[np.ndarray, np.ndarray]:
         """Per-frame least-squares slopes of the residual on the signature regressors -> (est [f, k], info [f, k])."""
-        xs = self.regressors(data)
-        mask = data.usable
-        k = len(xs)
-        f_count = data.m.shape[0]
-        est = np.zeros((f_count, k))
-        info = np.zeros((f_count, k))
-        for f in range(f_count):  # one small k x k solve per frame
-            m = mask[f]
-            if m.sum() < 20:
-                continue
-            # nuisance columns: a constant and the prediction itself (partials out global and
-            # multiplicative intensity mismatch, e.g. shading, which correlates with curvature)
-            pf = data.p[f][m]
-            X = np.stack([x[f][m] for x in xs] + [np.ones_like(pf), pf - pf.mean()], axis=1)
-            y = data.r[f][m]
-            XtX = X.T @ X
-            if np.linalg.cond(XtX) > 1e12:
-                continue
-            coef = np.linalg.solve(XtX, X.T @ y)
-            resid_var = float(np.mean((y - X @ coef) ** 2)) + 1e-12
-            cov = np.linalg.inv(XtX) * resid_var
-            est[f] = coef[:k]
-            info[f] = 1.0 / np.maximum(np.diag(cov)[:k], 1e-300)
-        return est, info
+        return frame_slopes(self.regressors(data), data.p, data.r, data.usable)
 
     tested_index = 0
 
@@ -461,6 +452,40 @@ class GeometricCause(Cause):
         speed = np.linalg.norm(data.velocity, axis=-1).mean(axis=(1, 2)) if data.velocity is not None else np.zeros(len(est))
         return {"frame": [int(data.ctx.frame_index[f]) for f in data.frames], "speed_px_s": speed.tolist(),
                 "per_frame": est[:, self.tested_index].tolist(), "pooled": float(theta[self.tested_index])}
+
+
+def frame_slopes(xs: list[np.ndarray], predicted: np.ndarray, residual: np.ndarray,
+                 mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each frame's least-squares fit of residual [f, H, W, 3] on the regressors xs (each [f, H, W, 3])
+    and two nuisance columns, a constant and the prediction minus its mean (they partial out a global
+    and a multiplicative intensity mismatch, e.g. shading, which correlates with curvature), over the
+    frame's ``mask`` pixels -> (est [f, k], info [f, k] = 1 / var of each slope). All frames at once
+    through their normal equations; a frame with under 20 pixels or a singular design gets 0, 0."""
+    F, k = residual.shape[0], len(xs)
+    m = mask.reshape(F, -1).astype(np.float64)
+    n = m.sum(axis=1)
+    p = predicted.reshape(F, -1)
+    p_mean = (m * p).sum(axis=1) / np.maximum(n, 1.0)
+    cols = [x.reshape(F, -1) for x in xs] + [np.ones_like(p), p - p_mean[:, None]]
+    y = residual.reshape(F, -1)
+    mc = [m * c for c in cols]
+    XtX = np.empty((F, k + 2, k + 2))
+    for a in range(k + 2):
+        for b in range(a, k + 2):
+            XtX[:, a, b] = XtX[:, b, a] = np.einsum("fp,fp->f", mc[a], cols[b])
+    Xty = np.stack([np.einsum("fp,fp->f", c, y) for c in mc], axis=1)
+    est, info = np.zeros((F, k)), np.zeros((F, k))
+    ok = n >= 20
+    ok[ok] = np.linalg.cond(XtX[ok]) <= 1e12
+    if not ok.any():
+        return est, info
+    coef = np.linalg.solve(XtX[ok], Xty[ok][..., None])[..., 0]  # [g, k + 2]
+    fit = sum(coef[:, a:a + 1] * cols[a][ok] for a in range(k + 2))
+    resid_var = (m[ok] * (y[ok] - fit) ** 2).sum(axis=1) / n[ok] + 1e-12
+    cov_diag = np.diagonal(np.linalg.inv(XtX[ok]), axis1=1, axis2=2)[:, :k] * resid_var[:, None]
+    est[ok] = coef[:, :k]
+    info[ok] = 1.0 / np.maximum(cov_diag, 1e-300)
+    return est, info
 
 
 def velocity_term(data: ResidualData) -> np.ndarray:

@@ -133,11 +133,20 @@ def gradients(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return gx, gy
 
 
-def directional_second_derivative(img: np.ndarray, velocity: np.ndarray) -> np.ndarray:
-    """v^T Hess(img) v per pixel: img [F, H, W, C], velocity [F, H, W, 2] -> [F, H, W, C] (intensity / s^2)."""
-    gx, gy = gradients(img)
+def hessian(img: np.ndarray, grad: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, ...]:
+    """Central-difference second derivatives (d2/du2, d2/dudv, d2/dv2) of img [F, H, W, C], each
+    [F, H, W, C]; ``grad``: img's `gradients` when already computed."""
+    gx, gy = gradients(img) if grad is None else grad
     gxx, gxy = gradients(gx)
     _, gyy = gradients(gy)
+    return gxx, gxy, gyy
+
+
+def directional_second_derivative(img: np.ndarray, velocity: np.ndarray,
+                                  hess: tuple[np.ndarray, ...] | None = None) -> np.ndarray:
+    """v^T Hess(img) v per pixel: img [F, H, W, C], velocity [F, H, W, 2] -> [F, H, W, C] (intensity / s^2).
+    ``hess``: img's `hessian` when already computed."""
+    gxx, gxy, gyy = hessian(img) if hess is None else hess
     vx = velocity[..., 0:1].astype(np.float64)
     vy = velocity[..., 1:2].astype(np.float64)
     return vx * vx * gxx + 2.0 * vx * vy * gxy + vy * vy * gyy
