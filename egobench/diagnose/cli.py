@@ -22,6 +22,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--alpha", type=float, default=DiagnosisConfig.alpha, help="family-wise significance level")
     parser.add_argument("--max-causes", type=int, default=DiagnosisConfig.max_causes, help="causes peeled off at most")
     parser.add_argument("--max-frames", type=int, default=None, help="use only the first N frames")
+    parser.add_argument("--pose-samples", type=int, default=None,
+                        help="with --run: render every moving frame with N rolling-shutter pose samples instead of "
+                             "the run's own (its staircase shortens the effective readout by ~1/N; docs/diagnosis.md)")
     parser.add_argument("--sweep", action="store_true", help="run the hidden-case sweep (synthetic textures)")
     parser.add_argument("--sweep-seeds", type=int, default=3, help="seeds per effect and magnitude in --sweep")
     parser.add_argument("--sweep-null", type=int, default=20, help="null cases in --sweep")
@@ -122,6 +125,7 @@ def _diagnose_recording(args: argparse.Namespace, cfg: DiagnosisConfig, out: Pat
         if run_dir is None:
             raise ValueError("--run: --source run needs a trained run folder (or --train)")
         src = run_source(rec, run_dir, max_frames=args.max_frames, progress=not args.no_progress, device=args.device,
+                         pose_samples=args.pose_samples,
                          trajectory_path=args.trajectory, semidense_path=args.points)
     else:
         from egobench.data.layout import recording_root

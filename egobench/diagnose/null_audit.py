@@ -47,17 +47,18 @@ def _readout_columns(ranking: list) -> dict:
             "readout_relative_error": r.params.get("readout_relative_error")}
 
 
-def audit_run(scene: str, recording: Path, run: Path, method: str) -> dict:
+def audit_run(scene: str, recording: Path, run: Path, method: str, pose_samples: int | None = None) -> dict:
     """One null run's diagnosis, reduced to a row: verdict, named causes, the readout's statistics."""
     from dataclasses import replace
 
     from egobench.diagnose import DiagnosisConfig, diagnose_residuals
     from egobench.diagnose.sources import run_source
 
-    src = run_source(recording, run, progress=False)
+    src = run_source(recording, run, progress=False, pose_samples=pose_samples)
     d = diagnose_residuals(src.measured, src.predicted, src.context, replace(DiagnosisConfig(), trained_run=True))
     metrics = read_json(run / "eval.json").get("metrics", {}) if (run / "eval.json").is_file() else {}
-    return {"scene": scene, "method": method, "seed": run.name, "held_out_psnr_db": metrics.get("psnr"),
+    return {"scene": scene, "method": method, "seed": run.name, "pose_samples": pose_samples or "run's own",
+            "held_out_psnr_db": metrics.get("psnr"),
             "verdict": d.verdict, "named": ";".join(n.name for n in d.named), "false_alarm": bool(d.named),
             **_readout_columns(d.ranking)}
 
@@ -86,6 +87,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--method", default="ours")
     ap.add_argument("--out", required=True)
     ap.add_argument("--shard", default="1/1", help="i/n: this process diagnoses every n-th run from the i-th")
+    ap.add_argument("--seed", action="append", help="only the runs of these seed folders (repeatable, e.g. seed3141)")
+    ap.add_argument("--pose-samples", type=int, default=None,
+                    help="render every moving frame with N rolling-shutter pose samples (see run_source)")
     args = ap.parse_args(argv)
     i, n = (int(x) for x in args.shard.split("/"))
     if not 1 <= i <= n:
@@ -94,11 +98,11 @@ def main(argv: list[str] | None = None) -> int:
     (out / "rows").mkdir(parents=True, exist_ok=True)
     from tqdm import tqdm
 
-    runs = null_runs(Path(args.results), args.method)[i - 1::n]
+    runs = [r for r in null_runs(Path(args.results), args.method) if not args.seed or r[2].name in args.seed][i - 1::n]
     for scene, recording, run in tqdm(runs, desc=f"null audit {args.shard}", unit="run"):
         row_file = out / "rows" / f"{scene}_{args.method}_{run.name}.json"
         if not row_file.is_file():
-            write_json(row_file, audit_run(scene, recording, run, args.method))
+            write_json(row_file, audit_run(scene, recording, run, args.method, args.pose_samples))
     summarise([json.loads(p.read_text()) for p in sorted((out / "rows").glob("*.json"))], out)
     return 0
 

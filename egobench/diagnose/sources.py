@@ -335,10 +335,14 @@ def ground_truth_source(recording_dir: str | Path, max_frames: int | None = None
 
 def run_source(recording_dir: str | Path, run_dir: str | Path, max_frames: int | None = None,
                progress: bool = True, device: str | None = None, trajectory_path: str | Path | None = None,
-               semidense_path: str | Path | None = None) -> Sources:
+               semidense_path: str | Path | None = None, pose_samples: int | None = None) -> Sources:
     """Prediction = a trained run's renders of every frame (its own formation model and poses),
     rendered on ``device`` (default: the run's training device; see `egobench.train.checkpoint.render_device`).
-    ``trajectory_path`` / ``semidense_path``: as `load_recording`'s (the CLI's --trajectory / --points)."""
+    ``trajectory_path`` / ``semidense_path``: as `load_recording`'s (the CLI's --trajectory / --points).
+    ``pose_samples``: render every moving frame with this many rolling-shutter pose samples instead of
+    the run's own count (at most 8 by default). The run's staircase of pose samples shortens its
+    effective readout by about 1/N (`motion_sampling.pixel_pose_index`), which the readout test
+    measures as a readout error; a fine staircase leaves the recording's timing alone in the residual."""
     from tqdm import tqdm
 
     from egobench.data import load_recording
@@ -357,6 +361,10 @@ def run_source(recording_dir: str | Path, run_dir: str | Path, max_frames: int |
     maps, k_of, formation = run_maps(rec, run), method_normaliser(rec, spec), formation_model(spec)
     settings = RenderSettings.of(run.config)
     counts = sample_counts(rec, frames, spec, run.config.max_pose_samples, run.config.sample_rule, 1.0)
+    if pose_samples is not None:
+        if int(pose_samples) != pose_samples or pose_samples < 1:
+            raise ValueError(f"pose_samples: expected a positive integer, got {pose_samples!r}")
+        counts = [int(pose_samples) if n > 1 else 1 for n in counts]
     measured, predicted, velocity = [], [], []
     pairs = list(zip(frames, counts))
     with torch.no_grad():
@@ -368,7 +376,7 @@ def run_source(recording_dir: str | Path, run_dir: str | Path, max_frames: int |
             alpha = p.outs[0].alpha[0, ..., 0].cpu().numpy()
             velocity.append(pixel_velocity(rec, f, np.where(alpha > 0.5, depth, 0.0)))
     meta = {"recording": str(recording_dir), "run": str(run_dir), "method": spec.name,
-            "source": f"renders of trained run ({spec.name})"}
+            "source": f"renders of trained run ({spec.name})", "pose_samples": pose_samples or "the run's own"}
     pred = np.stack(predicted)
     ctx = run_context(recording_dir, rec, frames, pred, np.stack(velocity), float(getattr(spec, "response_gamma", 2.2)),
                       spec.calibration, meta)
