@@ -37,7 +37,9 @@ def null_runs(results: Path, method: str) -> list[tuple[str, Path, Path]]:
 
 def _readout_columns(ranking: list) -> dict:
     """The readout cause's statistics (first-order t, its placebos) from a diagnosis ranking."""
-    r = next((x for x in ranking if x.name == "readout"), None)
+    from egobench.effects.readout import READOUT
+
+    r = {x.name: x for x in ranking}.get(READOUT.name)
     if r is None or not r.testable:
         return {}
     vel, row = r.params.get("calibration", {}), r.params.get("calibration_row_time", {})
