@@ -349,8 +349,6 @@ def _time_cast_chunked(scene, origins, directions, pixel_angle_rad: float, chunk
                          device, repeats, warmup=1)
     finally:
         raw.CAST_CHUNK, raw.CAST_CHUNK_GPU = saved
-    if device.startswith("cuda"):
-        torch.cuda.synchronize()
     return {"median_ms": t["median_ms"], "rays_per_s": round(origins.shape[0] / (t["median_ms"] * 1e-3))}
 
 

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import pandas as pd
 
+from egobench.effects.readout import READOUT
 from egobench.io_utils import read_json, write_json
 
 
@@ -37,8 +38,6 @@ def null_runs(results: Path, method: str) -> list[tuple[str, Path, Path]]:
 
 def _readout_columns(ranking: list) -> dict:
     """The readout cause's statistics (first-order t, its placebos) from a diagnosis ranking."""
-    from egobench.effects.readout import READOUT
-
     r = {x.name: x for x in ranking}.get(READOUT.name)
     if r is None or not r.testable:
         return {}
