@@ -8,6 +8,7 @@
 # step's log, the benchmarks' JSON, the smoke run's tables and logs).
 #   usage: bash scripts/gpu_check.sh OUT_DIR [BUDGET_SECONDS]     (EGOBENCH_CACHE: LPIPS weights)
 #   STEPS="install gsplat_build paper_smoke" bash scripts/gpu_check.sh ...   runs only the steps named
+#   STEPS="paper_smoke" bash scripts/gpu_check.sh OUT 280   continues the smoke on a still-warm machine
 set -u
 OUT=${1:?usage: gpu_check.sh OUT_DIR [BUDGET_SECONDS]}
 BUDGET=${2:-560}
@@ -56,6 +57,8 @@ step bench_train 150 bash -c "python3 -m egobench.cli bench train --device cuda 
 step sim_frames 150 python3 -m egobench.cli simulate --out /tmp/sim2400 --kind outdoor --seed 0 \
   --set n_frames=2 --set rectified_size=2400 --set compute_device=cuda
 SMOKE=$(($(left) - 30))
+# a smoke run killed by its time limit leaves a lock; the next call resumes it (frames, checkpoints)
+python3 -m snakemake --unlock --configfile config/paper_smoke.yaml >/dev/null 2>&1
 step paper_smoke "$SMOKE" python3 -m snakemake --cores 16 --resources gpu=1 --keep-going \
   --configfile config/paper_smoke.yaml
 
