@@ -89,6 +89,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", required=True)
     ap.add_argument("--shard", default="1/1", help="i/n: this process diagnoses every n-th run from the i-th")
     ap.add_argument("--seed", action="append", help="only the runs of these seed folders (repeatable, e.g. seed3141)")
+    ap.add_argument("--scene", action="append", help="only the runs of these scenes (repeatable, e.g. outdoor_0)")
     ap.add_argument("--pose-samples", type=int, default=None,
                     help="render every moving frame with N rolling-shutter pose samples (see run_source)")
     args = ap.parse_args(argv)
@@ -99,7 +100,8 @@ def main(argv: list[str] | None = None) -> int:
     (out / "rows").mkdir(parents=True, exist_ok=True)
     from tqdm import tqdm
 
-    runs = [r for r in null_runs(Path(args.results), args.method) if not args.seed or r[2].name in args.seed][i - 1::n]
+    runs = [r for r in null_runs(Path(args.results), args.method)
+            if (not args.seed or r[2].name in args.seed) and (not args.scene or r[0] in args.scene)][i - 1::n]
     for scene, recording, run in tqdm(runs, desc=f"null audit {args.shard}", unit="run"):
         row_file = out / "rows" / f"{scene}_{args.method}_{run.name}.json"
         if not row_file.is_file():
