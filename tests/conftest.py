@@ -21,6 +21,19 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
+def pytest_collection_modifyitems(config, items):
+    """Start the background work of the selected tests' modules (a module's ``start_background()``)
+    now, so that their single-threaded subprocesses (a cold numba compile) overlap the rest of the
+    suite on a second core; the tests then wait for it."""
+    started = set()
+    for item in items:
+        module = getattr(item, "module", None)
+        start = getattr(module, "start_background", None)
+        if start is not None and module not in started:
+            started.add(module)
+            start()
+
+
 @pytest.fixture(autouse=True)
 def _deterministic_torch():
     torch.manual_seed(0)

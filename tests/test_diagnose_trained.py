@@ -654,6 +654,43 @@ def test_frames_flagged_against_the_bulk_when_a_quarter_of_the_frames_are_off():
     assert any_flag <= 3
 
 
+def test_a_stretch_of_frames_off_together_follows_the_view_and_is_not_flagged():
+    """Ten consecutive frames 1.5x too bright (what an outdoor null's model did where the walk faces
+    sunlit pavement) are off against the bulk, but also shared by their view neighbours: not a
+    metadata glitch. Two isolated frames 25 % off are flagged, and so are held-out frames alike."""
+    from egobench.effects.exposure_metadata import flag_frames_in_both_halves, held_out_flags, metadata_flags
+
+    rng = np.random.default_rng(7)
+    scale = rng.normal(0, 0.02, 60)
+    scale[10:20] += 0.41
+    scale[[33, 47]] -= 0.29
+    a, b = scale + rng.normal(0, 0.01, 60), scale + rng.normal(0, 0.01, 60)
+    assert set(range(10, 20)) <= set(np.flatnonzero(flag_frames_in_both_halves(a, b)[0]))  # the old rule
+    off, flags, _ = metadata_flags(a, b)
+    assert np.flatnonzero(flags).tolist() == [33, 47] and off[10:20].all()
+    assert np.flatnonzero(held_out_flags(a + 0.1, b + 0.1)).tolist() == [33, 47]  # (centred itself)
+
+
+def test_a_frame_whose_bright_cells_alone_are_off_is_not_a_gain():
+    """A metadata error scales dark and bright cells of a frame alike; a model that under-renders
+    bright content tilts its frame's residual over log intensity. gain_like tells them apart."""
+    from types import SimpleNamespace
+
+    from egobench.diagnose.placebo import gain_like
+
+    rng = np.random.default_rng(11)
+    n_frames, per = 40, 60
+    frame = np.repeat(np.arange(n_frames), per)
+    log_p = rng.uniform(-3.0, 0.0, frame.size)
+    pr = rng.normal(0, 0.03, frame.size)
+    pr[frame == 7] += 0.25  # a gain
+    tilt = frame == 12
+    pr[tilt] += 0.25 + 0.3 * (log_p[tilt] + 1.5)  # darker cells right, brighter ones 1.6x off
+    fit = SimpleNamespace(partial_residual=lambda block: pr, log_p=log_p, n_frames=n_frames,
+                          keep=np.ones(frame.size, bool), w=np.ones(frame.size))
+    assert gain_like(fit, SimpleNamespace(frame=frame), np.array([7, 12])).tolist() == [True, False]
+
+
 def test_the_metadata_estimate_is_on_the_frames_the_split_half_test_flags():
     """On a trained run the named exposure-metadata error is estimated on the frames the calibrated
     (split-half, bulk) test flags, reported as the recording's frame indices (offset here by 800)."""

@@ -34,7 +34,7 @@ import numpy as np
 import scipy.stats as sps
 
 from egobench.effects import EFFECTS
-from egobench.effects.exposure_metadata import FLAG_MIN_LOG, FLAG_SIGMAS
+from egobench.effects.exposure_metadata import FLAG_SIGMAS, flag_frames_in_both_halves, metadata_flags  # noqa: F401
 from egobench.residual.estimation import BLOCK_PX, CauseResult, PhotometricFit, ResidualData
 from egobench.residual.signatures import frame_t_test, robust_sd, weighted_lstsq
 
@@ -161,61 +161,6 @@ def vignette_placebo(fit: PhotometricFit, cells: _Cells, ctx, height: int, width
             "placebo_p": (1 + exceed) / (1 + len(rss_placebo)), "est": est, "var": var}
 
 
-def flag_frames_in_both_halves(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, float]:
-    """Frames [n] whose left (a) and right (b) log scales [n] BOTH deviate from the bulk of the frames,
-    with the same sign, beyond FLAG_SIGMAS x the larger of the halves' disagreement and the bulk's
-    robust scatter (model error moves every frame a little), and beyond FLAG_MIN_LOG -> (flags, threshold).
-
-    The bulk comes from the shortest half of the frames' scales (`bulk_frames`). A
-    metadata error on a quarter of the frames makes the frame scales bimodal (the model's colours
-    absorb part of it and shift the other frames the other way); one median/MAD over all frames then
-    straddles the two groups and its threshold exceeds the error (measured: 0.24 for errors of 0.13-0.20)."""
-    sd_half = robust_sd((a - b) / math.sqrt(2.0))
-    bulk = bulk_frames(0.5 * (a + b))
-    ca, cb = a - np.median(a[bulk]), b - np.median(b[bulk])
-    threshold = max(FLAG_SIGMAS * max(sd_half, robust_sd(ca[bulk]), robust_sd(cb[bulk])), FLAG_MIN_LOG)
-    return (np.abs(ca) > threshold) & (np.abs(cb) > threshold) & (np.sign(ca) == np.sign(cb)), threshold
-
-
-#: Frames within this many robust sds of the shortest half's centre form the bulk (one-step reweighting).
-BULK_SIGMAS = 3.0
-
-
-def bulk_frames(scale_log: np.ndarray) -> np.ndarray:
-    """The bulk of the frames' log scales [n] -> mask [n]: within BULK_SIGMAS of the centre of the
-    shortest half, its half-width / 0.6745 taken as the sd (robust to any minority group, unlike one
-    median/MAD; reweighting once keeps the frames that only the minority's offset would exclude)."""
-    order = np.argsort(scale_log)
-    s = scale_log[order]
-    h = s.size // 2 + 1
-    i = int(np.argmin(s[h - 1:] - s[:s.size - h + 1]))
-    centre, sd = 0.5 * (s[i] + s[i + h - 1]), 0.5 * (s[i + h - 1] - s[i]) / 0.6745
-    return np.abs(scale_log - centre) <= max(BULK_SIGMAS * sd, 1e-12)
-
-
-#: Frames on each side whose median a frame's scale is taken against (`view_contrast`).
-VIEW_NEIGHBOURS = 3
-
-
-def view_contrast(scale_log: np.ndarray, k: int = VIEW_NEIGHBOURS) -> np.ndarray:
-    """Frame log scales [n], in capture order -> each frame's contrast with its k neighbours on each
-    side (a frame is flagged only when it is off against the bulk of the frames AND against these): the smaller of (scale - median before) and (scale - median after) when both have the same
-    sign, else 0 (one side alone at the ends of the walk).
-
-    A metadata error is a glitch of single frames; a brightness error that the frames seeing the same
-    content share (a stretch of the walk whose bright content the model under-renders, measured on an
-    outdoor null: ten consecutive frames 1.4-1.7x) follows the view, not the metadata: it cancels,
-    also at the stretch's first and last frames, which match the frames on one side."""
-    n = scale_log.size
-    out = np.zeros(n)
-    for i in range(n):
-        sides = [scale_log[i] - np.median(nb) for nb in (scale_log[max(0, i - k):i], scale_log[i + 1:i + 1 + k])
-                 if nb.size]
-        if sides and (all(c > 0 for c in sides) or all(c < 0 for c in sides)):
-            out[i] = min(sides, key=abs)
-    return out
-
-
 def gain_like(fit: PhotometricFit, cells: _Cells, frames: np.ndarray) -> np.ndarray:
     """Is each frame's deviation [n frames] the same for its dark and bright cells, as a gain's is?
     -> bool [n]: the within-frame slope of the partial residual over the cell's log intensity is
@@ -261,10 +206,9 @@ def exposure_split_half(fit: PhotometricFit, cells: _Cells, draws: int, rng: np.
     observed = corr(a, b)
     placebo = np.array([corr(a, rng.permutation(b)) for _ in range(int(draws))])
     p = float((1 + np.sum(placebo >= observed)) / (1 + draws))
-    both, threshold = flag_frames_in_both_halves(a, b)
-    local, _ = flag_frames_in_both_halves(view_contrast(a), view_contrast(b))
+    both, local, threshold = metadata_flags(a, b)
     view_shared = np.flatnonzero(ok)[both & ~local]
-    both &= local
+    both = local
     frames = np.flatnonzero(ok)[both]
     not_gain = frames[~gain_like(fit, cells, frames)]
     frames = np.setdiff1d(frames, not_gain)
@@ -411,6 +355,7 @@ def _metadata_estimate_from_split(r: CauseResult, flagged: list[int]) -> None:
     r.params["flagged_frames"] = [f for f in flagged if f in scale]
     r.params["exposure_relative_error"] = errors
     r.params["median_exposure_relative_error"] = float(np.median(errors)) if errors else 0.0
+    r.internal["held_out_rule"] = True  # a trained run: held-out frames are corrected only where flagged
     if r.plot:
         r.plot["flagged"] = r.params["flagged_frames"]
 
