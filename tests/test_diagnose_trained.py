@@ -632,7 +632,7 @@ def test_frames_flagged_against_the_bulk_when_a_quarter_of_the_frames_are_off():
     one median/MAD over all frames straddles the two groups (threshold above the error); the bulk
     (shortest half, one reweighting step) flags only affected frames, most of them, and Gaussian
     frame scatter flags (almost) none."""
-    from egobench.diagnose.placebo import FLAG_SIGMAS, flag_frames_in_both_halves
+    from egobench.effects.exposure_metadata import FLAG_SIGMAS, flag_frames_in_both_halves
     from egobench.residual.signatures import robust_sd as _mad
 
     rng = np.random.default_rng(3)

@@ -34,7 +34,7 @@ import numpy as np
 import scipy.stats as sps
 
 from egobench.effects import EFFECTS
-from egobench.effects.exposure_metadata import FLAG_SIGMAS, flag_frames_in_both_halves, metadata_flags  # noqa: F401
+from egobench.effects.exposure_metadata import FLAG_SIGMAS, metadata_flags
 from egobench.residual.estimation import BLOCK_PX, CauseResult, PhotometricFit, ResidualData
 from egobench.residual.signatures import frame_t_test, robust_sd, weighted_lstsq
 
@@ -206,15 +206,13 @@ def exposure_split_half(fit: PhotometricFit, cells: _Cells, draws: int, rng: np.
     observed = corr(a, b)
     placebo = np.array([corr(a, rng.permutation(b)) for _ in range(int(draws))])
     p = float((1 + np.sum(placebo >= observed)) / (1 + draws))
-    both, local, threshold = metadata_flags(a, b)
-    view_shared = np.flatnonzero(ok)[both & ~local]
-    both = local
-    frames = np.flatnonzero(ok)[both]
+    off, flags, threshold = metadata_flags(a, b)
+    view_shared = np.flatnonzero(ok)[off & ~flags]
+    frames = np.flatnonzero(ok)[flags]
     not_gain = frames[~gain_like(fit, cells, frames)]
     frames = np.setdiff1d(frames, not_gain)
-    both = np.isin(np.flatnonzero(ok), frames)
     p_corr = p
-    if both.sum() == 0:
+    if frames.size == 0:
         p = 1.0
     return {"testable": True, "p": p, "p_placebo_corr": p_corr, "corr": observed,
             "placebo_corr_q99": float(np.quantile(placebo, 0.99)),

@@ -57,8 +57,9 @@ VIEW_NEIGHBOURS = 3
 
 def view_contrast(scale_log: np.ndarray, k: int = VIEW_NEIGHBOURS) -> np.ndarray:
     """Frame log scales [n], in capture order -> each frame's contrast with its k neighbours on each
-    side (a frame is flagged only when it is off against the bulk of the frames AND against these): the smaller of (scale - median before) and (scale - median after) when both have the same
-    sign, else 0 (one side alone at the ends of the walk).
+    side: the smaller of (scale - median before) and (scale - median after) when both have the same
+    sign, else 0 (one side alone at the ends of the walk). `metadata_flags` flags a frame only when it
+    is off against the bulk of the frames AND against these.
 
     A metadata error is a glitch of single frames; a brightness error that the frames seeing the same
     content share (a stretch of the walk whose bright content the model under-renders, measured on an
