@@ -21,6 +21,7 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
+@pytest.hookimpl(trylast=True)  # after -m / -k deselection: only the tests that will run
 def pytest_collection_modifyitems(config, items):
     """Start the background work of the selected tests' modules (a module's ``start_background()``)
     now, so that their single-threaded subprocesses (a cold numba compile) overlap the rest of the
