@@ -57,10 +57,9 @@ step bench_train 150 bash -c "python3 -m egobench.cli bench train --device cuda 
 step sim_frames 150 python3 -m egobench.cli simulate --out /tmp/sim2400 --kind outdoor --seed 0 \
   --set n_frames=2 --set rectified_size=2400 --set compute_device=cuda
 SMOKE=$(($(left) - 30))
-# a smoke run killed by its time limit leaves a lock; the next call resumes it (frames, checkpoints)
-python3 -m snakemake --unlock --configfile config/paper_smoke.yaml >/dev/null 2>&1
-step paper_smoke "$SMOKE" python3 -m snakemake --cores 16 --resources gpu=1 --keep-going \
-  --configfile config/paper_smoke.yaml
+# a smoke run killed by its time limit leaves a lock; the next call unlocks and resumes it (frames, checkpoints)
+step paper_smoke "$SMOKE" bash -c "python3 -m snakemake --unlock --configfile config/paper_smoke.yaml >/dev/null 2>&1; \
+  python3 -m snakemake --cores 16 --resources gpu=1 --keep-going --configfile config/paper_smoke.yaml"
 
 # what the smoke run left (small files only; recordings and checkpoints stay on the machine)
 find results/paper_smoke .snakemake/log -type f \( -name '*.csv' -o -name '*.json' -o -name '*.tex' \

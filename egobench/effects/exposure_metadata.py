@@ -120,14 +120,15 @@ class ExposureMetadataCause(Cause):
         frames = np.asarray(frames).tolist()
         own = [fr not in i["log_scale"] for fr in frames]
         if measured is not None and any(own):
-            halves = np.array([[_pixel_log_scale(measured[j], predicted[j], ctx, fit_mask, i["log_global"], side)
-                                for side in ("left", "right", None)] for j in range(len(frames))])
-            allowed = held_out_flags(halves[:, 0], halves[:, 1]) if i.get("held_out_rule") else np.ones(len(frames), bool)
+            rule = bool(i.get("held_out_rule"))  # the halves of every frame are needed only for the rule
+            scales = np.array([_pixel_log_scales(measured[j], predicted[j], ctx, fit_mask, i["log_global"])
+                               if rule or own[j] else (np.nan, np.nan, 0.0) for j in range(len(frames))])
+            allowed = held_out_flags(scales[:, 0], scales[:, 1]) if rule else np.ones(len(frames), bool)
         for j, fr in enumerate(frames):  # loop over frames, not pixels
             if not own[j]:
                 logs[j] = i["log_scale"][fr]
             elif measured is not None and allowed[j]:
-                logs[j] = halves[j, 2]
+                logs[j] = scales[j, 2]
         return photometric_apply(predicted, (i["log_global"] + logs)[:, None, None, None], ctx.gamma_assumed)
 
 
@@ -142,22 +143,24 @@ def held_out_flags(left: np.ndarray, right: np.ndarray) -> np.ndarray:
     return out
 
 
-def _pixel_log_scale(measured: np.ndarray, predicted: np.ndarray, ctx, fit_mask, log_global: float,
-                     side: str | None) -> float:
+def _pixel_log_scales(measured: np.ndarray, predicted: np.ndarray, ctx, fit_mask,
+                      log_global: float) -> tuple[float, float, float]:
     """log(sum measured / sum predicted x global gain), linear, over one frame's [H, W, 3] usable fit
-    pixels (``side``: 'left' / 'right' half of the columns, or None: all); nan without any."""
+    pixels -> (left half of the columns, right half, all); a half without pixels is nan, all of them 0."""
     lin_m = decode(measured, ctx.gamma_assumed)
     lin_p = decode(predicted, ctx.gamma_assumed) * math.exp(log_global)
     m = (predicted > DISPLAY_MIN) & (predicted < DISPLAY_MAX) & (measured < 0.985)
     if fit_mask is not None:
         m &= np.broadcast_to(fit_mask[..., None], m.shape)
     m &= np.broadcast_to(ctx.valid[..., None], m.shape)
-    if side is not None:
-        cols = np.arange(m.shape[1]) < m.shape[1] / 2.0
-        m &= np.broadcast_to((cols if side == "left" else ~cols)[None, :, None], m.shape)
-    if not m.any():
-        return math.nan if side is not None else 0.0
-    return math.log(max(lin_m[m].sum(), 1e-12) / max(lin_p[m].sum(), 1e-12))
+    left = np.broadcast_to((np.arange(m.shape[1]) < m.shape[1] / 2.0)[None, :, None], m.shape)
+
+    def log_ratio(sel: np.ndarray, empty: float) -> float:
+        if not sel.any():
+            return empty
+        return math.log(max(lin_m[sel].sum(), 1e-12) / max(lin_p[sel].sum(), 1e-12))
+
+    return log_ratio(m & left, math.nan), log_ratio(m & ~left, math.nan), log_ratio(m, 0.0)
 
 
 class ExposureMetadata(Effect):
