@@ -763,3 +763,94 @@ def test_readout_must_follow_the_true_row_times():
     p_uncalibrated, c = fitted(null)
     assert p_uncalibrated < 1e-5 and c["p_value_placebo"] > 0.05
     assert max(abs(t) for t in c["placebo_t"]) > 0.8 * abs(c["first_order_t"])  # as strong along the columns
+
+
+def _smooth_series(rng: np.random.Generator, n: int, rho: float) -> np.ndarray:
+    """A centred AR(1) series: what exposure x gain and a model's per-frame error look like along a walk."""
+    x = np.zeros(n)
+    for i in range(1, n):
+        x[i] = rho * x[i - 1] + rng.normal()
+    return x - x.mean()
+
+
+def test_an_exposure_slope_is_tested_against_circular_shifts_not_only_permutations():
+    """Exposure follows the view and so does a trained model's error: two INDEPENDENT smooth series
+    correlate far beyond what permutations of one allow (an indoor null at 1 ms fixed exposure named
+    response at permutation p 0.0002). Against circular shifts of the exposure the false-alarm rate
+    is at most the level, and a true slope whose signal is ~5x the model error's sd is still detected
+    in most draws (the price of smooth series: few independent frames)."""
+    from egobench.diagnose.placebo import exposure_shift_placebo
+
+    rng = np.random.default_rng(27)
+    perm_alarms, shift_alarms, hits = 0, 0, 0
+    for _ in range(200):
+        x, b = 0.1 * _smooth_series(rng, 42, 0.9), 0.02 * _smooth_series(rng, 42, 0.9)
+        slope = float(np.sum(x * b) / np.sum(x * x))
+        perm = np.array([float(np.sum(rng.permutation(x) * b) / np.sum(x * x)) for _ in range(400)])
+        perm_alarms += np.mean(np.abs(perm) >= abs(slope)) < 0.01
+        shift_alarms += exposure_shift_placebo(x, b)["p"] < 0.01
+        hits += exposure_shift_placebo(x, b + x)["p"] < 0.01
+    assert perm_alarms > 40  # ~30 % at p < 0.01 (the permutation null is too narrow)
+    assert shift_alarms <= 6  # measured: see the run below
+    assert hits >= 130  # 154 measured
+    # too few frames for enough uncorrelated shifts: too few placebos (the cause is then not testable)
+    assert exposure_shift_placebo(_smooth_series(rng, 10, 0.9), _smooth_series(rng, 10, 0.9))["n_lags"] < 8
+
+
+def test_renders_dark_at_the_corners_where_the_model_covers_less_are_not_a_vignette():
+    """A trained model that covers the image's periphery less renders it darker: the vignette test
+    reads corners brighter than modelled (a negative attenuation), as on a poorly fitted quest3 null.
+    With the render's opacity falling off as much, the vignette is not testable; with full opacity
+    the same residual is still named; a real (positive) vignette is named whatever the opacity."""
+    import dataclasses
+
+    from egobench.residual.signatures import radial_coordinates
+
+    null = make_case(None, seed=3)
+    F, H, W, _ = null.predicted.shape
+    _, _, r = radial_coordinates(H, W, null.context.principal_point)
+    falloff = 1.0 - 0.12 * r**2  # opacity at the corner 12 % under the centre's; renders darkened by half that
+    dark = np.clip(model_error(null.predicted, 5, amp=0.02) * (1.0 - 0.06 * r**2)[None, :, :, None] ** (1 / 2.2), 0, 1)
+    alpha = np.broadcast_to(falloff, (F, H, W)).astype(np.float32)
+
+    def vignette(case, pred, render_alpha):
+        ctx = dataclasses.replace(case.context, render_alpha=render_alpha)
+        d = diagnose_residuals(case.measured, pred.astype(np.float32), ctx, TRAINED)
+        return next(x for x in d.rounds[0] if x.name == "vignette"), [n.name for n in d.named]
+
+    full, named = vignette(null, dark, np.ones((F, H, W), np.float32))
+    assert full.testable and full.params["corner_attenuation"] < -0.03 and named == ["vignette"]
+    low, named = vignette(null, dark, alpha)
+    assert not low.testable and "coverage" in low.reason and named == []
+    assert abs(low.params["calibration"]["coverage_corner_deficit"] - 0.12) < 0.005
+    case = make_case("vignette", 0.35, seed=3)
+    real, named = vignette(case, model_error(case.predicted, 5, amp=0.02), alpha)
+    assert real.testable and named[:1] == ["vignette"]
+
+
+def test_a_sweeps_further_simulation_settings_are_typed_checked_and_reach_every_recording(tmp_path, monkeypatch):
+    """--sweep-sim FIELD=VALUE pairs become SimConfig fields of every case's recording (the hard cases'
+    fixed 1 ms exposure), the seed offset moves every simulation seed, and a wrong field is named."""
+    import egobench.diagnose.trained_sweep as ts
+    import egobench.sim.capture as capture
+    from egobench.diagnose.cli import sim_overrides
+
+    sim = sim_overrides(["exposure_s=0.001", "gain=12", "raw_roi=true", "device=aria"])
+    assert sim == {"exposure_s": 0.001, "gain": 12, "raw_roi": True, "device": "aria"}
+    with pytest.raises(ValueError, match="FIELD=VALUE"):
+        sim_overrides(["exposure_s 0.001"])
+    with pytest.raises(ValueError, match=r"unknown SimConfig fields \['exposure'\]"):
+        ts.TrainedSweepConfig(sim={"exposure": 0.001}).validate()
+    seen = []
+
+    def fake_simulate(config, out, progress=False, resume="auto"):
+        seen.append(config)
+        raise RuntimeError("stop after the simulation config")
+
+    monkeypatch.setattr(capture, "simulate_recording", fake_simulate)
+    cfg = ts.TrainedSweepConfig(null_cases=1, effects=("exposure_metadata",), sim=sim, seed_offset=900,
+                                shading_extension=False)
+    s = ts.run_trained_sweep(tmp_path, cfg, progress=False)
+    assert s["n_failed"] == 2 and [c.seed for c in seen] == [1000, 1100]
+    assert all(c.exposure_s == 0.001 and c.gain == 12 and c.raw_roi and c.device == "aria" for c in seen)
+    assert seen[1].exposure_metadata_error != 0.0 and seen[0].exposure_metadata_error == 0.0

@@ -36,6 +36,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sweep-size", type=int, default=40, help="with --sweep --trained: image size, px")
     parser.add_argument("--sweep-frames", type=int, default=24, help="with --sweep --trained: frames per recording")
     parser.add_argument("--sweep-kind", default="indoor", help="with --sweep --trained: scene kind")
+    parser.add_argument("--sweep-motion", default="fast",
+                        help="with --sweep --trained: head motion (normal | fast | static)")
+    parser.add_argument("--sweep-sim", action="append", default=[], metavar="FIELD=VALUE",
+                        help="with --sweep --trained: a further SimConfig field of every recording, e.g. "
+                             "exposure_s=0.001 (repeatable; docs/diagnosis.md 'Hard cases')")
+    parser.add_argument("--sweep-seed-offset", type=int, default=0,
+                        help="with --sweep --trained: added to every simulation seed (exploration on other seeds)")
     parser.add_argument("--adt", default=None, help="Aria Digital Twin sample folder: real (video.vrs) vs twin (synthetic_video.vrs)")
     parser.add_argument("--real-trajectory", default=None,
                         help="with --adt: a real Aria closed_loop_trajectory.csv to compare head-motion statistics with")
@@ -85,11 +92,26 @@ def _trained_sweep(args: argparse.Namespace, cfg: DiagnosisConfig, out: Path) ->
     effects = tuple(e.strip() for e in args.sweep_effects.split(",") if e.strip()) if args.sweep_effects else PHOTOMETRIC
     sc = TrainedSweepConfig(null_cases=args.sweep_null, seeds=args.sweep_seeds, effects=effects, kind=args.sweep_kind,
                             size=args.sweep_size, n_frames=args.sweep_frames, method=args.method,
+                            motion=args.sweep_motion, sim=sim_overrides(args.sweep_sim),
+                            seed_offset=args.sweep_seed_offset,
                             iterations=args.iterations if args.iterations is not None else TrainedSweepConfig.iterations)
     s = run_trained_sweep(out, sc, cfg, progress=not args.no_progress)
     print(json.dumps({"out": str(out), "false_alarms": s["false_alarms"], "n_null": s["n_null"], "n_cases": s["n_cases"],
                       "n_failed": s["n_failed"]}))
     return 0
+
+
+def sim_overrides(pairs: list[str]) -> dict:
+    """FIELD=VALUE strings of --sweep-sim -> {field: value} (values read as YAML scalars: 0.001, true, null)."""
+    import yaml
+
+    out = {}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep or not key.strip():
+            raise ValueError(f"--sweep-sim: expected FIELD=VALUE (a SimConfig field), got {pair!r}")
+        out[key.strip()] = yaml.safe_load(value)
+    return out
 
 
 def _train_for_diagnosis(args: argparse.Namespace, rec: Path, out: Path) -> Path:

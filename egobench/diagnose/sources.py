@@ -365,7 +365,7 @@ def run_source(recording_dir: str | Path, run_dir: str | Path, max_frames: int |
         if int(pose_samples) != pose_samples or pose_samples < 1:
             raise ValueError(f"pose_samples: expected a positive integer, got {pose_samples!r}")
         counts = [int(pose_samples) if n > 1 else 1 for n in counts]
-    measured, predicted, velocity = [], [], []
+    measured, predicted, velocity, coverage = [], [], [], []
     pairs = list(zip(frames, counts))
     with torch.no_grad():
         for f, n in tqdm(pairs, desc="render run", unit="frame", disable=not progress):
@@ -374,10 +374,12 @@ def run_source(recording_dir: str | Path, run_dir: str | Path, max_frames: int |
             measured.append(rec.load_image(f).numpy())
             depth = p.outs[0].depth[0, ..., 0].cpu().numpy().astype(np.float64)
             alpha = p.outs[0].alpha[0, ..., 0].cpu().numpy()
+            coverage.append(alpha.astype(np.float32))
             velocity.append(pixel_velocity(rec, f, np.where(alpha > 0.5, depth, 0.0)))
     meta = {"recording": str(recording_dir), "run": str(run_dir), "method": spec.name,
             "source": f"renders of trained run ({spec.name})", "pose_samples": pose_samples or "the run's own"}
     pred = np.stack(predicted)
     ctx = run_context(recording_dir, rec, frames, pred, np.stack(velocity), float(getattr(spec, "response_gamma", 2.2)),
                       spec.calibration, meta)
+    ctx.render_alpha = np.stack(coverage)
     return Sources(np.stack(measured), pred, ctx, meta["source"])

@@ -51,6 +51,10 @@ class TrainedSweepConfig:
     # also train each case with the learnable lens shading (egobench.model.shading) and call a vignette when the
     # learned corner attenuation exceeds the nulls' mean + EXTENSION_SIGMAS sd (trained runs absorb it)
     shading_extension: bool = True
+    # further SimConfig fields of every recording (e.g. the hard cases' fixed 1 ms exposure and narrow view:
+    # docs/diagnosis.md "Hard cases"); applied before the hidden effect's own overrides
+    sim: dict = field(default_factory=dict)
+    seed_offset: int = 0  # added to every case's simulation seed (exploratory runs on other seeds)
 
     def validate(self) -> "TrainedSweepConfig":
         unknown = [e for e in self.effects if e not in EFFECTS]
@@ -59,6 +63,11 @@ class TrainedSweepConfig:
         for name, lo in (("null_cases", 0), ("seeds", 1), ("size", 16), ("n_frames", 9), ("iterations", 1)):
             if int(getattr(self, name)) < lo:
                 raise ValueError(f"TrainedSweepConfig.{name}: expected an integer >= {lo}, got {getattr(self, name)}")
+        from egobench.sim.config import SimConfig
+
+        unknown = sorted(set(self.sim) - set(SimConfig.__dataclass_fields__))
+        if unknown:
+            raise ValueError(f"TrainedSweepConfig.sim: unknown SimConfig fields {unknown}")
         return self
 
 
@@ -70,14 +79,15 @@ def hidden_value(effect: str, magnitude: float, rng: np.random.Generator):
 
 def cases(cfg: TrainedSweepConfig) -> list[dict]:
     """Every case: {id, effect (None = null), magnitude, value, sim_seed}."""
-    out = [{"id": f"null_s{s}", "effect": None, "magnitude": 0.0, "value": None, "sim_seed": 100 + s}
+    out = [{"id": f"null_s{s}", "effect": None, "magnitude": 0.0, "value": None, "sim_seed": cfg.seed_offset + 100 + s}
            for s in range(cfg.null_cases)]
     for k, effect in enumerate(cfg.effects):
         for mag in cfg.magnitudes.get(effect, DEFAULT_MAGNITUDES[effect]):
             for s in range(cfg.seeds):
-                rng = np.random.default_rng([s, k, 1515])
+                rng = np.random.default_rng([s, k, 1515] + ([cfg.seed_offset] if cfg.seed_offset else []))
                 out.append({"id": f"{effect}_{mag:g}_s{s}", "effect": effect, "magnitude": float(mag),
-                            "value": hidden_value(effect, float(mag), rng), "sim_seed": 200 + 10 * k + s})
+                            "value": hidden_value(effect, float(mag), rng),
+                            "sim_seed": cfg.seed_offset + 200 + 10 * k + s})
     return out
 
 
@@ -90,7 +100,8 @@ def _run_case(case: dict, cfg: TrainedSweepConfig, case_dir: Path, diag: Diagnos
     from egobench.sim.config import SimConfig, hidden_effect_overrides
     from egobench.train import preset_config
 
-    overrides = {"n_frames": cfg.n_frames, "rectified_size": cfg.size, "readout_s": 0.01626, "motion": cfg.motion}
+    overrides = {"n_frames": cfg.n_frames, "rectified_size": cfg.size, "readout_s": 0.01626, "motion": cfg.motion,
+                 **cfg.sim}
     if case["effect"] is not None:
         overrides.update(hidden_effect_overrides(case["effect"], case["value"]))
     rec = case_dir / "recording"

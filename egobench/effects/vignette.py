@@ -46,6 +46,30 @@ class VignetteCause(Cause):
         return photometric_apply(predicted, result.internal["log_global"] + log_v[None, :, :, None], ctx.gamma_assumed)
 
 
+def coverage_corner_deficit(render_alpha: np.ndarray, valid: np.ndarray, principal_point: tuple[float, float]) -> float:
+    """1 - a trained model's opacity at the farthest corner over its opacity at the principal point:
+    log of the frames' mean opacity (``render_alpha`` [F, H, W], ``valid`` [H, W] pixels) fitted with
+    the vignette's own radial terms (r^2, r^4; r = 1 at the corner). A model that covers the image's
+    periphery less (content there is seen in fewer views) renders it darker, which the vignette test
+    reads as corners brighter than modelled: a negative corner attenuation (issue 27)."""
+    H, W = valid.shape
+    _, _, r = radial_coordinates(H, W, principal_point)
+    mean = render_alpha.mean(axis=0)
+    m = valid & (mean > 0.05)
+    if m.sum() < 8:
+        return 0.0
+    A = np.stack([np.ones(int(m.sum())), r[m] ** 2, r[m] ** 4], axis=1)
+    coef = np.linalg.lstsq(A, np.log(mean[m]), rcond=None)[0]
+    return float(1.0 - math.exp(coef[1] + coef[2]))
+
+
+def coverage_explains(corner_attenuation: float, deficit: float) -> bool:
+    """Whether a corner shading estimate says the renders are too dark at the corners (negative) by
+    no more than the model's missing opacity there can darken them (over a black background:
+    measured / rendered up to 1 / (1 - deficit)): then a vignette cannot be told from it."""
+    return corner_attenuation < 0.0 and deficit > 0.0 and -corner_attenuation <= deficit / (1.0 - deficit)
+
+
 class Vignette(Effect):
     cause_class = VignetteCause  # the diagnosis's estimator (egobench.residual.estimation)
     identifiability = (
