@@ -15,13 +15,32 @@ import os
 import platform
 from pathlib import Path
 
+#: x86 / Arm feature flags of /proc/cpuinfo, widest vector instruction set first.
+_VECTOR_FLAGS = (("avx512f", "AVX-512"), ("avx2", "AVX2"), ("avx", "AVX"), ("sse4_2", "SSE4.2"), ("sve", "SVE"),
+                 ("asimd", "NEON"))
+
+
+def _cpuinfo() -> str:
+    info = Path("/proc/cpuinfo")
+    return info.read_text(errors="replace") if info.is_file() else ""
+
+
+def vector_isa(cpuinfo: str | None = None) -> str:
+    """The host CPU's widest vector instruction set, from the flags of /proc/cpuinfo ("unknown" elsewhere).
+    (The compiled kernels may target less: `host_info`'s kernel_target, e.g. NUMBA_CPU_NAME=znver3.)"""
+    text = _cpuinfo() if cpuinfo is None else cpuinfo
+    flags = set()
+    for line in text.splitlines():
+        if line.lower().startswith(("flags", "features")):
+            flags.update(line.split(":", 1)[1].split())
+    return next((name for flag, name in _VECTOR_FLAGS if flag in flags), "unknown")
+
+
 def cpu_model() -> str:
     """The CPU's model name (/proc/cpuinfo on Linux, else the platform's processor string)."""
-    info = Path("/proc/cpuinfo")
-    if info.is_file():
-        for line in info.read_text(errors="replace").splitlines():
-            if line.lower().startswith("model name"):
-                return line.split(":", 1)[1].strip()
+    for line in _cpuinfo().splitlines():
+        if line.lower().startswith("model name"):
+            return line.split(":", 1)[1].strip()
     return platform.processor() or platform.machine() or "unknown"
 
 
@@ -36,7 +55,8 @@ def host_info() -> dict[str, object]:
         kernel_target = numba.config.CPU_NAME or llvm.get_host_cpu_name()
     except ImportError:  # pragma: no cover - numba is a dependency; tolerate a broken install
         kernel_target = "unavailable"
-    return {"cpu_model": cpu_model(), "cpu_count": os.cpu_count(), "kernel_target": kernel_target,
+    return {"cpu_model": cpu_model(), "cpu_count": os.cpu_count(), "vector_isa": vector_isa(),
+            "kernel_target": kernel_target,
             "torch_cpu_capability": torch.backends.cpu.get_cpu_capability(),
             "versions": versions()}
 

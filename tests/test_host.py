@@ -26,3 +26,14 @@ def test_the_kernel_target_is_the_one_numba_compiles_for():
                                        text=True, check=True).stdout.strip()
     assert run({"NUMBA_CPU_NAME": "znver3"}) == "znver3"
     assert run({}) == llvm.get_host_cpu_name()
+
+
+def test_the_vector_isa_is_the_widest_the_cpu_flags_name():
+    """The bench's host record names the widest vector instruction set among the CPU's flags."""
+    from egobench.host import host_info, vector_isa
+
+    assert vector_isa("processor: 0\nflags\t\t: fpu sse4_2 avx avx2 fma avx512f avx512bw\n") == "AVX-512"
+    assert vector_isa("flags\t\t: fpu sse4_2 avx avx2 fma\n") == "AVX2"
+    assert vector_isa("Features\t: fp asimd evtstrm\n") == "NEON"
+    assert vector_isa("model name: something\n") == "unknown"
+    assert host_info()["vector_isa"] == vector_isa()
