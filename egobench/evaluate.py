@@ -156,6 +156,25 @@ def held_out_psnr(recording_dir, run_dir, device: str | None = None) -> list[flo
         return [psnr(*_render_pair(held, f, n)[1:], held.maps.mask) for f, n in zip(held.frames, held.counts)]
 
 
+def held_out_renders(recording_dir, run_dir, device: str | None = None):
+    """For each held-out frame of a synthetic recording: (scene colour [H, W, 3] as rasterized, opacity
+    [H, W], the simulator's clean radiance [H, W, 3] at the run's size, the run's formation model, its
+    method spec), numpy float32; writes nothing. A recording without ground-truth radiance is an error."""
+    held = _held_out(recording_dir, run_dir, device)
+    run = held.run
+    with torch.no_grad():
+        for f, n in zip(held.frames, held.counts):
+            path = held.recording.ground_truth_file("radiance", f)
+            if path is None:
+                raise FileNotFoundError(f"{recording_dir}: ground_truth/radiance/{f.index:05d}.npy missing "
+                                        "(the simulator's clean radiance of a held-out frame)")
+            p = predict_frame(run.gaussians, held.recording, f, run.spec, run.camera, held.maps, held.k_of[f.index], n,
+                              held.settings, held.formation)
+            radiance = resize_map(torch.from_numpy(np.load(path).astype(np.float32)), run.camera)
+            yield (p.rgb.float().numpy(), p.outs[0].alpha[0, ..., 0].float().cpu().numpy(), radiance.numpy(),
+                   held.formation, run.spec)
+
+
 def held_out_error_by_level(recording_dir, run_dir, edges: Sequence[float],
                             device: str | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Where a run's held-out error lies: the squared error of its 8-bit renders (mean over RGB) summed
