@@ -854,3 +854,32 @@ def test_a_sweeps_further_simulation_settings_are_typed_checked_and_reach_every_
     assert s["n_failed"] == 2 and [c.seed for c in seen] == [1000, 1100]
     assert all(c.exposure_s == 0.001 and c.gain == 12 and c.raw_roi and c.device == "aria" for c in seen)
     assert seen[1].exposure_metadata_error != 0.0 and seen[0].exposure_metadata_error == 0.0
+
+
+def test_at_a_fixed_exposure_a_wrong_metadata_is_found_through_the_record_and_not_read_as_a_response():
+    """At one true exposure and gain (the hard cases' 1 ms at gain 12) a poorly fitted run's frame-to-
+    frame error hides a 25 % metadata error from the bulk test, and a per-frame scale following the
+    record is also what a response error looks like (the hard sweep named response on 3 of 12 such
+    cases, slope -1.0). Frames whose record departs while the image does not are flagged; flagged frames
+    are left out of the response test, and a slope steeper than -0.5 is no response at all."""
+    from egobench.effects.exposure_metadata import recorded_glitch_flags
+
+    rng = np.random.default_rng(5)
+    smooth = np.convolve(rng.normal(0, 0.08, 60), np.ones(5) / np.sqrt(5), mode="same")  # view-following error
+    record = np.zeros(60)
+    record[[5, 17, 30, 44]] = math.log(1.25)
+    a, b = smooth - record + rng.normal(0, 0.01, 60), smooth - record + rng.normal(0, 0.01, 60)
+    assert np.flatnonzero(recorded_glitch_flags(a, b, record)).tolist() == [5, 17, 30, 44]
+    # an exposure change the image follows (a response error of gamma 2.75 against 2.2: slope -0.2) is not
+    # flagged, and with a record that varies (auto-exposure) the rule is off
+    a2, b2 = smooth - 0.2 * record, smooth - 0.2 * record
+    assert not recorded_glitch_flags(a2, b2, record).any()
+    assert not recorded_glitch_flags(a, b, record + rng.normal(0, 0.2, 60)).any()
+    hits = 0
+    for seed in range(3, 7):
+        case = make_case("exposure_metadata", 0.25, seed=seed, n_frames=32, fixed_exposure=True)
+        d = diagnose_residuals(case.measured, model_error(case.predicted, 9), case.context, TRAINED)
+        resp = next(r for r in d.rounds[0] if r.name == "response")
+        assert "response" not in [n.name for n in d.named] and not resp.significant and resp.reason
+        hits += d.verdict == "exposure_metadata"
+    assert hits >= 2  # seeds 4 and 5: flagged, but held-out gain -0.08 / -0.13 dB (frame 8 not flagged)

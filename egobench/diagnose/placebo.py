@@ -34,7 +34,7 @@ import numpy as np
 import scipy.stats as sps
 
 from egobench.effects import EFFECTS
-from egobench.effects.exposure_metadata import FLAG_SIGMAS, metadata_flags
+from egobench.effects.exposure_metadata import FLAG_SIGMAS, GLITCH_FOLLOW, metadata_flags, recorded_glitch_flags
 from egobench.effects.vignette import coverage_corner_deficit, coverage_explains
 from egobench.residual.estimation import BLOCK_PX, CauseResult, PhotometricFit, ResidualData
 from egobench.residual.signatures import frame_t_test, robust_sd, weighted_lstsq
@@ -183,9 +183,11 @@ def gain_like(fit: PhotometricFit, cells: _Cells, frames: np.ndarray) -> np.ndar
     return ~(np.abs(slope[frames] - med) > FLAG_SIGMAS * sd)
 
 
-def exposure_split_half(fit: PhotometricFit, cells: _Cells, draws: int, rng: np.random.Generator) -> dict:
+def exposure_split_half(fit: PhotometricFit, cells: _Cells, draws: int, rng: np.random.Generator,
+                        recorded_log: np.ndarray | None = None) -> dict:
     """Agreement of per-frame log scales from the left and right halves of each frame, against
-    the same agreement with the right halves' frame labels shuffled (placebo) -> empirical p."""
+    the same agreement with the right halves' frame labels shuffled (placebo) -> empirical p.
+    Frames flagged: `metadata_flags`, and `recorded_glitch_flags` with ``recorded_log`` [fitted frames]."""
     pr = fit.partial_residual("frame")
     keep = fit.keep
     left = cells.col < cells.n_cols / 2.0
@@ -209,7 +211,9 @@ def exposure_split_half(fit: PhotometricFit, cells: _Cells, draws: int, rng: np.
     p = float((1 + np.sum(placebo >= observed)) / (1 + draws))
     off, flags, threshold = metadata_flags(a, b)
     view_shared = np.flatnonzero(ok)[off & ~flags]
-    frames = np.flatnonzero(ok)[flags]
+    glitch = (recorded_glitch_flags(a, b, recorded_log[ok]) & ~flags if recorded_log is not None
+              else np.zeros_like(flags))
+    frames = np.flatnonzero(ok)[flags | glitch]
     not_gain = frames[~gain_like(fit, cells, frames)]
     frames = np.setdiff1d(frames, not_gain)
     p_corr = p
@@ -219,6 +223,7 @@ def exposure_split_half(fit: PhotometricFit, cells: _Cells, draws: int, rng: np.
             "placebo_corr_q99": float(np.quantile(placebo, 0.99)),
             "flag_threshold_log": threshold, "frames_flagged_in_both_halves": frames.tolist(),
             "frames_off_but_not_a_gain": not_gain.tolist(), "frames_off_with_their_view_neighbours": view_shared.tolist(),
+            "frames_where_the_record_jumps_alone": np.flatnonzero(ok)[glitch].tolist(),
             "robust_sd": threshold / FLAG_SIGMAS, "n_frames": int(a.size)}
 
 
@@ -301,24 +306,33 @@ def mark_untestable_on_trained_run(results: list[CauseResult]) -> None:
 MIN_LOG_EXPOSURE_SPREAD = 0.05
 
 
-def response_from_exposure(fit: PhotometricFit, data: ResidualData, draws: int, rng: np.random.Generator) -> dict:
+def response_from_exposure(fit: PhotometricFit, data: ResidualData, draws: int, rng: np.random.Generator,
+                           exclude: list[int] | None = None) -> dict:
     """A response error on a TRAINED run: the model's colours absorb L^a (a = gamma_assumed /
     gamma_true), so what survives is a per-frame scale k_f^(a - 1) that follows the recorded
     exposure x gain k_f. Statistic: slope of the frames' log scales on log k_f; p: the larger of the
     permutation p (exposure metadata permuted across frames) and the circular-shift p
-    (`exposure_shift_placebo`: exposure and model error both follow the view)."""
+    (`exposure_shift_placebo`: exposure and model error both follow the view). ``exclude``: positions
+    among the fitted frames left out (the frames the metadata test flags: their recorded exposure is
+    what is in doubt, so it cannot carry a response test; at a fixed true exposure a wrong metadata
+    is all the spread there is)."""
     k = np.log(np.maximum(data.ctx.exposure_s * data.ctx.gain, 1e-12))
-    x = k[data.frames] - float(np.mean(k[data.frames]))
+    use = np.ones(fit.n_frames, bool)
+    use[list(exclude or [])] = False
+    k_used = k[data.frames][use]
+    x = k_used - float(np.mean(k_used))
     # per-frame log scale: weighted mean of the cell log ratios (no log-intensity column: in an
     # untrained prediction the response error also shows within the image, which that column
     # would take from the frames)
     keep = fit.keep
     w = np.bincount(fit.fidx[keep], weights=fit.w[keep], minlength=fit.n_frames)
-    beta = np.bincount(fit.fidx[keep], weights=(fit.w * fit.y)[keep], minlength=fit.n_frames) / np.maximum(w, 1e-300)
+    beta = (np.bincount(fit.fidx[keep], weights=(fit.w * fit.y)[keep], minlength=fit.n_frames)
+            / np.maximum(w, 1e-300))[use]
     if float(np.std(x)) < MIN_LOG_EXPOSURE_SPREAD:
-        return {"testable": False, "p": 1.0, "log_exposure_spread": float(np.std(x)), "reason": (
-            f"exposure x gain varies by {float(np.std(x)):.3f} (std of log) < {MIN_LOG_EXPOSURE_SPREAD} across "
-            "frames: a response error is absorbed into the scene colours of a trained run")}
+        where = " the frames the metadata test does not flag" if not use.all() else " frames"
+        return {"testable": False, "p": 1.0, "log_exposure_spread": float(np.std(x)), "frames_left_out": int((~use).sum()),
+                "reason": (f"exposure x gain varies by {float(np.std(x)):.3f} (std of log) < {MIN_LOG_EXPOSURE_SPREAD} "
+                           f"across{where}: a response error is absorbed into the scene colours of a trained run")}
     b = beta - float(np.mean(beta))
 
     def slope(xx):
@@ -329,9 +343,15 @@ def response_from_exposure(fit: PhotometricFit, data: ResidualData, draws: int, 
     p_perm = float((1 + np.sum(np.abs(placebo) >= abs(observed))) / (1 + draws))
     shifts = exposure_shift_placebo(x, b)
     out = {"testable": True, "p": max(p_perm, shifts["p"]), "p_permuted": p_perm, "exposure_slope": observed,
+           "frames_left_out": int((~use).sum()),
            "slope_sd_placebo": max(float(placebo.std()), shifts["slope_sd"]), "slope_sd_permuted": float(placebo.std()),
            "shift_placebo": shifts, "log_k_mean": float(np.mean(k[data.frames])), "log_exposure_spread": float(np.std(x))}
-    if shifts["n_lags"] < SHIFT_MIN_PLACEBOS:
+    if observed < -GLITCH_FOLLOW:
+        out.update(testable=False, p=1.0, reason=(
+            f"the frames' scale follows the recorded exposure x gain with slope {observed:+.2f}: no camera response "
+            f"does that (slope a - 1 > -{GLITCH_FOLLOW} for true gammas below {1 / (1 - GLITCH_FOLLOW):.0f}x the "
+            "assumed one); a record off on some frames gives -1 (exposure metadata)"))
+    elif shifts["n_lags"] < SHIFT_MIN_PLACEBOS:
         out.update(testable=False, p=1.0, reason=(
             f"exposure x gain follows the view too slowly: {shifts['n_lags']} circular shifts of it are "
             f"uncorrelated with it (< {SHIFT_MIN_PLACEBOS}), so a view-following model error cannot be told "
@@ -431,13 +451,16 @@ def calibrate_photometric(data: ResidualData, results: list[CauseResult], draws:
     calibrated["white_balance"] = (min(1.0, 2.0 * min(tr.p_value, tb.p_value)),
                                    {"frame_t_r_b": [tr.t, tb.t], "frame_df": tr.df})
     tc = _t(est[:, 3], var[:, 3])
-    resp = response_from_exposure(fit, data, draws, np.random.default_rng([int(seed), 22]))
+    recorded_log = np.log(np.maximum(data.ctx.exposure_s * data.ctx.gain, 1e-12))[data.frames]
+    split = exposure_split_half(fit, cells, draws, np.random.default_rng([int(seed), 15]), recorded_log)
+    resp = response_from_exposure(fit, data, draws, np.random.default_rng([int(seed), 22]),
+                                  exclude=split.get("frames_flagged_in_both_halves"))
     calibrated["response"] = (resp["p"] if resp["testable"] else 1.0,  # within-image slope: absorbed by training
                               {"frame_t": tc.t, "frame_df": tc.df, **{k: v for k, v in resp.items() if k != "testable"}})
     se["response"] = (resp.get("slope_sd_placebo", math.nan), max(fit.n_frames - 2, 2))
-    split = exposure_split_half(fit, cells, draws, np.random.default_rng([int(seed), 15]))
     if "frames_flagged_in_both_halves" in split:  # positions among the fitted frames -> the recording's frame indices
-        for key in ("frames_flagged_in_both_halves", "frames_off_but_not_a_gain", "frames_off_with_their_view_neighbours"):
+        for key in ("frames_flagged_in_both_halves", "frames_off_but_not_a_gain", "frames_off_with_their_view_neighbours",
+                    "frames_where_the_record_jumps_alone"):
             split[key] = [int(data.ctx.frame_index[data.frames[i]]) for i in split[key]]
         if "exposure_metadata" in by_name:
             _metadata_estimate_from_split(by_name["exposure_metadata"], split["frames_flagged_in_both_halves"])

@@ -73,12 +73,14 @@ def _image_motion(rng: np.random.Generator, rel: np.ndarray, F: int,
     return vel, rng.uniform(-500, 500, (F, 2))
 
 
-def _exposure_scales(rng: np.random.Generator, F: int, effect: str | None, value,
-                     metadata_fraction: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int]]:
+def _exposure_scales(rng: np.random.Generator, F: int, effect: str | None, value, metadata_fraction: float,
+                     fixed: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int]]:
     """(true exposure x gain scale [F], analog gain [F], recorded scale [F], frames whose metadata is
     wrong): the hidden effect may change the recorded scales (`Effect.synth_exposure`)."""
     k_true = rng.uniform(0.7, 1.4, F)
     gain = rng.uniform(1.0, 4.0, F)
+    if fixed:
+        k_true, gain = np.ones(F), np.full(F, 2.0)
     k_recorded = k_true.copy()
     affected = [] if effect is None else EFFECTS[effect].synth_exposure(k_recorded, rng, value, metadata_fraction)
     return k_true, gain, k_recorded, affected
@@ -110,8 +112,10 @@ def make_case(
     speed_px_s: tuple[float, float] = (80.0, 250.0),
     gamma_assumed: float = 2.2,
     metadata_fraction: float = 0.25,
+    fixed_exposure: bool = False,
 ) -> HiddenCase:
-    """One hidden-effect case; ``value`` None draws it (seeded) from the effect's plausible range."""
+    """One hidden-effect case; ``value`` None draws it (seeded) from the effect's plausible range.
+    ``fixed_exposure``: every frame exposed alike at one gain (a lab or a fixed-exposure capture)."""
     if effect is not None and effect not in EFFECTS:
         raise ValueError(f"effect: expected one of {list(EFFECTS)} or None, got {effect!r}")
     if size < 16 or n_frames < 9:
@@ -129,7 +133,7 @@ def make_case(
     R = v_img / (H - 1)  # row time ratio (identity rectification)
     vel, offsets = _image_motion(rng, rel, F, speed_px_s)
     # exposure * gain normaliser the model uses (recorded), true scale, gains for noise
-    k_true, gain, k_recorded, affected = _exposure_scales(rng, F, effect, value, metadata_fraction)
+    k_true, gain, k_recorded, affected = _exposure_scales(rng, F, effect, value, metadata_fraction, fixed_exposure)
     t_model, t_true = _row_times(R, effect, value)
     def radial_field(k0_change: float) -> np.ndarray:  # [H, W, 2] px: the displacement of a change of k0
         radius, direction, _ = radial_coordinates(H, W, (cx, cy))

@@ -83,6 +83,31 @@ def metadata_flags(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return both, both & local, threshold
 
 
+#: A record glitch: the image's scale jumps against the record's jump by at least this fraction of it.
+GLITCH_FOLLOW = 0.5
+#: The record counts as fixed when at least this share of the frames record the median exposure x gain
+#: (within FIXED_RECORD_LOG): a lab capture, or the hard cases' 1 ms at gain 12.
+FIXED_RECORD_SHARE, FIXED_RECORD_LOG = 0.5, 1e-3
+
+
+def recorded_glitch_flags(a: np.ndarray, b: np.ndarray, recorded_log: np.ndarray) -> np.ndarray:
+    """At a FIXED exposure and gain: frames [n] (capture order) whose recorded log exposure x gain [n]
+    is off the record's median by at least FLAG_MIN_LOG while the scales of both halves (a, b: log
+    measured / predicted) jump the other way against their view neighbours (`view_contrast`) by at
+    least GLITCH_FOLLOW of it and FLAG_MIN_LOG (what model error alone does to single frames): the
+    image did not follow the record, so the record is wrong. A poorly fitted run's frame-to-frame
+    error hides a 25 % error from the bulk test (hard sweep: 4 robust sds = 31 %); the record's own
+    departure cannot hide. With an exposure that varies (auto-exposure), a record's change says nothing
+    by itself, and neighbouring wrong records shift every contrast: no frame is flagged this way."""
+    x = np.asarray(recorded_log, float)
+    dx = x - np.median(x)
+    if np.mean(np.abs(dx) <= FIXED_RECORD_LOG) < FIXED_RECORD_SHARE:
+        return np.zeros(x.size, dtype=bool)
+    ca, cb = view_contrast(a), view_contrast(b)
+    need = np.maximum(GLITCH_FOLLOW * np.abs(dx), FLAG_MIN_LOG)
+    return (np.abs(dx) >= FLAG_MIN_LOG) & (ca * dx < 0) & (cb * dx < 0) & (np.abs(ca) >= need) & (np.abs(cb) >= need)
+
+
 class ExposureMetadataCause(Cause):
     """Per-frame exposure/gain metadata error: a global per-frame scale."""
 
@@ -123,7 +148,8 @@ class ExposureMetadataCause(Cause):
             rule = bool(i.get("held_out_rule"))  # the halves of every frame are needed only for the rule
             scales = np.array([_pixel_log_scales(measured[j], predicted[j], ctx, fit_mask, i["log_global"])
                                if rule or own[j] else (np.nan, np.nan, 0.0) for j in range(len(frames))])
-            allowed = held_out_flags(scales[:, 0], scales[:, 1]) if rule else np.ones(len(frames), bool)
+            recorded = np.log(np.maximum(ctx.exposure_s * ctx.gain, 1e-12))[frames]
+            allowed = held_out_flags(scales[:, 0], scales[:, 1], recorded) if rule else np.ones(len(frames), bool)
         for j, fr in enumerate(frames):  # loop over frames, not pixels
             if not own[j]:
                 logs[j] = i["log_scale"][fr]
@@ -132,14 +158,18 @@ class ExposureMetadataCause(Cause):
         return photometric_apply(predicted, (i["log_global"] + logs)[:, None, None, None], ctx.gamma_assumed)
 
 
-def held_out_flags(left: np.ndarray, right: np.ndarray) -> np.ndarray:
-    """Which frames [n] (capture order; log scales of their left / right halves [n]) the split-half rule
-    flags (`metadata_flags`): a held-out frame's exposure is corrected only where the test would call
-    its metadata wrong, so that the held-out gain is earned by the cause, not by a free gain per frame."""
+def held_out_flags(left: np.ndarray, right: np.ndarray, recorded_log: np.ndarray | None = None) -> np.ndarray:
+    """Which frames [n] (capture order; log scales of their left / right halves [n]; recorded log
+    exposure x gain [n]) the split-half rule flags (`metadata_flags`, or `recorded_glitch_flags`): a
+    held-out frame's exposure is corrected only where the test would call its metadata wrong, so that
+    the held-out gain is earned by the cause, not by a free gain per frame."""
     ok = np.isfinite(left) & np.isfinite(right)
     out = np.zeros(left.size, dtype=bool)
     if ok.sum() >= 4:
-        out[ok] = metadata_flags(left[ok] - np.median(left[ok]), right[ok] - np.median(right[ok]))[1]
+        a, b = left[ok] - np.median(left[ok]), right[ok] - np.median(right[ok])
+        out[ok] = metadata_flags(a, b)[1]
+        if recorded_log is not None:
+            out[ok] |= recorded_glitch_flags(a, b, np.asarray(recorded_log, float)[ok])
     return out
 
 
