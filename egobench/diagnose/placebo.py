@@ -385,6 +385,7 @@ def exposure_shift_placebo(x: np.ndarray, b: np.ndarray) -> dict:
     slopes = np.array([float(np.sum(np.roll(x, k) * b)) / xx for k in lags])
     sd = float(np.sqrt(np.mean(slopes ** 2))) if slopes.size else math.inf
     observed = float(np.sum(x * b)) / xx
+
     def acf(v: np.ndarray, j: int) -> float:
         return float(np.sum(v * np.roll(v, j)) / max(float(np.sum(v * v)), 1e-300))
 
