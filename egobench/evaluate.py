@@ -139,12 +139,17 @@ def _evaluate_frame(held: _Held, f: Frame, n: int, geo_rec: Recording | None, re
     return entry
 
 
+def _predict(held: _Held, f: Frame, n: int):
+    """The run's prediction of held-out frame ``f`` with ``n`` pose samples."""
+    run = held.run
+    return predict_frame(run.gaussians, held.recording, f, run.spec, run.camera, held.maps, held.k_of[f.index], n,
+                         held.settings, held.formation)
+
+
 def _render_pair(held: _Held, f: Frame, n: int):
     """(prediction, its 8-bit render [H, W, 3], the captured image at the run's size) of a held-out frame."""
-    run = held.run
-    p = predict_frame(run.gaussians, held.recording, f, run.spec, run.camera, held.maps, held.k_of[f.index], n,
-                      held.settings, held.formation)
-    return p, quantise8(p.image), resize_map(held.recording.load_image(f), run.camera)
+    p = _predict(held, f, n)
+    return p, quantise8(p.image), resize_map(held.recording.load_image(f), held.run.camera)
 
 
 def held_out_psnr(recording_dir, run_dir, device: str | None = None) -> list[float]:
@@ -157,22 +162,23 @@ def held_out_psnr(recording_dir, run_dir, device: str | None = None) -> list[flo
 
 
 def held_out_renders(recording_dir, run_dir, device: str | None = None):
-    """For each held-out frame of a synthetic recording: (scene colour [H, W, 3] as rasterized, opacity
-    [H, W], the simulator's clean radiance [H, W, 3] at the run's size, the run's formation model, its
-    method spec), numpy float32; writes nothing. A recording without ground-truth radiance is an error."""
+    """For each held-out frame of a synthetic recording: (the run's scene colour as linear radiance
+    [H, W, 3] (decoded when the method keeps it gamma-compressed), its opacity [H, W], the simulator's
+    clean radiance [H, W, 3] at the run's size), numpy float32; writes nothing. A recording without
+    ground-truth radiance is an error."""
     held = _held_out(recording_dir, run_dir, device)
-    run = held.run
+    spec = held.run.spec
     with torch.no_grad():
         for f, n in zip(held.frames, held.counts):
             path = held.recording.ground_truth_file("radiance", f)
             if path is None:
                 raise FileNotFoundError(f"{recording_dir}: ground_truth/radiance/{f.index:05d}.npy missing "
                                         "(the simulator's clean radiance of a held-out frame)")
-            p = predict_frame(run.gaussians, held.recording, f, run.spec, run.camera, held.maps, held.k_of[f.index], n,
-                              held.settings, held.formation)
-            radiance = resize_map(torch.from_numpy(np.load(path).astype(np.float32)), run.camera)
-            yield (p.rgb.float().numpy(), p.outs[0].alpha[0, ..., 0].float().cpu().numpy(), radiance.numpy(),
-                   held.formation, run.spec)
+            p = _predict(held, f, n)
+            rgb = p.rgb.float()
+            linear = held.formation.response.decode(rgb) if spec.scene_gamma else rgb
+            radiance = resize_map(torch.from_numpy(np.load(path).astype(np.float32)), held.run.camera)
+            yield linear.numpy(), p.outs[0].alpha[0, ..., 0].float().cpu().numpy(), radiance.numpy()
 
 
 def held_out_error_by_level(recording_dir, run_dir, edges: Sequence[float],

@@ -316,7 +316,7 @@ def response_from_exposure(fit: PhotometricFit, data: ResidualData, draws: int, 
     among the fitted frames left out (the frames the metadata test flags: their recorded exposure is
     what is in doubt, so it cannot carry a response test; at a fixed true exposure a wrong metadata
     is all the spread there is)."""
-    k = np.log(np.maximum(data.ctx.exposure_s * data.ctx.gain, 1e-12))
+    k = data.ctx.log_exposure_gain
     use = np.ones(fit.n_frames, bool)
     use[list(exclude or [])] = False
     k_used = k[data.frames][use]
@@ -452,7 +452,7 @@ def calibrate_photometric(data: ResidualData, results: list[CauseResult], draws:
     calibrated["white_balance"] = (min(1.0, 2.0 * min(tr.p_value, tb.p_value)),
                                    {"frame_t_r_b": [tr.t, tb.t], "frame_df": tr.df})
     tc = _t(est[:, 3], var[:, 3])
-    recorded_log = np.log(np.maximum(data.ctx.exposure_s * data.ctx.gain, 1e-12))[data.frames]
+    recorded_log = data.ctx.log_exposure_gain[data.frames]
     split = exposure_split_half(fit, cells, draws, np.random.default_rng([int(seed), 15]), recorded_log)
     resp = response_from_exposure(fit, data, draws, np.random.default_rng([int(seed), 22]),
                                   exclude=split.get("frames_flagged_in_both_halves"))

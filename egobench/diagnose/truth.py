@@ -45,8 +45,7 @@ def held_out_radiance_error(recording_dir, run_dir) -> float:
     from egobench.evaluate import held_out_renders
 
     model, truth, weight = [], [], []
-    for rgb, alpha, radiance, formation, spec in held_out_renders(recording_dir, run_dir):
-        lin = formation.response.decode(torch.from_numpy(rgb)).numpy() if spec.scene_gamma else rgb
+    for lin, alpha, radiance in held_out_renders(recording_dir, run_dir):
         ok = (alpha >= MIN_ALPHA) & (radiance.min(-1) > 0) & (lin.min(-1) > 0)
         model.append(lin[ok])
         truth.append(radiance[ok])

@@ -148,7 +148,7 @@ class ExposureMetadataCause(Cause):
             rule = bool(i.get("held_out_rule"))  # the halves of every frame are needed only for the rule
             scales = np.array([_pixel_log_scales(measured[j], predicted[j], ctx, fit_mask, i["log_global"])
                                if rule or own[j] else (np.nan, np.nan, 0.0) for j in range(len(frames))])
-            recorded = np.log(np.maximum(ctx.exposure_s * ctx.gain, 1e-12))[frames]
+            recorded = ctx.log_exposure_gain[frames]
             allowed = held_out_flags(scales[:, 0], scales[:, 1], recorded) if rule else np.ones(len(frames), bool)
         for j, fr in enumerate(frames):  # loop over frames, not pixels
             if not own[j]:

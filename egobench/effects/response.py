@@ -40,7 +40,7 @@ class ResponseCause(Cause):
         i = result.internal
         log_factor = np.full((1, 1, 1, 1), i["log_global"])
         if "exposure_slope" in i:  # trained run (egobench.diagnose.placebo): k_f^(a - 1) per frame
-            log_k = np.log(np.maximum(ctx.exposure_s * ctx.gain, 1e-12))[np.asarray(frames)]
+            log_k = ctx.log_exposure_gain[np.asarray(frames)]
             log_factor = log_factor + (i["exposure_slope"] * (log_k - i["log_k_mean"]))[:, None, None, None]
         return photometric_apply(predicted, log_factor, ctx.gamma_assumed, power=i["c"], log_p0=i["log_p0"])
 

@@ -94,6 +94,10 @@ class DiagnosisContext:
         return self
 
     @property
+    def log_exposure_gain(self) -> np.ndarray:  # [F] log of the recorded exposure x gain
+        return np.log(np.maximum(np.asarray(self.exposure_s) * np.asarray(self.gain), 1e-12))
+
+    @property
     def held_out(self) -> np.ndarray:  # [F] bool
         return (np.asarray(self.frame_index) % int(self.holdout_every)) == 0
 
