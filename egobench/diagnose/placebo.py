@@ -34,7 +34,8 @@ import numpy as np
 import scipy.stats as sps
 
 from egobench.effects import EFFECTS
-from egobench.effects.exposure_metadata import FLAG_SIGMAS, GLITCH_FOLLOW, metadata_flags, recorded_glitch_flags
+from egobench.effects.exposure_metadata import (FLAG_SIGMAS, GLITCH_FOLLOW, metadata_flags, recorded_glitch_flags,
+                                                where_a_fixed_record_departs)
 from egobench.effects.vignette import coverage_corner_deficit, coverage_explains
 from egobench.residual.estimation import BLOCK_PX, CauseResult, PhotometricFit, ResidualData
 from egobench.residual.signatures import frame_t_test, robust_sd, weighted_lstsq
@@ -211,6 +212,10 @@ def exposure_split_half(fit: PhotometricFit, cells: _Cells, draws: int, rng: np.
     p = float((1 + np.sum(placebo >= observed)) / (1 + draws))
     off, flags, threshold = metadata_flags(a, b)
     view_shared = np.flatnonzero(ok)[off & ~flags]
+    unchanged = np.zeros_like(flags)
+    if recorded_log is not None:
+        kept = where_a_fixed_record_departs(flags, a, b, recorded_log[ok])
+        flags, unchanged = kept, flags & ~kept
     glitch = (recorded_glitch_flags(a, b, recorded_log[ok]) & ~flags if recorded_log is not None
               else np.zeros_like(flags))
     frames = np.flatnonzero(ok)[flags | glitch]
@@ -224,6 +229,7 @@ def exposure_split_half(fit: PhotometricFit, cells: _Cells, draws: int, rng: np.
             "flag_threshold_log": threshold, "frames_flagged_in_both_halves": frames.tolist(),
             "frames_off_but_not_a_gain": not_gain.tolist(), "frames_off_with_their_view_neighbours": view_shared.tolist(),
             "frames_where_the_record_jumps_alone": np.flatnonzero(ok)[glitch].tolist(),
+            "frames_off_at_an_unchanged_fixed_record": np.flatnonzero(ok)[unchanged].tolist(),
             "robust_sd": threshold / FLAG_SIGMAS, "n_frames": int(a.size)}
 
 
@@ -461,7 +467,7 @@ def calibrate_photometric(data: ResidualData, results: list[CauseResult], draws:
     se["response"] = (resp.get("slope_sd_placebo", math.nan), max(fit.n_frames - 2, 2))
     if "frames_flagged_in_both_halves" in split:  # positions among the fitted frames -> the recording's frame indices
         for key in ("frames_flagged_in_both_halves", "frames_off_but_not_a_gain", "frames_off_with_their_view_neighbours",
-                    "frames_where_the_record_jumps_alone"):
+                    "frames_where_the_record_jumps_alone", "frames_off_at_an_unchanged_fixed_record"):
             split[key] = [int(data.ctx.frame_index[data.frames[i]]) for i in split[key]]
         if "exposure_metadata" in by_name:
             _metadata_estimate_from_split(by_name["exposure_metadata"], split["frames_flagged_in_both_halves"])

@@ -101,17 +101,39 @@ def recorded_glitch_flags(a: np.ndarray, b: np.ndarray, recorded_log: np.ndarray
     by itself, and neighbouring wrong records shift every contrast: no frame is flagged this way."""
     x = np.asarray(recorded_log, float)
     dx = x - np.median(x)
-    if np.mean(np.abs(dx) <= FIXED_RECORD_LOG) < FIXED_RECORD_SHARE:
+    if not record_is_fixed(x):
         return np.zeros(x.size, dtype=bool)
     ca, cb = view_contrast(a), view_contrast(b)
     need = np.maximum(GLITCH_FOLLOW * np.abs(dx), FLAG_MIN_LOG)
     return (np.abs(dx) >= FLAG_MIN_LOG) & (ca * dx < 0) & (cb * dx < 0) & (np.abs(ca) >= need) & (np.abs(cb) >= need)
 
 
+def record_is_fixed(recorded_log: np.ndarray) -> bool:
+    """Whether a record of log exposure x gain [n] is fixed: at least FIXED_RECORD_SHARE of the
+    frames record its median (within FIXED_RECORD_LOG)."""
+    x = np.asarray(recorded_log, float)
+    return bool(x.size) and float(np.mean(np.abs(x - np.median(x)) <= FIXED_RECORD_LOG)) >= FIXED_RECORD_SHARE
+
+
+def where_a_fixed_record_departs(flags: np.ndarray, a: np.ndarray, b: np.ndarray,
+                                 recorded_log: np.ndarray) -> np.ndarray:
+    """Flags [n] kept at a FIXED record (`record_is_fixed`): only frames whose own recorded log
+    exposure x gain departs from the median by at least FLAG_MIN_LOG while both halves' log scales
+    (a, b [n], centred) go the other way. At a fixed exposure setting a frame that brightens while its
+    record stays is the light (flicker) or the model's error; no image can show that record wrong.
+    An exposure that varies keeps every flag."""
+    x = np.asarray(recorded_log, float)
+    if not record_is_fixed(x):
+        return flags
+    dx = x - np.median(x)
+    return flags & (np.abs(dx) >= FLAG_MIN_LOG) & (a * dx < 0) & (b * dx < 0)
+
+
 class ExposureMetadataCause(Cause):
     """Per-frame exposure/gain metadata error: a global per-frame scale."""
 
     name = "exposure_metadata"
+    frame_local = True
 
     def fit(self, data: ResidualData) -> CauseResult:
         fit = data.photometric()
@@ -158,6 +180,13 @@ class ExposureMetadataCause(Cause):
         return photometric_apply(predicted, (i["log_global"] + logs)[:, None, None, None], ctx.gamma_assumed)
 
 
+    def apply_within_frames(self, predicted, result, ctx, measured, fit_mask):
+        """Every frame's scale from its own fit_mask pixels, where the split-half rule flags it."""
+        within = CauseResult(result.name, result.kind, result.testable, params=result.params,
+                             internal={**result.internal, "log_scale": {}})
+        return self.apply(predicted, within, ctx, np.arange(predicted.shape[0]), measured=measured, fit_mask=fit_mask)
+
+
 def held_out_flags(left: np.ndarray, right: np.ndarray, recorded_log: np.ndarray | None = None) -> np.ndarray:
     """Which frames [n] (capture order; log scales of their left / right halves [n]; recorded log
     exposure x gain [n]) the split-half rule flags (`metadata_flags`, or `recorded_glitch_flags`): a
@@ -169,7 +198,8 @@ def held_out_flags(left: np.ndarray, right: np.ndarray, recorded_log: np.ndarray
         a, b = left[ok] - np.median(left[ok]), right[ok] - np.median(right[ok])
         out[ok] = metadata_flags(a, b)[1]
         if recorded_log is not None:
-            out[ok] |= recorded_glitch_flags(a, b, np.asarray(recorded_log, float)[ok])
+            rec = np.asarray(recorded_log, float)[ok]
+            out[ok] = where_a_fixed_record_departs(out[ok], a, b, rec) | recorded_glitch_flags(a, b, rec)
     return out
 
 
@@ -197,7 +227,9 @@ class ExposureMetadata(Effect):
     cause_class = ExposureMetadataCause  # the diagnosis's estimator (egobench.residual.estimation)
     identifiability = (
         "only when the recorded exposure x gain varies or some frames are wrong against the others; a "
-        "model-error floor of 15 % on single frames applies on trained runs")
+        "model-error floor of 15 % on single frames applies on trained runs; at a fixed exposure x gain, "
+        "only on frames whose own record departs (a frame that brightens at an unchanged record is light "
+        "or model error)")
     trained_magnitudes = (0.25,)
     in_trained_sweep = True
     on_adt = True

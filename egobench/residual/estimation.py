@@ -313,6 +313,9 @@ class Cause:
     mean_affecting = True
     nests: tuple[str, ...] = ()  # causes whose model is a special case of this one's (ranking rule in core)
     nested_in: tuple[str, ...] = ()  # the converse, declared by the special case (a new effect's own file)
+    #: One parameter per frame (exposure metadata): it cannot generalise across frames, so a trained
+    #: run scores its gain on every frame's own held-out pixels (`apply_within_frames`, core).
+    frame_local = False
 
     def fit(self, data: ResidualData) -> CauseResult:  # pragma: no cover - interface
         raise NotImplementedError
@@ -320,6 +323,12 @@ class Cause:
     def apply(self, predicted: np.ndarray, result: CauseResult, ctx: DiagnosisContext, frames: np.ndarray,
               measured: np.ndarray | None = None, fit_mask: np.ndarray | None = None) -> np.ndarray:
         """Extend the prediction predicted [f, H, W, 3] (frames: positions in ctx) with the estimate."""
+        raise NotImplementedError  # pragma: no cover
+
+    def apply_within_frames(self, predicted: np.ndarray, result: CauseResult, ctx: DiagnosisContext,
+                            measured: np.ndarray, fit_mask: np.ndarray) -> np.ndarray:
+        """A frame_local cause: extend every frame of ctx [F, H, W, 3] with parameters estimated
+        from that frame's own fit_mask [H, W] pixels only (fitted frames' joint-fit values unused)."""
         raise NotImplementedError  # pragma: no cover
 
     def _untestable(self, reason: str) -> CauseResult:
