@@ -8,6 +8,8 @@ from pathlib import Path
 import pytest
 import torch
 
+from tests import background
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
 #: Real Project Aria files (see ../shared/data/NOTICE.md); override with EGOBENCH_SHARED_DATA.
 SHARED_DATA = Path(os.environ.get("EGOBENCH_SHARED_DATA", REPO_ROOT.parent / "shared" / "data"))
@@ -23,16 +25,14 @@ def shared_data() -> Path:
 
 @pytest.hookimpl(trylast=True)  # after -m / -k deselection: only the tests that will run
 def pytest_collection_modifyitems(config, items):
-    """Start the background work of the selected tests' modules (a module's ``start_background()``)
-    now, so that their single-threaded subprocesses (a cold numba compile) overlap the rest of the
-    suite on a second core; the tests then wait for it."""
-    started = set()
+    """Submit the background jobs of the selected tests (a module's ``BACKGROUND``: test name -> job)
+    now (`tests.background`), so that their subprocesses (a cold numba compile, the CI workflow) overlap
+    the rest of the suite on a second core; each test then waits for its job."""
     for item in items:
         module = getattr(item, "module", None)
-        start = getattr(module, "start_background", None)
-        if start is not None and module not in started:
-            started.add(module)
-            start()
+        job = getattr(module, "BACKGROUND", {}).get(getattr(item, "originalname", item.name))
+        if job is not None:
+            background.submit(background.key_of(module.__name__, item.originalname), job)
 
 
 @pytest.fixture(autouse=True)

@@ -8,8 +8,9 @@ import shutil
 import subprocess
 import sys
 import tempfile
-import threading
 from pathlib import Path
+
+from tests import background
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -41,47 +42,27 @@ def _digest(cache_dir: Path) -> str:
     return done.stdout.strip().splitlines()[-1]
 
 
-class _ColdThenWarm(threading.Thread):
-    """The two digests in a background thread: compile into an empty cache, list what it cached, then
-    load from that cache (conftest starts it after collection; the test joins it)."""
-
-    def __init__(self) -> None:
-        super().__init__(daemon=True)
-        self.tmp = Path(tempfile.mkdtemp(prefix="egobench_numba_cache_"))
-        self.cold = self.warm = None
-        self.index_files: list[str] = []
-        self.error: BaseException | None = None
-
-    def run(self) -> None:
-        try:
-            cache = self.tmp / "numba_cache"
-            self.cold = _digest(cache)
-            self.index_files = [p.name for p in cache.rglob("*.nbi")]
-            self.warm = _digest(cache)
-        except BaseException as exc:  # re-raised in the test
-            self.error = exc
+def _cold_then_warm() -> dict:
+    """The two digests (run in the background, `tests.background`): compile into an empty cache, list
+    what it cached, then load from that cache."""
+    tmp = Path(tempfile.mkdtemp(prefix="egobench_numba_cache_"))
+    try:
+        cache = tmp / "numba_cache"
+        cold = _digest(cache)
+        index_files = [p.name for p in cache.rglob("*.nbi")]
+        return {"cold": cold, "index_files": index_files, "warm": _digest(cache)}
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
-_JOB: list[_ColdThenWarm] = []
-
-
-def start_background() -> None:
-    """Called by conftest once this module's test is selected."""
-    if not _JOB:
-        _JOB.append(_ColdThenWarm())
-        _JOB[0].start()
+BACKGROUND = {"test_compiled_and_cached_kernels_give_the_same_bits": _cold_then_warm}
 
 
 def test_compiled_and_cached_kernels_give_the_same_bits():
     """Before the surfel backward dropped 'contract' and 'nsz', its geometric gradients differed in the
     last bits between the compiling process and the cached code (the first 2DGS job of a suite trained
     to 19.38 dB, the same job on a warm cache to 19.23)."""
-    start_background()  # (already running when conftest started it)
-    job = _JOB[0]
-    job.join(timeout=1300)
-    shutil.rmtree(job.tmp, ignore_errors=True)
-    assert not job.is_alive(), "the cold/warm digests did not finish in time"
-    if job.error is not None:
-        raise job.error
-    assert any("2dgs" in n for n in job.index_files) and any("raster_bwd" in n for n in job.index_files)
-    assert job.cold and job.warm == job.cold
+    job = background.submit(background.key_of(__name__, "test_compiled_and_cached_kernels_give_the_same_bits"),
+                            _cold_then_warm).result(timeout=1300)
+    assert any("2dgs" in n for n in job["index_files"]) and any("raster_bwd" in n for n in job["index_files"])
+    assert job["cold"] and job["warm"] == job["cold"]

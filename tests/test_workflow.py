@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import importlib
 import os
+import shutil
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -13,8 +15,9 @@ import pandas as pd
 import pytest
 import yaml
 
-from egobench.workflow import config as wc
 from egobench.io_utils import read_json
+from egobench.workflow import config as wc
+from tests import background
 
 REPO = Path(__file__).resolve().parents[1]
 SNAKEMAKE = [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile")]
@@ -255,9 +258,26 @@ def test_bad_config_fails_before_any_job(tmp_path, edit, key):
 # A real run of the smoke suite (needs every verb the rules call).
 
 
+def _ci_suite() -> tuple[subprocess.CompletedProcess, Path]:
+    """The CI suite run into a fresh folder (in the background, `tests.background`) -> (result, folder)."""
+    workdir = Path(tempfile.mkdtemp(prefix="egobench_ci_suite_"))
+    return snakemake(["--cores", "2", "--configfile", str(REPO / "config" / "ci.yaml")], workdir, timeout=900), workdir
+
+
+BACKGROUND = {"test_ci_suite_runs_end_to_end": _ci_suite}
+
+
 @pytest.mark.slow
-def test_ci_suite_runs_end_to_end(tmp_path):
-    res = snakemake(["--cores", "2", "--configfile", str(REPO / "config" / "ci.yaml")], tmp_path, timeout=900)
+def test_ci_suite_runs_end_to_end():
+    res, tmp_path = background.submit(background.key_of(__name__, "test_ci_suite_runs_end_to_end"),
+                                      _ci_suite).result(timeout=1200)
+    try:
+        _check_ci_suite(res, tmp_path)
+    finally:
+        shutil.rmtree(tmp_path, ignore_errors=True)
+
+
+def _check_ci_suite(res: subprocess.CompletedProcess, tmp_path: Path) -> None:
     logs = "\n".join(p.read_text()[-2000:] for p in (tmp_path / "results").rglob("*.log")) if res.returncode else ""
     assert res.returncode == 0, res.stderr[-4000:] + logs
     root = tmp_path / "results" / "ci"
