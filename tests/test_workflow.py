@@ -259,7 +259,15 @@ def test_bad_config_fails_before_any_job(tmp_path, edit, key):
 
 
 def _ci_suite() -> tuple[subprocess.CompletedProcess, Path]:
-    """The CI suite run into a fresh folder (in the background, `tests.background`) -> (result, folder)."""
+    """The CI suite run into a fresh folder (in the background, `tests.background`) -> (result, folder).
+    The compiled rasterizer's kernels are compiled (or loaded) here first, in the test process, so that
+    on a cold numba cache the suite's jobs load them instead of each compiling them side by side."""
+    import torch
+
+    from tests.test_render import pose
+    from tests.test_render_cpu import CAM, edge_case_scene, run
+
+    run(edge_case_scene(3, torch.float32), CAM, pose(0.1, -0.05, (0.02, 0.0, 0.0)).to(torch.float32), "cpu")
     workdir = Path(tempfile.mkdtemp(prefix="egobench_ci_suite_"))
     return snakemake(["--cores", "2", "--configfile", str(REPO / "config" / "ci.yaml")], workdir, timeout=900), workdir
 
