@@ -3,12 +3,23 @@
 from __future__ import annotations
 
 import os
-from pathlib import Path
 
-import pytest
-import torch
+# One thread per process, as Snakemake runs its workers (set before torch and numpy load their thread
+# pools): torch's and OpenBLAS's pools spinning on the suite's small arrays cost more than they give,
+# and the background jobs (`tests.background`) get the second core (warm suite on 2 cores: 333 s with
+# the libraries' defaults, 251 s like this). numba's pool keeps every core, so the thread-count tests
+# still compare 1 against 2 (the compiled kernels otherwise follow torch's count). Subprocesses (the
+# CLI, the workflow's jobs) inherit these unless they are set already.
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("NUMBA_NUM_THREADS", str(os.cpu_count() or 1))
 
-from tests import background
+from pathlib import Path  # noqa: E402
+
+import pytest  # noqa: E402
+import torch  # noqa: E402
+
+from tests import background  # noqa: E402
+
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 #: Real Project Aria files (see ../shared/data/NOTICE.md); override with EGOBENCH_SHARED_DATA.
