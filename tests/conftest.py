@@ -6,8 +6,8 @@ import os
 
 # One thread per process, as Snakemake runs its workers (set before torch and numpy load their thread
 # pools): torch's and OpenBLAS's pools spinning on the suite's small arrays cost more than they give,
-# and the background jobs (`tests.background`) get the second core (warm suite on 2 cores: 333 s with
-# the libraries' defaults, 251 s like this). numba's pool keeps every core, so the thread-count tests
+# and the background jobs (`tests.background`) get the second core (warm suite on 2 cores: 333-338 s
+# with the libraries' defaults, 283-319 s like this). numba's pool keeps every core, so the thread-count tests
 # still compare 1 against 2 (the compiled kernels otherwise follow torch's count). Subprocesses (the
 # CLI, the workflow's jobs) inherit these unless they are set already.
 os.environ.setdefault("OMP_NUM_THREADS", "1")
@@ -40,10 +40,17 @@ def pytest_collection_modifyitems(config, items):
     now (`tests.background`), so that their subprocesses (a cold numba compile, the CI workflow) overlap
     the rest of the suite on a second core; each test then waits for its job."""
     for item in items:
-        module = getattr(item, "module", None)
-        job = getattr(module, "BACKGROUND", {}).get(getattr(item, "originalname", item.name))
-        if job is not None:
-            background.submit(background.key_of(module.__name__, item.originalname), job)
+        if getattr(item, "module", None) is not None:
+            background.start(item.module, getattr(item, "originalname", item.name))
+
+
+@pytest.fixture
+def two_kernel_threads() -> None:
+    """Skip, saying why, where numba's pool has one thread: a 1-against-2-thread test would compare 1 with 1."""
+    import numba
+
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("numba's pool has one thread (NUMBA_NUM_THREADS / OMP_NUM_THREADS=1): nothing to compare")
 
 
 @pytest.fixture(autouse=True)

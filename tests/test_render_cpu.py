@@ -153,11 +153,7 @@ def test_absgrad_matches_torch_backend_at_equal_tile_size():
     torch.testing.assert_close(outs[0], outs[1], atol=1e-10, rtol=1e-8)
 
 
-def test_deterministic_across_runs_and_threads():
-    import numba
-
-    if numba.config.NUMBA_NUM_THREADS < 2:
-        pytest.skip("numba's pool has one thread (NUMBA_NUM_THREADS / OMP_NUM_THREADS=1): nothing to compare")
+def test_deterministic_across_runs_and_threads(two_kernel_threads):
     g = Gaussians(**{k: v.float() for k, v in make_scene(3000, Pinhole(fx=60.0, fy=60.0, cx=63.5, cy=47.5, width=128,
                                                                              height=96), 8).tensors().items()})
     cam = Pinhole(fx=60.0, fy=60.0, cx=63.5, cy=47.5, width=128, height=96)

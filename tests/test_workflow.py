@@ -277,8 +277,7 @@ BACKGROUND = {"test_ci_suite_runs_end_to_end": _ci_suite}
 
 @pytest.mark.slow
 def test_ci_suite_runs_end_to_end():
-    res, tmp_path = background.submit(background.key_of(__name__, "test_ci_suite_runs_end_to_end"),
-                                      _ci_suite).result(timeout=1200)
+    res, tmp_path = background.start(sys.modules[__name__], "test_ci_suite_runs_end_to_end").result(timeout=1200)
     try:
         _check_ci_suite(res, tmp_path)
     finally:

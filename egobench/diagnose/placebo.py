@@ -34,8 +34,7 @@ import numpy as np
 import scipy.stats as sps
 
 from egobench.effects import EFFECTS
-from egobench.effects.exposure_metadata import (FLAG_SIGMAS, GLITCH_FOLLOW, metadata_flags, recorded_glitch_flags,
-                                                where_a_fixed_record_departs)
+from egobench.effects.exposure_metadata import FLAG_SIGMAS, GLITCH_FOLLOW, metadata_flags, record_aware_flags
 from egobench.effects.vignette import coverage_corner_deficit, coverage_explains
 from egobench.residual.estimation import BLOCK_PX, CauseResult, PhotometricFit, ResidualData
 from egobench.residual.signatures import frame_t_test, robust_sd, weighted_lstsq
@@ -212,12 +211,7 @@ def exposure_split_half(fit: PhotometricFit, cells: _Cells, draws: int, rng: np.
     p = float((1 + np.sum(placebo >= observed)) / (1 + draws))
     off, flags, threshold = metadata_flags(a, b)
     view_shared = np.flatnonzero(ok)[off & ~flags]
-    unchanged = np.zeros_like(flags)
-    if recorded_log is not None:
-        kept = where_a_fixed_record_departs(flags, a, b, recorded_log[ok])
-        flags, unchanged = kept, flags & ~kept
-    glitch = (recorded_glitch_flags(a, b, recorded_log[ok]) & ~flags if recorded_log is not None
-              else np.zeros_like(flags))
+    flags, unchanged, glitch = record_aware_flags(flags, a, b, None if recorded_log is None else recorded_log[ok])
     frames = np.flatnonzero(ok)[flags | glitch]
     not_gain = frames[~gain_like(fit, cells, frames)]
     frames = np.setdiff1d(frames, not_gain)

@@ -129,6 +129,21 @@ def where_a_fixed_record_departs(flags: np.ndarray, a: np.ndarray, b: np.ndarray
     return flags & (np.abs(dx) >= FLAG_MIN_LOG) & (a * dx < 0) & (b * dx < 0)
 
 
+def record_aware_flags(flags: np.ndarray, a: np.ndarray, b: np.ndarray, recorded_log: np.ndarray | None
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Split-half flags [n] (capture order; a, b centred log scales of the halves [n]) checked against
+    the recorded log exposure x gain [n] (None: no record) -> (flags kept (`where_a_fixed_record_departs`),
+    flags dropped because a fixed record did not change there, frames flagged by the record's own
+    glitches besides the kept ones (`recorded_glitch_flags`)). The split-half test and the held-out
+    rule (`held_out_flags`) both flag this way."""
+    if recorded_log is None:
+        none = np.zeros_like(flags)
+        return flags, none, none
+    rec = np.asarray(recorded_log, float)
+    kept = where_a_fixed_record_departs(flags, a, b, rec)
+    return kept, flags & ~kept, recorded_glitch_flags(a, b, rec) & ~kept
+
+
 class ExposureMetadataCause(Cause):
     """Per-frame exposure/gain metadata error: a global per-frame scale."""
 
@@ -179,7 +194,6 @@ class ExposureMetadataCause(Cause):
                 logs[j] = scales[j, 2]
         return photometric_apply(predicted, (i["log_global"] + logs)[:, None, None, None], ctx.gamma_assumed)
 
-
     def apply_within_frames(self, predicted, result, ctx, measured, fit_mask):
         """Every frame's scale from its own fit_mask pixels, where the split-half rule flags it."""
         within = CauseResult(result.name, result.kind, result.testable, params=result.params,
@@ -196,10 +210,9 @@ def held_out_flags(left: np.ndarray, right: np.ndarray, recorded_log: np.ndarray
     out = np.zeros(left.size, dtype=bool)
     if ok.sum() >= 4:
         a, b = left[ok] - np.median(left[ok]), right[ok] - np.median(right[ok])
-        out[ok] = metadata_flags(a, b)[1]
-        if recorded_log is not None:
-            rec = np.asarray(recorded_log, float)[ok]
-            out[ok] = where_a_fixed_record_departs(out[ok], a, b, rec) | recorded_glitch_flags(a, b, rec)
+        rec = None if recorded_log is None else np.asarray(recorded_log, float)[ok]
+        kept, _, glitch = record_aware_flags(metadata_flags(a, b)[1], a, b, rec)
+        out[ok] = kept | glitch
     return out
 
 
