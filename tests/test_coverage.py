@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from egobench.data.coverage import _gt_depth, _lift, _seen_in, heldout_coverage
+from egobench.data.coverage import _gt_depth, _lift, _seen_in, heldout_coverage, training_view_count
 from egobench.data.reader import load_recording
 from tests.helpers import small_recording
 
@@ -67,3 +67,27 @@ def test_coverage_matches_a_dense_reference(recording):
 def test_coverage_needs_ground_truth(recording):
     with pytest.raises(ValueError, match="ground-truth depth"):
         heldout_coverage(dataclasses.replace(recording, ground_truth=None))
+
+
+def test_training_view_count_is_the_number_of_training_frames_that_hold_each_surface(recording):
+    """Every training frame moved to the held-out frame's pose holds each of its surfaces: the count is
+    the number of training frames wherever the pixel has depth and lies in the valid area, else 0; one
+    of them turned 180 deg holds none; a coarse grid repeats its samples' counts blockwise."""
+    f = recording.test_frames[0]
+    depth = _gt_depth(recording, f)
+    depth[:4] = 0.0  # no surface rendered in the top rows
+    stacked = dataclasses.replace(recording, frames=[
+        dataclasses.replace(g, T_world_camera=f.T_world_camera.clone()) if g.index % 8 else g for g in recording.frames])
+    n_train = len(stacked.train_frames)
+    count = training_view_count(stacked, f, depth)
+    valid = recording.mask.numpy().astype(bool) & (depth > 0)
+    assert count.shape == depth.shape and n_train == 14
+    assert np.all(count[valid] == n_train) and np.all(count[depth == 0] == 0)
+    away = f.T_world_camera.clone()
+    away[:3, :3] = away[:3, :3] @ torch.diag(torch.tensor([-1.0, 1.0, -1.0], dtype=away.dtype))
+    one_away = _with_pose(stacked, stacked.train_frames[0].index, away)
+    assert np.all(training_view_count(one_away, f, depth)[valid] == n_train - 1)
+    real = training_view_count(recording, f, depth)
+    coarse = training_view_count(recording, f, depth, max_grid=8)  # stride 4: samples at 2, 6, ..., 30
+    assert np.array_equal(coarse, np.repeat(np.repeat(real[2::4, 2::4], 4, 0), 4, 1))
+    assert real[valid].min() < real[valid].max() <= n_train  # the real walk: some surfaces in few views or none

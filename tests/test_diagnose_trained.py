@@ -830,6 +830,44 @@ def test_renders_dark_at_the_corners_where_the_model_covers_less_are_not_a_vigne
     assert real.testable and named[:1] == ["vignette"]
 
 
+def _few_views_map(F: int, H: int, W: int, principal_point) -> np.ndarray:
+    """[F, H, W] training-view counts of a walk with head turns: 20 at the centre, fewer toward the
+    corners, and fewer still at the turn's leading edge (left in even frames, right in odd ones)."""
+    from egobench.residual.signatures import radial_coordinates
+
+    _, _, r = radial_coordinates(H, W, principal_point)
+    x = (np.arange(W) - principal_point[0]) / (W / 2.0)
+    side = np.where(np.arange(F) % 2 == 0, -1.0, 1.0)[:, None, None]
+    return (20.0 * (1.0 - 0.6 * r**2)[None] * (1.0 - 0.3 * side * x[None, None, :])).astype(np.float32)
+
+
+def test_renders_off_where_few_training_views_saw_the_surface_are_not_a_vignette():
+    """A model under-fits content few training views saw (the periphery, a turn's leading edge) and
+    renders it darker there at full opacity, as the hard indoor null_s5 of seed offset 3000 did
+    (corner attenuation -0.15, opacity deficit 0.08). The vignette test without the view counts names
+    it; with the counts as a nuisance it does not, because the darkening follows the counts, which
+    differ at the same radius between the two turn directions; a real lens shading is still named."""
+    null = make_case(None, seed=3)
+    F, H, W, _ = null.predicted.shape
+    views = _few_views_map(F, H, W, null.context.principal_point)
+    under_fit = np.exp(0.12 * np.log(views / 20.0))[..., None] ** (1 / 2.2)  # linear x (count / 20)^0.12
+    ones = np.ones((F, H, W), np.float32)
+
+    def diagnose(case, pred, counts):
+        ctx = dataclasses.replace(case.context, render_alpha=ones, train_view_count=counts)
+        d = diagnose_residuals(case.measured, np.clip(pred, 0, 1).astype(np.float32), ctx, TRAINED)
+        return next(x for x in d.rounds[0] if x.name == "vignette"), [n.name for n in d.named]
+
+    pred = model_error(null.predicted, 5, amp=0.02) * under_fit
+    blind, named = diagnose(null, pred, None)
+    assert blind.params["corner_attenuation"] < -0.05 and named[:1] == ["vignette"]  # the old test is fooled
+    seen, named = diagnose(null, pred, views)
+    assert "vignette" not in named and seen.p_value > 0.01
+    case = make_case("vignette", 0.35, seed=3)
+    real, named = diagnose(case, model_error(case.predicted, 5, amp=0.02) * under_fit, views)
+    assert named[:1] == ["vignette"] and real.params["corner_attenuation"] > 0.2
+
+
 def test_a_sweeps_further_simulation_settings_are_typed_checked_and_reach_every_recording(tmp_path, monkeypatch):
     """--sweep-sim FIELD=VALUE pairs become SimConfig fields of every case's recording (the hard cases'
     fixed 1 ms exposure), the seed offset moves every simulation seed, and a wrong field is named."""

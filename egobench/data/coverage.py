@@ -81,4 +81,34 @@ def heldout_coverage(recording: Recording, stride: int = STRIDE_PX) -> dict[int,
     return out
 
 
-__all__ = ["heldout_coverage", "DEPTH_TOLERANCE", "STRIDE_PX"]
+def training_view_count(recording: Recording, frame: Frame, depth_m: np.ndarray, max_grid: int = 96) -> np.ndarray:
+    """[H, W] float32: how many of the recording's training frames hold each pixel's surface inside
+    their valid image area (no occlusion test). ``depth_m`` [H, W]: the pixel's z in the rectified
+    camera (a trained model's rendered depth; 0 = no surface -> 0 views). Evaluated on a grid of at
+    most ``max_grid`` points a side, each point's count filling its stride x stride block.
+
+    Content seen in few training views (a turn's leading edge, the periphery) is fitted worse; the
+    count separates that under-fit from a lens shading, which follows the radius alone (issue 27)."""
+    cam, mask = recording.camera, recording.mask.numpy().astype(bool)
+    H, W = depth_m.shape
+    stride = max(1, -(-max(H, W) // max_grid))
+    v, u = np.mgrid[stride // 2:H:stride, stride // 2:W:stride]
+    z = np.asarray(depth_m, dtype=np.float64)[v, u]
+    keep = z > 0
+    rays = cam.unproject(torch.from_numpy(np.stack([u[keep], v[keep]], axis=1).astype(np.float64))).numpy()
+    T = frame.T_world_camera.numpy()
+    pts = (rays * z[keep][:, None]) @ T[:3, :3].T + T[:3, 3]
+    count = np.zeros(len(pts), np.float32)
+    for g in recording.train_frames:
+        Tg = g.T_world_camera.numpy()
+        pix, front = cam.project(torch.from_numpy((pts - Tg[:3, 3]) @ Tg[:3, :3]))
+        uv = np.rint(pix.numpy()).astype(np.int64)
+        inside = front.numpy() & (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
+        inside[inside] = mask[uv[inside, 1], uv[inside, 0]]
+        count += inside
+    grid = np.zeros(v.shape, np.float32)
+    grid[keep] = count
+    return np.repeat(np.repeat(grid, stride, axis=0), stride, axis=1)[:H, :W]
+
+
+__all__ = ["heldout_coverage", "training_view_count", "DEPTH_TOLERANCE", "STRIDE_PX"]

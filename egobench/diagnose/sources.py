@@ -346,6 +346,7 @@ def run_source(recording_dir: str | Path, run_dir: str | Path, max_frames: int |
     from tqdm import tqdm
 
     from egobench.data import load_recording
+    from egobench.data.coverage import training_view_count
     from egobench.model.predict import (RenderSettings, formation_model, method_normaliser, predict_frame, run_maps,
                                         sample_counts)
     from egobench.train.checkpoint import load_trained_run
@@ -365,7 +366,7 @@ def run_source(recording_dir: str | Path, run_dir: str | Path, max_frames: int |
         if int(pose_samples) != pose_samples or pose_samples < 1:
             raise ValueError(f"pose_samples: expected a positive integer, got {pose_samples!r}")
         counts = [int(pose_samples) if n > 1 else 1 for n in counts]
-    measured, predicted, velocity, coverage = [], [], [], []
+    measured, predicted, velocity, coverage, views = [], [], [], [], []
     pairs = list(zip(frames, counts))
     with torch.no_grad():
         for f, n in tqdm(pairs, desc="render run", unit="frame", disable=not progress):
@@ -376,10 +377,12 @@ def run_source(recording_dir: str | Path, run_dir: str | Path, max_frames: int |
             alpha = p.outs[0].alpha[0, ..., 0].cpu().numpy()
             coverage.append(alpha.astype(np.float32))
             velocity.append(pixel_velocity(rec, f, np.where(alpha > 0.5, depth, 0.0)))
+            views.append(training_view_count(rec, f, np.where(alpha > 0.5, depth, 0.0)))
     meta = {"recording": str(recording_dir), "run": str(run_dir), "method": spec.name,
             "source": f"renders of trained run ({spec.name})", "pose_samples": pose_samples or "the run's own"}
     pred = np.stack(predicted)
     ctx = run_context(recording_dir, rec, frames, pred, np.stack(velocity), float(getattr(spec, "response_gamma", 2.2)),
                       spec.calibration, meta)
     ctx.render_alpha = np.stack(coverage)
+    ctx.train_view_count = np.stack(views)
     return Sources(np.stack(measured), pred, ctx, meta["source"])

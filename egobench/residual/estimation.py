@@ -213,6 +213,11 @@ class PhotometricFit:
         self.r2 = (r2 / np.maximum(n, 1)).ravel()[sel]
         self.r4 = (r4 / np.maximum(n, 1)).ravel()[sel]
         self.log_p = log_p.ravel()[sel]
+        self.log_views = None  # [n] cell mean log(1 + training views of its surface), centred; trained runs only
+        if ctx.train_view_count is not None:
+            lv = np.broadcast_to(np.log1p(ctx.train_view_count[data.frames])[..., None], mask.shape)
+            lv = (block_sum(lv * mask, block) / np.maximum(n, 1)).ravel()[sel]
+            self.log_views = lv - float(np.average(lv, weights=self.w)) if self.n_cells else lv
         self.log_p0 = float(np.average(self.log_p, weights=self.w)) if self.n_cells else 0.0
         self.n_frames = f_count
         self.trimmed = np.zeros(self.n_cells, dtype=bool)

@@ -44,6 +44,7 @@ class DiagnosisContext:
     lens_radial_k: tuple[float, ...] | None = None  # Fisheye624 k0..k5 of the calibration used to rectify (distortion signature); None: pure theta^3 law
     noise_reference: np.ndarray | None = None  # [F, H, W, 3] one draw of the ASSUMED noise through the same capture pipeline (noisy prediction - prediction, display); calibrates the noise test for resampling/quantisation
     render_alpha: np.ndarray | None = None  # [F, H, W] a trained model's accumulated opacity (its coverage of each pixel); None: not a trained run
+    train_view_count: np.ndarray | None = None  # [F, H, W] training frames whose image holds each pixel's rendered surface (`coverage.training_view_count`); None: not a trained run
     holdout_every: int = 8  # every n-th frame (by index) is held out for the gain measurement
     quantisation_level: float = LEVEL  # display step of the measured images (1/255 for 8-bit)
     meta: dict = field(default_factory=dict)  # free-form provenance (recording, source of the prediction)
@@ -69,6 +70,8 @@ class DiagnosisContext:
             self.pixel_velocity_px_s = shape("pixel_velocity_px_s", (n_frames, height, width, 2)).astype(np.float32)
         if self.render_alpha is not None:
             self.render_alpha = shape("render_alpha", (n_frames, height, width)).astype(np.float32)
+        if self.train_view_count is not None:
+            self.train_view_count = shape("train_view_count", (n_frames, height, width)).astype(np.float32)
         if self.noise_reference is not None:
             self.noise_reference = shape("noise_reference", (n_frames, height, width, 3)).astype(np.float64)
         for name in ("noise_shot", "noise_read"):
