@@ -58,7 +58,51 @@ def host_info() -> dict[str, object]:
     return {"cpu_model": cpu_model(), "cpu_count": os.cpu_count(), "vector_isa": vector_isa(),
             "kernel_target": kernel_target,
             "torch_cpu_capability": torch.backends.cpu.get_cpu_capability(),
+            "threads": {"torch": torch.get_num_threads(), "kernels": _kernel_threads()},
             "versions": versions()}
+
+
+def _kernel_threads() -> int:
+    """The compiled kernels' thread count as `render.cpu_backend.raster_threads` sets it (at most numba's pool)."""
+    try:
+        import numba
+
+        from egobench.render.cpu_backend import raster_threads
+
+        return max(1, min(raster_threads(), numba.config.NUMBA_NUM_THREADS))
+    except ImportError:  # pragma: no cover - numba is a dependency
+        return 1
+
+
+#: environment variables by which a user (or Snakemake, which exports OMP_NUM_THREADS={threads} to
+#: every job) has chosen thread counts; with any of them set, `default_threads` changes nothing.
+THREAD_ENV = ("OMP_NUM_THREADS", "EGOBENCH_RASTER_THREADS", "NUMBA_NUM_THREADS")
+
+
+def usable_cores() -> int:
+    """The cores this process may run on (its CPU affinity where the OS reports it, else os.cpu_count)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - macOS and Windows have no affinity call
+        return os.cpu_count() or 1
+
+
+def default_threads(environ=None) -> dict[str, int] | None:
+    """A CPU training run's threads when nobody chose them: torch's glue on one thread and the
+    compiled kernels on every usable core (sets EGOBENCH_RASTER_THREADS in ``environ``, default
+    os.environ, and torch's count to 1). Torch's OpenMP pool forks and joins on every small tensor
+    of the glue and spins between them, so more torch threads gain nothing at the CPU's image sizes,
+    while the kernels' tiles run in parallel (docs/cpu-rasterizer.md, "Two threads").
+    -> {"torch": 1, "kernels": n}, or None where THREAD_ENV holds a choice (left as it is)."""
+    import torch
+
+    env = os.environ if environ is None else environ
+    if any(env.get(name) for name in THREAD_ENV):
+        return None
+    n = usable_cores()
+    env["EGOBENCH_RASTER_THREADS"] = str(n)
+    torch.set_num_threads(1)
+    return {"torch": 1, "kernels": n}
 
 
 def versions() -> dict[str, str]:

@@ -48,7 +48,7 @@ def test_bench_raster_record_small():
     assert rs["pose_samples"] == 8 and rs["ratio"] > 0
 
 
-def test_bench_raster_compares_backends_and_threads():
+def test_bench_raster_compares_backends_and_threads(two_kernel_threads):
     rec = bench.bench_raster("cpu", repeats=1, cases=((16, 40, 2.5),))
     assert rec["backends"] == ["cpu", "torch"]  # on the CPU, auto compares the compiled backend with torch
     case = rec["cases"][0]
@@ -177,7 +177,7 @@ def test_chunked_cast_does_not_depend_on_the_chunk_size():
         assert torch.equal(other["radiance"], outs[0]["radiance"]) and torch.equal(other["depth_t"], outs[0]["depth_t"])
 
 
-def test_bench_raster_both_gives_the_2dgs_to_3dgs_ratio_and_thread_speedups():
+def test_bench_raster_both_gives_the_2dgs_to_3dgs_ratio_and_thread_speedups(two_kernel_threads):
     rec = bench.bench_raster_both("cpu", repeats=1, backend="cpu", backends=("cpu",), cases=((16, 40, 2.5), (24, 60)))
     assert rec["mode"] == "both" and rec["3dgs"]["mode"] == "3dgs" and rec["2dgs"]["mode"] == "2dgs"
     for row, a, b in zip(rec["ratio_2dgs_to_3dgs"], rec["3dgs"]["cases"], rec["2dgs"]["cases"]):

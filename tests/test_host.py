@@ -37,3 +37,74 @@ def test_the_vector_isa_is_the_widest_the_cpu_flags_name():
     assert vector_isa("Features\t: fp asimd evtstrm\n") == "NEON"
     assert vector_isa("model name: something\n") == "unknown"
     assert host_info()["vector_isa"] == vector_isa()
+
+
+def test_default_threads_put_torch_on_one_and_the_kernels_on_every_core_unless_chosen(monkeypatch):
+    """With no thread variable set, a CPU training run's torch runs one thread and the compiled kernels
+    every usable core (what the thread scaling measured to gain); any of OMP_NUM_THREADS,
+    EGOBENCH_RASTER_THREADS, NUMBA_NUM_THREADS (Snakemake exports the first) leaves both alone."""
+    import torch
+
+    from egobench.host import default_threads, host_info, usable_cores
+    from egobench.render.cpu_backend import raster_threads
+
+    before = torch.get_num_threads()
+    monkeypatch.setattr(torch, "set_num_threads", lambda n: calls.append(n))
+    calls: list[int] = []
+    assert default_threads({"OMP_NUM_THREADS": "3"}) is None and calls == []
+    env = {"PATH": "/bin"}
+    assert default_threads(env) == {"torch": 1, "kernels": usable_cores()} and calls == [1]
+    assert env == {"PATH": "/bin", "EGOBENCH_RASTER_THREADS": str(usable_cores())}
+    monkeypatch.undo()
+    assert torch.get_num_threads() == before
+    monkeypatch.setenv("EGOBENCH_RASTER_THREADS", "1")
+    assert raster_threads() == 1 and host_info()["threads"] == {"torch": before, "kernels": 1}
+
+
+def test_the_benchmarks_scale_the_kernels_with_torch_on_one_thread(monkeypatch):
+    """`bench.kernel_threads(n)`: torch at one thread and the kernels at n inside, both restored after;
+    more threads than numba's pool is an error naming the variable that sizes it."""
+    import numba
+    import pytest
+    import torch
+
+    from egobench.bench import kernel_threads
+    from egobench.render.cpu_backend import RASTER_THREADS_ENV, raster_threads
+
+    monkeypatch.delenv(RASTER_THREADS_ENV, raising=False)
+    before = torch.get_num_threads()
+    with kernel_threads(1):
+        assert torch.get_num_threads() == 1 and raster_threads() == 1
+    assert torch.get_num_threads() == before and RASTER_THREADS_ENV not in __import__("os").environ
+    with pytest.raises(ValueError, match="NUMBA_NUM_THREADS"):
+        with kernel_threads(numba.config.NUMBA_NUM_THREADS + 1):
+            pass
+
+
+def test_egobench_train_runs_torch_on_one_thread_and_the_kernels_on_every_core(tmp_path, monkeypatch):
+    """`egobench train` on the CPU applies `default_threads` where no thread variable is set, and its
+    run record says so; with OMP_NUM_THREADS set (as the test session and Snakemake jobs set it) it
+    leaves torch's count and the kernels' alone."""
+    import json
+
+    import numba
+    import torch
+
+    from egobench.cli import main
+    from egobench.host import usable_cores
+    from tests.helpers import small_recording
+
+    rec = small_recording(tmp_path / "rec", "indoor", 2, n_frames=9, size=24)
+    before = torch.get_num_threads()
+    args = ["train", "--recording", str(rec), "--method", "no_motion_sampling", "--iterations", "2", "--no-progress"]
+    assert main(args + ["--out", str(tmp_path / "chosen")]) == 0  # conftest: OMP_NUM_THREADS=1
+    threads = json.loads((tmp_path / "chosen" / "train.json").read_text())["host"]["threads"]
+    assert threads == {"torch": before, "kernels": before}
+    for name in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS", "EGOBENCH_RASTER_THREADS"):
+        monkeypatch.delenv(name, raising=False)
+    try:
+        assert main(args + ["--out", str(tmp_path / "default")]) == 0
+    finally:
+        torch.set_num_threads(before)
+    threads = json.loads((tmp_path / "default" / "train.json").read_text())["host"]["threads"]
+    assert threads == {"torch": 1, "kernels": min(usable_cores(), numba.config.NUMBA_NUM_THREADS)}

@@ -3,7 +3,7 @@
 ``raster``: forward+backward time of `egobench.render.render` (median of repeats after warm-up)
 on random but realistic scenes (sub-pixel and several-pixel Gaussians), for each backend asked
 (on the CPU by default the compiled ``cpu`` backend beside the ``torch`` oracle), the first
-backend's scaling from 1 to 2 threads, and the cost of a rolling-shutter render (K pose samples)
+backend's scaling from 1 to 2 kernel threads (torch at one, as `egobench train` runs), and the cost of a rolling-shutter render (K pose samples)
 relative to a global-shutter render of the same image.
 ``train``: iterations/s, rasterizer time share and peak memory of `egobench.train.train` with and
 without motion sampling on the synthetic `egobench.sim.plane.plane_recording` (or a given recording), at one or more
@@ -15,9 +15,11 @@ frame): 128 x 128 rays x 8 temporal samples from inside the indoor scene in one 
 from __future__ import annotations
 
 import argparse
+import os
 import json
 import statistics
 import time
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 
 import torch
@@ -190,17 +192,18 @@ def bench_raster(device: str = "cpu", repeats: int = 7, backend: str = "auto", t
             case["speedup_vs_" + backends[1]] = round(timed[backends[1]]["median_ms"] / timed[backends[0]]["median_ms"], 2)
         result["cases"].append(case)
 
-    if not device.startswith("cuda") and scaling_threads:
-        before = torch.get_num_threads()
+    import numba
+
+    if not device.startswith("cuda") and scaling_threads and max(scaling_threads) > numba.config.NUMBA_NUM_THREADS:
+        result["thread_scaling"] = {"skipped": f"numba's pool has {numba.config.NUMBA_NUM_THREADS} thread(s) "
+                                               f"(NUMBA_NUM_THREADS / OMP_NUM_THREADS when it loaded)"}
+    elif not device.startswith("cuda") and scaling_threads:
         scaling = {}
-        try:
-            for n_threads in scaling_threads:
-                torch.set_num_threads(n_threads)
+        for n_threads in scaling_threads:
+            with kernel_threads(n_threads):
                 scaling[str(n_threads)] = time_fwd_bwd(_step(g, cam, T, w, backend=backends[0], tile_size=tile_size,
                                                              mode=mode), device, repeats)
-        finally:
-            torch.set_num_threads(before)
-        result["thread_scaling"] = {"backend": backends[0], "image": case["image"],
+        result["thread_scaling"] = {"backend": backends[0], "image": case["image"], "policy": THREAD_POLICY,
                                     "sigma_px_median": spec.sigma_px_median, "by_threads": scaling}
         first, last = str(scaling_threads[0]), str(scaling_threads[-1])
         result["thread_scaling"][f"speedup_{last}_vs_{first}"] = round(
@@ -226,6 +229,37 @@ def bench_raster(device: str = "cpu", repeats: int = 7, backend: str = "auto", t
     return result
 
 
+#: how the benchmarks' thread scaling sets threads: what `egobench train` does by default on the CPU
+THREAD_POLICY = "torch 1 thread, compiled kernels N (egobench.host.default_threads)"
+
+
+@contextmanager
+def kernel_threads(n: int):
+    """Within: torch at one thread and the compiled kernels at ``n`` (0: leave both as they are);
+    numba's pool must hold ``n`` (NUMBA_NUM_THREADS, or OMP_NUM_THREADS when numba first loads)."""
+    from egobench.render.cpu_backend import RASTER_THREADS_ENV
+
+    if not n:
+        yield
+        return
+    import numba
+
+    if n > numba.config.NUMBA_NUM_THREADS:
+        raise ValueError(f"--scaling/threads {n}: numba's pool has {numba.config.NUMBA_NUM_THREADS} threads "
+                         f"(set NUMBA_NUM_THREADS={n} or leave OMP_NUM_THREADS unset)")
+    before, saved = torch.get_num_threads(), os.environ.get(RASTER_THREADS_ENV)
+    torch.set_num_threads(1)
+    os.environ[RASTER_THREADS_ENV] = str(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+        if saved is None:
+            os.environ.pop(RASTER_THREADS_ENV, None)
+        else:
+            os.environ[RASTER_THREADS_ENV] = saved
+
+
 def bench_train(device: str = "cpu", backend: str = "auto", sides: tuple[int, ...] = (64, 128),
                 iterations: int = 30, recording: str | None = None, n_points: int = 4000,
                 methods: tuple[str, ...] = ("no_motion_sampling", "ours"), threads: tuple[int, ...] = ()) -> dict:
@@ -233,7 +267,7 @@ def bench_train(device: str = "cpu", backend: str = "auto", sides: tuple[int, ..
     the rasterizer's share of the step time, the Gaussian count and peak memory (CUDA: the allocator's
     peak for that run; CPU: the process's max RSS so far). No densification (refine_start_frac=1),
     so the Gaussian count stays ``n_points`` (or the recording's semi-dense point count).
-    ``threads`` (CPU): time every case at each of these torch thread counts. The record's
+    ``threads`` (CPU): time every case at each of these kernel thread counts (`kernel_threads`). The record's
     ``ratio_2dgs_to_3dgs`` pairs each 2DGS method with its 3DGS twin (time per iteration), and
     ``thread_speedup`` gives each case's it/s at the last thread count over the first."""
     import resource
@@ -257,18 +291,14 @@ def bench_train(device: str = "cpu", backend: str = "auto", sides: tuple[int, ..
                                   motion_warmup_frac=0.0, refine_start_frac=1.0)
                 if device.startswith("cuda"):
                     torch.cuda.reset_peak_memory_stats()
-                before = torch.get_num_threads()
-                torch.set_num_threads(n_threads or before)
-                try:
+                with kernel_threads(n_threads):
                     res = train(rec, method, cfg, Path(tmp) / f"{method}{side}t{n_threads}", progress=False)
-                finally:
-                    torch.set_num_threads(before)
                 if device.startswith("cuda"):
                     peak, kind = torch.cuda.max_memory_allocated() / 2**20, "cuda max_memory_allocated"
                 else:
                     peak, kind = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, "process max RSS (cumulative)"
                 results.append({
-                    "method": method, "threads": n_threads or before,
+                    "method": method, "threads": n_threads or torch.get_num_threads(),
                     "motion_sampling": get_method(method).motion_sampling == "adaptive",
                     "splat_mode": get_method(method).splat_mode, "resolution": side,
                     "iterations": iterations, "iters_per_s": round(res.iters_per_s, 3),
@@ -377,7 +407,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     train.add_argument("--method", action="append",
                        help="method to train (repeatable; default no_motion_sampling and ours; e.g. ours_2dgs)")
     train.add_argument("--scaling", default="",
-                       help="train benchmark: comma-separated torch thread counts to time every case at (e.g. 1,2)")
+                       help="train benchmark: comma-separated thread counts of the compiled kernels to time every case "
+                            "at, torch at one thread (e.g. 1,2)")
 
 
 def run(args: argparse.Namespace) -> int:

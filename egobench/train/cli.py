@@ -42,6 +42,10 @@ def run(args: argparse.Namespace) -> int:
     from egobench.train.loop import TrainingDiverged, train
 
     config = config_from_args(args)
+    if not str(config.device).startswith("cuda"):
+        from egobench.host import default_threads
+
+        default_threads()  # torch 1 thread, the kernels every core; unless OMP_NUM_THREADS & co. say otherwise
     try:
         resume = {None: False, "yes": True, "auto": "auto"}[args.resume]
         recording = recording_from_args(args.recording, get_method(args.method).calibration, args)
