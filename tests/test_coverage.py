@@ -9,7 +9,13 @@ import numpy as np
 import pytest
 import torch
 
-from egobench.data.coverage import _gt_depth, _lift, _seen_in, heldout_coverage, training_view_count
+from egobench.data.coverage import (
+    _gt_depth,
+    _lift,
+    _seen_in,
+    heldout_coverage,
+    training_view_count,
+)
 from egobench.data.reader import load_recording
 from tests.helpers import small_recording
 

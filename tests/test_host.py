@@ -76,9 +76,8 @@ def test_the_benchmarks_scale_the_kernels_with_torch_on_one_thread(monkeypatch):
     with kernel_threads(1):
         assert torch.get_num_threads() == 1 and raster_threads() == 1
     assert torch.get_num_threads() == before and RASTER_THREADS_ENV not in __import__("os").environ
-    with pytest.raises(ValueError, match="NUMBA_NUM_THREADS"):
-        with kernel_threads(numba.config.NUMBA_NUM_THREADS + 1):
-            pass
+    with pytest.raises(ValueError, match="NUMBA_NUM_THREADS"), kernel_threads(numba.config.NUMBA_NUM_THREADS + 1):
+        pass
 
 
 def test_egobench_train_runs_torch_on_one_thread_and_the_kernels_on_every_core(tmp_path, monkeypatch):

@@ -15,8 +15,8 @@ frame): 128 x 128 rays x 8 temporal samples from inside the indoor scene in one 
 from __future__ import annotations
 
 import argparse
-import os
 import json
+import os
 import statistics
 import time
 from contextlib import contextmanager
