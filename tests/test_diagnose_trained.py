@@ -866,6 +866,12 @@ def test_renders_off_where_few_training_views_saw_the_surface_are_not_a_vignette
     case = make_case("vignette", 0.35, seed=3)
     real, named = diagnose(case, model_error(case.predicted, 5, amp=0.02) * under_fit, views)
     assert named[:1] == ["vignette"] and real.params["corner_attenuation"] > 0.2
+    # counts that do not vary within a frame (a still camera; one count per frame) explain no radial
+    # residual: the fits drop the column and the test is the one without counts, not a singular one
+    p_blind = blind.params["calibration"]["p_value_placebo"]
+    for flat in (np.full((F, H, W), 14.0, np.float32), np.broadcast_to(np.arange(F, dtype=np.float32)[:, None, None] + 5, (F, H, W))):
+        same, named = diagnose(null, pred, np.ascontiguousarray(flat))
+        assert same.params["calibration"]["p_value_placebo"] == pytest.approx(p_blind, rel=1e-9) and named[:1] == ["vignette"]
 
 
 def test_a_sweeps_further_simulation_settings_are_typed_checked_and_reach_every_recording(tmp_path, monkeypatch):

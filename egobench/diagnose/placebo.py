@@ -127,15 +127,16 @@ def per_frame_photometric(fit: PhotometricFit, cells: _Cells, r2: np.ndarray, r4
         sel = keep & (cells.frame == f)
         if sel.sum() < 24:
             continue
-        Xf, yf, wf = X[sel], fit.y[sel], fit.w[sel]
+        cols = np.r_[np.arange(6), [c for c in range(6, X.shape[1]) if np.ptp(X[sel, c]) > 1e-9]]  # a flat nuisance: none
+        Xf, yf, wf = X[np.ix_(sel, cols)], fit.y[sel], fit.w[sel]
         XtWX = (Xf * wf[:, None]).T @ Xf
         if np.linalg.cond(XtWX) > 1e10:
             continue
         coef, rss = weighted_lstsq(Xf, yf, wf)
-        s2 = rss / max(int(sel.sum()) - X.shape[1], 1)  # overdispersion: the frame's own scatter
+        s2 = rss / max(int(sel.sum()) - len(cols), 1)  # overdispersion: the frame's own scatter
         cov = np.linalg.inv(XtWX) * s2
-        est[f] = L @ coef
-        var[f] = np.diag(L @ cov @ L.T)
+        est[f] = L[:, cols] @ coef
+        var[f] = np.diag(L[:, cols] @ cov @ L[:, cols].T)
     return est, var
 
 
@@ -174,8 +175,9 @@ def vignette_placebo(fit: PhotometricFit, cells: _Cells, ctx, height: int, width
 
 
 def vignette_calibration(fit: PhotometricFit, cells: _Cells, ctx, height: int, width: int):
-    """The vignette's calibrated p on a trained run -> (p, info, the frame test behind p). With training-view counts the
-    shading must pass `vignette_placebo` both with and without them as a nuisance (p: the larger):
+    """The vignette's calibrated p on a trained run -> (p, info, the frame test behind p). With
+    training-view counts that vary (`PhotometricFit.log_views`), the shading must pass
+    `vignette_placebo` both with and without them as a nuisance (p: the larger):
     a radial residual that the counts explain is model under-fit (issue 27: the hard indoor null_s5,
     p 6e-5 without them, 0.007 with), and the extra column, partly collinear with the radius, must
     not make a null's shading significant either (seen once: the hard quest3 null_s0, 0.33 -> 6e-5)."""

@@ -217,7 +217,8 @@ class PhotometricFit:
         if ctx.train_view_count is not None:
             lv = np.broadcast_to(np.log1p(ctx.train_view_count[data.frames])[..., None], mask.shape)
             lv = (block_sum(lv * mask, block) / np.maximum(n, 1)).ravel()[sel]
-            self.log_views = lv - float(np.average(lv, weights=self.w)) if self.n_cells else lv
+            if self.n_cells and np.ptp(lv) > 1e-9:  # counts that do not vary explain nothing: no column
+                self.log_views = lv - float(np.average(lv, weights=self.w))
         self.log_p0 = float(np.average(self.log_p, weights=self.w)) if self.n_cells else 0.0
         self.n_frames = f_count
         self.trimmed = np.zeros(self.n_cells, dtype=bool)
