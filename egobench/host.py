@@ -63,20 +63,38 @@ def host_info() -> dict[str, object]:
 
 
 def _kernel_threads() -> int:
-    """The compiled kernels' thread count as `render.cpu_backend.raster_threads` sets it (at most numba's pool)."""
+    """The compiled kernels' thread count as `render.cpu_backend.set_threads` sets it (at most numba's pool)."""
     try:
         import numba
-
-        from egobench.render.cpu_backend import raster_threads
 
         return max(1, min(raster_threads(), numba.config.NUMBA_NUM_THREADS))
     except ImportError:  # pragma: no cover - numba is a dependency
         return 1
 
 
+#: environment variable giving the compiled kernels their own thread count (default: torch's)
+RASTER_THREADS_ENV = "EGOBENCH_RASTER_THREADS"
+
+
+def raster_threads() -> int:
+    """Threads of the compiled kernels (`render.cpu_backend.set_threads`): EGOBENCH_RASTER_THREADS
+    when set, else torch's count (OMP_NUM_THREADS / torch.set_num_threads). Setting it to 2 with
+    torch at 1 thread parallelises the kernels only: torch's OpenMP threads gain nothing on the small
+    tensors around them and spin or stall at every operation (docs/cpu-rasterizer.md, "Two threads")."""
+    import torch
+
+    value = os.environ.get(RASTER_THREADS_ENV, "")
+    if not value:
+        return torch.get_num_threads()
+    if not value.isdigit() or int(value) < 1:
+        raise ValueError(f"{RASTER_THREADS_ENV} must be a positive integer (threads of the compiled CPU "
+                         f"rasterizer), got {value!r}")
+    return int(value)
+
+
 #: environment variables by which a user (or Snakemake, which exports OMP_NUM_THREADS={threads} to
 #: every job) has chosen thread counts; with any of them set, `default_threads` changes nothing.
-THREAD_ENV = ("OMP_NUM_THREADS", "EGOBENCH_RASTER_THREADS", "NUMBA_NUM_THREADS")
+THREAD_ENV = ("OMP_NUM_THREADS", RASTER_THREADS_ENV, "NUMBA_NUM_THREADS")
 
 
 def usable_cores() -> int:
@@ -100,7 +118,7 @@ def default_threads(environ=None) -> dict[str, int] | None:
     if any(env.get(name) for name in THREAD_ENV):
         return None
     n = usable_cores()
-    env["EGOBENCH_RASTER_THREADS"] = str(n)
+    env[RASTER_THREADS_ENV] = str(n)
     torch.set_num_threads(1)
     return {"torch": 1, "kernels": n}
 

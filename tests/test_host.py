@@ -46,7 +46,7 @@ def test_default_threads_put_torch_on_one_and_the_kernels_on_every_core_unless_c
     import torch
 
     from egobench.host import default_threads, host_info, usable_cores
-    from egobench.render.cpu_backend import raster_threads
+    from egobench.host import raster_threads
 
     before = torch.get_num_threads()
     monkeypatch.setattr(torch, "set_num_threads", lambda n: calls.append(n))
@@ -69,9 +69,10 @@ def test_the_benchmarks_scale_the_kernels_with_torch_on_one_thread(monkeypatch):
     import torch
 
     from egobench.bench import kernel_threads
-    from egobench.render.cpu_backend import RASTER_THREADS_ENV, raster_threads
+    from egobench.host import RASTER_THREADS_ENV, raster_threads
 
-    monkeypatch.delenv(RASTER_THREADS_ENV, raising=False)
+    monkeypatch.setenv(RASTER_THREADS_ENV, "1")
+    monkeypatch.delenv(RASTER_THREADS_ENV)
     before = torch.get_num_threads()
     with kernel_threads(1):
         assert torch.get_num_threads() == 1 and raster_threads() == 1
@@ -100,7 +101,8 @@ def test_egobench_train_runs_torch_on_one_thread_and_the_kernels_on_every_core(t
     threads = json.loads((tmp_path / "chosen" / "train.json").read_text())["host"]["threads"]
     assert threads == {"torch": before, "kernels": before}
     for name in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS", "EGOBENCH_RASTER_THREADS"):
-        monkeypatch.delenv(name, raising=False)
+        monkeypatch.setenv(name, "1")  # recorded first, so that undo also removes what train sets
+        monkeypatch.delenv(name)
     try:
         assert main(args + ["--out", str(tmp_path / "default")]) == 0
     finally:

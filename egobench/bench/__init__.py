@@ -237,7 +237,7 @@ THREAD_POLICY = "torch 1 thread, compiled kernels N (egobench.host.default_threa
 def kernel_threads(n: int):
     """Within: torch at one thread and the compiled kernels at ``n`` (0: leave both as they are);
     numba's pool must hold ``n`` (NUMBA_NUM_THREADS, or OMP_NUM_THREADS when numba first loads)."""
-    from egobench.render.cpu_backend import RASTER_THREADS_ENV
+    from egobench.host import RASTER_THREADS_ENV
 
     if not n:
         yield

@@ -24,6 +24,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from egobench.camera.pinhole import Pinhole
+from egobench.host import RASTER_THREADS_ENV, raster_threads  # noqa: F401  (the kernels' thread count; re-exported)
 from egobench.render.types import Gaussians, RenderOutput
 
 #: gsplat 1.5.3 projection constants (as torch_backend)
@@ -59,24 +60,6 @@ def unsupported_reason(mode: str, dtype: torch.dtype = torch.float32) -> str | N
 
 def contiguous_numpy(t: Tensor) -> np.ndarray:
     return t.detach().contiguous().numpy()
-
-
-#: environment variable giving the compiled kernels their own thread count (default: torch's)
-RASTER_THREADS_ENV = "EGOBENCH_RASTER_THREADS"
-
-
-def raster_threads() -> int:
-    """Threads of the compiled kernels: EGOBENCH_RASTER_THREADS when set, else torch's count
-    (OMP_NUM_THREADS / torch.set_num_threads). Setting it to 2 with torch at 1 thread parallelises
-    the kernels only: torch's OpenMP threads gain nothing on the small tensors around them and spin
-    or stall at every operation (measured: docs/cpu-rasterizer.md, "Threads")."""
-    value = os.environ.get(RASTER_THREADS_ENV, "")
-    if not value:
-        return torch.get_num_threads()
-    if not value.isdigit() or int(value) < 1:
-        raise ValueError(f"{RASTER_THREADS_ENV} must be a positive integer (threads of the compiled CPU "
-                         f"rasterizer), got {value!r}")
-    return int(value)
 
 
 def set_threads() -> None:

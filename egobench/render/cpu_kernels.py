@@ -26,7 +26,7 @@ import os
 # OMP_NUM_THREADS={threads} to every shell job (config resources.<step>.threads, default 1); torch
 # reads it, `cpu_backend` sets numba's count to torch's on every call, and here numba's pool is
 # capped to it as well (numba reads NUMBA_NUM_THREADS when first imported). EGOBENCH_RASTER_THREADS,
-# when set, gives the kernels their own count instead (`cpu_backend.raster_threads`).
+# when set, gives the kernels their own count instead (`host.raster_threads`).
 _POOL = os.environ.get("EGOBENCH_RASTER_THREADS") or os.environ.get("OMP_NUM_THREADS", "")
 if "NUMBA_NUM_THREADS" not in os.environ and _POOL.isdigit() and int(_POOL) > 0:
     os.environ["NUMBA_NUM_THREADS"] = _POOL
