@@ -3,8 +3,8 @@
 ``raster``: forward+backward time of `egobench.render.render` (median of repeats after warm-up)
 on random but realistic scenes (sub-pixel and several-pixel Gaussians), for each backend asked
 (on the CPU by default the compiled ``cpu`` backend beside the ``torch`` oracle), the first
-backend's scaling from 1 to 2 kernel threads (torch at one, as `egobench train` runs), and the cost of a rolling-shutter render (K pose samples)
-relative to a global-shutter render of the same image.
+backend's scaling from 1 to 2 kernel threads (torch at one, as `egobench train` runs), and the
+cost of a rolling-shutter render (K pose samples) relative to a global-shutter render of the same image.
 ``train``: iterations/s, rasterizer time share and peak memory of `egobench.train.train` with and
 without motion sampling on the synthetic `egobench.sim.plane.plane_recording` (or a given recording), at one or more
 resolutions; ``--resolution 2400 --points 1000000 --device cuda`` is the paper-scale case.

@@ -174,15 +174,18 @@ def vignette_placebo(fit: PhotometricFit, cells: _Cells, ctx, height: int, width
             "placebo_p": placebo_p, "p": max(true.p_value, placebo_p if exceed else 0.0), "est": est, "var": var}
 
 
-def vignette_calibration(fit: PhotometricFit, cells: _Cells, ctx, height: int, width: int):
-    """The vignette's calibrated p on a trained run -> (p, info, the frame test behind p). With
+def vignette_calibration(fit: PhotometricFit, cells: _Cells, ctx, height: int, width: int, without: dict):
+    """The vignette's calibrated p on a trained run -> (p, info, the frame test behind p); ``without``:
+    `vignette_placebo` of the same fit without the counts (computed once by the caller). With
     training-view counts that vary (`PhotometricFit.log_views`), the shading must pass
     `vignette_placebo` both with and without them as a nuisance (p: the larger):
     a radial residual that the counts explain is model under-fit (issue 27: the hard indoor null_s5,
     p 6e-5 without them, 0.007 with), and the extra column, partly collinear with the radius, must
     not make a null's shading significant either (seen once: the hard quest3 null_s0, 0.33 -> 6e-5)."""
     specs = [True, False] if fit.log_views is not None else [False]
-    runs = {v: vignette_placebo(fit, cells, ctx, height, width, views=v) for v in specs}
+    runs = {False: without}
+    if fit.log_views is not None:
+        runs[True] = vignette_placebo(fit, cells, ctx, height, width, views=True)
     worst = max(specs, key=lambda v: runs[v]["p"])
     t = runs[worst]["frame_test"]
     info = {"frame_t": t.t, "frame_df": t.df, "frame_p": t.p_value,
@@ -473,7 +476,7 @@ def calibrate_photometric(data: ResidualData, results: list[CauseResult], draws:
     vig = vignette_placebo(fit, cells, data.ctx, H, W, views=False)  # per-frame colour and response slopes
     est, var = vig["est"], vig["var"]
     calibrated: dict[str, tuple[float, dict]] = {}
-    p_vig, info_vig, t = vignette_calibration(fit, cells, data.ctx, H, W)
+    p_vig, info_vig, t = vignette_calibration(fit, cells, data.ctx, H, W, without=vig)
     calibrated["vignette"] = (p_vig, info_vig)
     se["vignette"] = (t.se, t.df)
     tr, tb = _t(est[:, 0], var[:, 0]), _t(est[:, 1], var[:, 1])

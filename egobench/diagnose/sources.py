@@ -376,8 +376,9 @@ def run_source(recording_dir: str | Path, run_dir: str | Path, max_frames: int |
             depth = p.outs[0].depth[0, ..., 0].cpu().numpy().astype(np.float64)
             alpha = p.outs[0].alpha[0, ..., 0].cpu().numpy()
             coverage.append(alpha.astype(np.float32))
-            velocity.append(pixel_velocity(rec, f, np.where(alpha > 0.5, depth, 0.0)))
-            views.append(training_view_count(rec, f, np.where(alpha > 0.5, depth, 0.0)))
+            surface_depth = np.where(alpha > 0.5, depth, 0.0)  # where the model renders a surface
+            velocity.append(pixel_velocity(rec, f, surface_depth))
+            views.append(training_view_count(rec, f, surface_depth))
     meta = {"recording": str(recording_dir), "run": str(run_dir), "method": spec.name,
             "source": f"renders of trained run ({spec.name})", "pose_samples": pose_samples or "the run's own"}
     pred = np.stack(predicted)
