@@ -120,3 +120,19 @@ def test_high_frequency_model_error_is_not_named_noise_on_a_trained_run(null_rec
     assert "noise" not in [n.name for n in d.named], d.verdict
     noise = next(r for r in d.rounds[0] if r.name == "noise")
     assert not noise.testable and noise.reason == NOISE_UNTESTABLE
+
+
+def test_pixel_velocity_in_chunks_equals_one_pass(null_recording):
+    """The per-pixel poses are evaluated a block at a time (paper resolution: ~7 GB at once); the
+    blocks must not change a bit of the velocity, and pixels without depth stay at rest."""
+    from egobench.data import load_recording
+    from egobench.diagnose.sources import pixel_velocity
+
+    rec = load_recording(null_recording[0], calibration="online")
+    f = rec.frames[3]
+    depth = np.load(rec.ground_truth_file("depth", f)).astype(np.float64)
+    depth[:5] = 0.0
+    whole = pixel_velocity(rec, f, depth, chunk=depth.size)
+    blocks = pixel_velocity(rec, f, depth, chunk=97)  # blocks that straddle rows
+    np.testing.assert_array_equal(blocks, whole)
+    assert np.all(whole[:5] == 0.0) and np.median(np.abs(whole[5:])) > 1.0  # px/s: motion=fast moves

@@ -19,6 +19,8 @@ from egobench.residual.signatures import DiagnosisContext
 
 #: Time step of the finite-difference image velocity, ns (1 ms).
 VELOCITY_DT_NS = 1_000_000
+#: Pixels whose poses `pixel_velocity` evaluates at once (~80 MB of float64 poses).
+VELOCITY_CHUNK = 1 << 16
 
 
 @dataclass
@@ -31,12 +33,15 @@ class Sources:
     description: str  # where the prediction comes from
 
 
-def pixel_velocity(recording, frame, depth_m: np.ndarray, t_offset_s: float = 0.0) -> np.ndarray:
+def pixel_velocity(recording, frame, depth_m: np.ndarray, t_offset_s: float = 0.0,
+                   chunk: int = VELOCITY_CHUNK) -> np.ndarray:
     """Image velocity [H, W, 2] px/s of the static scene at each pixel's model row time.
 
     depth_m [H, W]: z-depth in the rectified camera at that time (0 = unknown -> velocity 0).
     Each pixel's 3-D point is back-projected with the pose at its row time and re-projected with
-    the poses 1 ms earlier and later (central difference on the 1 kHz trajectory).
+    the poses 1 ms earlier and later (central difference on the 1 kHz trajectory). Every pixel has
+    its own time, so the poses are evaluated ``chunk`` pixels at a time (per pixel, so the result
+    does not depend on ``chunk``; at 2400 px one pass would hold ~7 GB of float64 poses).
     """
     cam = recording.camera
     H, W = depth_m.shape
@@ -49,7 +54,15 @@ def pixel_velocity(recording, frame, depth_m: np.ndarray, t_offset_s: float = 0.
     T_dc = frame.T_device_camera.to(torch.float64)
     rays = cam.unproject(cam.pixel_grid(dtype=torch.float64)).reshape(-1, 3)
     depth = torch.from_numpy(np.asarray(depth_m, dtype=np.float64)).reshape(-1)
-    ok = depth > 0
+    v = torch.zeros(H * W, 2, dtype=torch.float64)
+    for s in range(0, H * W, chunk):
+        v[s:s + chunk] = _velocity_block(traj, cam, T_dc, t_pix[s:s + chunk], rays[s:s + chunk], depth[s:s + chunk])
+    v[~(depth > 0)] = 0.0
+    return v.reshape(H, W, 2).numpy().astype(np.float32)
+
+
+def _velocity_block(traj, cam, T_dc, t_pix, rays, depth):
+    """[B, 2] px/s for B pixels: rays [B, 3] at depth [B] seen at t_pix [B] ns, central difference."""
     T0 = traj.pose(t_pix) @ T_dc
     X = (T0[:, :3, :3] @ (rays * depth[:, None])[..., None])[..., 0] + T0[:, :3, 3]
     uv = []
@@ -58,9 +71,7 @@ def pixel_velocity(recording, frame, depth_m: np.ndarray, t_offset_s: float = 0.
         Xc = (T[:, :3, :3].transpose(1, 2) @ (X - T[:, :3, 3])[..., None])[..., 0]
         p, _ = cam.project(Xc)
         uv.append(p)
-    v = (uv[1] - uv[0]) / (2 * VELOCITY_DT_NS * 1e-9)
-    v[~ok] = 0.0
-    return v.reshape(H, W, 2).numpy().astype(np.float32)
+    return (uv[1] - uv[0]) / (2 * VELOCITY_DT_NS * 1e-9)
 
 
 def _context(recording, frames, velocity, gamma: float, noise, lens_k, meta) -> DiagnosisContext:
