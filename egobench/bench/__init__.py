@@ -200,10 +200,10 @@ def bench_raster(device: str = "cpu", repeats: int = 7, backend: str = "auto", t
     elif not device.startswith("cuda") and scaling_threads:
         scaling = {}
         for n_threads in scaling_threads:
-            with kernel_threads(n_threads):
+            with cpu_threads(n_threads, torch_n=1):
                 scaling[str(n_threads)] = time_fwd_bwd(_step(g, cam, T, w, backend=backends[0], tile_size=tile_size,
                                                              mode=mode), device, repeats)
-        result["thread_scaling"] = {"backend": backends[0], "image": case["image"], "policy": THREAD_POLICY,
+        result["thread_scaling"] = {"backend": backends[0], "image": case["image"], "policy": RASTER_THREAD_POLICY,
                                     "sigma_px_median": spec.sigma_px_median, "by_threads": scaling}
         first, last = str(scaling_threads[0]), str(scaling_threads[-1])
         result["thread_scaling"][f"speedup_{last}_vs_{first}"] = round(
@@ -229,14 +229,18 @@ def bench_raster(device: str = "cpu", repeats: int = 7, backend: str = "auto", t
     return result
 
 
-#: how the benchmarks' thread scaling sets threads: what `egobench train` does by default on the CPU
-THREAD_POLICY = "torch 1 thread, compiled kernels N (egobench.host.default_threads)"
+#: how each benchmark's thread scaling sets threads: the raster benchmark scales the compiled kernels
+#: alone (torch's pool, spinning between the glue's small ops, competes with the kernels' threads
+#: there); the training benchmark times what `egobench train` does by default on the CPU
+RASTER_THREAD_POLICY = "torch 1 thread, compiled kernels N (the kernels' own scaling)"
+TRAIN_THREAD_POLICY = "torch N threads, compiled kernels N (egobench.host.default_threads)"
 
 
 @contextmanager
-def kernel_threads(n: int):
-    """Within: torch at one thread and the compiled kernels at ``n`` (0: leave both as they are);
-    numba's pool must hold ``n`` (NUMBA_NUM_THREADS, or OMP_NUM_THREADS when numba first loads)."""
+def cpu_threads(n: int, torch_n: int | None = None):
+    """Within: the compiled kernels at ``n`` threads and torch at ``torch_n`` (default ``n``); 0 leaves
+    both as they are. numba's pool must hold ``n`` (NUMBA_NUM_THREADS, or OMP_NUM_THREADS when numba
+    first loads). Both counts are restored after."""
     from egobench.host import RASTER_THREADS_ENV
 
     if not n:
@@ -248,7 +252,7 @@ def kernel_threads(n: int):
         raise ValueError(f"--scaling/threads {n}: numba's pool has {numba.config.NUMBA_NUM_THREADS} threads "
                          f"(set NUMBA_NUM_THREADS={n} or leave OMP_NUM_THREADS unset)")
     before, saved = torch.get_num_threads(), os.environ.get(RASTER_THREADS_ENV)
-    torch.set_num_threads(1)
+    torch.set_num_threads(n if torch_n is None else torch_n)
     os.environ[RASTER_THREADS_ENV] = str(n)
     try:
         yield
@@ -267,7 +271,8 @@ def bench_train(device: str = "cpu", backend: str = "auto", sides: tuple[int, ..
     the rasterizer's share of the step time, the Gaussian count and peak memory (CUDA: the allocator's
     peak for that run; CPU: the process's max RSS so far). No densification (refine_start_frac=1),
     so the Gaussian count stays ``n_points`` (or the recording's semi-dense point count).
-    ``threads`` (CPU): time every case at each of these kernel thread counts (`kernel_threads`). The record's
+    ``threads`` (CPU): time every case at each of these thread counts, torch's and the kernels' alike
+    (`cpu_threads`, as `egobench train` runs by default). The record's
     ``ratio_2dgs_to_3dgs`` pairs each 2DGS method with its 3DGS twin (time per iteration), and
     ``thread_speedup`` gives each case's it/s at the last thread count over the first."""
     import resource
@@ -291,7 +296,7 @@ def bench_train(device: str = "cpu", backend: str = "auto", sides: tuple[int, ..
                                   motion_warmup_frac=0.0, refine_start_frac=1.0)
                 if device.startswith("cuda"):
                     torch.cuda.reset_peak_memory_stats()
-                with kernel_threads(n_threads):
+                with cpu_threads(n_threads):
                     res = train(rec, method, cfg, Path(tmp) / f"{method}{side}t{n_threads}", progress=False)
                 if device.startswith("cuda"):
                     peak, kind = torch.cuda.max_memory_allocated() / 2**20, "cuda max_memory_allocated"
@@ -309,6 +314,7 @@ def bench_train(device: str = "cpu", backend: str = "auto", sides: tuple[int, ..
     return {"benchmark": "train", "device": device, "backend": backend, "torch": torch.__version__,
             "threads": torch.get_num_threads(),
             "recording": str(recording) if recording else f"plane_recording (17 frames, textured plane, {n_points} points)",
+            "thread_policy": TRAIN_THREAD_POLICY if threads else None,
             "results": results, "ratio_2dgs_to_3dgs": train_2dgs_ratios(results),
             "thread_speedup": train_thread_speedups(results)}
 
@@ -407,8 +413,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     train.add_argument("--method", action="append",
                        help="method to train (repeatable; default no_motion_sampling and ours; e.g. ours_2dgs)")
     train.add_argument("--scaling", default="",
-                       help="train benchmark: comma-separated thread counts of the compiled kernels to time every case "
-                            "at, torch at one thread (e.g. 1,2)")
+                       help="train benchmark: comma-separated thread counts to time every case at, torch's and the "
+                            "compiled kernels' alike, as `egobench train` sets them (e.g. 1,2)")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -45,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
     if not str(config.device).startswith("cuda"):
         from egobench.host import default_threads
 
-        default_threads()  # torch 1 thread, the kernels every core; unless OMP_NUM_THREADS & co. say otherwise
+        default_threads()  # torch and the kernels on every core; unless OMP_NUM_THREADS & co. say otherwise
     try:
         resume = {None: False, "yes": True, "auto": "auto"}[args.resume]
         recording = recording_from_args(args.recording, get_method(args.method).calibration, args)
