@@ -136,3 +136,46 @@ def test_pixel_velocity_in_chunks_equals_one_pass(null_recording):
     blocks = pixel_velocity(rec, f, depth, chunk=97)  # blocks that straddle rows
     np.testing.assert_array_equal(blocks, whole)
     assert np.all(whole[:5] == 0.0) and np.median(np.abs(whole[5:])) > 1.0  # px/s: motion=fast moves
+
+
+def test_noise_reference_frame_by_frame_is_the_batched_draw(null_recording):
+    """`pipeline_noise_reference` works a frame at a time (paper scale: ~2 GB per batched copy); its
+    draws must be the numbers of the batched pipeline, written out here with `noise.sample`."""
+    import torch
+
+    from egobench.data import load_recording
+    from egobench.diagnose.sources import pipeline_noise_reference, recording_rectification
+    from egobench.model.formation import GammaResponse, PoissonGaussianNoise, quantise
+    from egobench.sim.devices import get_device
+
+    root, src = null_recording
+    rec = load_recording(root)
+    dev = get_device(rec.meta["device"])
+    noise = PoissonGaussianNoise(dev.noise.full_well_e, dev.noise.read_noise_e)
+    rect, raw_valid = recording_rectification(root, "online", dev, rec.camera)
+    pred, gain = src.predicted[:5], np.array([1.0, 2.5, 1.0, 4.0, 1.5])
+    got = pipeline_noise_reference(pred, rect, raw_valid, noise, gain, 2.2, seed=3)
+
+    # the batched pipeline: raw image of every frame, decode, one noise.sample, encode, 8 bits, rectify
+    src_cam, dst = rect.src, rect.dst
+    v, u = torch.meshgrid(torch.arange(src_cam.height, dtype=torch.float64),
+                          torch.arange(src_cam.width, dtype=torch.float64), indexing="ij")
+    rays = torch.nan_to_num(src_cam.unproject(torch.stack([u, v], -1))) @ rect.R_src_dst.to(torch.float64)
+    z = rays[..., 2:3]
+    ok = raw_valid & (z[..., 0] > 1e-6)
+    zs = torch.where(z > 1e-6, z, torch.ones_like(z))
+    W, H = dst.width, dst.height
+    grid = torch.cat([(dst.fx * rays[..., 0:1] / zs + dst.cx) * 2.0 / (W - 1) - 1.0,
+                      (dst.fy * rays[..., 1:2] / zs + dst.cy) * 2.0 / (H - 1) - 1.0], -1)
+    p = torch.from_numpy(pred.astype(np.float32)).permute(0, 3, 1, 2)
+    raw = torch.nn.functional.grid_sample(p, grid[None].expand(5, -1, -1, -1).to(torch.float32), mode="bilinear",
+                                          padding_mode="border", align_corners=True)
+    raw = raw.permute(0, 2, 3, 1) * ok[None, ..., None].to(torch.float32)
+    resp = GammaResponse(2.2)
+    lin = resp.decode(raw.to(torch.float64)).clamp(0.0, 1.0)
+    generator = torch.Generator().manual_seed(3 * 7919 + 11)
+    noisy = noise.sample(lin, torch.from_numpy(gain)[:, None, None, None], generator=generator)
+    noisy = quantise(resp.encode(noisy).clamp(0, 1), 8) * ok[None, ..., None].to(torch.float64)
+    want = quantise(rect.warp(noisy.to(torch.float32)).clamp(0, 1), 8) - rect.warp(raw)
+    np.testing.assert_array_equal(got, want.numpy().astype(np.float64))
+    assert np.abs(got).max() > 0  # the reference holds noise

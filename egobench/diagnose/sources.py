@@ -164,19 +164,33 @@ def pipeline_noise_reference(
     pu = dst.fx * rays_dst[..., 0:1] / zs + dst.cx
     pv = dst.fy * rays_dst[..., 1:2] / zs + dst.cy
     grid = torch.cat([pu * 2.0 / max(W - 1, 1) - 1.0, pv * 2.0 / max(H - 1, 1) - 1.0], -1)  # align_corners=True
+    grid = grid[None].to(torch.float32)
+    ok_f = ok[None, ..., None].to(torch.float32)
     pred = torch.from_numpy(np.ascontiguousarray(predicted, dtype=np.float32)).permute(0, 3, 1, 2)
-    raw_clean = torch.nn.functional.grid_sample(pred, grid[None].expand(F_, -1, -1, -1).to(torch.float32),
-                                                mode="bilinear", padding_mode="border", align_corners=True)
-    raw_clean = raw_clean.permute(0, 2, 3, 1) * ok[None, ..., None].to(torch.float32)  # [F, Hs, Ws, 3]
+
+    def raw_clean(f: int) -> torch.Tensor:  # frame f of the prediction in the raw image [1, Hs, Ws, 3]
+        raw = torch.nn.functional.grid_sample(pred[f:f + 1], grid, mode="bilinear", padding_mode="border",
+                                              align_corners=True)
+        return raw.permute(0, 2, 3, 1) * ok_f
+
+    # Frame by frame (at paper scale one [F, Hs, Ws, 3] float64 array is ~2 GB a frame-batch copy); the
+    # draws are made in the order of one batched `noise.sample`, so the reference is the same number.
     resp = GammaResponse(float(gamma))
-    lin = resp.decode(raw_clean.to(torch.float64)).clamp(0.0, 1.0)
     generator = torch.Generator().manual_seed(int(seed) * 7919 + 11)
     g = torch.from_numpy(np.asarray(gain, dtype=np.float64))[:, None, None, None]
-    noisy = quantise(resp.encode(noise.sample(lin, g, generator=generator)).clamp(0, 1), 8)
-    noisy = noisy * ok[None, ..., None].to(noisy.dtype)
-    noisy_rect = quantise(rect.warp(noisy.to(torch.float32)).clamp(0, 1), 8)
-    clean_rect = rect.warp(raw_clean)
-    return (noisy_rect - clean_rect).numpy().astype(np.float64)
+    electrons = torch.empty((F_, Hs, Ws, 3), dtype=torch.float64)
+    for f in range(F_):
+        lin = resp.decode(raw_clean(f).to(torch.float64)).clamp(0.0, 1.0)
+        electrons[f:f + 1] = noise.shot_electrons(lin, noise.electrons_per_unit(g[f:f + 1], lin), generator)
+    noise.add_read_noise_(electrons, generator)
+    out = np.empty((F_, H, W, 3), dtype=np.float64)
+    for f in range(F_):
+        clean = raw_clean(f)
+        noisy = electrons[f:f + 1] / noise.electrons_per_unit(g[f:f + 1], electrons[f:f + 1])
+        noisy = quantise(resp.encode(noisy).clamp(0, 1), 8) * ok[None, ..., None].to(torch.float64)
+        noisy_rect = quantise(rect.warp(noisy.to(torch.float32)).clamp(0, 1), 8)
+        out[f] = (noisy_rect - rect.warp(clean))[0].numpy()
+    return out
 
 
 def run_context(recording_dir: str | Path, rec, frames, predicted: np.ndarray, velocity: np.ndarray, gamma: float,

@@ -368,14 +368,26 @@ class PoissonGaussianNoise:
 
     def sample(self, signal: Tensor, gain: float | Tensor, generator: torch.Generator | None = None) -> Tensor:
         """A noisy draw of ``signal`` [...] (normalised linear) at analog ``gain`` (scalar or broadcastable)."""
-        g = self._gain(gain, signal)
-        scale = self.full_well_e / g  # electrons per unit signal
-        electrons = torch.poisson((signal.clamp_min(0.0) * scale).expand_as(signal).contiguous(), generator=generator)
-        if self.read_noise_e > 0:
-            electrons = electrons + self.read_noise_e * torch.randn(
-                signal.shape, generator=generator, dtype=signal.dtype, device=signal.device
-            )
+        scale = self.electrons_per_unit(gain, signal)
+        electrons = self.add_read_noise_(self.shot_electrons(signal, scale, generator), generator)
         return electrons / scale
+
+    def electrons_per_unit(self, gain: float | Tensor, signal: Tensor) -> Tensor:
+        """full_well_e / gain: electrons collected per unit of normalised ``signal`` at ``gain``."""
+        return self.full_well_e / self._gain(gain, signal)
+
+    def shot_electrons(self, signal: Tensor, scale: Tensor, generator: torch.Generator | None = None) -> Tensor:
+        """Poisson(signal x scale) [...], the collected electrons (``scale``: `electrons_per_unit`). The
+        draws are consumed element by element in order, so drawing a batch in slices (frames) and then
+        `add_read_noise_` over all of it gives the same numbers as `sample` on the whole batch."""
+        return torch.poisson((signal.clamp_min(0.0) * scale).expand_as(signal).contiguous(), generator=generator)
+
+    def add_read_noise_(self, electrons: Tensor, generator: torch.Generator | None = None) -> Tensor:
+        """electrons += N(0, read_noise_e^2), in place (one temporary of its size) -> electrons."""
+        if self.read_noise_e > 0:
+            draw = torch.randn(electrons.shape, generator=generator, dtype=electrons.dtype, device=electrons.device)
+            electrons.add_(draw.mul_(self.read_noise_e))
+        return electrons
 
     def variance(self, signal: Tensor, gain: float | Tensor) -> Tensor:
         """Var[y] = (gain / full_well_e) * signal + (gain * read_noise_e / full_well_e)^2."""
