@@ -93,6 +93,8 @@ def test_egobench_train_runs_torch_and_the_kernels_on_every_core(tmp_path, monke
     run record says so; with OMP_NUM_THREADS set (as the test session and Snakemake jobs set it) it
     leaves torch's count and the kernels' alone."""
     import json
+    import os
+    import sys
 
     import numba
     import torch
@@ -114,8 +116,10 @@ def test_egobench_train_runs_torch_and_the_kernels_on_every_core(tmp_path, monke
         assert main(args + ["--out", str(tmp_path / "default")]) == 0
     finally:
         torch.set_num_threads(before)
-    threads = json.loads((tmp_path / "default" / "train.json").read_text())["host"]["threads"]
-    assert threads == {"torch": usable_cores(), "kernels": min(usable_cores(), numba.config.NUMBA_NUM_THREADS)}
+    record = json.loads((tmp_path / "default" / "train.json").read_text())["host"]
+    assert record["threads"] == {"torch": usable_cores(), "kernels": min(usable_cores(), numba.config.NUMBA_NUM_THREADS)}
+    if sys.platform.startswith("linux") and "malloc" not in os.environ.get("GLIBC_TUNABLES", ""):
+        assert record["allocator"] == {"mmap_threshold_bytes": 32 << 20, "trim_threshold_bytes": 1 << 30}
 
 
 def test_a_training_run_is_bitwise_the_same_with_torch_on_one_and_on_two_threads(tmp_path, monkeypatch):
@@ -148,3 +152,35 @@ def test_a_training_run_is_bitwise_the_same_with_torch_on_one_and_on_two_threads
         assert moments.abs().max() > 0 and torch.equal(moments, two["optimizers"][name]["state"][0]["exp_avg"]), name
     # the logged loss is a mean over pixels that torch sums in a thread-dependent order: its last bit
     # may differ (measured: 0.23276394605636597 against ...93115520477), the parameters may not
+
+
+def test_keep_freed_memory_sets_glibc_malloc_unless_tunables_chose_and_the_record_says_so(monkeypatch):
+    """`keep_freed_memory` (egobench train on the CPU) raises glibc's mmap and trim thresholds so a
+    step's freed buffers are reused, not unmapped and faulted in again; GLIBC_TUNABLES that set malloc
+    are the user's choice (mallopt is not called); elsewhere than Linux it does nothing."""
+    import ctypes
+    import sys
+
+    import pytest
+
+    from egobench import host
+
+    calls = []
+
+    class FakeLibc:
+        def mallopt(self, param, value):
+            calls.append((param, value))
+            return 1
+
+    monkeypatch.setattr(ctypes, "CDLL", lambda name: FakeLibc())
+    monkeypatch.setattr(host, "_ALLOCATOR", None)
+    assert host.keep_freed_memory({"GLIBC_TUNABLES": "glibc.malloc.trim_threshold=0"}) is None and calls == []
+    if not sys.platform.startswith("linux"):
+        pytest.skip("mallopt is glibc's (Linux)")
+    want = {"mmap_threshold_bytes": 32 << 20, "trim_threshold_bytes": 1 << 30}
+    assert host.keep_freed_memory({}) == want
+    assert calls == [(-3, 32 << 20), (-1, 1 << 30)]  # M_MMAP_THRESHOLD, M_TRIM_THRESHOLD of malloc.h
+    assert host.host_info()["allocator"] == want
+    monkeypatch.setattr(sys, "platform", "darwin")
+    monkeypatch.setattr(host, "_ALLOCATOR", None)
+    assert host.keep_freed_memory({}) is None and len(calls) == 2 and host.host_info()["allocator"] is None

@@ -446,6 +446,10 @@ def run(args: argparse.Namespace) -> int:
     if not all(t.isdigit() for t in parts) or any(int(t) < 1 for t in parts):
         raise ValueError(f"--scaling: expected comma-separated positive thread counts, got {args.scaling!r}")
     threads = tuple(int(t) for t in parts)
+    if not args.device.startswith("cuda"):
+        from egobench.host import keep_freed_memory
+
+        keep_freed_memory()  # as `egobench train` runs on the CPU (host.allocator in the record)
     _report(bench_train(args.device, chosen[0], sides, args.iterations, args.recording, args.points, methods,
                         threads))
     return 0

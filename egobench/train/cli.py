@@ -43,9 +43,10 @@ def run(args: argparse.Namespace) -> int:
 
     config = config_from_args(args)
     if not str(config.device).startswith("cuda"):
-        from egobench.host import default_threads
+        from egobench.host import default_threads, keep_freed_memory
 
         default_threads()  # torch and the kernels on every core; unless OMP_NUM_THREADS & co. say otherwise
+        keep_freed_memory()  # reuse each step's freed buffers (Snakemake's jobs too)
     try:
         resume = {None: False, "yes": True, "auto": "auto"}[args.resume]
         recording = recording_from_args(args.recording, get_method(args.method).calibration, args)
