@@ -60,7 +60,7 @@ def host_info() -> dict[str, object]:
             "kernel_target": kernel_target,
             "torch_cpu_capability": torch.backends.cpu.get_cpu_capability(),
             "threads": {"torch": torch.get_num_threads(), "kernels": _kernel_threads()},
-            "allocator": _ALLOCATOR, "versions": versions()}
+            "allocator": dict(_ALLOCATOR) if _ALLOCATOR else None, "versions": versions()}
 
 
 def _kernel_threads() -> int:
@@ -80,8 +80,9 @@ RASTER_THREADS_ENV = "EGOBENCH_RASTER_THREADS"
 def raster_threads() -> int:
     """Threads of the compiled kernels (`render.cpu_backend.set_threads`): EGOBENCH_RASTER_THREADS
     when set, else torch's count (OMP_NUM_THREADS / torch.set_num_threads). Setting it to 2 with
-    torch at 1 thread parallelises the kernels only: torch's OpenMP threads gain nothing on the small
-    tensors around them and spin or stall at every operation (docs/cpu-rasterizer.md, "Two threads")."""
+    torch at 1 thread parallelises the kernels only (what `bench raster` scales: there torch's pool
+    spins between the glue's small operations; in training torch's threads pay, docs/cpu-rasterizer.md,
+    "Torch's threads in training")."""
     import torch
 
     value = os.environ.get(RASTER_THREADS_ENV, "")

@@ -54,7 +54,7 @@ def pixel_velocity(recording, frame, depth_m: np.ndarray, t_offset_s: float = 0.
     T_dc = frame.T_device_camera.to(torch.float64)
     rays = cam.unproject(cam.pixel_grid(dtype=torch.float64)).reshape(-1, 3)
     depth = torch.from_numpy(np.asarray(depth_m, dtype=np.float64)).reshape(-1)
-    v = torch.zeros(H * W, 2, dtype=torch.float64)
+    v = torch.empty(H * W, 2, dtype=torch.float64)  # every block written below
     for s in range(0, H * W, chunk):
         v[s:s + chunk] = _velocity_block(traj, cam, T_dc, t_pix[s:s + chunk], rays[s:s + chunk], depth[s:s + chunk])
     v[~(depth > 0)] = 0.0
@@ -165,7 +165,7 @@ def pipeline_noise_reference(
     pv = dst.fy * rays_dst[..., 1:2] / zs + dst.cy
     grid = torch.cat([pu * 2.0 / max(W - 1, 1) - 1.0, pv * 2.0 / max(H - 1, 1) - 1.0], -1)  # align_corners=True
     grid = grid[None].to(torch.float32)
-    ok_f = ok[None, ..., None].to(torch.float32)
+    ok_f, ok_d = ok[None, ..., None].to(torch.float32), ok[None, ..., None].to(torch.float64)
     pred = torch.from_numpy(np.ascontiguousarray(predicted, dtype=np.float32)).permute(0, 3, 1, 2)
 
     def raw_clean(f: int) -> torch.Tensor:  # frame f of the prediction in the raw image [1, Hs, Ws, 3]
@@ -187,7 +187,7 @@ def pipeline_noise_reference(
     for f in range(F_):
         clean = raw_clean(f)
         noisy = electrons[f:f + 1] / noise.electrons_per_unit(g[f:f + 1], electrons[f:f + 1])
-        noisy = quantise(resp.encode(noisy).clamp(0, 1), 8) * ok[None, ..., None].to(torch.float64)
+        noisy = quantise(resp.encode(noisy).clamp(0, 1), 8) * ok_d
         noisy_rect = quantise(rect.warp(noisy.to(torch.float32)).clamp(0, 1), 8)
         out[f] = (noisy_rect - rect.warp(clean))[0].numpy()
     return out
