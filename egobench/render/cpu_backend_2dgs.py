@@ -19,7 +19,6 @@ from torch import Tensor
 from egobench.camera.pinhole import Pinhole
 from egobench.render.cpu_backend import (NEAR_PLANE, FAR_PLANE, contiguous_numpy, pose_grad, set_threads, camera_array,
                                          composite_output, pixel_views, raster_setup, reduce_intersections)
-from egobench.render.torch_backend import densify_carrier_2dgs
 from egobench.render.types import Gaussians, RenderOutput
 
 
@@ -69,11 +68,13 @@ class _Project2DGS(torch.autograd.Function):
 
 class _Rasterize2DGS(torch.autograd.Function):
     """(means2d, ray transforms [I,N,9], log_opacity, colors, depths, normals) -> features
-    [Iout,H,W,7] (sum w (rgb, depth, normal)), transmittance [Iout,H,W], distortion [Iout,H,W]."""
+    [Iout,H,W,7] (sum w (rgb, depth, normal)), transmittance [Iout,H,W], distortion [Iout,H,W].
+    ``carrier`` [I,N,2] (or None): gsplat's gradient_2dgs leaf; it does not change the output and
+    gets (dL/dM[0, 2], dL/dM[1, 2]) M[2, 2], as torch_backend.densify_carrier_2dgs would give it."""
 
     @staticmethod
     def forward(ctx, means2d, tsl, log_opac, colors, depths, normals, radii, pix_view, bin_needed, tile_size,
-                absgrad_target):
+                absgrad_target, carrier):
         from egobench.render import cpu_kernels_2dgs as k2
 
         I, N = depths.shape
@@ -112,8 +113,11 @@ class _Rasterize2DGS(torch.autograd.Function):
                            st.cw, st.kc, st.centres, out_T, out_last, g_state, gT, isect)
         per = reduce_intersections(isect, st.flat_ids, I, N, dt, ab)
         c = 12  # features: colour, depth, normal
+        g_carrier = None
+        if ctx.needs_input_grad[11]:  # gsplat's gradient_2dgs: (dL/dM[0, 2], dL/dM[1, 2]) * M[2, 2]
+            g_carrier = per[..., [4, 7]] * torch.from_numpy(tsl_np[..., 8:9])
         return (per[..., 0:2], per[..., 2:11], per[..., 11].sum(0), per[..., c:c + 3].sum(0), per[..., c + 3],
-                per[..., c + 4:c + 7], None, None, None, None, None)
+                per[..., c + 4:c + 7], None, None, None, None, None, g_carrier)
 
 
 def render_cpu_2dgs(gaussians: Gaussians, camera: Pinhole, viewmats: Tensor, *, pixel_pose_index: Tensor | None,
@@ -127,14 +131,15 @@ def render_cpu_2dgs(gaussians: Gaussians, camera: Pinhole, viewmats: Tensor, *, 
     means2d_out = m2g - 0.5  # egobench pixel convention
     if means2d_out.requires_grad:
         means2d_out.retain_grad()
-    # gsplat's gradient_2dgs carrier: zeros added to the ray transforms' translation column
-    tsl3, carrier = densify_carrier_2dgs(tsl.reshape(I, -1, 3, 3), tsl.requires_grad)
+    # gsplat's gradient_2dgs carrier (torch_backend.densify_carrier_2dgs: zeros added to the ray transforms'
+    # translation column), its gradient given by the rasterizer's backward rather than by torch ops on [I, N, 3, 3]
+    carrier = torch.zeros((I, means2d_out.shape[1], 2), dtype=tsl.dtype, requires_grad=True) if tsl.requires_grad else None
     ts = int(tile_size)
     pix_view, bin_needed = pixel_views(pixel_pose_index, I, H, W, ts)
     holder = [means2d_out] if absgrad and means2d_out.requires_grad else None
-    feats, trans, dist = _Rasterize2DGS.apply(means2d_out + 0.5, tsl3.reshape(I, -1, 9),
-                                              F.logsigmoid(gaussians.opacity_logits), gaussians.colors, depths,
-                                              normals, radii, pix_view, bin_needed, ts, holder)
+    feats, trans, dist = _Rasterize2DGS.apply(means2d_out + 0.5, tsl, F.logsigmoid(gaussians.opacity_logits),
+                                              gaussians.colors, depths, normals, radii, pix_view, bin_needed, ts, holder,
+                                              carrier)
     rgb, alpha, depth = composite_output(feats, trans, background)
     extras = {"backend": "cpu", "tile_size": ts, "distortion": dist[..., None]}
     means2d = means2d_out
