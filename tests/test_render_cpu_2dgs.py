@@ -236,3 +236,67 @@ def test_2dgs_deterministic_across_threads(two_kernel_threads):
         assert torch.equal(results[0][0], other[0])
         for k in results[0][1]:
             assert torch.equal(results[0][1][k], other[1][k]), k
+
+
+def _captured_raster_2dgs(monkeypatch, sigma_px: float):
+    """Kernel arguments of one 2DGS render + backward on an `egobench bench raster` scene (64 px,
+    1500 surfels, float32) -> (forward args, backward args); the backward's last two are isect_grad
+    and the forward's rows_hit."""
+    import numpy as np
+
+    from egobench import bench
+    from egobench.render import cpu_kernels_2dgs as k2
+
+    spec = bench._case_spec((64, 1500, sigma_px))
+    got = {}
+    fwd, bwd = k2.raster_fwd_2dgs, k2.raster_bwd_2dgs
+
+    def keep(name, kernel):
+        def run(*args):
+            kernel(*args)
+            got[name] = [np.copy(a) if isinstance(a, np.ndarray) else a for a in args]
+        return run
+
+    monkeypatch.setattr(k2, "raster_fwd_2dgs", keep("fwd", fwd))
+    monkeypatch.setattr(k2, "raster_bwd_2dgs", keep("bwd", bwd))
+    w = torch.randn(1, 64, 64, 3, generator=torch.Generator().manual_seed(3))
+    bench._step(bench.bench_scene(spec), bench.bench_camera(spec), torch.eye(4)[None], w, mode="2dgs", backend="cpu")()
+    return got["fwd"], got["bwd"]
+
+
+def _backward_with_rows(bwd_args, rows_hit):
+    import numpy as np
+
+    from egobench.render import cpu_kernels_2dgs as k2
+
+    args = [np.copy(a) if isinstance(a, np.ndarray) else a for a in bwd_args[:-1]] + [rows_hit]
+    args[-2][:] = 0
+    k2.raster_bwd_2dgs(*args)
+    return args[-2]
+
+
+def test_2dgs_backward_visits_only_the_rows_the_forward_composited(monkeypatch):
+    """The forward records, per intersection and column group, the rows it composited into
+    (rows_hit); the backward over only those rows equals the backward over every row of the tile
+    (the other pixels' terms are zero), and each recorded range is tight: without its first row the
+    intersection's gradient changes. The records skip a large part of the tile's pixels."""
+    import numpy as np
+
+    fwd_args, bwd_args = _captured_raster_2dgs(monkeypatch, 2.5)
+    rows = bwd_args[-1]
+    ts, cw = fwd_args[8], fwd_args[10]
+    assert rows.shape[1:] == (ts // cw, 2) and rows.min() >= 0 and rows.max() <= ts
+    hit = rows[:, :, 1] > rows[:, :, 0]
+    every_row = np.zeros_like(rows)
+    every_row[:, :, 1] = ts
+    g_rows = _backward_with_rows(bwd_args, rows)
+    np.testing.assert_array_equal(g_rows, bwd_args[-2])  # the render's own backward
+    g_all = _backward_with_rows(bwd_args, every_row)
+    np.testing.assert_allclose(g_rows, g_all, rtol=1e-4, atol=1e-6 * float(np.abs(g_all).max()))
+    shrunk = rows.copy()
+    shrunk[:, :, 0] += hit
+    g_shrunk = _backward_with_rows(bwd_args, shrunk)
+    changed = (g_shrunk != g_rows).any(1)
+    assert hit.any(1).sum() > 300 and changed[hit.any(1)].mean() > 0.99 and not changed[~hit.any(1)].any()
+    visited = (rows[:, :, 1] - rows[:, :, 0]).clip(min=0).sum()  # rows of cw pixels; 29 % of the tiles here
+    assert visited < 0.5 * hit.any(1).sum() * ts * (ts // cw)

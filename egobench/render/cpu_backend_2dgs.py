@@ -85,10 +85,11 @@ class _Rasterize2DGS(torch.autograd.Function):
         out_feat = np.zeros((Iout, H, W, Cf + 1), dtype=m2.dtype)  # + distortion
         out_T = np.zeros((Iout, H, W), dtype=m2.dtype)
         out_last = np.zeros((Iout, H, W), dtype=np.int32)
+        rows_hit = np.zeros((st.flat_ids.shape[0], tile_size // st.cw, 2), dtype=np.int16)
         set_threads()
         k2.raster_fwd_2dgs(m2, tsl_np, lo, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, tile_size,
-                           st.tiles_x, st.cw, st.kc, st.centres, out_feat, out_T, out_last)
-        ctx.state = (m2, tsl_np, lo, st, pix_view, tile_size, out_feat, out_T, out_last, absgrad_target)
+                           st.tiles_x, st.cw, st.kc, st.centres, out_feat, out_T, out_last, rows_hit)
+        ctx.state = (m2, tsl_np, lo, st, pix_view, tile_size, out_feat, out_T, out_last, rows_hit, absgrad_target)
         ctx.shapes = (I, N, colors.dtype)
         feat = torch.from_numpy(out_feat)
         return feat[..., :Cf].contiguous(), torch.from_numpy(out_T), feat[..., Cf].contiguous()
@@ -97,7 +98,7 @@ class _Rasterize2DGS(torch.autograd.Function):
     def backward(ctx, g_feat, g_T, g_dist):
         from egobench.render import cpu_kernels_2dgs as k2
 
-        m2, tsl_np, lo, st, pix_view, ts, out_feat, out_T, out_last, ab = ctx.state
+        m2, tsl_np, lo, st, pix_view, ts, out_feat, out_T, out_last, rows_hit, ab = ctx.state
         I, N, dt = ctx.shapes
         Cf = st.feats.shape[1]
         g_state = np.zeros(out_T.shape + (Cf + 2,), out_T.dtype)  # dL/dF, 2 dL/d distortion, forward depth
@@ -110,7 +111,7 @@ class _Rasterize2DGS(torch.autograd.Function):
         isect = np.zeros((st.flat_ids.shape[0], 12 + Cf), st.kc.dtype)
         set_threads()
         k2.raster_bwd_2dgs(m2, tsl_np, lo, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, ts, st.tiles_x,
-                           st.cw, st.kc, st.centres, out_T, out_last, g_state, gT, isect)
+                           st.cw, st.kc, st.centres, out_T, out_last, g_state, gT, isect, rows_hit)
         per = reduce_intersections(isect, st.flat_ids, I, N, dt, ab)
         c = 12  # features: colour, depth, normal
         g_carrier = None

@@ -8,6 +8,8 @@ Compositing: per pixel the ray-splat intersection h_u x h_v (linear in the pixel
 relative to the tile centre as the torch backend), min(3D, 2D low-pass) exponent, the 3DGS
 compositing rules, plus the depth distortion 2 sum_{j<k} w_j w_k (z_k - z_j). The tile loop, state
 layout, binning and gradient reduction are `cpu_kernels`' (see there for determinism and threads).
+The forward records which rows of each column group a surfel was composited into (``rows_hit``); the
+backward visits only those (a surfel's box footprint holds 4-6x the pixels it composites into).
 
 Caching: numba keys the cache of these kernels on this file's modification time only, but they
 inline helpers of `cpu_kernels.py`; `_follow_helper_edits` (run at import) therefore touches this
@@ -27,7 +29,7 @@ from egobench.render.cpu_kernels import (CHUNK, EXTENT_SIGMAS, FASTMATH, SIGMA_R
                                          add_feature_grads, add_rot_scale_grads, add_view_and_mean_grads,
                                          bin_tile, camera_point, composite_pixel, exponent_grad, feature_dot,
                                          finish_tile_fwd, normal_grad, quat_grad, retire_stopped, quat_rotmat,
-                                         tile_state_bwd, tile_state_fwd, trim_rows_active, trim_rows_composited,
+                                         tile_state_bwd, tile_state_fwd, trim_rows_active,
                                          uncomposite_pixel)
 
 
@@ -267,6 +269,15 @@ def _tile_local(cxt, cyt, x0, y0, ts):
     return lxt, lyt, ox, oy
 
 
+@njit(cache=True, inline="always")
+def _state_rows(ts, cw):
+    """Tile row of each state entry (`cpu_kernels._state_index` layout) -> [ts * ts] int32."""
+    rows = np.empty(ts * ts, np.int32)
+    for idx in range(ts * ts):
+        rows[idx] = (idx % (ts * cw)) // cw
+    return rows
+
+
 @njit(cache=True, inline="always", fastmath=FASTMATH)
 def _surfel_exponent(lx, ly, dx, dy, cc, lo, kc):
     """Exponent s = min(|uv|^2 of h_u x h_v, FILTER_2D |d|^2) / 2 - log o at one pixel (lx, ly tile-local;
@@ -297,22 +308,27 @@ def _surfel(means2d, tsl, log_opac, g, N, ox, oy, cc):
 
 @njit(cache=True, parallel=True, fastmath=FASTMATH)
 def raster_fwd_2dgs(means2d, tsl, log_opac, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles_x,
-                    cw, kc, centres, out_feat, out_T, out_last):
+                    cw, kc, centres, out_feat, out_T, out_last, rows_hit):
     """`cpu_kernels.raster_fwd` for surfels: tsl [I, N, 9] ray transforms, feats [I*N, Cf] with the depth
     in channel DEPTH_CH; out_feat [Iout, H, W, Cf + 1] gets sum w f and, in its last channel, the
-    depth distortion 2 sum_k w_k (z_k W_k - A_k) (W_k, A_k: sums of w_j, w_j z_j over earlier j)."""
+    depth distortion 2 sum_k w_k (z_k W_k - A_k) (W_k, A_k: sums of w_j, w_j z_j over earlier j).
+    rows_hit [M, ts // cw, 2] int16 (zeros on entry): for each intersection and column group, the tile
+    rows [first, last + 1) holding a pixel it was composited into (w > 0), or an empty range; the
+    backward visits only those (at sigma 2.5 px about half the pixels the footprint holds)."""
     Iout, H, W = pix_view.shape
     N = log_opac.shape[0]
     Cf = feats.shape[1]
     n_tiles = tiles_x * ((H + tile_size - 1) // tile_size)
     ts = tile_size
-    one = kc[1]
+    one, zero = kc[1], kc[3]
+    no_row, ts32 = np.int32(-1), np.int32(ts)
     for jb in prange(bins.shape[0]):
         b = bins[jb]
         i, o, x0, y0, x1, y1 = bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout)
         T, acc, last, cxt, cyt, wbuf, sbuf, row_active, n_active = tile_state_fwd(pix_view, o, i, x0, y0, x1, y1,
                                                                                    ts, cw, Cf + 1, kc, centres)
         lxt, lyt, ox, oy = _tile_local(cxt, cyt, x0, y0, ts)
+        rowt = _state_rows(ts, cw)
         cc = np.empty(9, kc.dtype)
         for k in range(bin_start[b], bin_start[b + 1]):
             if n_active == 0:
@@ -327,16 +343,22 @@ def raster_fwd_2dgs(means2d, tsl, log_opac, feats, flat_ids, bin_start, bins, pi
             k1 = np.int32(k + 1)
             for q in range(ca // cw, (cb - 1) // cw + 1):
                 pa, pb = q * ts * cw + ra * cw, q * ts * cw + rb * cw
+                r_lo, r_hi = ts32, no_row  # rows composited into (selects: the loop still vectorizes)
                 for pp in range(pa, pb):
                     p = np.uint64(pp)
                     s, _, _, _, _, _ = _surfel_exponent(lxt[p], lyt[p], cxt[p] - mx, cyt[p] - my, c9, lo, kc)
                     Tp = T[p]
                     w, T[p], last[p], stop = composite_pixel(s, Tp, last[p], k1, kc)
                     wbuf[p] = w
+                    r_a = rowt[p] if w > zero else ts32
+                    r_b = rowt[p] if w > zero else no_row
+                    r_lo = r_a if r_a < r_lo else r_lo
+                    r_hi = r_b if r_b > r_hi else r_hi
                     acc[Cf, p] += (w + w) * (zk * (one - Tp) - acc[DEPTH_CH, p])  # before the depth update
                     sbuf[p] = 1 if stop else 0
                     stopped += 1 if stop else 0
                 accumulate_features(acc, wbuf, feats, flat_ids[k], pa, pb)
+                rows_hit[k, q, 0], rows_hit[k, q, 1] = r_lo, r_hi + 1
             if stopped:
                 n_active -= stopped
                 retire_stopped(row_active, sbuf, ra, rb, ca, cb, ts, cw)
@@ -369,10 +391,11 @@ def _write_surfel_grad(isect_grad, k, ac, up_vp, tsl, gi, n, ox, oy, gmx, gmy, g
 
 @njit(cache=True, parallel=True, fastmath=FASTMATH_BWD)
 def raster_bwd_2dgs(means2d, tsl, log_opac, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles_x,
-                    cw, kc, centres, out_T, out_last, g_state, g_T, isect_grad):
+                    cw, kc, centres, out_T, out_last, g_state, g_T, isect_grad, rows_hit):
     """Back-to-front backward of `raster_fwd_2dgs`. g_state [Iout, H, W, Cf + 2]: dL/dF (Cf channels),
     2 dL/d distortion, the forward's accumulated depth. isect_grad [M, 12 + Cf] per intersection:
-    dL/d centre x, y; ray transform (9, row-major); log opacity; features."""
+    dL/d centre x, y; ray transform (9, row-major); log opacity; features. rows_hit: the forward's;
+    the pixels outside those rows were not composited into, so their terms are zero."""
     Iout, H, W = pix_view.shape
     N = log_opac.shape[0]
     Cf = feats.shape[1]
@@ -382,7 +405,7 @@ def raster_bwd_2dgs(means2d, tsl, log_opac, feats, flat_ids, bin_start, bins, pi
     for jb in prange(bins.shape[0]):
         b = bins[jb]
         i, o, x0, y0, x1, y1 = bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout)
-        T, gTT, suffix, gF, last, cxt, cyt, ebuf, wbuf, _, row_last, k_end = tile_state_bwd(
+        T, gTT, suffix, gF, last, cxt, cyt, ebuf, wbuf, _, _, k_end = tile_state_bwd(
             pix_view, o, i, x0, y0, x1, y1, ts, cw, Cf + 2, kc, centres, out_T, out_last, g_T, g_state, bin_start[b])
         gf = np.empty(Cf, kc.dtype)  # feature gradients only (gF's last two rows are distortion state)
         lxt, lyt, ox, oy = _tile_local(cxt, cyt, x0, y0, ts)
@@ -393,15 +416,14 @@ def raster_bwd_2dgs(means2d, tsl, log_opac, feats, flat_ids, bin_start, bins, pi
         for k in range(k_end - 1, bin_start[b] - 1, -1):
             g = flat_ids[k]
             gi, n, mx, my, lo, c9, up_vp = _surfel(means2d, tsl, log_opac, g, N, ox, oy, cc)
-            ra, rb, ca, cb = _footprint_2dgs(tsl, gi, n, mx, my, lo, x0, y0, ts, W, H)
-            ra, rb = trim_rows_composited(ra, rb, k, row_last)
             zk = feats[g, DEPTH_CH]
             k32 = np.int32(k)
             a0 = a1 = a2 = a3 = a4 = a5 = a6 = a7 = a8 = gmx = gmy = glo = gz = zero
             gf[:] = zero
-            if ra >= rb or ca >= cb:
-                ca, cb = 0, 0
-            for q in range(ca // cw, (cb - 1) // cw + 1 if cb > ca else 0):
+            for q in range(rows_hit.shape[1]):
+                ra, rb = rows_hit[k, q, 0], rows_hit[k, q, 1]
+                if ra >= rb:
+                    continue
                 pa, pb = q * ts * cw + ra * cw, q * ts * cw + rb * cw
                 feature_dot(ebuf, gF, feats, g, pa, pb, zero)
                 for pp in range(pa, pb):
