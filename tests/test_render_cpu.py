@@ -391,3 +391,58 @@ def test_tile_rects_and_gradient_sums_match_plain_references():
     absgrad = np.zeros((I * N, 2))
     np.testing.assert_array_equal(ck.reduce_isect_grad(isect, flat_ids, M, I * N, absgrad), sums)
     np.testing.assert_array_equal(absgrad, abs_want)
+
+
+def _captured_raster(monkeypatch, mode: str, sigma_px: float):
+    """Kernel arguments of one render + backward (mode "3dgs" or "2dgs") on an `egobench bench raster`
+    scene (64 px, 1500 Gaussians, float32) -> backward args; the last two are isect_grad and the
+    forward's rows_hit."""
+    from egobench import bench
+    from egobench.render import cpu_kernels as ck
+    from egobench.render import cpu_kernels_2dgs as k2
+
+    mod, name = (k2, "raster_bwd_2dgs") if mode == "2dgs" else (ck, "raster_bwd")
+    kernel, got = getattr(mod, name), {}
+
+    def keep(*args):
+        kernel(*args)
+        got["bwd"] = [np.copy(a) if isinstance(a, np.ndarray) else a for a in args]
+
+    monkeypatch.setattr(mod, name, keep)
+    spec = bench._case_spec((64, 1500, sigma_px))
+    w = torch.randn(1, 64, 64, 3, generator=torch.Generator().manual_seed(3))
+    bench._step(bench.bench_scene(spec), bench.bench_camera(spec), torch.eye(4)[None], w, mode=mode, backend="cpu")()
+    return got["bwd"], kernel
+
+
+def _backward_with_rows(kernel, bwd_args, rows_hit):
+    args = [np.copy(a) if isinstance(a, np.ndarray) else a for a in bwd_args[:-1]] + [rows_hit]
+    args[-2][:] = 0
+    kernel(*args)
+    return args[-2]
+
+
+@pytest.mark.parametrize("mode", ["3dgs", "2dgs"])
+def test_backward_visits_only_the_rows_the_forward_composited(monkeypatch, mode):
+    """The forward records, per intersection and column group, the rows it composited into
+    (rows_hit); the backward over only those rows equals the backward over every row of the tile
+    (the other pixels' terms are zero), and each recorded range is tight: without its first row the
+    intersection's gradient changes. The records skip most of the tiles' rows."""
+    from egobench.render.cpu_backend import DEFAULT_TILE
+
+    bwd_args, kernel = _captured_raster(monkeypatch, mode, 2.5)
+    rows, ts = bwd_args[-1], DEFAULT_TILE
+    assert rows.shape[1] == ts // 8 and rows.min() >= 0 and rows.max() <= ts
+    hit = rows[:, :, 1] > rows[:, :, 0]
+    every_row = np.zeros_like(rows)
+    every_row[:, :, 1] = ts
+    g_rows = _backward_with_rows(kernel, bwd_args, rows)
+    np.testing.assert_array_equal(g_rows, bwd_args[-2])  # the render's own backward
+    g_all = _backward_with_rows(kernel, bwd_args, every_row)
+    np.testing.assert_allclose(g_rows, g_all, rtol=1e-4, atol=1e-6 * float(np.abs(g_all).max()))
+    shrunk = rows.copy()
+    shrunk[:, :, 0] += hit
+    changed = (_backward_with_rows(kernel, bwd_args, shrunk) != g_rows).any(1)
+    assert hit.any(1).sum() > 300 and changed[hit.any(1)].mean() > 0.99 and not changed[~hit.any(1)].any()
+    visited = (rows[:, :, 1] - rows[:, :, 0]).clip(min=0).sum()  # rows of 8 pixels
+    assert visited < 0.5 * hit.any(1).sum() * ts * rows.shape[1]

@@ -82,15 +82,16 @@ def stage_times(sigma_px: float = 2.5, width: int = 128, n: int = 20000, repeats
     ol = np.zeros((I, width, width), np.int32)
     tab = np.empty((I * N, ck.TAB_COLS), np.float32)
     out["gaussian_table"] = _median_ms(lambda: ck.gaussian_table(m2, con, rad, lo, tab), repeats)
+    rows_hit = cb.rows_hit_buffer(st.flat_ids.shape[0], tile_size, st.cw)
     fargs = (tab, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, tile_size, st.tiles_x, st.cw,
-             st.kc, st.centres, of, oT, ol)
+             st.kc, st.centres, of, oT, ol, rows_hit)
     out["raster_fwd"] = _median_ms(lambda: ck.raster_fwd(*fargs), repeats)
     rng = np.random.default_rng(0)
     gF = rng.standard_normal(of.shape).astype(np.float32)
     gT = rng.standard_normal(oT.shape).astype(np.float32)
     isect = np.zeros((st.flat_ids.shape[0], 6 + Cf), np.float32)
     bargs = (tab, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, tile_size, st.tiles_x, st.cw,
-             st.kc, st.centres, oT, ol, gF, gT, isect)
+             st.kc, st.centres, oT, ol, gF, gT, isect, rows_hit)
     out["raster_bwd"] = _median_ms(lambda: ck.raster_bwd(*bargs), repeats)
     absg = np.zeros((I * N, 2))
     out["reduce_isect_grad"] = _median_ms(

@@ -116,6 +116,12 @@ def raster_setup(means2d: Tensor, radii: Tensor, depths: Tensor, colors: Tensor,
                        ck.compute_constants(m2.dtype), centres)
 
 
+def rows_hit_buffer(n_intersections: int, tile_size: int, cw: int) -> np.ndarray:
+    """The forward's record of the rows each intersection was composited into, per column group of cw
+    columns: [M, tile_size // cw, 2] int16 (row ranges; zeros: empty), read by the backward."""
+    return np.zeros((n_intersections, tile_size // cw, 2), dtype=np.int16)
+
+
 def reduce_intersections(isect: np.ndarray, flat_ids: np.ndarray, I: int, N: int, dt: torch.dtype,
                          absgrad_holder: list | None) -> Tensor:
     """Per-intersection gradient rows [M, C] -> per (image, Gaussian) sums [I, N, C] (intersection
@@ -214,9 +220,10 @@ class _Rasterize(torch.autograd.Function):
         set_threads()
         tab = np.empty((I * N, ck.TAB_COLS), dtype=m2.dtype)
         ck.gaussian_table(m2, contiguous_numpy(conics), contiguous_numpy(radii), contiguous_numpy(log_opac), tab)
+        rows_hit = rows_hit_buffer(st.flat_ids.shape[0], tile_size, st.cw)
         ck.raster_fwd(tab, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, tile_size,
-                      st.tiles_x, st.cw, st.kc, st.centres, out_feat, out_T, out_last)
-        ctx.state = (tab, st, pix_view, tile_size, out_T, out_last, absgrad_target)
+                      st.tiles_x, st.cw, st.kc, st.centres, out_feat, out_T, out_last, rows_hit)
+        ctx.state = (tab, st, pix_view, tile_size, out_T, out_last, rows_hit, absgrad_target)
         ctx.has_normals = bool(normals.shape[1])
         ctx.shapes = (I, N, colors.dtype)
         return torch.from_numpy(out_feat), torch.from_numpy(out_T)
@@ -225,7 +232,7 @@ class _Rasterize(torch.autograd.Function):
     def backward(ctx, g_feat, g_T):
         from egobench.render import cpu_kernels as ck
 
-        tab, st, pix_view, ts, out_T, out_last, ab = ctx.state
+        tab, st, pix_view, ts, out_T, out_last, rows_hit, ab = ctx.state
         I, N, dt = ctx.shapes
         Cf = st.feats.shape[1]
         gF = np.zeros(out_T.shape + (Cf,), out_T.dtype) if g_feat is None else contiguous_numpy(g_feat)
@@ -233,7 +240,7 @@ class _Rasterize(torch.autograd.Function):
         isect = np.zeros((st.flat_ids.shape[0], 6 + Cf), st.kc.dtype)
         set_threads()
         ck.raster_bwd(tab, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, ts, st.tiles_x, st.cw,
-                      st.kc, st.centres, out_T, out_last, gF, gT, isect)
+                      st.kc, st.centres, out_T, out_last, gF, gT, isect, rows_hit)
         per = reduce_intersections(isect, st.flat_ids, I, N, dt, ab)
         g_normals = per[..., 10:13] if ctx.has_normals else None
         return (per[..., 0:2], per[..., 2:5], per[..., 5].sum(0), per[..., 6:9].sum(0), per[..., 9],

@@ -18,7 +18,8 @@ from torch import Tensor
 
 from egobench.camera.pinhole import Pinhole
 from egobench.render.cpu_backend import (NEAR_PLANE, FAR_PLANE, contiguous_numpy, pose_grad, set_threads, camera_array,
-                                         composite_output, pixel_views, raster_setup, reduce_intersections)
+                                         composite_output, pixel_views, raster_setup, reduce_intersections,
+                                         rows_hit_buffer)
 from egobench.render.types import Gaussians, RenderOutput
 
 
@@ -85,7 +86,7 @@ class _Rasterize2DGS(torch.autograd.Function):
         out_feat = np.zeros((Iout, H, W, Cf + 1), dtype=m2.dtype)  # + distortion
         out_T = np.zeros((Iout, H, W), dtype=m2.dtype)
         out_last = np.zeros((Iout, H, W), dtype=np.int32)
-        rows_hit = np.zeros((st.flat_ids.shape[0], tile_size // st.cw, 2), dtype=np.int16)
+        rows_hit = rows_hit_buffer(st.flat_ids.shape[0], tile_size, st.cw)
         set_threads()
         k2.raster_fwd_2dgs(m2, tsl_np, lo, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, tile_size,
                            st.tiles_x, st.cw, st.kc, st.centres, out_feat, out_T, out_last, rows_hit)

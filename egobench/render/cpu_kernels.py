@@ -724,9 +724,9 @@ def finish_tile_fwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, T, last, acc, out_fe
 
 @njit(cache=True, inline="always")
 def _start_tile_bwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, out_T, out_last, g_T, g_feat, T, gTT, last, gF,
-                    row_last, k_end):
+                    k_end):
     """Loads the forward's final T, last and the output gradients of the tile's pixels whose view is i
-    into the tile state (row_last: per row the largest last) -> one past the last intersection to visit."""
+    into the tile state -> one past the last intersection to visit."""
     for v in range(y0, y1):
         for u in range(x0, x1):
             if pix_view[o, v, u] != i:
@@ -736,7 +736,6 @@ def _start_tile_bwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, out_T, out_last, g_T
             gTT[p] = g_T[o, v, u] * out_T[o, v, u]
             last[p] = out_last[o, v, u]
             k_end = max(k_end, last[p])
-            row_last[v - y0] = max(row_last[v - y0], last[p])
             for c in range(gF.shape[0]):
                 gF[c, p] = g_feat[o, v, u, c]
     return k_end
@@ -787,16 +786,6 @@ def trim_rows_active(ra, rb, row_active):
 
 
 @njit(cache=True, inline="always")
-def trim_rows_composited(ra, rb, k, row_last):
-    """Rows [ra, rb) narrowed to start and end at rows where intersection k was composited or reached."""
-    while ra < rb and k >= row_last[ra]:
-        ra += 1
-    while rb > ra and k >= row_last[rb - 1]:
-        rb -= 1
-    return ra, rb
-
-
-@njit(cache=True, inline="always")
 def _tile_base(centres, x0, y0, ts, cw, kc):
     """Tile state every pass uses: T [P] and last [P] int32 (zeros), pixel centres cxt, cyt [P]."""
     P = ts * ts
@@ -833,18 +822,34 @@ def accumulate_features(acc, wbuf, feats, g, pa, pb):
 @njit(cache=True, inline="always")
 def tile_state_bwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, Cf, kc, centres, out_T, out_last, g_T, g_feat, k_begin):
     """Per-tile state of the backward, loaded from the forward's results (`_start_tile_bwd`) -> (T,
-    gTT, suffix, gF [Cf, P], last, cxt, cyt, ebuf, wbuf, gf [Cf], row_last [ts], one past the last
-    intersection to visit)."""
+    gTT, suffix, gF [Cf, P], last, cxt, cyt, ebuf, wbuf, gf [Cf], one past the last intersection to visit)."""
     P = ts * ts
     T, last, cxt, cyt = _tile_base(centres, x0, y0, ts, cw, kc)
     gTT = np.zeros(P, kc.dtype)
     suffix = np.zeros(P, kc.dtype)
     gF = np.zeros((Cf, P), kc.dtype)
-    row_last = np.zeros(ts, np.int64)  # one past the last composited intersection, per tile row
     k_end = _start_tile_bwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, out_T, out_last, g_T, g_feat, T, gTT, last,
-                            gF, row_last, k_begin)
+                            gF, k_begin)
     return (T, gTT, suffix, gF, last, cxt, cyt, np.empty(P, kc.dtype), np.empty(P, kc.dtype), np.empty(Cf, kc.dtype),
-            row_last, k_end)
+            k_end)
+
+
+@njit(cache=True, inline="always")
+def state_rows(ts, cw):
+    """Tile row of each state entry (`_state_index` layout) -> [ts * ts] int32."""
+    rows = np.empty(ts * ts, np.int32)
+    for idx in range(ts * ts):
+        rows[idx] = (idx % (ts * cw)) // cw
+    return rows
+
+
+@njit(cache=True, inline="always")
+def track_rows(w, row, r_lo, r_hi, zero, ts32, no_row):
+    """The running first and last rows (r_lo, r_hi) of a column group's pixels with weight w > 0 (selects:
+    the pixel loop around it still vectorizes); the forward's `rows_hit` records, read by the backward."""
+    r_a = row if w > zero else ts32
+    r_b = row if w > zero else no_row
+    return (r_a if r_a < r_lo else r_lo), (r_b if r_b > r_hi else r_hi)
 
 
 @njit(cache=True, inline="always", fastmath=FASTMATH)
@@ -893,7 +898,7 @@ def _exponent(dx, dy, hA, B, hC, lo):
 
 @njit(cache=True, parallel=True, fastmath=FASTMATH)
 def raster_fwd(tab, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles_x,
-               cw, kc, centres, out_feat, out_T, out_last):
+               cw, kc, centres, out_feat, out_T, out_last, rows_hit):
     """Front-to-back compositing of each bin (image i, tile t) in ``bins`` into the output pixels
     whose view is i (pix_view [Iout,H,W]). tab [I*N, TAB_COLS] `gaussian_table` (centres, conics,
     log opacities, footprints); feats [I*N, Cf] per (image, Gaussian) features; cw
@@ -903,16 +908,20 @@ def raster_fwd(tab, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles
     Per-pixel state: T > 0 while compositing, -T once stopped, 0 for pixels of other views; stored
     in column groups (`_state_index`) so that the pixels a Gaussian can reach in a group (its
     ellipse's rows, trimmed to rows still compositing) are one contiguous range, updated by one
-    branch-free loop (it vectorizes)."""
+    branch-free loop (it vectorizes). rows_hit [M, ts // cw, 2] int16 (zeros on entry): per intersection
+    and column group, the rows [first, last + 1) it was composited into (w > 0), else an empty range;
+    the backward visits only those."""
     Iout, H, W = pix_view.shape
     Cf = feats.shape[1]
     n_tiles = tiles_x * ((H + tile_size - 1) // tile_size)
     ts = tile_size
+    zero, no_row, ts32 = kc[3], np.int32(-1), np.int32(ts)
     for jb in prange(bins.shape[0]):
         b = bins[jb]
         i, o, x0, y0, x1, y1 = bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout)
         T, acc, last, cxt, cyt, wbuf, sbuf, row_active, n_active = tile_state_fwd(pix_view, o, i, x0, y0, x1, y1,
                                                                                    ts, cw, Cf, kc, centres)
+        rowt = state_rows(ts, cw)
         for k in range(bin_start[b], bin_start[b + 1]):
             if n_active == 0:
                 break
@@ -934,14 +943,18 @@ def raster_fwd(tab, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles
                     continue
                 pa, pb = q * ts * cw + qra * cw, q * ts * cw + qrb * cw
                 stopped = 0
+                r_lo, r_hi = ts32, no_row
                 # (accumulating the features in this loop measured slower: 7.7 against 7.1 ms)
                 for pp in range(pa, pb):  # unsigned index: no wraparound test; branch-free: vectorizes
                     p = np.uint64(pp)
                     s = _exponent(cxt[p] - mx, cyt[p] - my, hA, B, hC, lo)
-                    wbuf[p], T[p], last[p], stop = composite_pixel(s, T[p], last[p], k1, kc)
+                    w, T[p], last[p], stop = composite_pixel(s, T[p], last[p], k1, kc)
+                    wbuf[p] = w
                     sbuf[p] = 1 if stop else 0
                     stopped += 1 if stop else 0
+                    r_lo, r_hi = track_rows(w, rowt[p], r_lo, r_hi, zero, ts32, no_row)
                 accumulate_features(acc, wbuf, feats, g, pa, pb)
+                rows_hit[k, q, 0], rows_hit[k, q, 1] = r_lo, r_hi + 1
                 if stopped:
                     n_active -= stopped
                     retire_stopped(row_active, sbuf, qra, qrb, q * cw, q * cw + 1, ts, cw)
@@ -950,9 +963,10 @@ def raster_fwd(tab, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles
 
 @njit(cache=True, parallel=True, fastmath=FASTMATH)
 def raster_bwd(tab, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles_x,
-               cw, kc, centres, out_T, out_last, g_feat, g_T, isect_grad):
+               cw, kc, centres, out_T, out_last, g_feat, g_T, isect_grad, rows_hit):
     """Back-to-front backward of `raster_fwd` (T recovered by division, as gsplat): isect_grad
-    [M, 6 + Cf] per intersection (dL/d mean x, y; dL/d conic a, b, c; dL/d log opacity; dL/d features)."""
+    [M, 6 + Cf] per intersection (dL/d mean x, y; dL/d conic a, b, c; dL/d log opacity; dL/d features).
+    rows_hit: the forward's; the pixels outside those rows were not composited into (zero terms)."""
     Iout, H, W = pix_view.shape
     Cf = feats.shape[1]
     n_tiles = tiles_x * ((H + tile_size - 1) // tile_size)
@@ -961,7 +975,7 @@ def raster_bwd(tab, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles
     for jb in prange(bins.shape[0]):
         b = bins[jb]
         i, o, x0, y0, x1, y1 = bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout)
-        T, gTT, suffix, gF, last, cxt, cyt, ebuf, wbuf, gf, row_last, k_end = tile_state_bwd(
+        T, gTT, suffix, gF, last, cxt, cyt, ebuf, wbuf, gf, k_end = tile_state_bwd(
             pix_view, o, i, x0, y0, x1, y1, ts, cw, Cf, kc, centres, out_T, out_last, g_T, g_feat, bin_start[b])
         for k in range(k_end - 1, bin_start[b] - 1, -1):
             g = flat_ids[k]
@@ -970,8 +984,6 @@ def raster_bwd(tab, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles
             _prefetch_row(feats, gp)
             mx, my, A, B, C, lo = tab[g, 0], tab[g, 1], tab[g, 2], tab[g, 3], tab[g, 4], tab[g, 5]
             hA, hC = kc[0] * A, kc[0] * C
-            ra, rb, ca, cb = _footprint_tab(tab, g, x0, y0, ts, W, H)
-            ra, rb = trim_rows_composited(ra, rb, k, row_last)
             gmx = zero
             gmy = zero
             ga = zero
@@ -981,10 +993,8 @@ def raster_bwd(tab, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles
             k32 = np.int32(k)
             for c in range(Cf):
                 gf[c] = zero
-            if ra >= rb or ca >= cb:
-                ca, cb = 0, 0
-            for q in range(ca // cw, (cb - 1) // cw + 1 if cb > ca else 0):
-                qra, qrb = _band_rows(tab, g, x0, y0, max(ca, q * cw), min(cb, q * cw + cw), ra, rb)
+            for q in range(rows_hit.shape[1]):
+                qra, qrb = rows_hit[k, q, 0], rows_hit[k, q, 1]
                 if qra >= qrb:
                     continue
                 pa, pb = q * ts * cw + qra * cw, q * ts * cw + qrb * cw

@@ -29,7 +29,7 @@ from egobench.render.cpu_kernels import (CHUNK, EXTENT_SIGMAS, FASTMATH, SIGMA_R
                                          add_feature_grads, add_rot_scale_grads, add_view_and_mean_grads,
                                          bin_tile, camera_point, composite_pixel, exponent_grad,
                                          finish_tile_fwd, normal_grad, quat_grad, retire_stopped, quat_rotmat,
-                                         tile_state_bwd, tile_state_fwd, trim_rows_active,
+                                         state_rows, tile_state_bwd, tile_state_fwd, track_rows, trim_rows_active,
                                          uncomposite_pixel)
 
 
@@ -270,15 +270,6 @@ def _tile_local(cxt, cyt, x0, y0, ts):
     return lxt, lyt, ox, oy
 
 
-@njit(cache=True, inline="always")
-def _state_rows(ts, cw):
-    """Tile row of each state entry (`cpu_kernels._state_index` layout) -> [ts * ts] int32."""
-    rows = np.empty(ts * ts, np.int32)
-    for idx in range(ts * ts):
-        rows[idx] = (idx % (ts * cw)) // cw
-    return rows
-
-
 @njit(cache=True, inline="always", fastmath=FASTMATH)
 def _surfel_exponent(lx, ly, dx, dy, cc, lo, kc):
     """Exponent s = min(|uv|^2 of h_u x h_v, FILTER_2D |d|^2) / 2 - log o at one pixel (lx, ly tile-local;
@@ -329,7 +320,7 @@ def raster_fwd_2dgs(means2d, tsl, log_opac, feats, flat_ids, bin_start, bins, pi
         T, acc, last, cxt, cyt, wbuf, sbuf, row_active, n_active = tile_state_fwd(pix_view, o, i, x0, y0, x1, y1,
                                                                                    ts, cw, Cf + 1, kc, centres)
         lxt, lyt, ox, oy = _tile_local(cxt, cyt, x0, y0, ts)
-        rowt = _state_rows(ts, cw)
+        rowt = state_rows(ts, cw)
         cc = np.empty(9, kc.dtype)
         for k in range(bin_start[b], bin_start[b + 1]):
             if n_active == 0:
@@ -351,10 +342,7 @@ def raster_fwd_2dgs(means2d, tsl, log_opac, feats, flat_ids, bin_start, bins, pi
                     Tp = T[p]
                     w, T[p], last[p], stop = composite_pixel(s, Tp, last[p], k1, kc)
                     wbuf[p] = w
-                    r_a = rowt[p] if w > zero else ts32
-                    r_b = rowt[p] if w > zero else no_row
-                    r_lo = r_a if r_a < r_lo else r_lo
-                    r_hi = r_b if r_b > r_hi else r_hi
+                    r_lo, r_hi = track_rows(w, rowt[p], r_lo, r_hi, zero, ts32, no_row)
                     acc[Cf, p] += (w + w) * (zk * (one - Tp) - acc[DEPTH_CH, p])  # before the depth update
                     sbuf[p] = 1 if stop else 0
                     stopped += 1 if stop else 0
@@ -424,7 +412,7 @@ def raster_bwd_2dgs(means2d, tsl, log_opac, feats, flat_ids, bin_start, bins, pi
     for jb in prange(bins.shape[0]):
         b = bins[jb]
         i, o, x0, y0, x1, y1 = bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout)
-        T, gTT, suffix, gF, last, cxt, cyt, ebuf, wbuf, _, _, k_end = tile_state_bwd(
+        T, gTT, suffix, gF, last, cxt, cyt, ebuf, wbuf, _, k_end = tile_state_bwd(
             pix_view, o, i, x0, y0, x1, y1, ts, cw, Cf + 2, kc, centres, out_T, out_last, g_T, g_state, bin_start[b])
         gf = np.empty(Cf, kc.dtype)  # feature gradients only (gF's last two rows are distortion state)
         lxt, lyt, ox, oy = _tile_local(cxt, cyt, x0, y0, ts)
