@@ -446,3 +446,44 @@ def test_backward_visits_only_the_rows_the_forward_composited(monkeypatch, mode)
     assert hit.any(1).sum() > 300 and changed[hit.any(1)].mean() > 0.99 and not changed[~hit.any(1)].any()
     visited = (rows[:, :, 1] - rows[:, :, 0]).clip(min=0).sum()  # rows of 8 pixels
     assert visited < 0.5 * hit.any(1).sum() * ts * rows.shape[1]
+
+
+@pytest.mark.parametrize("mode", ["3dgs", "2dgs"])
+def test_projection_backward_reads_float32_gradients_as_float64_copies(monkeypatch, mode):
+    """The projection backward gets the upstream gradients in their own dtype (no float64 copies of
+    [I, N, 9] arrays a step): every value is widened to float64 as it is read, so its outputs equal,
+    bit for bit, those from float64 copies of the same gradients (normals and pose gradients included)."""
+    from egobench.render import cpu_kernels as ck
+    from egobench.render import cpu_kernels_2dgs as k2
+
+    mod, name = (k2, "project_bwd_2dgs") if mode == "2dgs" else (ck, "project_bwd")
+    kernel, got = getattr(mod, name), {}
+
+    def keep(*args):
+        got["args"] = [np.copy(a) if isinstance(a, np.ndarray) else a for a in args]
+        kernel(*args)
+
+    monkeypatch.setattr(mod, name, keep)
+    g = Gaussians(**{k: v.float() for k, v in make_scene(400, CAM, 3).tensors().items()})
+    inputs = {k: v.clone().requires_grad_(True) for k, v in g.tensors().items()}
+    T = torch.stack([pose(0.02, -0.01), pose(-0.01, 0.03)]).float().requires_grad_(True)
+    kw = {"mode": "2dgs"} if mode == "2dgs" else {"want_normal": True}
+    out = render(Gaussians(**inputs), CAM, T, backend="cpu", **kw)
+    w = torch.randn(out.rgb.shape, generator=torch.Generator().manual_seed(2))
+    ((out.rgb * w).sum() + out.normal.sum() + out.depth.sum()).backward()
+    args = got["args"]
+    grads = [j for j, a in enumerate(args) if isinstance(a, np.ndarray) and a.dtype == np.float32]
+    assert len(grads) == 4  # means2d, conics / ray transforms, depths, normals
+    outs = []
+    for widen in (False, True):
+        run = [np.copy(a) if isinstance(a, np.ndarray) else a for a in args]
+        if widen:
+            for j in grads:
+                run[j] = run[j].astype(np.float64)
+        for a in run[-4:]:
+            a[:] = 0
+        kernel(*run)
+        outs.append(run[-4:])
+    for a, b in zip(*outs):
+        np.testing.assert_array_equal(a, b)
+    assert all(np.abs(a).max() > 0 for a in outs[0])

@@ -181,12 +181,14 @@ class _Project(torch.autograd.Function):
         cam, width, height, want_normal = ctx.args
         I, N = viewmats.shape[0], means.shape[0]
 
-        def z(g, shape):
-            return np.zeros(shape, dtype=np.float64) if g is None else contiguous_numpy(g).astype(np.float64, copy=False)
+        dt_np = contiguous_numpy(means).dtype
+
+        def z(g, shape):  # in its own dtype: the kernel widens every value to float64 as it reads it
+            return np.zeros(shape, dtype=dt_np) if g is None else contiguous_numpy(g)
 
         g_m2, g_con = z(g_m2, (I, N, 2)), z(g_con, (I, N, 3))
         g_dep = z(g_dep, (I, N))
-        g_nrm = z(g_nrm, (I, N, 3)) if want_normal else np.zeros((I, 0, 3))
+        g_nrm = z(g_nrm, (I, N, 3)) if want_normal else np.zeros((I, 0, 3), dtype=dt_np)
         gm, gq, gs = np.empty((N, 3)), np.empty((N, 4)), np.empty((N, 3))
         n_chunks = max(1, math.ceil(N / ck.CHUNK))
         gv_parts = np.zeros((n_chunks, I, 12))

@@ -52,10 +52,11 @@ class _Project2DGS(torch.autograd.Function):
         means, quats, scales, viewmats = ctx.saved_tensors
         I, N = viewmats.shape[0], means.shape[0]
 
-        def f64(g, shape):
-            return np.zeros(shape) if g is None else contiguous_numpy(g).astype(np.float64, copy=False)
+        def upstream(g, shape):  # in its own dtype: the kernel widens every value to float64 as it reads it
+            return np.zeros(shape, contiguous_numpy(means).dtype) if g is None else contiguous_numpy(g)
 
-        grads = (f64(g_m2, (I, N, 2)), f64(g_tsl, (I, N, 9)), f64(g_dep, (I, N)), f64(g_nrm, (I, N, 3)))
+        grads = (upstream(g_m2, (I, N, 2)), upstream(g_tsl, (I, N, 9)), upstream(g_dep, (I, N)),
+                 upstream(g_nrm, (I, N, 3)))
         gm, gq, gs = np.empty((N, 3)), np.empty((N, 4)), np.empty((N, 3))
         gv_parts = np.zeros((max(1, math.ceil(N / k2.CHUNK)), I, 12))
         set_threads()
