@@ -12,7 +12,7 @@ one fixed chunk of Gaussians); every sum over Gaussians or intersections is then
 sequentially in a fixed order, so results do not depend on the number of threads.
 Compiled once per dtype and cached on disk (numba ``cache=True``: ``__pycache__`` beside this
 file, or numba's user-wide cache directory / ``NUMBA_CACHE_DIR`` when that is not writable).
-Threads: numba's workqueue layer (see below); the caller sets the count (torch's).
+Threads: numba's OpenMP layer where it exists (see below); the caller sets the count (torch's).
 Pixel coordinates: gsplat's (centre of pixel (u, v) at (u + 0.5, v + 0.5)).
 """
 
@@ -39,11 +39,31 @@ from numba import njit, prange, types  # noqa: E402
 from numba.core import cgutils  # noqa: E402
 from numba.extending import intrinsic, overload  # noqa: E402
 
-# numba's OpenMP layer keeps its worker threads spinning after each parallel loop, which stalls
-# torch's own OpenMP threads (measured: torch ops 100x slower after one such loop on a 2-core
-# box); the workqueue layer sleeps. An explicit NUMBA_THREADING_LAYER is respected.
+# Threading layer: OpenMP first. numba's workqueue workers sleep after every parallel loop, and on the 2-core
+# VM a worker idle for a few ms took ~1 ms to wake; training calls ~8 parallel kernels a step between torch
+# operations, so its kernels barely scaled (ours_2dgs at 128 px: 26.6 it/s on 2 threads against 26.4 on
+# 1). OpenMP's workers spin briefly first: 40.7 it/s (512 px: 1.82-1.87x). With the other core busy it is
+# ~30 % slower than workqueue (both below one thread). docs/cpu-rasterizer.md, "numba's threading layer".
+# An explicit NUMBA_THREADING_LAYER is respected; where OpenMP is missing numba takes the next layer.
 if "NUMBA_THREADING_LAYER" not in os.environ:
-    numba.config.THREADING_LAYER = "workqueue"
+    numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
+    numba.config.THREADING_LAYER = "default"
+
+
+def _start_pool_keeping_torch_threads() -> None:
+    """Starts numba's thread pool now. Starting its OpenMP layer sets the OpenMP thread count of the
+    process, which torch shares (one libgomp is loaded), so torch's own count is put back; numba gives
+    each parallel loop its own count (`numba.set_num_threads`)."""
+    import torch
+    from numba.np.ufunc.parallel import _launch_threads
+
+    torch_threads = torch.get_num_threads()
+    _launch_threads()
+    if torch.get_num_threads() != torch_threads:
+        torch.set_num_threads(torch_threads)
+
+
+_start_pool_keeping_torch_threads()
 
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.999
