@@ -42,8 +42,9 @@ from numba.extending import intrinsic, overload  # noqa: E402
 # Threading layer: OpenMP first. numba's workqueue workers sleep after every parallel loop, and on the 2-core
 # VM a worker idle for a few ms took ~1 ms to wake; training calls ~8 parallel kernels a step between torch
 # operations, so its kernels barely scaled (ours_2dgs at 128 px: 26.6 it/s on 2 threads against 26.4 on
-# 1). OpenMP's workers spin briefly first: 40.7 it/s (512 px: 1.82-1.87x). With the other core busy it is
-# ~30 % slower than workqueue (both below one thread). docs/cpu-rasterizer.md, "numba's threading layer".
+# 1). OpenMP's workers spin briefly first: 44.0-47.3 it/s, 1.58x (512 px: 1.78-1.84x). With the other core
+# busy it is ~30 % slower than workqueue (both below one thread). docs/cpu-rasterizer.md, "numba's
+# threading layer".
 # An explicit NUMBA_THREADING_LAYER is respected; where OpenMP is missing numba takes the next layer.
 if "NUMBA_THREADING_LAYER" not in os.environ:
     numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
@@ -55,10 +56,9 @@ def _start_pool_keeping_torch_threads() -> None:
     process, which torch shares (one libgomp is loaded), so torch's own count is put back; numba gives
     each parallel loop its own count (`numba.set_num_threads`)."""
     import torch
-    from numba.np.ufunc.parallel import _launch_threads
 
     torch_threads = torch.get_num_threads()
-    _launch_threads()
+    numba.get_num_threads()  # starts the pool
     if torch.get_num_threads() != torch_threads:
         torch.set_num_threads(torch_threads)
 
