@@ -238,25 +238,25 @@ def test_2dgs_deterministic_across_threads(two_kernel_threads):
             assert torch.equal(results[0][1][k], other[1][k]), k
 
 
-def test_2dgs_one_pass_feature_dot_is_the_per_channel_loops():
-    """`_feature_dot` (the N_FEATURES channels in one pass) gives `cpu_kernels.feature_dot`'s sums bit
-    for bit, float32 and float64, on every state range it is given."""
+def test_one_pass_feature_dot_is_the_per_channel_loops():
+    """`cpu_kernels.feature_dot` (seven channels in one pass) gives `feature_dot_channels`' sums (one pass
+    per channel) bit for bit, float32 and float64, on every state range it is given."""
     import numpy as np
 
     from egobench.render import cpu_kernels as ck
-    from egobench.render import cpu_kernels_2dgs as k2
 
     rng = np.random.default_rng(5)
+    n_features = 7  # colour, depth, normal
     for dt in (np.float32, np.float64):
-        gF = (rng.normal(size=(k2.N_FEATURES + 2, 256)) * 10.0 ** rng.integers(-6, 6, size=(1, 256))).astype(dt)
-        feats = rng.normal(size=(40, k2.N_FEATURES)).astype(dt)
+        gF = (rng.normal(size=(n_features + 2, 256)) * 10.0 ** rng.integers(-6, 6, size=(1, 256))).astype(dt)
+        feats = rng.normal(size=(40, n_features)).astype(dt)
         for g, (pa, pb) in [(3, (0, 256)), (17, (40, 88)), (39, (128, 136)), (0, (8, 8))]:
             ref, one = np.full(256, 7.0, dt), np.full(256, 7.0, dt)
-            ck.feature_dot(ref, gF, feats, g, pa, pb, dt(0.0))
-            k2._feature_dot(one, gF, feats, g, pa, pb, dt(0.0))
+            ck.feature_dot_channels(ref, gF, feats, g, pa, pb, dt(0.0))
+            ck.feature_dot(one, gF, feats, g, pa, pb, dt(0.0))
             np.testing.assert_array_equal(one, ref)
             seq = np.zeros(pb - pa, dt)  # numpy, channel by channel in the compute dtype
-            for c in range(k2.N_FEATURES):
+            for c in range(n_features):
                 seq = seq + gF[c, pa:pb] * feats[g, c]
             np.testing.assert_array_equal(one[pa:pb], seq)
             assert (one[:pa] == 7.0).all() and (one[pb:] == 7.0).all()

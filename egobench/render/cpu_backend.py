@@ -116,6 +116,12 @@ def raster_setup(means2d: Tensor, radii: Tensor, depths: Tensor, colors: Tensor,
                        ck.compute_constants(m2.dtype), centres)
 
 
+def upstream_grad(g: Tensor | None, shape: tuple[int, ...], dtype: np.dtype) -> np.ndarray:
+    """An upstream gradient for a projection backward kernel, in its own dtype (the kernel widens every
+    value to float64 as it reads it, so no float64 copy is made); zeros of ``shape`` where there is none."""
+    return np.zeros(shape, dtype=dtype) if g is None else contiguous_numpy(g)
+
+
 def rows_hit_buffer(n_intersections: int, tile_size: int, cw: int) -> np.ndarray:
     """The forward's record of the rows each intersection was composited into, per column group of cw
     columns: [M, tile_size // cw, 2] int16 (row ranges; zeros: empty), read by the backward."""
@@ -182,13 +188,9 @@ class _Project(torch.autograd.Function):
         I, N = viewmats.shape[0], means.shape[0]
 
         dt_np = contiguous_numpy(means).dtype
-
-        def z(g, shape):  # in its own dtype: the kernel widens every value to float64 as it reads it
-            return np.zeros(shape, dtype=dt_np) if g is None else contiguous_numpy(g)
-
-        g_m2, g_con = z(g_m2, (I, N, 2)), z(g_con, (I, N, 3))
-        g_dep = z(g_dep, (I, N))
-        g_nrm = z(g_nrm, (I, N, 3)) if want_normal else np.zeros((I, 0, 3), dtype=dt_np)
+        g_m2, g_con = upstream_grad(g_m2, (I, N, 2), dt_np), upstream_grad(g_con, (I, N, 3), dt_np)
+        g_dep = upstream_grad(g_dep, (I, N), dt_np)
+        g_nrm = upstream_grad(g_nrm if want_normal else None, (I, N if want_normal else 0, 3), dt_np)
         gm, gq, gs = np.empty((N, 3)), np.empty((N, 4)), np.empty((N, 3))
         n_chunks = max(1, math.ceil(N / ck.CHUNK))
         gv_parts = np.zeros((n_chunks, I, 12))

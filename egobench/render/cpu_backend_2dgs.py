@@ -19,7 +19,7 @@ from torch import Tensor
 from egobench.camera.pinhole import Pinhole
 from egobench.render.cpu_backend import (NEAR_PLANE, FAR_PLANE, contiguous_numpy, pose_grad, set_threads, camera_array,
                                          composite_output, pixel_views, raster_setup, reduce_intersections,
-                                         rows_hit_buffer)
+                                         rows_hit_buffer, upstream_grad)
 from egobench.render.types import Gaussians, RenderOutput
 
 
@@ -52,11 +52,9 @@ class _Project2DGS(torch.autograd.Function):
         means, quats, scales, viewmats = ctx.saved_tensors
         I, N = viewmats.shape[0], means.shape[0]
 
-        def upstream(g, shape):  # in its own dtype: the kernel widens every value to float64 as it reads it
-            return np.zeros(shape, contiguous_numpy(means).dtype) if g is None else contiguous_numpy(g)
-
-        grads = (upstream(g_m2, (I, N, 2)), upstream(g_tsl, (I, N, 9)), upstream(g_dep, (I, N)),
-                 upstream(g_nrm, (I, N, 3)))
+        dt_np = contiguous_numpy(means).dtype
+        grads = tuple(upstream_grad(g, shape, dt_np) for g, shape in
+                      ((g_m2, (I, N, 2)), (g_tsl, (I, N, 9)), (g_dep, (I, N)), (g_nrm, (I, N, 3))))
         gm, gq, gs = np.empty((N, 3)), np.empty((N, 4)), np.empty((N, 3))
         gv_parts = np.zeros((max(1, math.ceil(N / k2.CHUNK)), I, 12))
         set_threads()

@@ -775,14 +775,36 @@ def _write_isect_grad(isect_grad, k, half, gmx, gmy, ga, gb, gc, glo, gf):
 
 
 @njit(cache=True, inline="always")
-def feature_dot(ebuf, gF, feats, g, pa, pb, zero):
-    """ebuf[p] = sum_c dL/dF[c, p] * feats[g, c] over state entries [pa, pb) (dL/dw through the features)."""
+def feature_dot_channels(ebuf, gF, feats, g, pa, pb, zero):
+    """ebuf[p] = sum_c dL/dF[c, p] * feats[g, c] over state entries [pa, pb), one pass per channel."""
     for pp in range(pa, pb):
         ebuf[np.uint64(pp)] = zero
     for c in range(feats.shape[1]):
         fc = feats[g, c]
         for pp in range(pa, pb):
             ebuf[np.uint64(pp)] += gF[c, np.uint64(pp)] * fc
+
+
+@njit(cache=True, inline="always")
+def feature_dot(ebuf, gF, feats, g, pa, pb, zero):
+    """ebuf[p] = sum_c dL/dF[c, p] * feats[g, c] over state entries [pa, pb) (dL/dw through the features).
+    Seven channels (colour, depth, normal) in one pass, the same sums in the same order as
+    `feature_dot_channels` (its seven passes cost 3-4 ms more in the 2DGS backward at σ 2.5 px)."""
+    if feats.shape[1] != 7:
+        feature_dot_channels(ebuf, gF, feats, g, pa, pb, zero)
+        return
+    f0, f1, f2, f3 = feats[g, 0], feats[g, 1], feats[g, 2], feats[g, 3]
+    f4, f5, f6 = feats[g, 4], feats[g, 5], feats[g, 6]
+    for pp in range(pa, pb):
+        p = np.uint64(pp)
+        e = zero + gF[0, p] * f0
+        e += gF[1, p] * f1
+        e += gF[2, p] * f2
+        e += gF[3, p] * f3
+        e += gF[4, p] * f4
+        e += gF[5, p] * f5
+        e += gF[6, p] * f6
+        ebuf[p] = e
 
 
 @njit(cache=True, inline="always")
@@ -936,12 +958,12 @@ def raster_fwd(tab, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles
     n_tiles = tiles_x * ((H + tile_size - 1) // tile_size)
     ts = tile_size
     zero, no_row, ts32 = kc[3], np.int32(-1), np.int32(ts)
+    rowt = state_rows(ts, cw)  # the same for every tile
     for jb in prange(bins.shape[0]):
         b = bins[jb]
         i, o, x0, y0, x1, y1 = bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout)
         T, acc, last, cxt, cyt, wbuf, sbuf, row_active, n_active = tile_state_fwd(pix_view, o, i, x0, y0, x1, y1,
                                                                                    ts, cw, Cf, kc, centres)
-        rowt = state_rows(ts, cw)
         for k in range(bin_start[b], bin_start[b + 1]):
             if n_active == 0:
                 break

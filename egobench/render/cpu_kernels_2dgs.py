@@ -27,7 +27,7 @@ from numba import njit, prange
 from egobench.render import cpu_kernels as ck
 from egobench.render.cpu_kernels import (CHUNK, EXTENT_SIGMAS, FASTMATH, SIGMA_ROW, accumulate_features,
                                          add_feature_grads, add_rot_scale_grads, add_view_and_mean_grads,
-                                         bin_tile, camera_point, composite_pixel, exponent_grad,
+                                         bin_tile, camera_point, composite_pixel, exponent_grad, feature_dot,
                                          finish_tile_fwd, normal_grad, quat_grad, retire_stopped, quat_rotmat,
                                          state_rows, tile_state_bwd, tile_state_fwd, track_rows, trim_rows_active,
                                          uncomposite_pixel)
@@ -47,7 +47,6 @@ _follow_helper_edits()
 
 FILTER_2D = 2.0  # 2D low-pass filter: exponent FILTER_2D |pixel - centre|^2 / 2 (gsplat's FILTER_INV_SQUARE)
 DEPTH_CH = 3  # feature channel holding the depth (colour 0-2, depth 3, normal 4-6)
-N_FEATURES = 7  # colour, depth, normal
 #: fast-math flags of the surfel backward: reassociation only. With the forward's (`cpu_kernels.FASTMATH`:
 #: reassoc, contract, nsz) its geometric gradients differed in the last bits between the process that
 #: compiled the kernel and every process that loaded it from numba's cache (same inputs: 459 of 4009
@@ -314,13 +313,13 @@ def raster_fwd_2dgs(means2d, tsl, log_opac, feats, flat_ids, bin_start, bins, pi
     ts = tile_size
     one, zero = kc[1], kc[3]
     no_row, ts32 = np.int32(-1), np.int32(ts)
+    rowt = state_rows(ts, cw)  # the same for every tile
     for jb in prange(bins.shape[0]):
         b = bins[jb]
         i, o, x0, y0, x1, y1 = bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout)
         T, acc, last, cxt, cyt, wbuf, sbuf, row_active, n_active = tile_state_fwd(pix_view, o, i, x0, y0, x1, y1,
                                                                                    ts, cw, Cf + 1, kc, centres)
         lxt, lyt, ox, oy = _tile_local(cxt, cyt, x0, y0, ts)
-        rowt = state_rows(ts, cw)
         cc = np.empty(9, kc.dtype)
         for k in range(bin_start[b], bin_start[b + 1]):
             if n_active == 0:
@@ -352,24 +351,6 @@ def raster_fwd_2dgs(means2d, tsl, log_opac, feats, flat_ids, bin_start, bins, pi
                 n_active -= stopped
                 retire_stopped(row_active, sbuf, ra, rb, ca, cb, ts, cw)
         finish_tile_fwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, T, last, acc, out_feat, out_T, out_last)
-
-
-@njit(cache=True, inline="always")
-def _feature_dot(ebuf, gF, feats, g, pa, pb, zero):
-    """`cpu_kernels.feature_dot` for the N_FEATURES channels in one pass over the state entries [pa, pb)
-    (the same sums in the same order; seven passes, one per channel, cost 3-4 ms more at σ 2.5 px)."""
-    f0, f1, f2, f3 = feats[g, 0], feats[g, 1], feats[g, 2], feats[g, 3]
-    f4, f5, f6 = feats[g, 4], feats[g, 5], feats[g, 6]
-    for pp in range(pa, pb):
-        p = np.uint64(pp)
-        e = zero + gF[0, p] * f0
-        e += gF[1, p] * f1
-        e += gF[2, p] * f2
-        e += gF[3, p] * f3
-        e += gF[4, p] * f4
-        e += gF[5, p] * f5
-        e += gF[6, p] * f6
-        ebuf[p] = e
 
 
 @njit(cache=True, inline="always")
@@ -432,7 +413,7 @@ def raster_bwd_2dgs(means2d, tsl, log_opac, feats, flat_ids, bin_start, bins, pi
                 if ra >= rb:
                     continue
                 pa, pb = q * ts * cw + ra * cw, q * ts * cw + rb * cw
-                _feature_dot(ebuf, gF, feats, g, pa, pb, zero)
+                feature_dot(ebuf, gF, feats, g, pa, pb, zero)
                 for pp in range(pa, pb):
                     p = np.uint64(pp)
                     lx, ly, dx, dy = lxt[p], lyt[p], cxt[p] - mx, cyt[p] - my
