@@ -176,15 +176,17 @@ def test_2dgs_no_gradient_tracking_and_no_visible_surfel():
 
 
 def test_2dgs_pixel_bound_holds_every_visible_pixel():
-    """`_footprint_2dgs` (the pixels a surfel's loop visits in a tile) contains every pixel where the
-    exponent allows alpha > 1/255, computed independently per pixel from gsplat's formula; both
-    its branches (exact conic box, whole tile for discs crossing the camera plane) are exercised."""
+    """The pixels a surfel's loop visits in a tile (`_footprint_surfel` narrowed per column group by
+    `_surfel_band_rows`, both from `surfel_table`) contain every pixel where the exponent allows
+    alpha > 1/255, computed independently per pixel from gsplat's formula; the footprint's branches
+    (exact box, whole tile for discs crossing the camera plane) are exercised, and the bands cut rows."""
     import numpy as np
 
     from egobench.render import cpu_backend, cpu_backend_2dgs, cpu_kernels, cpu_kernels_2dgs
     from egobench.render import _viewmats
 
-    ts, n_checked, n_whole = 8, 0, 0
+    ts, n_checked, n_whole, n_cut = 16, 0, 0, 0
+    cw = cpu_kernels.column_group(ts)
     for seed in range(3):
         g = surfel_scene(seed)
         lo = torch.nn.functional.logsigmoid(g.opacity_logits).numpy()
@@ -192,15 +194,16 @@ def test_2dgs_pixel_bound_holds_every_visible_pixel():
             g.means, g.quats, g.scales, _viewmats(pose(0.04, -0.03, (0.02, -0.01, 0.05))[None]),
             cpu_backend.camera_array(CAM), CAM.width, CAM.height)
         m2, tsl = m2.numpy(), tsl.numpy()
+        tab = np.empty((m2.shape[1], cpu_kernels.TAB_COLS), m2.dtype)
+        cpu_kernels_2dgs.surfel_table(m2, tsl, lo, tab)
         pix_view, need = cpu_backend.pixel_views(None, 1, CAM.height, CAM.width, ts)
         tiles_x = math.ceil(CAM.width / ts)
         flat, starts = cpu_kernels.bin_tiles(m2, rad.numpy(), dep.numpy(), ts, tiles_x, need.shape[1] // tiles_x, need)
         for b in range(need.shape[1]):
             x0, y0 = (b % tiles_x) * ts, (b // tiles_x) * ts
-            py, px = np.meshgrid(np.arange(y0, min(y0 + ts, CAM.height)) + 0.5,
-                                 np.arange(x0, min(x0 + ts, CAM.width)) + 0.5, indexing="ij")
+            py, px = np.meshgrid(np.arange(y0, y0 + ts) + 0.5, np.arange(x0, x0 + ts) + 0.5, indexing="ij")
             for n in flat[starts[b]:starts[b + 1]]:
-                U, V, Wr = tsl[0, n].reshape(3, 3)
+                U, V, Wr = tsl[0, n].astype(np.float64).reshape(3, 3)
                 h_u = px[..., None] * Wr - U
                 h_v = py[..., None] * Wr - V
                 X, Y, Z = np.moveaxis(np.cross(h_u, h_v), -1, 0)
@@ -208,15 +211,22 @@ def test_2dgs_pixel_bound_holds_every_visible_pixel():
                     g3 = np.where(Z != 0, (X * X + Y * Y) / (Z * Z), np.inf)
                 g2 = 2.0 * ((px - m2[0, n, 0]) ** 2 + (py - m2[0, n, 1]) ** 2)
                 reach = 0.5 * np.minimum(g3, g2) - lo[n] <= 5.55
-                ra, rb, ca, cb = cpu_kernels_2dgs._footprint_2dgs(tsl, 0, n, m2[0, n, 0], m2[0, n, 1], lo[n], x0, y0,
-                                                                  ts, CAM.width, CAM.height)
-                inside = np.zeros_like(reach)
-                inside[ra:rb, ca:cb] = True
-                assert not (reach & ~inside).any(), (seed, b, n)
+                reach &= (py < CAM.height) & (px < CAM.width)
+                ra, rb, ca, cb = cpu_kernels_2dgs._footprint_surfel(tab, n, x0, y0, ts, CAM.width, CAM.height)
+                visited = np.zeros_like(reach)
+                for q in range(ca // cw, (cb - 1) // cw + 1 if cb > ca else 0):
+                    qa, qb = max(ca, q * cw), min(cb, q * cw + cw)
+                    qra, qrb = cpu_kernels_2dgs._surfel_band_rows(tab, n, x0, y0, qa, qb, ra, rb)
+                    visited[qra:qrb, qa:qb] = True
+                    n_cut += int(qrb - qra < rb - ra)
+                assert not (reach & ~visited).any(), (seed, b, n)
                 n_checked += int(reach.any())
                 r2 = 2.0 * (cpu_kernels.SIGMA_ROW + lo[n])  # the disc crosses the camera plane: whole tile
-                n_whole += int(r2 > 0 and not (Wr[2] > 0 and r2 * (Wr[0] ** 2 + Wr[1] ** 2) < Wr[2] ** 2))
-    assert n_checked > 100 and n_whole > 0
+                whole = r2 > 0 and not (Wr[2] > 0 and r2 * (Wr[0] ** 2 + Wr[1] ** 2) < Wr[2] ** 2)
+                n_whole += int(whole)
+                if whole:
+                    assert (ra, rb, ca, cb) == (0, min(ts, CAM.height - y0), 0, min(ts, CAM.width - x0))
+    assert n_checked > 100 and n_whole > 0 and n_cut > 20
 
 
 def test_2dgs_deterministic_across_threads(two_kernel_threads):

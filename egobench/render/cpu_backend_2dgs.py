@@ -87,7 +87,9 @@ class _Rasterize2DGS(torch.autograd.Function):
         out_last = np.zeros((Iout, H, W), dtype=np.int32)
         rows_hit = rows_hit_buffer(st.flat_ids.shape[0], tile_size, st.cw)
         set_threads()
-        k2.raster_fwd_2dgs(m2, tsl_np, lo, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, tile_size,
+        tab = np.empty((I * N, k2.ck.TAB_COLS), dtype=m2.dtype)
+        k2.surfel_table(m2, tsl_np, lo, tab)
+        k2.raster_fwd_2dgs(m2, tsl_np, lo, tab, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, tile_size,
                            st.tiles_x, st.cw, st.kc, st.centres, out_feat, out_T, out_last, rows_hit)
         ctx.state = (m2, tsl_np, lo, st, pix_view, tile_size, out_feat, out_T, out_last, rows_hit, absgrad_target)
         ctx.shapes = (I, N, colors.dtype)

@@ -637,20 +637,26 @@ def gaussian_table(means2d, conics, radii, log_opac, tab):
                 tab[g, 5] = lo
                 tab[g, 6] = _extent(A, B, C, lo, radii[i, n, 0], True)
                 tab[g, 7] = _extent(A, B, C, lo, radii[i, n, 1], False)
-                Af, Bf, Cf = float(A), float(B), float(C)
-                r2 = 2.0 * (SIGMA_ROW + float(lo)) + 0.05  # the ellipse d^T Q d <= R2, slightly enlarged
-                det = Af * Cf - Bf * Bf
-                ok = det > 0.0 and Af > 0.0 and Cf > 0.0 and r2 > 0.0
-                dets, As, Cs = (det, Af, Cf) if ok else (1.0, 1.0, 1.0)
-                dyt = math.sqrt(max(r2, 0.0) * As / dets)
-                tab[g, 8] = 1.0 if ok else 0.0
-                tab[g, 9] = Cs * r2
-                tab[g, 10] = dets
-                tab[g, 11] = 1.0 / Cs
-                tab[g, 12] = math.sqrt(max(Cs * r2 / dets, 0.0))
-                tab[g, 13] = -Bf / As * dyt
-                tab[g, 14] = dyt
+                # the ellipse d^T Q d <= R2, slightly enlarged
+                band_constants(float(A), float(B), float(C), 2.0 * (SIGMA_ROW + float(lo)) + 0.05, tab, g)
                 tab[g, 15] = 0.0
+
+
+@njit(cache=True, inline="always")
+def band_constants(A, B, C, r2, tab, g):
+    """Columns 8-14 of table row g (read by `_band_rows`) for the ellipse d^T Q d <= r2, Q = [[A, B],
+    [B, C]] (float64): usable (1/0), C r2, det Q, 1/C, x half-extent, x and y offsets of the topmost point."""
+    det = A * C - B * B
+    ok = det > 0.0 and A > 0.0 and C > 0.0 and r2 > 0.0
+    dets, As, Cs = (det, A, C) if ok else (1.0, 1.0, 1.0)
+    dyt = math.sqrt(max(r2, 0.0) * As / dets)
+    tab[g, 8] = 1.0 if ok else 0.0
+    tab[g, 9] = Cs * r2
+    tab[g, 10] = dets
+    tab[g, 11] = 1.0 / Cs
+    tab[g, 12] = math.sqrt(max(Cs * r2 / dets, 0.0))
+    tab[g, 13] = -B / As * dyt
+    tab[g, 14] = dyt
 
 
 @njit(cache=True, inline="always")

@@ -227,33 +227,97 @@ def _axis_range(lo_c, hi_c, tile_lo, n_px, ts):
     return max(0, int(math.floor(lo_c)) - tile_lo), min(min(ts, n_px - tile_lo), int(math.ceil(hi_c)) - tile_lo)
 
 
+#: the image ellipse in `surfel_table` is enlarged by this factor (its area) for the band rows: a
+#: margin for the compute dtype's rounding of the table and of the per-pixel exponent
+BAND_ENLARGE = 1.01
+
+
 @njit(cache=True, inline="always")
-def _footprint_2dgs(tsl, gi, n, mx, my, lo, x0, y0, ts, W, H):
-    """Tile-local rows [ra, rb) and columns [ca, cb) where a surfel can reach alpha > 1/255: the
-    union of the 2D filter's disc and the image of the disc u^2 + v^2 <= 2 (SIGMA_ROW + log o)
-    (exact bounding box from its dual conic when that disc lies in front of the camera, else the
-    whole tile), with a 1-pixel margin."""
-    e = SIGMA_ROW + lo
-    if e <= 0.0:
-        return 0, 0, 0, 0
-    r2 = 2.0 * e
-    rf = math.sqrt(e) + 1.0  # filter disc: FILTER_2D |d|^2 / 2 <= e
-    xa, xb, ya, yb = mx - rf, mx + rf, my - rf, my + rf
-    W0, W1, W2 = tsl[gi, n, 6], tsl[gi, n, 7], tsl[gi, n, 8]
+def _image_ellipse(tsl, gi, n, r2):
+    """Image of the disc u^2 + v^2 <= r2 of surfel (gi, n) from its dual conic H diag(r2, r2, -1) H^T
+    (H: the ray transform's rows U, V, W) -> (centre cx, cy, Sxx, Syy, Sxy, ok): the ellipse
+    (p - c)^T S^-1 (p - c) <= 1; ok False where the disc crosses the camera plane (no bounded image)."""
+    W0, W1, W2 = float(tsl[gi, n, 6]), float(tsl[gi, n, 7]), float(tsl[gi, n, 8])
     d = r2 * (W0 * W0 + W1 * W1) - W2 * W2
     if not (W2 > 0.0 and d < 0.0):
+        return 0.0, 0.0, 0.0, 0.0, 0.0, False
+    U0, U1, U2 = float(tsl[gi, n, 0]), float(tsl[gi, n, 1]), float(tsl[gi, n, 2])
+    V0, V1, V2 = float(tsl[gi, n, 3]), float(tsl[gi, n, 4]), float(tsl[gi, n, 5])
+    cx = (r2 * (U0 * W0 + U1 * W1) - U2 * W2) / d
+    cy = (r2 * (V0 * W0 + V1 * W1) - V2 * W2) / d
+    sxx = cx * cx - (r2 * (U0 * U0 + U1 * U1) - U2 * U2) / d
+    syy = cy * cy - (r2 * (V0 * V0 + V1 * V1) - V2 * V2) / d
+    sxy = cx * cy - (r2 * (U0 * V0 + U1 * V1) - U2 * V2) / d
+    return cx, cy, sxx, syy, sxy, True
+
+
+@njit(cache=True, parallel=True)
+def surfel_table(means2d, tsl, log_opac, tab):
+    """Per (image, surfel) bounds of the pixels it can reach (alpha > 1/255), computed once instead of
+    once per tile intersection: means2d [I,N,2], tsl [I,N,9], log_opac [N] -> tab [I*N, ck.TAB_COLS]
+    (compute dtype), row image * N + surfel. The pixels are the union of the 2D filter's disc and
+    the image ellipse of the disc u^2 + v^2 <= 2 (SIGMA_ROW + log o). Columns: 0-1 the ellipse's
+    centre; 2, 4 the projected centre (x, y); 5 the filter disc's radius + 1 (-1: no pixel is
+    reached); 6-7 the ellipse's half-extents + 1 (-1: the disc crosses the camera plane, every pixel
+    of a tile); 3, 8-14 the ellipse's `ck.band_constants` (B of Q = adj S, r2 = det S), as
+    `ck._band_rows` reads them."""
+    I, N = means2d.shape[0], log_opac.shape[0]
+    for ch in prange((N + CHUNK - 1) // CHUNK):
+        for i in range(I):
+            for n in range(ch * CHUNK, min(N, (ch + 1) * CHUNK)):
+                g = i * N + n
+                e = SIGMA_ROW + float(log_opac[n])
+                mx, my = float(means2d[i, n, 0]), float(means2d[i, n, 1])
+                cx, cy, sxx, syy, sxy, ok = _image_ellipse(tsl, i, n, 2.0 * e)
+                ok = ok and e > 0.0
+                tab[g, 0], tab[g, 1] = (cx, cy) if ok else (mx, my)
+                tab[g, 2], tab[g, 4] = mx, my
+                tab[g, 5] = math.sqrt(e) + 1.0 if e > 0.0 else -1.0  # filter disc: FILTER_2D |d|^2 / 2 <= e
+                tab[g, 6] = math.sqrt(max(sxx, 0.0)) + 1.0 if ok else -1.0
+                tab[g, 7] = math.sqrt(max(syy, 0.0)) + 1.0 if ok else -1.0
+                tab[g, 3], tab[g, 15] = -sxy, 0.0
+                # Q = adj S, r2 = det S: the ellipse without dividing by det S (tiny for surfels seen edge-on)
+                ck.band_constants(syy, -sxy, sxx, (sxx * syy - sxy * sxy) * BAND_ENLARGE if ok else 0.0, tab, g)
+
+
+@njit(cache=True, inline="always")
+def _axis_range(lo_c, hi_c, tile_lo, n_px, ts):
+    """Pixel interval [lo_c, hi_c] -> tile-local [a, b)."""
+    return max(0, int(math.floor(lo_c)) - tile_lo), min(min(ts, n_px - tile_lo), int(math.ceil(hi_c)) - tile_lo)
+
+
+@njit(cache=True, inline="always")
+def _footprint_surfel(tab, g, x0, y0, ts, W, H):
+    """Tile-local rows [ra, rb) and columns [ca, cb) that `surfel_table` row g can reach: the box of
+    the filter's disc and the ellipse (1-pixel margins), the whole tile where the disc crosses the
+    camera plane, nothing where the opacity is below 1/255 everywhere."""
+    rf = float(tab[g, 5])
+    if rf < 0.0:
+        return 0, 0, 0, 0
+    hx, hy = float(tab[g, 6]), float(tab[g, 7])
+    if hx < 0.0:
         return 0, min(ts, H - y0), 0, min(ts, W - x0)
-    for ax in range(2):
-        U0, U1, U2 = tsl[gi, n, 3 * ax], tsl[gi, n, 3 * ax + 1], tsl[gi, n, 3 * ax + 2]
-        c = (r2 * (U0 * W0 + U1 * W1) - U2 * W2) / d
-        h = math.sqrt(max(c * c - (r2 * (U0 * U0 + U1 * U1) - U2 * U2) / d, 0.0)) + 1.0
-        if ax == 0:
-            xa, xb = min(xa, c - h), max(xb, c + h)
-        else:
-            ya, yb = min(ya, c - h), max(yb, c + h)
-    ra, rb = _axis_range(ya, yb, y0, H, ts)
-    ca, cb = _axis_range(xa, xb, x0, W, ts)
+    mx, my, cx, cy = float(tab[g, 2]), float(tab[g, 4]), float(tab[g, 0]), float(tab[g, 1])
+    ra, rb = _axis_range(min(my - rf, cy - hy), max(my + rf, cy + hy), y0, H, ts)
+    ca, cb = _axis_range(min(mx - rf, cx - hx), max(mx + rf, cx + hx), x0, W, ts)
     return ra, rb, ca, cb
+
+
+@njit(cache=True, inline="always")
+def _surfel_band_rows(tab, g, x0, y0, qa, qb, ra, rb):
+    """Rows [ra, rb) narrowed to those whose pixels in tile-local columns [qa, qb) can lie in the
+    ellipse (`ck._band_rows`) or in the filter's disc (its box where the columns meet it)."""
+    era, erb = ck._band_rows(tab, g, x0, y0, qa, qb, ra, rb)
+    mx, my, rf = float(tab[g, 2]), float(tab[g, 4]), float(tab[g, 5])
+    if x0 + qa + 0.5 - mx > rf or mx - (x0 + qb - 0.5) > rf:
+        return era, erb
+    dra = max(ra, int(math.floor(my - rf)) - y0)
+    drb = min(rb, int(math.ceil(my + rf)) - y0)
+    if dra >= drb:
+        return era, erb
+    if era >= erb:
+        return dra, drb
+    return min(era, dra), max(erb, drb)
 
 
 @njit(cache=True, inline="always")
@@ -298,10 +362,10 @@ def _surfel(means2d, tsl, log_opac, g, N, ox, oy, cc):
 
 
 @njit(cache=True, parallel=True, fastmath=FASTMATH)
-def raster_fwd_2dgs(means2d, tsl, log_opac, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles_x,
+def raster_fwd_2dgs(means2d, tsl, log_opac, tab, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles_x,
                     cw, kc, centres, out_feat, out_T, out_last, rows_hit):
-    """`cpu_kernels.raster_fwd` for surfels: tsl [I, N, 9] ray transforms, feats [I*N, Cf] with the depth
-    in channel DEPTH_CH; out_feat [Iout, H, W, Cf + 1] gets sum w f and, in its last channel, the
+    """`cpu_kernels.raster_fwd` for surfels: tsl [I, N, 9] ray transforms, tab [I*N, ck.TAB_COLS]
+    `surfel_table` (the rows each column group visits), feats [I*N, Cf] with the depth in channel DEPTH_CH; out_feat [Iout, H, W, Cf + 1] gets sum w f and, in its last channel, the
     depth distortion 2 sum_k w_k (z_k W_k - A_k) (W_k, A_k: sums of w_j, w_j z_j over earlier j).
     rows_hit [M, ts // cw, 2] int16 (zeros on entry): for each intersection and column group, the tile
     rows [first, last + 1) holding a pixel it was composited into (w > 0), or an empty range; the
@@ -325,15 +389,18 @@ def raster_fwd_2dgs(means2d, tsl, log_opac, feats, flat_ids, bin_start, bins, pi
             if n_active == 0:
                 break
             gi, n, mx, my, lo, c9, _ = _surfel(means2d, tsl, log_opac, flat_ids[k], N, ox, oy, cc)
-            ra, rb, ca, cb = _footprint_2dgs(tsl, gi, n, mx, my, lo, x0, y0, ts, W, H)
+            ra, rb, ca, cb = _footprint_surfel(tab, flat_ids[k], x0, y0, ts, W, H)
             ra, rb = trim_rows_active(ra, rb, row_active)
             if ra >= rb or ca >= cb:
                 continue
             zk = feats[flat_ids[k], DEPTH_CH]
-            stopped = 0
             k1 = np.int32(k + 1)
             for q in range(ca // cw, (cb - 1) // cw + 1):
-                pa, pb = q * ts * cw + ra * cw, q * ts * cw + rb * cw
+                qra, qrb = _surfel_band_rows(tab, flat_ids[k], x0, y0, max(ca, q * cw), min(cb, q * cw + cw), ra, rb)
+                if qra >= qrb:
+                    continue
+                pa, pb = q * ts * cw + qra * cw, q * ts * cw + qrb * cw
+                stopped = 0
                 r_lo, r_hi = ts32, no_row  # rows composited into (selects: the loop still vectorizes)
                 for pp in range(pa, pb):
                     p = np.uint64(pp)
@@ -347,9 +414,9 @@ def raster_fwd_2dgs(means2d, tsl, log_opac, feats, flat_ids, bin_start, bins, pi
                     stopped += 1 if stop else 0
                 accumulate_features(acc, wbuf, feats, flat_ids[k], pa, pb)
                 rows_hit[k, q, 0], rows_hit[k, q, 1] = r_lo, r_hi + 1
-            if stopped:
-                n_active -= stopped
-                retire_stopped(row_active, sbuf, ra, rb, ca, cb, ts, cw)
+                if stopped:
+                    n_active -= stopped
+                    retire_stopped(row_active, sbuf, qra, qrb, q * cw, q * cw + 1, ts, cw)
         finish_tile_fwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, T, last, acc, out_feat, out_T, out_last)
 
 
