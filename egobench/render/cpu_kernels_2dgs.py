@@ -388,11 +388,12 @@ def raster_fwd_2dgs(means2d, tsl, log_opac, tab, feats, flat_ids, bin_start, bin
         for k in range(bin_start[b], bin_start[b + 1]):
             if n_active == 0:
                 break
-            gi, n, mx, my, lo, c9, _ = _surfel(means2d, tsl, log_opac, flat_ids[k], N, ox, oy, cc)
+            ck._prefetch_row(tab, flat_ids[min(k + ck.PREFETCH_AHEAD, bin_start[b + 1] - 1)])
             ra, rb, ca, cb = _footprint_surfel(tab, flat_ids[k], x0, y0, ts, W, H)
             ra, rb = trim_rows_active(ra, rb, row_active)
             if ra >= rb or ca >= cb:
                 continue
+            gi, n, mx, my, lo, c9, _ = _surfel(means2d, tsl, log_opac, flat_ids[k], N, ox, oy, cc)
             zk = feats[flat_ids[k], DEPTH_CH]
             k1 = np.int32(k + 1)
             for q in range(ca // cw, (cb - 1) // cw + 1):
