@@ -77,6 +77,21 @@ def _kernel_threads() -> int:
 RASTER_THREADS_ENV = "EGOBENCH_RASTER_THREADS"
 
 
+def cap_numba_pool(environ=None, numba_loaded: bool | None = None) -> str | None:
+    """Caps numba's thread pool to the count the user (or Snakemake, which exports OMP_NUM_THREADS=
+    {threads} to every job) chose: NUMBA_NUM_THREADS := EGOBENCH_RASTER_THREADS or OMP_NUM_THREADS,
+    only while NUMBA_NUM_THREADS is unset and numba is not loaded yet. numba reads it once, at import;
+    set after that, every later compilation fails ("Cannot set NUMBA_NUM_THREADS to a different
+    value once the threads have been launched"). Run by ``import egobench`` -> the value set, or None."""
+    environ = os.environ if environ is None else environ
+    loaded = "numba" in sys.modules if numba_loaded is None else numba_loaded
+    pool = environ.get(RASTER_THREADS_ENV) or environ.get("OMP_NUM_THREADS", "")
+    if loaded or "NUMBA_NUM_THREADS" in environ or not (pool.isdigit() and int(pool) > 0):
+        return None
+    environ["NUMBA_NUM_THREADS"] = pool
+    return pool
+
+
 def raster_threads() -> int:
     """Threads of the compiled kernels (`render.cpu_backend.set_threads`): EGOBENCH_RASTER_THREADS
     when set, else torch's count (OMP_NUM_THREADS / torch.set_num_threads). Setting it to 2 with

@@ -184,3 +184,38 @@ def test_keep_freed_memory_sets_glibc_malloc_unless_tunables_chose_and_the_recor
     monkeypatch.setattr(sys, "platform", "darwin")
     monkeypatch.setattr(host, "_ALLOCATOR", None)
     assert host.keep_freed_memory({}) is None and len(calls) == 2 and host.host_info()["allocator"] is None
+
+
+def test_numba_pool_is_capped_only_before_numba_loads():
+    """`cap_numba_pool`: NUMBA_NUM_THREADS from EGOBENCH_RASTER_THREADS, else OMP_NUM_THREADS, only when
+    it is unset and numba is not loaded (set later, numba refuses every compilation)."""
+    from egobench.host import cap_numba_pool
+
+    env = {"OMP_NUM_THREADS": "1"}
+    assert cap_numba_pool(env, numba_loaded=False) == "1" and env["NUMBA_NUM_THREADS"] == "1"
+    env = {"OMP_NUM_THREADS": "1", "EGOBENCH_RASTER_THREADS": "3"}
+    assert cap_numba_pool(env, numba_loaded=False) == "3" and env["NUMBA_NUM_THREADS"] == "3"
+    for env in ({"OMP_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "4"}, {"OMP_NUM_THREADS": "x"}, {}):
+        before = dict(env)
+        assert cap_numba_pool(env, numba_loaded=False) is None and env == before
+    env = {"OMP_NUM_THREADS": "1"}
+    assert cap_numba_pool(env, numba_loaded=True) is None and env == {"OMP_NUM_THREADS": "1"}
+
+
+def test_kernels_compile_whichever_module_loads_numba_first():
+    """With OMP_NUM_THREADS=1 (as Snakemake's jobs) and no NUMBA_NUM_THREADS: numba loaded before
+    egobench (pool left alone) or by the 2DGS kernels and the host record before `cpu_kernels` (pool
+    capped to 1), a later compilation works. Setting NUMBA_NUM_THREADS after numba loaded made every
+    compilation fail (a cold cache, or a new dtype, in a Snakemake job)."""
+    import os
+    import subprocess
+    import sys
+
+    compile_one = "import numba; print(numba.njit(lambda x: x + 1)(1), numba.config.NUMBA_NUM_THREADS)"
+    orders = {"numba first": "import numba\nfrom egobench.render import cpu_kernels\n",
+              "2dgs first": "from egobench.host import host_info\nhost_info()\nfrom egobench.render import cpu_kernels_2dgs\n"}
+    env = {k: v for k, v in os.environ.items() if k not in ("NUMBA_NUM_THREADS", "EGOBENCH_RASTER_THREADS")}
+    env["OMP_NUM_THREADS"] = "1"
+    out = {name: subprocess.run([sys.executable, "-c", pre + compile_one], env=env, capture_output=True, text=True,
+                                check=True).stdout.split() for name, pre in orders.items()}
+    assert out["numba first"][0] == "2" and out["2dgs first"] == ["2", "1"]

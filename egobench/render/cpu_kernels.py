@@ -24,20 +24,16 @@ import os
 
 # Workers run one thread each when Snakemake runs jobs side by side: Snakemake exports
 # OMP_NUM_THREADS={threads} to every shell job (config resources.<step>.threads, default 1); torch
-# reads it, `cpu_backend` sets numba's count to torch's on every call, and here numba's pool is
-# capped to it as well (numba reads NUMBA_NUM_THREADS when first imported). EGOBENCH_RASTER_THREADS,
-# when set, gives the kernels their own count instead (`host.raster_threads`).
-_POOL = os.environ.get("EGOBENCH_RASTER_THREADS") or os.environ.get("OMP_NUM_THREADS", "")
-if "NUMBA_NUM_THREADS" not in os.environ and _POOL.isdigit() and int(_POOL) > 0:
-    os.environ["NUMBA_NUM_THREADS"] = _POOL
-
-import numba  # noqa: E402
-import numpy as np  # noqa: E402
-import llvmlite.binding as ll  # noqa: E402
-from llvmlite import ir  # noqa: E402
-from numba import njit, prange, types  # noqa: E402
-from numba.core import cgutils  # noqa: E402
-from numba.extending import intrinsic, overload  # noqa: E402
+# reads it, `cpu_backend` sets numba's count to torch's on every call, and numba's pool is capped to
+# it as well (`host.cap_numba_pool`, run by ``import egobench`` before numba loads).
+# EGOBENCH_RASTER_THREADS, when set, gives the kernels their own count instead (`host.raster_threads`).
+import numba
+import numpy as np
+import llvmlite.binding as ll
+from llvmlite import ir
+from numba import njit, prange, types
+from numba.core import cgutils
+from numba.extending import intrinsic, overload
 
 # Threading layer: OpenMP first. numba's workqueue workers sleep after every parallel loop, and on the 2-core
 # VM a worker idle for a few ms took ~1 ms to wake; training calls ~8 parallel kernels a step between torch
