@@ -888,6 +888,16 @@ def state_rows(ts, cw):
 
 
 @njit(cache=True, inline="always")
+def composited_any(rows_hit, k):
+    """Whether intersection k was composited into any pixel (a non-empty `rows_hit` range); if not,
+    every term of its backward is zero and its `isect_grad` row stays as allocated (zeros)."""
+    for q in range(rows_hit.shape[1]):
+        if rows_hit[k, q, 0] < rows_hit[k, q, 1]:
+            return True
+    return False
+
+
+@njit(cache=True, inline="always")
 def track_rows(w, row, r_lo, r_hi, zero, ts32, no_row):
     """The running first and last rows (r_lo, r_hi) of a column group's pixels with weight w > 0 (selects:
     the pixel loop around it still vectorizes); the forward's `rows_hit` records, read by the backward."""
@@ -1026,6 +1036,8 @@ def raster_bwd(tab, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles
             gp = flat_ids[max(k - PREFETCH_AHEAD, bin_start[b])]
             _prefetch_row(tab, gp)
             _prefetch_row(feats, gp)
+            if not composited_any(rows_hit, k):
+                continue
             mx, my, A, B, C, lo = tab[g, 0], tab[g, 1], tab[g, 2], tab[g, 3], tab[g, 4], tab[g, 5]
             hA, hC = kc[0] * A, kc[0] * C
             gmx = zero
