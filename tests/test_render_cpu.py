@@ -229,6 +229,21 @@ def test_one_thread_per_worker_from_omp_num_threads():
     assert res.stdout.split() == ["1", "1", "1"]
 
 
+def visited_pixels(box, band_rows, shape, cw):
+    """The tile pixels a compositing loop visits [ts, ts] bool: the box (rows ra:rb, columns ca:cb)
+    narrowed per column group of cw by band_rows(qa, qb, ra, rb) -> (mask, groups whose rows were cut)."""
+    import numpy as np
+
+    ra, rb, ca, cb = box
+    visited, n_cut = np.zeros(shape, dtype=bool), 0
+    for q in range(ca // cw, (cb - 1) // cw + 1 if cb > ca else 0):
+        qa, qb = max(ca, q * cw), min(cb, q * cw + cw)
+        qra, qrb = band_rows(qa, qb, ra, rb)
+        visited[qra:qrb, qa:qb] = True
+        n_cut += int(qrb - qra < rb - ra)
+    return visited, n_cut
+
+
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_band_rows_hold_every_visible_pixel(dtype):
     """The rows the compositing loops visit per 8-column group (`_footprint_tab` narrowed by
@@ -260,13 +275,10 @@ def test_band_rows_hold_every_visible_pixel(dtype):
                 dx, dy = px - float(m2[0, n, 0]), py - float(m2[0, n, 1])
                 reach = 0.5 * (A * dx * dx + 2 * B * dx * dy + C * dy * dy) - float(lo[n]) <= 5.55
                 reach &= (py < CAM.height) & (px < CAM.width)
-                ra, rb, ca, cb = cpu_kernels._footprint_tab(tab, n, x0, y0, ts, CAM.width, CAM.height)
-                visited = np.zeros_like(reach)
-                for q in range(ca // cw, (cb - 1) // cw + 1 if cb > ca else 0):
-                    qa, qb = max(ca, q * cw), min(cb, q * cw + cw)
-                    qra, qrb = cpu_kernels._band_rows(tab, n, x0, y0, qa, qb, ra, rb)
-                    visited[qra:qrb, qa:qb] = True
-                    n_cut += int(qrb - qra < rb - ra)
+                box = cpu_kernels._footprint_tab(tab, n, x0, y0, ts, CAM.width, CAM.height)
+                visited, cut = visited_pixels(box, lambda qa, qb, ra, rb: cpu_kernels._band_rows(
+                    tab, n, x0, y0, qa, qb, ra, rb), reach.shape, cw)
+                n_cut += cut
                 assert not (reach & ~visited).any(), (seed, b, n)
                 n_checked += int(reach.any())
     assert n_checked > 100 and n_cut > 20

@@ -14,7 +14,7 @@ from egobench.camera.pinhole import Pinhole
 from egobench.render import render
 from egobench.render.types import Gaussians
 from tests.test_render import make_scene, pose
-from tests.test_render_cpu import CAM, edge_case_scene
+from tests.test_render_cpu import CAM, edge_case_scene, visited_pixels
 
 
 def surfel_scene(seed: int, dtype=torch.float64) -> Gaussians:
@@ -213,12 +213,9 @@ def test_2dgs_pixel_bound_holds_every_visible_pixel():
                 reach = 0.5 * np.minimum(g3, g2) - lo[n] <= 5.55
                 reach &= (py < CAM.height) & (px < CAM.width)
                 ra, rb, ca, cb = cpu_kernels_2dgs._footprint_surfel(tab, n, x0, y0, ts, CAM.width, CAM.height)
-                visited = np.zeros_like(reach)
-                for q in range(ca // cw, (cb - 1) // cw + 1 if cb > ca else 0):
-                    qa, qb = max(ca, q * cw), min(cb, q * cw + cw)
-                    qra, qrb = cpu_kernels_2dgs._surfel_band_rows(tab, n, x0, y0, qa, qb, ra, rb)
-                    visited[qra:qrb, qa:qb] = True
-                    n_cut += int(qrb - qra < rb - ra)
+                visited, cut = visited_pixels((ra, rb, ca, cb), lambda qa, qb, r0, r1: cpu_kernels_2dgs._surfel_band_rows(
+                    tab, n, x0, y0, qa, qb, r0, r1), reach.shape, cw)
+                n_cut += cut
                 assert not (reach & ~visited).any(), (seed, b, n)
                 n_checked += int(reach.any())
                 r2 = 2.0 * (cpu_kernels.SIGMA_ROW + lo[n])  # the disc crosses the camera plane: whole tile
