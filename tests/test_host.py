@@ -213,7 +213,8 @@ def test_kernels_compile_whichever_module_loads_numba_first():
 
     compile_one = "import numba; print(numba.njit(lambda x: x + 1)(1), numba.config.NUMBA_NUM_THREADS)"
     orders = {"numba first": "import numba\nfrom egobench.render import cpu_kernels\n",
-              "2dgs first": "from egobench.host import host_info\nhost_info()\nfrom egobench.render import cpu_kernels_2dgs\n"}
+              "2dgs first": ("from egobench.host import host_info\nhost_info()\n"
+                             "from egobench.render import cpu_kernels_2dgs\n")}
     env = {k: v for k, v in os.environ.items() if k not in ("NUMBA_NUM_THREADS", "EGOBENCH_RASTER_THREADS")}
     env["OMP_NUM_THREADS"] = "1"
     out = {name: subprocess.run([sys.executable, "-c", pre + compile_one], env=env, capture_output=True, text=True,

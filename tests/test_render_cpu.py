@@ -247,7 +247,7 @@ def visited_pixels(box, band_rows, shape, cw):
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_band_rows_hold_every_visible_pixel(dtype):
     """The rows the compositing loops visit per 8-column group (`_footprint_tab` narrowed by
-    `_band_rows`, from `gaussian_table`) contain every pixel whose exponent allows alpha > 1/255,
+    `band_rows`, from `gaussian_table`) contain every pixel whose exponent allows alpha > 1/255,
     computed independently per pixel in float64; the band must also cut rows somewhere (else the
     test would not exercise it)."""
     import numpy as np
@@ -276,7 +276,7 @@ def test_band_rows_hold_every_visible_pixel(dtype):
                 reach = 0.5 * (A * dx * dx + 2 * B * dx * dy + C * dy * dy) - float(lo[n]) <= 5.55
                 reach &= (py < CAM.height) & (px < CAM.width)
                 box = cpu_kernels._footprint_tab(tab, n, x0, y0, ts, CAM.width, CAM.height)
-                visited, cut = visited_pixels(box, lambda qa, qb, ra, rb: cpu_kernels._band_rows(
+                visited, cut = visited_pixels(box, lambda qa, qb, ra, rb: cpu_kernels.band_rows(
                     tab, n, x0, y0, qa, qb, ra, rb), reach.shape, cw)
                 n_cut += cut
                 assert not (reach & ~visited).any(), (seed, b, n)

@@ -186,7 +186,7 @@ def test_2dgs_pixel_bound_holds_every_visible_pixel():
     from egobench.render import _viewmats
 
     ts, n_checked, n_whole, n_cut = 16, 0, 0, 0
-    cw = cpu_kernels.column_group(ts)
+    cw, surfel_band_rows = cpu_kernels.column_group(ts), cpu_kernels_2dgs._surfel_band_rows
     for seed in range(3):
         g = surfel_scene(seed)
         lo = torch.nn.functional.logsigmoid(g.opacity_logits).numpy()
@@ -213,8 +213,8 @@ def test_2dgs_pixel_bound_holds_every_visible_pixel():
                 reach = 0.5 * np.minimum(g3, g2) - lo[n] <= 5.55
                 reach &= (py < CAM.height) & (px < CAM.width)
                 ra, rb, ca, cb = cpu_kernels_2dgs._footprint_surfel(tab, n, x0, y0, ts, CAM.width, CAM.height)
-                visited, cut = visited_pixels((ra, rb, ca, cb), lambda qa, qb, r0, r1: cpu_kernels_2dgs._surfel_band_rows(
-                    tab, n, x0, y0, qa, qb, r0, r1), reach.shape, cw)
+                band = lambda qa, qb, r0, r1: surfel_band_rows(tab, n, x0, y0, qa, qb, r0, r1)  # noqa: E731
+                visited, cut = visited_pixels((ra, rb, ca, cb), band, reach.shape, cw)
                 n_cut += cut
                 assert not (reach & ~visited).any(), (seed, b, n)
                 n_checked += int(reach.any())

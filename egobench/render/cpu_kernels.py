@@ -586,7 +586,7 @@ PREFETCH_AHEAD = 6
 
 
 @intrinsic
-def _prefetch_row(typingctx, arr, row):
+def prefetch_row(typingctx, arr, row):
     """Software prefetch (read, all cache levels) of the start of row `row` of a 2D C-contiguous array."""
     def codegen(context, builder, signature, args):
         aryty = signature.args[0]
@@ -616,7 +616,7 @@ def gaussian_table(means2d, conics, radii, log_opac, tab):
     tile intersection: means2d [I,N,2], conics [I,N,3], radii [I,N,2], log_opac [N] -> tab
     [I*N, TAB_COLS] (compute dtype), row image * N + Gaussian: 0-1 centre (x, y), 2-4 conic
     (A, B, C), 5 log opacity, 6-7 footprint half-extents (x, y) (`_extent`), 8-14 the ellipse of
-    `_band_rows` (usable (1/0), C R2, det, 1/C, x half-extent xe, x offset of the topmost point
+    `band_rows` (usable (1/0), C R2, det, 1/C, x half-extent xe, x offset of the topmost point
     dxt, its y offset dyt)."""
     I, N = means2d.shape[0], log_opac.shape[0]
     n_chunks = (N + CHUNK - 1) // CHUNK
@@ -640,7 +640,7 @@ def gaussian_table(means2d, conics, radii, log_opac, tab):
 
 @njit(cache=True, inline="always")
 def band_constants(A, B, C, r2, tab, g):
-    """Columns 8-14 of table row g (read by `_band_rows`) for the ellipse d^T Q d <= r2, Q = [[A, B],
+    """Columns 8-14 of table row g (read by `band_rows`) for the ellipse d^T Q d <= r2, Q = [[A, B],
     [B, C]] (float64): usable (1/0), C r2, det Q, 1/C, x half-extent, x and y offsets of the topmost point."""
     det = A * C - B * B
     ok = det > 0.0 and A > 0.0 and C > 0.0 and r2 > 0.0
@@ -656,7 +656,7 @@ def band_constants(A, B, C, r2, tab, g):
 
 
 @njit(cache=True, inline="always")
-def _band_rows(tab, g, x0, y0, qa, qb, ra, rb):
+def band_rows(tab, g, x0, y0, qa, qb, ra, rb):
     """Rows [ra, rb) narrowed to those whose pixel centres in tile-local columns [qa, qb) can lie in
     the ellipse d^T Q d <= R2 of `gaussian_table` row g (a superset, 0.25-pixel margins). Over a band
     of columns the ellipse's top y_hi(dx) = (-B dx + sqrt(C R2 - det dx^2)) / C is concave, largest at
@@ -981,8 +981,8 @@ def raster_fwd(tab, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles
                 break
             g = flat_ids[k]
             gp = flat_ids[min(k + PREFETCH_AHEAD, bin_start[b + 1] - 1)]
-            _prefetch_row(tab, gp)
-            _prefetch_row(feats, gp)
+            prefetch_row(tab, gp)
+            prefetch_row(feats, gp)
             mx, my, A, B, C, lo = tab[g, 0], tab[g, 1], tab[g, 2], tab[g, 3], tab[g, 4], tab[g, 5]
             hA, hC = kc[0] * A, kc[0] * C
             ra, rb, ca, cb = _footprint_tab(tab, g, x0, y0, ts, W, H)
@@ -992,7 +992,7 @@ def raster_fwd(tab, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles
             k1 = np.int32(k + 1)
             for q in range(ca // cw, (cb - 1) // cw + 1):
                 # rows of this column group the ellipse can reach (fewer than the footprint's)
-                qra, qrb = _band_rows(tab, g, x0, y0, max(ca, q * cw), min(cb, q * cw + cw), ra, rb)
+                qra, qrb = band_rows(tab, g, x0, y0, max(ca, q * cw), min(cb, q * cw + cw), ra, rb)
                 if qra >= qrb:
                     continue
                 pa, pb = q * ts * cw + qra * cw, q * ts * cw + qrb * cw
@@ -1034,8 +1034,8 @@ def raster_bwd(tab, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles
         for k in range(k_end - 1, bin_start[b] - 1, -1):
             g = flat_ids[k]
             gp = flat_ids[max(k - PREFETCH_AHEAD, bin_start[b])]
-            _prefetch_row(tab, gp)
-            _prefetch_row(feats, gp)
+            prefetch_row(tab, gp)
+            prefetch_row(feats, gp)
             if not composited_any(rows_hit, k):
                 continue
             mx, my, A, B, C, lo = tab[g, 0], tab[g, 1], tab[g, 2], tab[g, 3], tab[g, 4], tab[g, 5]

@@ -260,7 +260,7 @@ def surfel_table(means2d, tsl, log_opac, tab):
     centre; 2, 4 the projected centre (x, y); 5 the filter disc's radius + 1 (-1: no pixel is
     reached); 6-7 the ellipse's half-extents + 1 (-1: the disc crosses the camera plane, every pixel
     of a tile); 3, 8-14 the ellipse's `ck.band_constants` (B of Q = adj S, r2 = det S), as
-    `ck._band_rows` reads them."""
+    `ck.band_rows` reads them."""
     I, N = means2d.shape[0], log_opac.shape[0]
     for ch in prange((N + CHUNK - 1) // CHUNK):
         for i in range(I):
@@ -306,8 +306,8 @@ def _footprint_surfel(tab, g, x0, y0, ts, W, H):
 @njit(cache=True, inline="always")
 def _surfel_band_rows(tab, g, x0, y0, qa, qb, ra, rb):
     """Rows [ra, rb) narrowed to those whose pixels in tile-local columns [qa, qb) can lie in the
-    ellipse (`ck._band_rows`) or in the filter's disc (its box where the columns meet it)."""
-    era, erb = ck._band_rows(tab, g, x0, y0, qa, qb, ra, rb)
+    ellipse (`ck.band_rows`) or in the filter's disc (its box where the columns meet it)."""
+    era, erb = ck.band_rows(tab, g, x0, y0, qa, qb, ra, rb)
     mx, my, rf = float(tab[g, 2]), float(tab[g, 4]), float(tab[g, 5])
     if x0 + qa + 0.5 - mx > rf or mx - (x0 + qb - 0.5) > rf:
         return era, erb
@@ -365,11 +365,12 @@ def _surfel(means2d, tsl, log_opac, g, N, ox, oy, cc):
 def raster_fwd_2dgs(means2d, tsl, log_opac, tab, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles_x,
                     cw, kc, centres, out_feat, out_T, out_last, rows_hit):
     """`cpu_kernels.raster_fwd` for surfels: tsl [I, N, 9] ray transforms, tab [I*N, ck.TAB_COLS]
-    `surfel_table` (the rows each column group visits), feats [I*N, Cf] with the depth in channel DEPTH_CH; out_feat [Iout, H, W, Cf + 1] gets sum w f and, in its last channel, the
-    depth distortion 2 sum_k w_k (z_k W_k - A_k) (W_k, A_k: sums of w_j, w_j z_j over earlier j).
+    `surfel_table` (the rows each column group visits), feats [I*N, Cf] with the depth in channel
+    DEPTH_CH; out_feat [Iout, H, W, Cf + 1] gets sum w f and, in its last channel, the depth distortion
+    2 sum_k w_k (z_k W_k - A_k) (W_k, A_k: sums of w_j, w_j z_j over earlier j).
     rows_hit [M, ts // cw, 2] int16 (zeros on entry): for each intersection and column group, the tile
     rows [first, last + 1) holding a pixel it was composited into (w > 0), or an empty range; the
-    backward visits only those (at sigma 2.5 px about half the pixels the footprint holds)."""
+    backward visits only those."""
     Iout, H, W = pix_view.shape
     N = log_opac.shape[0]
     Cf = feats.shape[1]
@@ -388,7 +389,7 @@ def raster_fwd_2dgs(means2d, tsl, log_opac, tab, feats, flat_ids, bin_start, bin
         for k in range(bin_start[b], bin_start[b + 1]):
             if n_active == 0:
                 break
-            ck._prefetch_row(tab, flat_ids[min(k + ck.PREFETCH_AHEAD, bin_start[b + 1] - 1)])
+            ck.prefetch_row(tab, flat_ids[min(k + ck.PREFETCH_AHEAD, bin_start[b + 1] - 1)])
             ra, rb, ca, cb = _footprint_surfel(tab, flat_ids[k], x0, y0, ts, W, H)
             ra, rb = trim_rows_active(ra, rb, row_active)
             if ra >= rb or ca >= cb:
