@@ -95,9 +95,8 @@ def cap_numba_pool(environ=None, numba_loaded: bool | None = None) -> str | None
 def raster_threads() -> int:
     """Threads of the compiled kernels (`render.cpu_backend.set_threads`): EGOBENCH_RASTER_THREADS
     when set, else torch's count (OMP_NUM_THREADS / torch.set_num_threads). Setting it to 2 with
-    torch at 1 thread parallelises the kernels only (what `bench raster` scales: there torch's pool
-    spins between the glue's small operations; in training torch's threads pay, docs/cpu-rasterizer.md,
-    "Torch's threads in training")."""
+    torch at 1 thread parallelises the kernels only (what `bench raster` scales; in training torch's
+    threads pay, docs/cpu-rasterizer.md, "Torch's threads in training")."""
     import torch
 
     value = os.environ.get(RASTER_THREADS_ENV, "")
