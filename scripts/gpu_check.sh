@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The GPU path's checks in one call (issue 30): on a bare CUDA machine, from the repository root,
 # install the wheels carried in .whl/ (scripts/gpu_wheels.sh: what the image lacks), JIT-build gsplat's CUDA extension, then run, each under its own share of the time:
+#   the CPU kernels' and CPU training's thread scaling 1..16 (bench raster/train --scaling);
 #   pytest -m cuda; bench raster, bench cast (rays/s by chunk size) and bench train at 2400 px / 1M
 #   Gaussians (with and without motion sampling); two simulated frames at the paper's resolution
 #   (s/frame); config/paper_smoke.yaml end to end, as far as time allows.
@@ -42,6 +43,13 @@ print(\"torch\", torch.__version__, \"cuda\", torch.version.cuda, torch.cuda.get
 print(\"numpy\", numpy.__version__, \"numba\", numba.__version__)"'
 step install 90 python3 -m pip install --no-index --no-deps --no-compile --no-cache-dir --upgrade \
   --target /tmp/site .whl/*.whl
+# the compiled CPU kernels and training on the host's 16 cores (issue 32: scaling past 2 threads)
+CPU_ENV="OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=16 NUMBA_CACHE_DIR=/tmp/numba_cache"
+step cpu_raster_scaling 150 bash -c "env $CPU_ENV python3 -m egobench.cli bench raster --backend cpu \
+  --mode both --scaling 1,2,4,8,16 --repeats 7 > $LOGS/cpu_raster_scaling.json"
+step cpu_train_scaling 270 bash -c "env $CPU_ENV python3 -m egobench.cli bench train --resolution 128 \
+  --resolution 512 --method ours --method ours_2dgs --points 20000 --scaling 1,2,4,8,16 --iterations 100 \
+  > $LOGS/cpu_train_scaling.json"
 step gsplat_build 300 env VERBOSE=1 python3 -c "
 import time; t = time.time()
 from gsplat.cuda._backend import _C

@@ -119,11 +119,26 @@ def test_bench_train_pairs_2dgs_with_its_3dgs_twin_and_times_thread_counts():
     assert torch.get_num_threads() == rec["threads"]  # restored
 
 
+@pytest.mark.parametrize("what", ["train", "raster"])
 @pytest.mark.parametrize("value", ["0", "1,x", "-2"])
-def test_bench_train_rejects_bad_thread_counts(value):
+def test_bench_rejects_bad_thread_counts(what, value):
     from egobench.cli import main
 
-    assert main(["bench", "train", "--scaling", value]) != 0
+    assert main(["bench", what, "--scaling", value]) != 0
+
+
+@pytest.mark.parametrize("mode", ["3dgs", "both"])
+def test_bench_raster_passes_scaling_threads(monkeypatch, capsys, mode):
+    """`bench raster --scaling 1,4,16` times the kernels at those counts (it once ignored the flag: 1,2)."""
+    from egobench.cli import main
+
+    seen = []
+    monkeypatch.setattr(bench, "bench_raster", lambda device, **kw: seen.append(kw["scaling_threads"]) or {"cases": []})
+    assert main(["bench", "raster", "--backend", "cpu", "--mode", mode, "--scaling", "1,4,16"]) == 0
+    assert main(["bench", "raster", "--backend", "cpu", "--mode", mode]) == 0
+    per_call = 2 if mode == "both" else 1
+    assert seen == [(1, 4, 16)] * per_call + [(1, 2)] * per_call
+    capsys.readouterr()
 
 
 def test_bench_cast_record(capsys):

@@ -413,9 +413,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     train.add_argument("--recording", default=None, help="a recording folder instead of the synthetic one")
     train.add_argument("--method", action="append",
                        help="method to train (repeatable; default no_motion_sampling and ours; e.g. ours_2dgs)")
-    train.add_argument("--scaling", default="",
-                       help="train benchmark: comma-separated thread counts to time every case at, torch's and the "
-                            "compiled kernels' alike, as `egobench train` sets them (e.g. 1,2)")
+    parser.add_argument("--scaling", default="",
+                        help="comma-separated thread counts (e.g. 1,2,4). train: every case at each, torch's and "
+                             "the compiled kernels' alike, as `egobench train` sets them; raster (CPU): the last "
+                             "case's kernels at each, torch at one (default 1,2)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -427,9 +428,11 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--repeats: expected a positive integer, got {args.repeats}")
     chosen = args.backend if isinstance(args.backend, (list, tuple)) else [args.backend or "auto"]
     chosen = chosen or ["auto"]
+    threads = _scaling_threads(args.scaling)
     if args.what == "raster":
         backends = default_backends(chosen[0], args.device) if len(chosen) == 1 else tuple(chosen)
-        kw = dict(repeats=args.repeats, backend=chosen[0], tile_size=args.tile_size, backends=backends)
+        kw = dict(repeats=args.repeats, backend=chosen[0], tile_size=args.tile_size, backends=backends,
+                  scaling_threads=threads or (1, 2))
         _report(bench_raster_both(args.device, **kw) if args.mode == "both" else
                 bench_raster(args.device, mode=args.mode, **kw))
         return 0
@@ -443,10 +446,6 @@ def run(args: argparse.Namespace) -> int:
     if min(sides) < 8:
         raise ValueError(f"--resolution: expected at least 8 pixels, got {min(sides)}")
     methods = tuple(args.method or ("no_motion_sampling", "ours"))
-    parts = [t.strip() for t in args.scaling.split(",") if t.strip()]
-    if not all(t.isdigit() for t in parts) or any(int(t) < 1 for t in parts):
-        raise ValueError(f"--scaling: expected comma-separated positive thread counts, got {args.scaling!r}")
-    threads = tuple(int(t) for t in parts)
     if not args.device.startswith("cuda"):
         from egobench.host import keep_freed_memory
 
@@ -454,6 +453,14 @@ def run(args: argparse.Namespace) -> int:
     _report(bench_train(args.device, chosen[0], sides, args.iterations, args.recording, args.points, methods,
                         threads))
     return 0
+
+
+def _scaling_threads(text: str) -> tuple[int, ...]:
+    """--scaling's comma-separated thread counts ("" -> ())."""
+    parts = [t.strip() for t in text.split(",") if t.strip()]
+    if not all(t.isdigit() for t in parts) or any(int(t) < 1 for t in parts):
+        raise ValueError(f"--scaling: expected comma-separated positive thread counts, got {text!r}")
+    return tuple(int(t) for t in parts)
 
 
 def _report(result: dict) -> None:
