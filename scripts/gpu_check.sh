@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The GPU path's checks in one call (issue 30): on a bare CUDA machine, from the repository root,
 # install the wheels carried in .whl/ (scripts/gpu_wheels.sh: what the image lacks), JIT-build gsplat's CUDA extension, then run, each under its own share of the time:
-#   the CPU kernels' and CPU training's thread scaling 1..16 (bench raster/train --scaling);
+#   the CPU kernels' and CPU training's thread scaling 1..16 (bench raster/train --scaling) and the
+#   OpenMP wait policy's effect at 16 threads;
 #   pytest -m cuda; bench raster, bench cast (rays/s by chunk size) and bench train at 2400 px / 1M
 #   Gaussians (with and without motion sampling); two simulated frames at the paper's resolution
 #   (s/frame); config/paper_smoke.yaml end to end, as far as time allows.
@@ -44,7 +45,7 @@ print(\"numpy\", numpy.__version__, \"numba\", numba.__version__)"'
 step install 90 python3 -m pip install --no-index --no-deps --no-compile --no-cache-dir --upgrade \
   --target /tmp/site .whl/*.whl
 # the compiled CPU kernels and training on the host's 16 cores (issue 32: scaling past 2 threads)
-CPU_ENV="OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=16 NUMBA_CACHE_DIR=/tmp/numba_cache"
+CPU_ENV="OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=${CPU_POOL:-16} NUMBA_CACHE_DIR=/tmp/numba_cache"
 step cpu_raster_scaling 150 bash -c "env $CPU_ENV python3 -m egobench.cli bench raster --backend cpu \
   --mode both --scaling 1,2,4,8,16 --repeats 7 > $LOGS/cpu_raster_scaling.json"
 for px in 128 512; do  # one record each, so that a time limit keeps the first
@@ -52,6 +53,11 @@ for px in 128 512; do  # one record each, so that a time limit keeps the first
     --method ours --method ours_2dgs --points 20000 --scaling 1,2,4,8,16 --iterations 100 \
     > $LOGS/cpu_train_scaling_$px.json"
 done
+# does the 3DGS step's thread-growing gap (docs/cpu-rasterizer.md, "Past two cores") go when numba's
+# OpenMP workers keep spinning between kernels? per-stage profile at 16 threads, policies alternated
+step cpu_wait_policy 150 bash -c "for p in default ACTIVE default ACTIVE; do echo \$p; w=OMP_WAIT_POLICY=ACTIVE; \
+  [ \$p = ACTIVE ] || w=; env $CPU_ENV \$w python3 -m egobench.bench.cpu_profile --sigma 2.5 --repeats 15 \
+  --threads \${CPU_PROFILE_THREADS:-16} --wall | tee -a $LOGS/cpu_wait_policy.json | grep -E 'step|glue|sum_of'; done"
 step gsplat_build 300 env VERBOSE=1 python3 -c "
 import time; t = time.time()
 from gsplat.cuda._backend import _C
