@@ -263,7 +263,7 @@ def test_band_rows_hold_every_visible_pixel(dtype):
             torch.sigmoid(g.opacity_logits).detach(), cpu_backend.camera_array(CAM), CAM.width, CAM.height, False)
         m2, con, rad = m2.numpy(), con.numpy(), rad.numpy()
         tab = np.empty((m2.shape[1], cpu_kernels.TAB_COLS), m2.dtype)
-        cpu_kernels.gaussian_table(m2, con, rad, lo, tab)
+        cpu_kernels.gaussian_table(m2, con, rad, lo, np.ones(m2.shape[1], bool), tab)
         pix_view, need = cpu_backend.pixel_views(None, 1, CAM.height, CAM.width, ts)
         tiles_x = math.ceil(CAM.width / ts)
         flat, starts = cpu_kernels.bin_tiles(m2, rad, dep.numpy(), ts, tiles_x, need.shape[1] // tiles_x, need)
@@ -432,6 +432,65 @@ def _backward_with_rows(kernel, bwd_args, rows_hit):
     args[-2][:] = 0
     kernel(*args)
     return args[-2]
+
+
+def test_rows_needed_marks_exactly_the_binned_rows():
+    from egobench.render import cpu_kernels
+
+    flat = np.array([7, 3, 7, 0, 12, 3], np.int64)
+    np.testing.assert_array_equal(cpu_kernels.rows_needed(flat, 14), np.isin(np.arange(14), flat))
+    assert not cpu_kernels.rows_needed(flat[:0], 5).any()
+
+
+@pytest.mark.parametrize("mode", ["3dgs", "2dgs"])
+def test_tables_fill_only_the_rows_needed(mode):
+    """The Gaussian / surfel table fills the rows `rows_needed` marks, each exactly as a full table,
+    and leaves the others as they were."""
+    from egobench.render import _viewmats, cpu_backend, cpu_backend_2dgs, cpu_kernels, cpu_kernels_2dgs
+
+    g = edge_case_scene(5)
+    Ts = _viewmats(torch.stack([pose(0.0, 0.03 * k, (0.01 * k, 0, 0)) for k in range(3)]))
+    lo = torch.nn.functional.logsigmoid(g.opacity_logits).numpy()
+    if mode == "3dgs":
+        m2, con, _, _, rad = cpu_backend._Project.apply(g.means, g.quats, g.scales, Ts, torch.sigmoid(g.opacity_logits),
+                                                       cpu_backend.camera_array(CAM), CAM.width, CAM.height, False)
+        fill = lambda need, tab: cpu_kernels.gaussian_table(m2.numpy(), con.numpy(), rad.numpy(), lo, need, tab)
+    else:
+        m2, tsl, _, _, _ = cpu_backend_2dgs._Project2DGS.apply(g.means, g.quats, g.scales, Ts,
+                                                                cpu_backend.camera_array(CAM), CAM.width, CAM.height)
+        fill = lambda need, tab: cpu_kernels_2dgs.surfel_table(m2.numpy(), tsl.numpy(), lo, need, tab)
+    rows = m2.shape[0] * m2.shape[1]
+    need = np.random.default_rng(0).random(rows) < 0.3
+    full, part = np.zeros((rows, cpu_kernels.TAB_COLS)), np.full((rows, cpu_kernels.TAB_COLS), np.nan)
+    fill(np.ones(rows, bool), full)
+    fill(need, part)
+    np.testing.assert_array_equal(part[need], full[need])
+    assert np.isnan(part[~need]).all() and 0 < need.sum() < rows
+
+
+@pytest.mark.parametrize("mode", ["3dgs", "2dgs"])
+def test_uninitialised_buffers_are_never_read(monkeypatch, mode):
+    """Every buffer the CPU backend takes from np.empty (the tables fill only the rows the binning
+    needs) is written before it is read: with np.empty returning NaN-filled arrays, a rolling-shutter
+    render and its gradients are bitwise the same (a row read but not filled would give NaN)."""
+    g = edge_case_scene(6)
+    K = 4
+    Ts = torch.stack([pose(0.0, 0.02 * k, (0.01 * k, 0, 0)) for k in range(K)])
+    idx = torch.round(torch.arange(CAM.height) / (CAM.height - 1) * (K - 1)).long()[:, None]
+    idx = idx.expand(CAM.height, CAM.width).contiguous()
+    ref = run(g, CAM, Ts, "cpu", 3, pixel_pose_index=idx, mode=mode)
+    empty = np.empty
+
+    def garbage_empty(shape, dtype=float, **kw):
+        out, dt = empty(shape, dtype, **kw), np.dtype(dtype)
+        out.fill(np.nan if dt.kind == "f" else True if dt.kind == "b" else np.iinfo(dt).min if dt.kind in "iu" else 0)
+        return out
+
+    monkeypatch.setattr(np, "empty", garbage_empty)
+    got = run(g, CAM, Ts, "cpu", 3, pixel_pose_index=idx, mode=mode)
+    torch.testing.assert_close(got[0], ref[0], rtol=0, atol=0)
+    for k, v in ref[1].items():
+        torch.testing.assert_close(got[1][k], v, rtol=0, atol=0, msg=lambda m, k=k: f"{k}: {m}")
 
 
 @pytest.mark.parametrize("mode", ["3dgs", "2dgs"])

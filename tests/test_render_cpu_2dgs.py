@@ -195,7 +195,7 @@ def test_2dgs_pixel_bound_holds_every_visible_pixel():
             cpu_backend.camera_array(CAM), CAM.width, CAM.height)
         m2, tsl = m2.numpy(), tsl.numpy()
         tab = np.empty((m2.shape[1], cpu_kernels.TAB_COLS), m2.dtype)
-        cpu_kernels_2dgs.surfel_table(m2, tsl, lo, tab)
+        cpu_kernels_2dgs.surfel_table(m2, tsl, lo, np.ones(m2.shape[1], bool), tab)
         pix_view, need = cpu_backend.pixel_views(None, 1, CAM.height, CAM.width, ts)
         tiles_x = math.ceil(CAM.width / ts)
         flat, starts = cpu_kernels.bin_tiles(m2, rad.numpy(), dep.numpy(), ts, tiles_x, need.shape[1] // tiles_x, need)

@@ -81,7 +81,8 @@ def stage_times(sigma_px: float = 2.5, width: int = 128, n: int = 20000, repeats
     oT = np.zeros((I, width, width), np.float32)
     ol = np.zeros((I, width, width), np.int32)
     tab = np.empty((I * N, ck.TAB_COLS), np.float32)
-    out["gaussian_table"] = _median_ms(lambda: ck.gaussian_table(m2, con, rad, lo, tab), repeats)
+    out["gaussian_table"] = _median_ms(lambda: ck.gaussian_table(m2, con, rad, lo, ck.rows_needed(st.flat_ids, I * N),
+                                                                 tab), repeats)
     rows_hit = cb.rows_hit_buffer(st.flat_ids.shape[0], tile_size, st.cw)
     fargs = (tab, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, tile_size, st.tiles_x, st.cw,
              st.kc, st.centres, of, oT, ol, rows_hit)

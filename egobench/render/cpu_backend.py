@@ -222,7 +222,8 @@ class _Rasterize(torch.autograd.Function):
         out_last = np.zeros((Iout, H, W), dtype=np.int32)
         set_threads()
         tab = np.empty((I * N, ck.TAB_COLS), dtype=m2.dtype)
-        ck.gaussian_table(m2, contiguous_numpy(conics), contiguous_numpy(radii), contiguous_numpy(log_opac), tab)
+        ck.gaussian_table(m2, contiguous_numpy(conics), contiguous_numpy(radii), contiguous_numpy(log_opac),
+                          ck.rows_needed(st.flat_ids, I * N), tab)
         rows_hit = rows_hit_buffer(st.flat_ids.shape[0], tile_size, st.cw)
         ck.raster_fwd(tab, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, tile_size,
                       st.tiles_x, st.cw, st.kc, st.centres, out_feat, out_T, out_last, rows_hit)

@@ -610,20 +610,33 @@ def prefetch_row(typingctx, arr, row):
 TAB_COLS = 16
 
 
+@njit(cache=True)
+def rows_needed(flat_ids, n_rows):
+    """Which of n_rows (image, Gaussian) table rows the compositing reads: flat_ids [K] (`bin_tiles`)
+    -> bool [n_rows]. With motion sampling each pose's rows cover a band of the image, so only ~10 %
+    of the rows are read (docs/cpu-rasterizer.md, "Tables for the rows read")."""
+    needed = np.zeros(n_rows, np.bool_)
+    for k in range(flat_ids.shape[0]):
+        needed[flat_ids[k]] = True
+    return needed
+
+
 @njit(cache=True, parallel=True)
-def gaussian_table(means2d, conics, radii, log_opac, tab):
+def gaussian_table(means2d, conics, radii, log_opac, needed, tab):
     """Per (image, Gaussian) constants of the compositing loops, computed once instead of once per
-    tile intersection: means2d [I,N,2], conics [I,N,3], radii [I,N,2], log_opac [N] -> tab
-    [I*N, TAB_COLS] (compute dtype), row image * N + Gaussian: 0-1 centre (x, y), 2-4 conic
-    (A, B, C), 5 log opacity, 6-7 footprint half-extents (x, y) (`_extent`), 8-14 the ellipse of
-    `band_rows` (usable (1/0), C R2, det, 1/C, x half-extent xe, x offset of the topmost point
-    dxt, its y offset dyt)."""
+    tile intersection: means2d [I,N,2], conics [I,N,3], radii [I,N,2], log_opac [N], needed [I*N]
+    bool (`rows_needed`) -> tab [I*N, TAB_COLS] (compute dtype; rows not needed are left as they
+    were), row image * N + Gaussian: 0-1 centre (x, y), 2-4 conic (A, B, C), 5 log opacity, 6-7
+    footprint half-extents (x, y) (`_extent`), 8-14 the ellipse of `band_rows` (usable (1/0), C R2,
+    det, 1/C, x half-extent xe, x offset of the topmost point dxt, its y offset dyt)."""
     I, N = means2d.shape[0], log_opac.shape[0]
     n_chunks = (N + CHUNK - 1) // CHUNK
     for ch in prange(n_chunks):
         for i in range(I):
             for n in range(ch * CHUNK, min(N, (ch + 1) * CHUNK)):
                 g = i * N + n
+                if not needed[g]:
+                    continue
                 A, B, C, lo = conics[i, n, 0], conics[i, n, 1], conics[i, n, 2], log_opac[n]
                 tab[g, 0] = means2d[i, n, 0]
                 tab[g, 1] = means2d[i, n, 1]

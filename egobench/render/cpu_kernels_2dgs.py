@@ -252,10 +252,11 @@ def _image_ellipse(tsl, gi, n, r2):
 
 
 @njit(cache=True, parallel=True)
-def surfel_table(means2d, tsl, log_opac, tab):
+def surfel_table(means2d, tsl, log_opac, needed, tab):
     """Per (image, surfel) bounds of the pixels it can reach (alpha > 1/255), computed once instead of
-    once per tile intersection: means2d [I,N,2], tsl [I,N,9], log_opac [N] -> tab [I*N, ck.TAB_COLS]
-    (compute dtype), row image * N + surfel. The pixels are the union of the 2D filter's disc and
+    once per tile intersection: means2d [I,N,2], tsl [I,N,9], log_opac [N], needed [I*N] bool
+    (`ck.rows_needed`) -> tab [I*N, ck.TAB_COLS] (compute dtype; rows not needed are left as they
+    were), row image * N + surfel. The pixels are the union of the 2D filter's disc and
     the image ellipse of the disc u^2 + v^2 <= 2 (SIGMA_ROW + log o). Columns: 0-1 the ellipse's
     centre; 2, 4 the projected centre (x, y); 5 the filter disc's radius + 1 (-1: no pixel is
     reached); 6-7 the ellipse's half-extents + 1 (-1: the disc crosses the camera plane, every pixel
@@ -266,6 +267,8 @@ def surfel_table(means2d, tsl, log_opac, tab):
         for i in range(I):
             for n in range(ch * CHUNK, min(N, (ch + 1) * CHUNK)):
                 g = i * N + n
+                if not needed[g]:
+                    continue
                 e = SIGMA_ROW + float(log_opac[n])
                 mx, my = float(means2d[i, n, 0]), float(means2d[i, n, 1])
                 cx, cy, sxx, syy, sxy, ok = _image_ellipse(tsl, i, n, 2.0 * e)
