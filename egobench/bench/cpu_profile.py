@@ -96,7 +96,8 @@ def stage_times(sigma_px: float = 2.5, width: int = 128, n: int = 20000, repeats
     out["raster_bwd"] = _median_ms(lambda: ck.raster_bwd(*bargs), repeats)
     absg = np.zeros((I * N, 2))
     out["reduce_isect_grad"] = _median_ms(
-        lambda: ck.reduce_isect_grad(isect, st.flat_ids, st.flat_ids.shape[0], I * N, absg), repeats)
+        lambda: ck.reduce_isect_grad(isect, st.flat_ids, st.flat_ids.shape[0], np.zeros((I * N, isect.shape[1]),
+                                                                                         np.float32), absg), repeats)
     g_m2 = rng.standard_normal((I, N, 2))
     g_con = rng.standard_normal((I, N, 3))
     g_dep = rng.standard_normal((I, N))

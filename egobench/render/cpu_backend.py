@@ -134,10 +134,11 @@ def reduce_intersections(isect: np.ndarray, flat_ids: np.ndarray, I: int, N: int
     from egobench.render import cpu_kernels as ck
 
     absg = np.zeros((I * N if absgrad_holder is not None else 0, 2))
-    per = ck.reduce_isect_grad(isect, flat_ids, flat_ids.shape[0], I * N, absg)
+    per = torch.zeros((I * N, isect.shape[1]), dtype=dt)
+    ck.reduce_isect_grad(isect, flat_ids, flat_ids.shape[0], per.numpy(), absg)
     if absgrad_holder is not None:  # gsplat's absgrad attribute
         absgrad_holder[0].absgrad = torch.from_numpy(absg).reshape(I, N, 2).to(dt)
-    return torch.from_numpy(per).reshape(I, N, isect.shape[1]).to(dt)
+    return per.reshape(I, N, isect.shape[1])
 
 
 def pixel_views(pixel_pose_index: Tensor | None, I: int, H: int, W: int, ts: int) -> tuple[np.ndarray, np.ndarray]:
