@@ -474,8 +474,9 @@ def test_tables_fill_only_the_rows_needed(mode):
 @pytest.mark.parametrize("mode", ["3dgs", "2dgs"])
 def test_uninitialised_buffers_are_never_read(monkeypatch, mode):
     """Every buffer the CPU backend takes from np.empty (the tables fill only the rows the binning
-    needs) is written before it is read: with np.empty returning NaN-filled arrays, a rolling-shutter
-    render and its gradients are bitwise the same (a row read but not filled would give NaN)."""
+    needs) is written before it is read: with np.empty returning NaN (floats) or extreme values
+    (integers), a rolling-shutter render and its gradients are bitwise the same (a table row read but
+    not filled changes them; a mask that drops half the needed rows fails this)."""
     g = edge_case_scene(6)
     K = 4
     Ts = torch.stack([pose(0.0, 0.02 * k, (0.01 * k, 0, 0)) for k in range(K)])
