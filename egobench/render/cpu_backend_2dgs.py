@@ -118,7 +118,7 @@ class _Rasterize2DGS(torch.autograd.Function):
         c = 12  # features: colour, depth, normal
         g_carrier = None
         if ctx.needs_input_grad[11]:  # gsplat's gradient_2dgs: (dL/dM[0, 2], dL/dM[1, 2]) * M[2, 2]
-            g_carrier = per[..., [4, 7]] * torch.from_numpy(tsl_np[..., 8:9])
+            g_carrier = per[..., 4:8:3] * torch.from_numpy(tsl_np[..., 8:9])  # columns 4 and 7, a view (no gather)
         return (per[..., 0:2], per[..., 2:11], per[..., 11].sum(0), per[..., c:c + 3].sum(0), per[..., c + 3],
                 per[..., c + 4:c + 7], None, None, None, None, None, g_carrier)
 
