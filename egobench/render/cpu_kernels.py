@@ -425,15 +425,16 @@ def _tile_rects(means2d, radii, depths, tile_size, tiles_x, tiles_y, bin_needed)
         for n in range(N):
             if radii[i, n, 0] <= 0 or radii[i, n, 1] <= 0:
                 continue
-            mx, my = means2d[i, n, 0] / tile_size, means2d[i, n, 1] / tile_size
-            rx, ry = radii[i, n, 0] / tile_size, radii[i, n, 1] / tile_size
-            x0 = max(min(int(math.floor(mx - rx)), tiles_x), 0)
-            x1 = max(min(int(math.ceil(mx + rx)), tiles_x), 0)
-            y0 = max(min(int(math.floor(my - ry)), tiles_y), 0)
-            y1 = max(min(int(math.ceil(my + ry)), tiles_y), 0)
-            x0, x1 = max(x0, bx0[i]), min(x1, bx1[i])
-            y0, y1 = max(y0, by0[i]), min(y1, by1[i])
-            if x1 <= x0 or y1 <= y0:
+            # rows first: with motion sampling most pairs miss their pose's band of rows
+            my, ry = means2d[i, n, 1] / tile_size, radii[i, n, 1] / tile_size
+            y0 = max(max(min(int(math.floor(my - ry)), tiles_y), 0), by0[i])
+            y1 = min(max(min(int(math.ceil(my + ry)), tiles_y), 0), by1[i])
+            if y1 <= y0:
+                continue
+            mx, rx = means2d[i, n, 0] / tile_size, radii[i, n, 0] / tile_size
+            x0 = max(max(min(int(math.floor(mx - rx)), tiles_x), 0), bx0[i])
+            x1 = min(max(min(int(math.ceil(mx + rx)), tiles_x), 0), bx1[i])
+            if x1 <= x0:
                 continue
             k = i * N + n
             rect[nv, 0], rect[nv, 1], rect[nv, 2], rect[nv, 3] = x0, x1, y0, y1
