@@ -284,12 +284,6 @@ def surfel_table(means2d, tsl, log_opac, needed, tab):
 
 
 @njit(cache=True, inline="always")
-def _axis_range(lo_c, hi_c, tile_lo, n_px, ts):
-    """Pixel interval [lo_c, hi_c] -> tile-local [a, b)."""
-    return max(0, int(math.floor(lo_c)) - tile_lo), min(min(ts, n_px - tile_lo), int(math.ceil(hi_c)) - tile_lo)
-
-
-@njit(cache=True, inline="always")
 def _footprint_surfel(tab, g, x0, y0, ts, W, H):
     """Tile-local rows [ra, rb) and columns [ca, cb) that `surfel_table` row g can reach: the box of
     the filter's disc and the ellipse (1-pixel margins), the whole tile where the disc crosses the
