@@ -120,6 +120,34 @@ def test_holm_adjustment():
     assert holm([0.01, 0.04, 0.03]) == pytest.approx([0.03, 0.06, 0.06])
 
 
+def test_frame_slopes_match_a_per_frame_least_squares_reference():
+    """Slopes and their information against np.linalg.lstsq frame by frame on the masked pixels with the
+    design [x1, x2, 1, p - mean p] (the residual variance: RSS / n); a frame with under 20 pixels and one
+    whose regressor is constant (singular design) get 0, 0."""
+    from egobench.residual.estimation import frame_slopes
+
+    rng = np.random.default_rng(3)
+    F, H, W = 5, 9, 11
+    p = rng.uniform(0.2, 0.9, (F, H, W, 3))
+    xs = [rng.normal(0, 1, (F, H, W, 3)), rng.normal(0, 1, (F, H, W, 3))]
+    y = 0.3 * xs[0] - 0.1 * xs[1] + 0.05 + 0.2 * p + rng.normal(0, 0.1, (F, H, W, 3))
+    mask = rng.uniform(size=(F, H, W, 3)) < 0.7
+    mask[1] = False
+    mask[1, 0, :2] = True  # 6 pixels
+    xs[1][3] = 2.0  # constant: collinear with the constant column
+    est, info = frame_slopes(xs, p, y, mask)
+    for f in (0, 2, 4):
+        m = mask[f]
+        pm = p[f][m]
+        X = np.stack([xs[0][f][m], xs[1][f][m], np.ones(m.sum()), pm - pm.mean()], axis=1)
+        coef, *_ = np.linalg.lstsq(X, y[f][m], rcond=None)
+        s2 = np.sum((y[f][m] - X @ coef) ** 2) / m.sum() + 1e-12
+        var = np.diag(np.linalg.inv(X.T @ X))[:2] * s2
+        np.testing.assert_allclose(est[f], coef[:2], rtol=1e-9)
+        np.testing.assert_allclose(info[f], 1.0 / var, rtol=1e-9)
+    assert np.all(est[[1, 3]] == 0.0) and np.all(info[[1, 3]] == 0.0)
+
+
 def test_warp_shifts_a_band_limited_image_by_the_displacement():
     H = W = 32
     v, u = np.meshgrid(np.arange(H), np.arange(W), indexing="ij")

@@ -469,34 +469,52 @@ class GeometricCause(Cause):
                 "per_frame": est[:, self.tested_index].tolist(), "pooled": float(theta[self.tested_index])}
 
 
+def _normal_equations(xs: list[np.ndarray], p: np.ndarray, y: np.ndarray, m: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per-frame masked moments of the design [xs..., 1, p - mean p] and y (each [F, P], m [F, P] 0/1)
+    -> (XtX [F, k+2, k+2], Xty [F, k+2], yty [F], n [F]). Sums of m-weighted products of the raw
+    columns, centred afterwards: no [F, P] temporary per column (allocating those, page faults on a
+    fresh 1-3 MB buffer, was most of the cost)."""
+    F, k = y.shape[0], len(xs)
+    u = [*xs, p, y]  # raw columns
+    n = m.sum(axis=1)
+    lin = np.stack([np.einsum("fp,fp->f", m, c) for c in u], axis=1)  # sum m u
+    S = np.empty((F, k + 2, k + 2))  # sum m u_a u_b
+    for a in range(k + 2):
+        for b in range(a, k + 2):
+            S[:, a, b] = S[:, b, a] = np.einsum("fp,fp,fp->f", m, u[a], u[b])
+    pm = lin[:, k] / np.maximum(n, 1.0)  # the frame's mean prediction
+    XtX = np.empty((F, k + 2, k + 2))
+    XtX[:, :k, :k] = S[:, :k, :k]
+    XtX[:, :k, k] = XtX[:, k, :k] = lin[:, :k]
+    XtX[:, :k, k + 1] = XtX[:, k + 1, :k] = S[:, :k, k] - pm[:, None] * lin[:, :k]
+    XtX[:, k, k] = n
+    XtX[:, k, k + 1] = XtX[:, k + 1, k] = lin[:, k] - pm * n
+    XtX[:, k + 1, k + 1] = S[:, k, k] - pm * lin[:, k]
+    Xty = np.concatenate([S[:, :k, k + 1], lin[:, k + 1:], (S[:, k, k + 1] - pm * lin[:, k + 1])[:, None]], axis=1)
+    return XtX, Xty, S[:, k + 1, k + 1], n
+
+
 def frame_slopes(xs: list[np.ndarray], predicted: np.ndarray, residual: np.ndarray,
                  mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Each frame's least-squares fit of residual [f, H, W, 3] on the regressors xs (each [f, H, W, 3])
     and two nuisance columns, a constant and the prediction minus its mean (they partial out a global
     and a multiplicative intensity mismatch, e.g. shading, which correlates with curvature), over the
     frame's ``mask`` pixels -> (est [f, k], info [f, k] = 1 / var of each slope). All frames at once
-    through their normal equations; a frame with under 20 pixels or a singular design gets 0, 0."""
+    through their normal equations (the residual sum of squares as y'y - coef'X'y); a frame with under
+    20 pixels or a singular design gets 0, 0."""
     F, k = residual.shape[0], len(xs)
-    m = mask.reshape(F, -1).astype(np.float64)
-    n = m.sum(axis=1)
-    p = predicted.reshape(F, -1)
-    p_mean = (m * p).sum(axis=1) / np.maximum(n, 1.0)
-    cols = [x.reshape(F, -1) for x in xs] + [np.ones_like(p), p - p_mean[:, None]]
-    y = residual.reshape(F, -1)
-    mc = [m * c for c in cols]
-    XtX = np.empty((F, k + 2, k + 2))
-    for a in range(k + 2):
-        for b in range(a, k + 2):
-            XtX[:, a, b] = XtX[:, b, a] = np.einsum("fp,fp->f", mc[a], cols[b])
-    Xty = np.stack([np.einsum("fp,fp->f", c, y) for c in mc], axis=1)
+    flat = [x.reshape(F, -1) for x in xs]
+    XtX, Xty, yty, n = _normal_equations(flat, predicted.reshape(F, -1), residual.reshape(F, -1),
+                                         mask.reshape(F, -1).astype(np.float64))
     est, info = np.zeros((F, k)), np.zeros((F, k))
     ok = n >= 20
     ok[ok] = np.linalg.cond(XtX[ok]) <= 1e12
     if not ok.any():
         return est, info
     coef = np.linalg.solve(XtX[ok], Xty[ok][..., None])[..., 0]  # [g, k + 2]
-    fit = sum(coef[:, a:a + 1] * cols[a][ok] for a in range(k + 2))
-    resid_var = (m[ok] * (y[ok] - fit) ** 2).sum(axis=1) / n[ok] + 1e-12
+    rss = np.maximum(yty[ok] - np.einsum("gk,gk->g", coef, Xty[ok]), 0.0)
+    resid_var = rss / n[ok] + 1e-12
     cov_diag = np.diagonal(np.linalg.inv(XtX[ok]), axis1=1, axis2=2)[:, :k] * resid_var[:, None]
     est[ok] = coef[:, :k]
     info[ok] = 1.0 / np.maximum(cov_diag, 1e-300)
