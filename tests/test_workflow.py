@@ -235,6 +235,21 @@ def test_dry_run(tmp_path, name, min_jobs):
     assert not (tmp_path / "results").exists()
 
 
+def test_parsing_the_workflow_loads_no_torch_scipy_or_matplotlib(tmp_path):
+    """Every `snakemake` call parses the Snakefile; what it imports from egobench must stay light (torch,
+    scipy and matplotlib took a dry run from ~1.3 to ~4 s, and the suite makes ~20 such calls). Checked
+    with Python's import log of a dry run of the default suite and of the sensitivity sweep."""
+    env = {**os.environ, "PYTHONPATH": f"{REPO}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
+    for target in ([], ["sensitivity"]):
+        res = subprocess.run([sys.executable, "-X", "importtime", "-m", "snakemake", "-s", str(REPO / "Snakefile"),
+                              "-d", str(tmp_path), *target, "-n", "--quiet", "rules"],
+                             capture_output=True, text=True, timeout=300, env=env)
+        assert res.returncode == 0, res.stdout + res.stderr[-3000:]
+        loaded = {line.rsplit("|", 1)[-1].strip() for line in res.stderr.splitlines() if line.startswith("import time:")}
+        assert "egobench.workflow.config" in loaded  # the log is read right
+        assert {"torch", "scipy", "matplotlib"} & loaded == set(), target
+
+
 @pytest.mark.parametrize(
     "edit, key",
     [

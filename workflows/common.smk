@@ -1,7 +1,6 @@
 # Helpers shared by the workflow files: config -> targets. The logic lives in
 # egobench/workflow/config.py (unit-tested); this file only adapts it to Snakemake.
-import egobench.report.tables
-import egobench.report.plots
+from egobench.report.outputs import FIGURE_FILES, TABLE_FILES
 
 
 def res(step, key):
@@ -14,11 +13,11 @@ def eval_records():
 
 
 def table_files():
-    return [f"{R}/tables/{name}" for name in egobench.report.tables.OUTPUT_FILES]
+    return [f"{R}/tables/{name}" for name in TABLE_FILES]
 
 
 def figure_files():
-    return [f"{R}/figures/{name}" for name in egobench.report.plots.OUTPUT_FILES]
+    return [f"{R}/figures/{name}" for name in FIGURE_FILES]
 
 
 def all_outputs():

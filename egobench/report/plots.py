@@ -32,12 +32,11 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from egobench.report import paper_numbers as pn  # noqa: E402
+from egobench.report.outputs import FIGURE_FILES, FIGURES  # noqa: E402
 from egobench.io_utils import atomic_path  # noqa: E402
 from egobench.report.tables import GROUPS, RunRecord, gains_frame, load_records, method_label  # noqa: E402
 
-FIGURES = ("gains", "psnr_vs_head_speed", "qualitative", "motion_displacement", "gain3x")
-#: Every file `make_plots` writes (relative to the output folder): the workflow's outputs.
-OUTPUT_FILES = tuple(f"{name}.{ext}" for name in FIGURES for ext in ("png", "pdf")) + ("notes.json",)
+OUTPUT_FILES = FIGURE_FILES  # every file `make_plots` writes (egobench.report.outputs)
 #: Columns of the qualitative figure (after the ground truth), in the paper's order.
 QUALITATIVE_METHODS = ("ours", "no_viba", "no_motion_sampling", "splatfacto")
 RENDER_RE = re.compile(r"^(\d+)\.png$")

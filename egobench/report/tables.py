@@ -26,6 +26,7 @@ import numpy as np
 import pandas as pd
 
 from egobench.report import paper_numbers as pn
+from egobench.report.outputs import TABLE_FILES
 from egobench.io_utils import atomic_path, read_json
 
 RUN_SCHEMA = "egobench.run/1"
@@ -46,23 +47,7 @@ GROUPS = {
 #: Keys of ``recording_stats`` read for Table 4 and the head-speed plot.
 NUM_FRAMES_KEY = "num_frames"
 HEAD_SPEED_KEY = "head_angular_speed_deg_s_p50"  # median head angular speed of the recording, deg/s
-#: Every file `write_tables` produces, relative to the output folder (the workflow's outputs).
-OUTPUT_FILES = (
-    "results.csv",
-    "table1_outdoor.csv",
-    "table1_outdoor.tex",
-    "table1_indoor.csv",
-    "table1_indoor.tex",
-    "table1.tex",
-    "table2.csv",
-    "table2.tex",
-    "table3.csv",
-    "table3.tex",
-    "table4.csv",
-    "table4.tex",
-    "gains.csv",
-    "gains.tex",
-)
+OUTPUT_FILES = TABLE_FILES  # every file `write_tables` produces (egobench.report.outputs)
 OURS_BLOCK = "egobench"
 PAPER_BLOCK = "paper"
 

@@ -15,7 +15,6 @@ import re
 from dataclasses import dataclass, fields
 from typing import Any, Literal
 
-from egobench.effects import EFFECTS
 from egobench.sim.devices import DEVICES, get_device
 
 SceneKind = Literal["outdoor", "indoor", "object", "quest3"]
@@ -218,6 +217,8 @@ def _parse_field(key: str, value: Any) -> Any:
 def hidden_effect_overrides(name: str, value: Any, affected_fraction: float = 0.25) -> dict[str, Any]:
     """SimConfig overrides that hide `value` of effect `name` (e.g. from Effect.sample_hidden): the
     effect's own `sim_overrides` (egobench/effects/<name>.py)."""
+    from egobench.effects import EFFECTS  # here, not at the top: the effects load torch and scipy
+
     if name not in EFFECTS:
         raise ValueError(f"hidden effect: unknown name {name!r}; expected one of {sorted(EFFECTS)}")
     return EFFECTS[name].sim_overrides(value, affected_fraction)

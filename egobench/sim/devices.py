@@ -22,8 +22,12 @@ import math
 from dataclasses import dataclass, field
 from typing import Literal
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import torch
+
+if TYPE_CHECKING:  # torch loads in the methods that build tensors: the workflow reads the presets at parse time
+    import torch
 
 ExposureProtocol = Literal["auto", "indoor", "fixed"]
 
@@ -90,6 +94,8 @@ class DeviceProfile:
 
     def camera(self, width: int, height: int, params: np.ndarray | None = None):
         """The Fisheye624 camera at width x height (optionally with explicit params [15])."""
+        import torch
+
         from egobench.camera import Fisheye624
 
         p = self.lens_params_at(width, height) if params is None else np.asarray(params, dtype=np.float64)
@@ -109,6 +115,8 @@ class DeviceProfile:
 
     def T_device_camera(self) -> torch.Tensor:  # [4, 4] float64
         """Camera-to-device extrinsics from the calibration constants."""
+        import torch
+
         from egobench.geometry import make_pose, quat_to_rotmat
 
         q = torch.tensor(self.T_device_camera_quat_wxyz, dtype=torch.float64)
