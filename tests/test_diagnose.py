@@ -120,6 +120,37 @@ def test_holm_adjustment():
     assert holm([0.01, 0.04, 0.03]) == pytest.approx([0.03, 0.06, 0.06])
 
 
+@pytest.mark.parametrize("name", ["time_offset", "readout", "exposure_blur"])
+def test_velocity_placebo_tables_match_the_regressors_rebuilt_with_permuted_velocities(name):
+    """The tables give the slopes `first_order` gets from the regressors re-formed with frame perm[i]'s
+    velocity in frame i (the placebo as it was computed before the tables), for several derangements
+    and the identity; the basis describes the regressors."""
+    import copy
+    from dataclasses import replace
+
+    from egobench.diagnose.estimators import CAUSES
+    from egobench.residual.estimation import ResidualData
+    from egobench.residual.permuted import PermutedVelocitySlopes
+
+    case = make_case("readout", 0.3, seed=2)
+    frames = np.arange(1, case.measured.shape[0], 2)  # a subset: the tables index the data's frames
+    data = ResidualData(case.measured[frames], case.predicted[frames], case.context, frames).geometric()
+    cause = CAUSES[name]
+    tables = PermutedVelocitySlopes(cause.velocity_basis(data), data.velocity, data.p, data.r, data.usable)
+    v = case.context.pixel_velocity_px_s
+    rng = np.random.default_rng(0)
+    for perm in [np.arange(frames.size)] + [np.roll(rng.permutation(frames.size), 1) for _ in range(4)]:
+        vp = v.copy()
+        vp[frames] = v[frames[perm]]
+        d = copy.copy(data)
+        d.ctx = replace(data.ctx, pixel_velocity_px_s=vp)
+        est, info = cause.first_order(d)
+        est_t, info_t = tables.slopes(perm)
+        assert np.abs(est).max() > 0 and np.all(info > 0)
+        np.testing.assert_allclose(est_t, est, rtol=1e-8, atol=1e-12 * np.abs(est).max())
+        np.testing.assert_allclose(info_t, info, rtol=1e-8)
+
+
 def test_frame_slopes_match_a_per_frame_least_squares_reference():
     """Slopes and their information against np.linalg.lstsq frame by frame on the masked pixels with the
     design [x1, x2, 1, p - mean p] (the residual variance: RSS / n); a frame with under 20 pixels and one

@@ -608,6 +608,9 @@ def calibrate_geometric(data: ResidualData, results: list[CauseResult], seed: in
             return frame_t_test(est[:, j], info[:, j], one_sided=one_sided).t
 
         def placebo_t(k):
+            if tables is not None:  # the same statistic from the velocity tables
+                est, info = tables.slopes(perms[k])
+                return frame_t_test(est[:, j], info[:, j], one_sided=one_sided).t
             vp = v.copy()
             vp[data.frames] = v[data.frames[perms[k]]]
             d = copy.copy(data)
@@ -615,6 +618,7 @@ def calibrate_geometric(data: ResidualData, results: list[CauseResult], seed: in
             return t_of(d)
 
         t_real = t_of(data)
+        tables = _velocity_tables(cause, data, t_real, j, one_sided)
         p, exceed, ts = sequential_rank_p(t_real, placebo_t, one_sided=one_sided, n_max=n_placebo)
         tp = np.asarray(ts)
         r.params["calibration"] = {"p_value_placebo": p, "first_order_t": t_real, "placebo_t_mean": float(tp.mean()),
@@ -627,6 +631,24 @@ def calibrate_geometric(data: ResidualData, results: list[CauseResult], seed: in
             blur_given_frame_shifts(data, r)
         if EFFECTS[r.name].trained_row_time_placebo:
             row_time_placebo(data, r)
+
+
+def _velocity_tables(cause, data: ResidualData, t_real: float, j: int, one_sided: bool):
+    """The velocity placebos' moment tables (`egobench.residual.permuted`) of a cause that gives its
+    regressors as velocity polynomials, else None. Checked on the true pairing: its t must be the
+    cause's own (a basis that drifted from the regressors is a bug, not a placebo)."""
+    from egobench.residual.permuted import PermutedVelocitySlopes
+
+    basis = cause.velocity_basis(data)
+    if basis is None:
+        return None
+    tables = PermutedVelocitySlopes(basis, data.velocity, data.p, data.r, data.usable)
+    est, info = tables.slopes(np.arange(data.frames.size))
+    t_same = frame_t_test(est[:, j], info[:, j], one_sided=one_sided).t
+    if not math.isclose(t_same, t_real, rel_tol=1e-6, abs_tol=1e-9):
+        raise RuntimeError(f"{cause.name}: velocity_basis gives t = {t_same} on the true pairing, its regressors "
+                           f"{t_real}; the basis must describe `regressors`")
+    return tables
 
 
 def beat_placebos(t_real: float, t_placebo: list[float]) -> tuple[float, int, float]:

@@ -26,6 +26,10 @@ class ExposureBlurCause(GeometricCause):
         # residual ~ (T^2 / 24) v^T H v for a box exposure centred on the model time
         return [directional_second_derivative(data.p, data.velocity, data.hess)]
 
+    def velocity_basis(self, data):
+        gxx, gxy, gyy = data.hess  # v^T H v = gxx vx^2 + 2 gxy vx vy + gyy vy^2
+        return [[(gxx, 2, 0), (2.0 * gxy, 1, 1), (gyy, 0, 2)]]
+
     def initial_theta(self, est, info):
         beta = super().initial_theta(est, info)[0]
         return np.array([math.sqrt(24.0 * beta) if beta > 0 else 1e-3])

@@ -7,7 +7,7 @@ import math
 import numpy as np
 
 from egobench.effects.base import Effect
-from egobench.residual.estimation import GeometricCause, velocity_term
+from egobench.residual.estimation import GeometricCause, velocity_term, velocity_term_basis
 
 
 class ReadoutCause(GeometricCause):
@@ -25,6 +25,9 @@ class ReadoutCause(GeometricCause):
     def regressors(self, data):
         x = velocity_term(data)
         return [x, x * (data.ctx.row_time_ratio - 0.5)[None, :, :, None]]
+
+    def velocity_basis(self, data):
+        return [velocity_term_basis(data), velocity_term_basis(data, (data.ctx.row_time_ratio - 0.5)[None, :, :, None])]
 
     def displacement(self, theta, ctx, frames, shape):
         dt = theta[0] + theta[1] * (ctx.row_time_ratio - 0.5)

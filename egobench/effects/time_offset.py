@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from egobench.effects.base import Effect
-from egobench.residual.estimation import GeometricCause, velocity_term
+from egobench.residual.estimation import GeometricCause, velocity_term, velocity_term_basis
 
 
 class TimeOffsetCause(GeometricCause):
@@ -15,6 +15,9 @@ class TimeOffsetCause(GeometricCause):
 
     def regressors(self, data):
         return [velocity_term(data)]
+
+    def velocity_basis(self, data):
+        return [velocity_term_basis(data)]
 
     def displacement(self, theta, ctx, frames, shape):
         return [(1.0, ctx.pixel_velocity_px_s[frames].astype(np.float64) * theta[0])]

@@ -378,6 +378,12 @@ class GeometricCause(Cause):
         """First-order signature regressors, each [f, H, W, 3] (residual ~ sum theta_k x_k)."""
         raise NotImplementedError  # pragma: no cover
 
+    def velocity_basis(self, data: ResidualData) -> list | None:
+        """The regressors as polynomials in the pixel velocity, [[(map [f, H, W, 3], power of vx, power
+        of vy), ...] per regressor] (`egobench.residual.permuted`), for the velocity placebos' tables;
+        None where they are not built from the velocity that way."""
+        return None
+
     def warp_prediction(self, predicted, theta, ctx, frames) -> tuple[np.ndarray, np.ndarray]:
         parts = self.displacement(np.asarray(theta, dtype=np.float64), ctx, frames, predicted.shape)
         inside = np.ones(predicted.shape[:3], dtype=bool)
@@ -469,20 +475,25 @@ class GeometricCause(Cause):
                 "per_frame": est[:, self.tested_index].tolist(), "pooled": float(theta[self.tested_index])}
 
 
-def _normal_equations(xs: list[np.ndarray], p: np.ndarray, y: np.ndarray, m: np.ndarray
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Per-frame masked moments of the design [xs..., 1, p - mean p] and y (each [F, P], m [F, P] 0/1)
-    -> (XtX [F, k+2, k+2], Xty [F, k+2], yty [F], n [F]). Sums of m-weighted products of the raw
-    columns, centred afterwards: no [F, P] temporary per column (allocating those, page faults on a
-    fresh 1-3 MB buffer, was most of the cost)."""
-    F, k = y.shape[0], len(xs)
-    u = [*xs, p, y]  # raw columns
-    n = m.sum(axis=1)
-    lin = np.stack([np.einsum("fp,fp->f", m, c) for c in u], axis=1)  # sum m u
-    S = np.empty((F, k + 2, k + 2))  # sum m u_a u_b
-    for a in range(k + 2):
-        for b in range(a, k + 2):
+def _masked_moments(u: list[np.ndarray], m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frame sums of the columns u (each [F, P]) over the pixels m [F, P] (0/1) -> (lin [F, c] =
+    sum m u_a, S [F, c, c] = sum m u_a u_b). No [F, P] temporary per column: allocating those (page
+    faults on fresh 1-3 MB buffers) was most of `frame_slopes`' cost."""
+    F, c = m.shape[0], len(u)
+    lin = np.stack([np.einsum("fp,fp->f", m, col) for col in u], axis=1)
+    S = np.empty((F, c, c))
+    for a in range(c):
+        for b in range(a, c):
             S[:, a, b] = S[:, b, a] = np.einsum("fp,fp,fp->f", m, u[a], u[b])
+    return lin, S
+
+
+def normal_equations_from_moments(lin: np.ndarray, S: np.ndarray, n: np.ndarray, k: int
+                                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Raw moments of the columns [x_1..x_k, p, y] (lin [F, k+2], S [F, k+2, k+2], n [F] pixels) ->
+    the normal equations of y on the design [x_1..x_k, 1, p - mean p]: (XtX [F, k+2, k+2], Xty [F, k+2],
+    yty [F]). The prediction is centred here, from its sums."""
+    F = n.shape[0]
     pm = lin[:, k] / np.maximum(n, 1.0)  # the frame's mean prediction
     XtX = np.empty((F, k + 2, k + 2))
     XtX[:, :k, :k] = S[:, :k, :k]
@@ -492,21 +503,14 @@ def _normal_equations(xs: list[np.ndarray], p: np.ndarray, y: np.ndarray, m: np.
     XtX[:, k, k + 1] = XtX[:, k + 1, k] = lin[:, k] - pm * n
     XtX[:, k + 1, k + 1] = S[:, k, k] - pm * lin[:, k]
     Xty = np.concatenate([S[:, :k, k + 1], lin[:, k + 1:], (S[:, k, k + 1] - pm * lin[:, k + 1])[:, None]], axis=1)
-    return XtX, Xty, S[:, k + 1, k + 1], n
+    return XtX, Xty, S[:, k + 1, k + 1]
 
 
-def frame_slopes(xs: list[np.ndarray], predicted: np.ndarray, residual: np.ndarray,
-                 mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Each frame's least-squares fit of residual [f, H, W, 3] on the regressors xs (each [f, H, W, 3])
-    and two nuisance columns, a constant and the prediction minus its mean (they partial out a global
-    and a multiplicative intensity mismatch, e.g. shading, which correlates with curvature), over the
-    frame's ``mask`` pixels -> (est [f, k], info [f, k] = 1 / var of each slope). All frames at once
-    through their normal equations (the residual sum of squares as y'y - coef'X'y); a frame with under
-    20 pixels or a singular design gets 0, 0."""
-    F, k = residual.shape[0], len(xs)
-    flat = [x.reshape(F, -1) for x in xs]
-    XtX, Xty, yty, n = _normal_equations(flat, predicted.reshape(F, -1), residual.reshape(F, -1),
-                                         mask.reshape(F, -1).astype(np.float64))
+def slopes_from_normal_equations(XtX: np.ndarray, Xty: np.ndarray, yty: np.ndarray, n: np.ndarray, k: int
+                                 ) -> tuple[np.ndarray, np.ndarray]:
+    """`frame_slopes`' solve: (est [F, k], info [F, k]) of the first k columns; the residual sum of
+    squares as y'y - coef'X'y; a frame with under 20 pixels or a singular design gets 0, 0."""
+    F = n.shape[0]
     est, info = np.zeros((F, k)), np.zeros((F, k))
     ok = n >= 20
     ok[ok] = np.linalg.cond(XtX[ok]) <= 1e12
@@ -521,8 +525,28 @@ def frame_slopes(xs: list[np.ndarray], predicted: np.ndarray, residual: np.ndarr
     return est, info
 
 
+def frame_slopes(xs: list[np.ndarray], predicted: np.ndarray, residual: np.ndarray,
+                 mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each frame's least-squares fit of residual [f, H, W, 3] on the regressors xs (each [f, H, W, 3])
+    and two nuisance columns, a constant and the prediction minus its mean (they partial out a global
+    and a multiplicative intensity mismatch, e.g. shading, which correlates with curvature), over the
+    frame's ``mask`` pixels -> (est [f, k], info [f, k] = 1 / var of each slope). All frames at once
+    through their normal equations; a frame with under 20 pixels or a singular design gets 0, 0."""
+    F, k = residual.shape[0], len(xs)
+    m = mask.reshape(F, -1).astype(np.float64)
+    n = m.sum(axis=1)
+    lin, S = _masked_moments([*(x.reshape(F, -1) for x in xs), predicted.reshape(F, -1), residual.reshape(F, -1)], m)
+    return slopes_from_normal_equations(*normal_equations_from_moments(lin, S, n, k), n, k)
+
+
 def velocity_term(data: ResidualData) -> np.ndarray:
     """-grad(prediction) . velocity: [f, H, W, 3] (residual per second of time shift)."""
     gx, gy = data.grad
     v = data.velocity
     return -(gx * v[..., 0:1] + gy * v[..., 1:2])
+
+
+def velocity_term_basis(data: ResidualData, weight: np.ndarray | float = 1.0) -> list[tuple[np.ndarray, int, int]]:
+    """`velocity_term` x weight (broadcast to [f, H, W, 3]) as a velocity polynomial: -gx w vx - gy w vy."""
+    gx, gy = data.grad
+    return [(-gx * weight, 1, 0), (-gy * weight, 0, 1)]
