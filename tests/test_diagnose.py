@@ -151,6 +151,23 @@ def test_velocity_placebo_tables_match_the_regressors_rebuilt_with_permuted_velo
         np.testing.assert_allclose(info_t, info, rtol=1e-8)
 
 
+def test_a_velocity_basis_that_is_not_the_regressors_is_refused(monkeypatch):
+    """The placebos check the tables on the true pairing: a basis with the wrong sign gives -t there."""
+    from egobench.diagnose.estimators import CAUSES
+    from egobench.diagnose.placebo import _velocity_tables
+    from egobench.residual.estimation import ResidualData, velocity_term_basis
+
+    case = make_case("time_offset", 0.003, seed=2)
+    data = ResidualData(case.measured, case.predicted, case.context, np.arange(case.measured.shape[0])).geometric()
+    cause = CAUSES["time_offset"]
+    est, info = cause.first_order(data)
+    t_real = frame_t_test(est[:, 0], info[:, 0]).t
+    assert _velocity_tables(cause, data, t_real, 0, False) is not None
+    monkeypatch.setattr(type(cause), "velocity_basis", lambda self, d: [velocity_term_basis(d, -1.0)])
+    with pytest.raises(RuntimeError, match="time_offset: velocity_basis gives t"):
+        _velocity_tables(cause, data, t_real, 0, False)
+
+
 def test_frame_slopes_match_a_per_frame_least_squares_reference():
     """Slopes and their information against np.linalg.lstsq frame by frame on the masked pixels with the
     design [x1, x2, 1, p - mean p] (the residual variance: RSS / n); a frame with under 20 pixels and one
