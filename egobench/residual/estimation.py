@@ -475,7 +475,7 @@ class GeometricCause(Cause):
                 "per_frame": est[:, self.tested_index].tolist(), "pooled": float(theta[self.tested_index])}
 
 
-def _masked_moments(u: list[np.ndarray], m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def masked_moments(u: list[np.ndarray], m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per-frame sums of the columns u (each [F, P]) over the pixels m [F, P] (0/1) -> (lin [F, c] =
     sum m u_a, S [F, c, c] = sum m u_a u_b). No [F, P] temporary per column: allocating those (page
     faults on fresh 1-3 MB buffers) was most of `frame_slopes`' cost."""
@@ -535,7 +535,7 @@ def frame_slopes(xs: list[np.ndarray], predicted: np.ndarray, residual: np.ndarr
     F, k = residual.shape[0], len(xs)
     m = mask.reshape(F, -1).astype(np.float64)
     n = m.sum(axis=1)
-    lin, S = _masked_moments([*(x.reshape(F, -1) for x in xs), predicted.reshape(F, -1), residual.reshape(F, -1)], m)
+    lin, S = masked_moments([*(x.reshape(F, -1) for x in xs), predicted.reshape(F, -1), residual.reshape(F, -1)], m)
     return slopes_from_normal_equations(*normal_equations_from_moments(lin, S, n, k), n, k)
 
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from egobench.residual.estimation import normal_equations_from_moments, slopes_from_normal_equations
+from egobench.residual.estimation import masked_moments, normal_equations_from_moments, slopes_from_normal_equations
 
 #: One regressor: [(coefficient map [F, H, W, C], power of vx, power of vy)], summed.
 Basis = list[list[tuple[np.ndarray, int, int]]]
@@ -59,22 +59,19 @@ class PermutedVelocitySlopes:
         self.xy = [moment(k, y) for k in range(self.k)]  # sum m x_k y
         self.xx = {(k, l): sum(table(m * c * d, a + e, b + f) for c, a, b in basis[k] for d, e, f in basis[l])
                    for k in range(self.k) for l in range(k, self.k)}  # sum m x_k x_l
-        flat = lambda z: z.reshape(F, -1)  # noqa: E731
-        self.n = flat(m).sum(axis=1)
-        self.lin_py = np.stack([np.einsum("fp,fp->f", flat(m), flat(z)) for z in (p, y)], axis=1)
-        self.S_py = np.array([[np.einsum("fp,fp,fp->f", flat(m), flat(z), flat(w)) for w in (p, y)] for z in (p, y)])
+        self.n = m.reshape(F, -1).sum(axis=1)
+        self.lin_py, self.S_py = masked_moments([p.reshape(F, -1), y.reshape(F, -1)], m.reshape(F, -1))  # fixed
 
     def slopes(self, perm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(est [F, k], info [F, k]) as `frame_slopes` with frame i's regressors built from frame
         perm[i]'s velocity (perm [F] ints)."""
         k, rows = self.k, np.arange(self.n.size)
-        at = lambda t: t[rows, perm]  # noqa: E731
-        lin = np.concatenate([np.stack([at(t) for t in self.lin_x], axis=1), self.lin_py], axis=1)
+        lin = np.concatenate([np.stack([t[rows, perm] for t in self.lin_x], axis=1), self.lin_py], axis=1)
         S = np.empty((self.n.size, k + 2, k + 2))
         for (a, b), t in self.xx.items():
-            S[:, a, b] = S[:, b, a] = at(t)
+            S[:, a, b] = S[:, b, a] = t[rows, perm]
         for a in range(k):
-            S[:, a, k] = S[:, k, a] = at(self.xp[a])
-            S[:, a, k + 1] = S[:, k + 1, a] = at(self.xy[a])
-        S[:, k:, k:] = np.moveaxis(self.S_py, -1, 0)
+            S[:, a, k] = S[:, k, a] = self.xp[a][rows, perm]
+            S[:, a, k + 1] = S[:, k + 1, a] = self.xy[a][rows, perm]
+        S[:, k:, k:] = self.S_py
         return slopes_from_normal_equations(*normal_equations_from_moments(lin, S, self.n, k), self.n, k)
