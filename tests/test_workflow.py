@@ -23,9 +23,11 @@ REPO = Path(__file__).resolve().parents[1]
 SNAKEMAKE = [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile")]
 
 
-def snakemake(args: list[str], workdir: Path, timeout: int = 300) -> subprocess.CompletedProcess:
+def snakemake(args: list[str], workdir: Path, timeout: int = 300, python_options: tuple[str, ...] = ()
+              ) -> subprocess.CompletedProcess:
     env = {**os.environ, "PYTHONPATH": f"{REPO}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
-    return subprocess.run([*SNAKEMAKE, "-d", str(workdir), *args], capture_output=True, text=True,
+    command = [SNAKEMAKE[0], *python_options, *SNAKEMAKE[1:]]
+    return subprocess.run([*command, "-d", str(workdir), *args], capture_output=True, text=True,
                           timeout=timeout, env=env)
 
 
@@ -239,11 +241,8 @@ def test_parsing_the_workflow_loads_no_torch_scipy_or_matplotlib(tmp_path):
     """Every `snakemake` call parses the Snakefile; what it imports from egobench must stay light (torch,
     scipy and matplotlib took a dry run from ~1.3 to ~4 s, and the suite makes ~20 such calls). Checked
     with Python's import log of a dry run of the default suite and of the sensitivity sweep."""
-    env = {**os.environ, "PYTHONPATH": f"{REPO}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
     for target in ([], ["sensitivity"]):
-        res = subprocess.run([sys.executable, "-X", "importtime", "-m", "snakemake", "-s", str(REPO / "Snakefile"),
-                              "-d", str(tmp_path), *target, "-n", "--quiet", "rules"],
-                             capture_output=True, text=True, timeout=300, env=env)
+        res = snakemake([*target, "-n", "--quiet", "rules"], tmp_path, python_options=("-X", "importtime"))
         assert res.returncode == 0, res.stdout + res.stderr[-3000:]
         loaded = {line.rsplit("|", 1)[-1].strip() for line in res.stderr.splitlines() if line.startswith("import time:")}
         assert "egobench.workflow.config" in loaded  # the log is read right

@@ -607,6 +607,9 @@ def calibrate_geometric(data: ResidualData, results: list[CauseResult], seed: in
             est, info = cause.first_order(d)
             return frame_t_test(est[:, j], info[:, j], one_sided=one_sided).t
 
+        t_real = t_of(data)
+        tables = _velocity_tables(cause, data, t_real, j, one_sided)
+
         def placebo_t(k):
             if tables is not None:  # the same statistic from the velocity tables
                 est, info = tables.slopes(perms[k])
@@ -617,8 +620,6 @@ def calibrate_geometric(data: ResidualData, results: list[CauseResult], seed: in
             d.ctx = dc_replace(data.ctx, pixel_velocity_px_s=vp)
             return t_of(d)
 
-        t_real = t_of(data)
-        tables = _velocity_tables(cause, data, t_real, j, one_sided)
         p, exceed, ts = sequential_rank_p(t_real, placebo_t, one_sided=one_sided, n_max=n_placebo)
         tp = np.asarray(ts)
         r.params["calibration"] = {"p_value_placebo": p, "first_order_t": t_real, "placebo_t_mean": float(tp.mean()),

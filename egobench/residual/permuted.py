@@ -50,11 +50,10 @@ class PermutedVelocitySlopes:
                 mono[a, b] = _monomial(vx, vy, a, b)
             return weight.sum(axis=-1).reshape(F, -1) @ mono[a, b].T
 
-        def moment(k: int, w: np.ndarray) -> np.ndarray:  # sum m x_k w
+        def moment(k: int, w: np.ndarray | float) -> np.ndarray:  # sum m x_k w
             return sum(table(m * c * w, a, b) for c, a, b in basis[k])
 
-        one = np.ones_like(p)
-        self.lin_x = [moment(k, one) for k in range(self.k)]  # sum m x_k
+        self.lin_x = [moment(k, 1.0) for k in range(self.k)]  # sum m x_k
         self.xp = [moment(k, p) for k in range(self.k)]  # sum m x_k p
         self.xy = [moment(k, y) for k in range(self.k)]  # sum m x_k y
         self.xx = {(k, l): sum(table(m * c * d, a + e, b + f) for c, a, b in basis[k] for d, e, f in basis[l])
