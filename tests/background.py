@@ -1,11 +1,15 @@
 """Background jobs of selected tests (a cold numba compile, the CI workflow end to end): conftest
-starts them after collection, one at a time on one worker thread, so that their subprocesses overlap
-the rest of the suite on a second core; each test then waits for its own job's result. A test module
-declares its jobs as ``BACKGROUND = {test name: job}``."""
+starts them after collection, one at a time on one worker thread in the order of the tests, so that
+their subprocesses overlap the rest of the suite on a second core; each test then waits for its own
+job's result. A test module declares its jobs as ``BACKGROUND = {test name: job}``."""
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 from concurrent.futures import Future, ThreadPoolExecutor
+from pathlib import Path
 from types import ModuleType
 
 _POOL = ThreadPoolExecutor(max_workers=1, thread_name_prefix="egobench-test-background")
@@ -22,3 +26,45 @@ def start(module: ModuleType, test_name: str) -> Future | None:
     if key not in _JOBS:
         _JOBS[key] = _POOL.submit(job)
     return _JOBS[key]
+
+
+REPO = Path(__file__).resolve().parents[1]
+
+# Renders the edge-case scenes of tests.test_render_cpu{,_2dgs} in {dtype}, global and rolling shutter,
+# and backpropagates: every compiled kernel of {modes} for that dtype.
+_RENDER_SCRIPT = """
+import torch
+from tests.test_render import pose
+from tests.test_render_cpu import CAM, edge_case_scene, run
+from tests.test_render_cpu_2dgs import run2, surfel_scene
+Ts = torch.stack([pose(0.0, 0.02 * k, (0.01 * k, 0, 0)) for k in range(2)]).to(torch.{dtype})
+idx = (torch.arange(CAM.height) >= CAM.height // 2).long()[:, None].expand(CAM.height, CAM.width).contiguous()
+for T, kw in ((Ts[0], {{}}), (Ts, {{"pixel_pose_index": idx}})):
+    if "3dgs" in {modes!r}:
+        run(edge_case_scene(3, torch.{dtype}), CAM, T, "cpu", **kw)
+    if "2dgs" in {modes!r}:
+        run2(surfel_scene(3, torch.{dtype}), CAM, T, "cpu", **kw)
+"""
+
+
+def compile_kernels(dtype: str, modes: tuple[str, ...]):
+    """A job that compiles the CPU rasterizer's kernels of ``modes`` ("3dgs", "2dgs") for ``dtype``
+    ("float32", "float64") into numba's cache in a subprocess -> its CompletedProcess. On a cold cache
+    the compiles (~40 s per mode and dtype here) then run on the second core, and the tests that need
+    those kernels, waiting for the job first, load them instead of compiling them again; on a warm
+    cache the job only loads them."""
+    script = _RENDER_SCRIPT.format(dtype=dtype, modes=tuple(modes))
+
+    def job() -> subprocess.CompletedProcess:
+        env = dict(os.environ, NUMBA_NUM_THREADS="1", OMP_NUM_THREADS="1", PYTHONPATH=str(REPO))
+        return subprocess.run([sys.executable, "-c", script], cwd=REPO, env=env, capture_output=True, text=True,
+                              timeout=1200)
+
+    return job
+
+
+def wait_for_kernels(module: ModuleType, test_name: str) -> None:
+    """Waits for the `compile_kernels` job that ``module`` declares for ``test_name``; fails, with its
+    error output, if that compile failed."""
+    done = start(module, test_name).result(timeout=1300)
+    assert done.returncode == 0, done.stderr[-2000:]

@@ -5,6 +5,7 @@ input, on random scenes with edge cases, global and rolling shutter; determinism
 from __future__ import annotations
 
 import math
+import sys
 
 import numpy as np
 import pytest
@@ -13,6 +14,7 @@ import torch
 from egobench.camera.pinhole import Pinhole
 from egobench.render import render, resolve_backend
 from egobench.render.types import Gaussians
+from tests import background
 from tests.test_render import make_scene, pose
 
 CAM = Pinhole(fx=20.0, fy=21.0, cx=17.3, cy=10.6, width=37, height=22)  # partial tiles at 8 and 16
@@ -66,6 +68,16 @@ def assert_same(a, b, atol_map=1e-10, rtol=1e-8, atol_grad=1e-9):
         assert ga[k] is not None and gb[k] is not None, k
         scale = float(gb[k].abs().max()) + 1.0
         torch.testing.assert_close(ga[k], gb[k], atol=atol_grad * scale, rtol=rtol, msg=lambda s, k=k: f"{k}: {s}")
+
+
+BACKGROUND = {"test_3dgs_matches_torch_backend": background.compile_kernels("float64", ("3dgs", "2dgs"))}
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _float64_kernels_cached():
+    """This module's tests (float64) start once a background job has the float64 kernels in numba's
+    cache, so that they load them rather than compile them on this core."""
+    background.wait_for_kernels(sys.modules[__name__], "test_3dgs_matches_torch_backend")
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
