@@ -12,6 +12,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from types import ModuleType
 
+REPO = Path(__file__).resolve().parents[1]
 _POOL = ThreadPoolExecutor(max_workers=1, thread_name_prefix="egobench-test-background")
 _JOBS: dict[str, Future] = {}
 
@@ -27,8 +28,6 @@ def start(module: ModuleType, test_name: str) -> Future | None:
         _JOBS[key] = _POOL.submit(job)
     return _JOBS[key]
 
-
-REPO = Path(__file__).resolve().parents[1]
 
 # Renders the edge-case scenes of tests.test_render_cpu{,_2dgs} in {dtype}, global and rolling shutter,
 # and backpropagates: every compiled kernel of {modes} for that dtype.
