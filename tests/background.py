@@ -53,13 +53,15 @@ def compile_kernels(dtype: str, modes: tuple[str, ...]):
     those kernels, waiting for the job first, load them instead of compiling them again; on a warm
     cache the job only loads them."""
     script = _RENDER_SCRIPT.format(dtype=dtype, modes=tuple(modes))
+    return lambda: run_script(script, timeout=1200)
 
-    def job() -> subprocess.CompletedProcess:
-        env = dict(os.environ, NUMBA_NUM_THREADS="1", OMP_NUM_THREADS="1", PYTHONPATH=str(REPO))
-        return subprocess.run([sys.executable, "-c", script], cwd=REPO, env=env, capture_output=True, text=True,
-                              timeout=1200)
 
-    return job
+def run_script(script: str, timeout: float, **env: str) -> subprocess.CompletedProcess:
+    """``python -c script`` in the repository (importable as such), one thread, with ``env`` added to
+    this process's environment (e.g. NUMBA_CACHE_DIR) -> its CompletedProcess (output captured)."""
+    env = dict(os.environ, NUMBA_NUM_THREADS="1", OMP_NUM_THREADS="1", PYTHONPATH=str(REPO), **env)
+    return subprocess.run([sys.executable, "-c", script], cwd=REPO, env=env, capture_output=True, text=True,
+                          timeout=timeout)
 
 
 def wait_for_kernels(module: ModuleType, test_name: str) -> None:

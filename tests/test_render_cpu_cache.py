@@ -3,16 +3,12 @@ from numba's on-disk cache: a seed must fix a run's result whichever job of a wo
 
 from __future__ import annotations
 
-import os
 import shutil
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
 from tests import background
-
-REPO = Path(__file__).resolve().parents[1]
 
 # Renders 3DGS and 2DGS edge-case scenes (float32, the training dtype) and backpropagates a random
 # weighting of every output map; prints one digest of all maps and gradients.
@@ -34,10 +30,7 @@ print(h.hexdigest())
 
 
 def _digest(cache_dir: Path) -> str:
-    env = dict(os.environ, NUMBA_CACHE_DIR=str(cache_dir), NUMBA_NUM_THREADS="1", OMP_NUM_THREADS="1",
-               PYTHONPATH=str(REPO))
-    done = subprocess.run([sys.executable, "-c", SCRIPT], cwd=REPO, env=env, capture_output=True, text=True,
-                          timeout=600)
+    done = background.run_script(SCRIPT, timeout=600, NUMBA_CACHE_DIR=str(cache_dir))
     assert done.returncode == 0, done.stderr[-2000:]
     return done.stdout.strip().splitlines()[-1]
 
