@@ -208,6 +208,26 @@ def test_warp_shifts_a_band_limited_image_by_the_displacement():
     assert np.max(np.abs(out[0, ..., 0] - expected)[core]) < 4e-3  # Lanczos-4 interpolation error, about 1 % of the amplitude
 
 
+def test_warp_by_a_zero_displacement_is_the_remap_at_the_pixel_centres():
+    """A frame with no displacement skips the remap: what it returns is bitwise what the Lanczos-4 remap
+    at the pixel centres gives (the image as float32), and the frames beside it are still warped."""
+    import cv2
+
+    rng = np.random.default_rng(3)
+    img = rng.normal(0.5, 0.3, (3, 12, 10, 3))
+    disp = np.zeros((3, 12, 10, 2))
+    disp[1] = rng.normal(0.0, 0.7, (12, 10, 2))
+    disp[2, ..., 0] = -0.0  # a signed zero is no displacement either
+    out, inside = warp(img, disp)
+    v, u = np.meshgrid(np.arange(12, dtype=np.float32), np.arange(10, dtype=np.float32), indexing="ij")
+    for f in range(3):
+        su, sv = (u - disp[f, ..., 0]).astype(np.float32), (v - disp[f, ..., 1]).astype(np.float32)
+        ref = cv2.remap(img[f].astype(np.float32), su, sv, interpolation=cv2.INTER_LANCZOS4, borderMode=cv2.BORDER_REPLICATE)
+        np.testing.assert_array_equal(out[f], ref)
+    np.testing.assert_array_equal(out[0], img[0].astype(np.float32))
+    assert inside[0].all() and inside[2].all() and not inside[1].all()
+
+
 def test_distortion_profile_matches_a_k0_perturbation_by_finite_differences():
     """A rectified pixel at angle theta shows the ray theta_t solving r(theta_t; k0 + d) = r(theta; k0)."""
     k = (0.4153, -0.4666, 0.0394, 1.305, -1.768, 0.6526)

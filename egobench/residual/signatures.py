@@ -178,8 +178,11 @@ def warp(img: np.ndarray, displacement_px: np.ndarray) -> tuple[np.ndarray, np.n
 
     out = np.empty((F, H, W, C), dtype=np.float32)
     for f in range(F):  # one remap per frame (Lanczos-4: near band-limited, so sub-pixel shifts do not blur)
-        out[f] = cv2.remap(np.ascontiguousarray(img[f], dtype=np.float32), su[f].astype(np.float32),
-                           sv[f].astype(np.float32), interpolation=cv2.INTER_LANCZOS4,
+        frame = np.ascontiguousarray(img[f], dtype=np.float32)
+        if not displacement_px[f].any():  # at the pixel centres Lanczos-4 is the identity (weights 0 and 1)
+            out[f] = frame  # e.g. the exposure integral's middle instant
+            continue
+        out[f] = cv2.remap(frame, su[f].astype(np.float32), sv[f].astype(np.float32), interpolation=cv2.INTER_LANCZOS4,
                            borderMode=cv2.BORDER_REPLICATE).reshape(H, W, C)
     return out, inside
 
