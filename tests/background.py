@@ -1,52 +1,32 @@
-"""Background jobs of selected tests, run on a second core while the suite goes on: a module's
-``BACKGROUND = {test name: job}`` (a cold numba compile, the CI workflow end to end), and every test
-marked ``background`` (run whole in a pytest subprocess, `run_test`). conftest submits them after
-collection, in the order of the tests, to one worker thread. A test that reaches its job before the
-worker has started it takes the job back and runs it itself (`result`), so the suite never waits on a
-queue; ``EGOBENCH_TESTS_INLINE=1`` runs every marked test in its own process (e.g. under a debugger)."""
+"""Background jobs of selected tests (a cold numba compile, the CI workflow end to end): conftest
+starts them after collection, one at a time on one worker thread in the order of the tests, so that
+their subprocesses overlap the rest of the suite on a second core; each test then waits for its own
+job's result. A test module declares its jobs as ``BACKGROUND = {test name: job}``."""
 
 from __future__ import annotations
 
 import os
 import subprocess
 import sys
-import tempfile
-import xml.etree.ElementTree as ET
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from types import ModuleType
 
 REPO = Path(__file__).resolve().parents[1]
 _POOL = ThreadPoolExecutor(max_workers=1, thread_name_prefix="egobench-test-background")
-_JOBS: dict[str, tuple[object, Future]] = {}
-INLINE = os.environ.get("EGOBENCH_TESTS_INLINE") == "1"
+_JOBS: dict[str, Future] = {}
 
 
-def submit(key: str, job) -> None:
-    """Queues ``job`` (a callable) under ``key``, once."""
-    if key not in _JOBS:
-        _JOBS[key] = (job, _POOL.submit(job))
-
-
-def start(module: ModuleType, test_name: str) -> None:
-    """Queues the background job that ``module`` declares for its test ``test_name``, if any."""
+def start(module: ModuleType, test_name: str) -> Future | None:
+    """The background job of ``module``'s test ``test_name`` (submitted once) -> its future; None when
+    the module declares none for that test."""
     job = getattr(module, "BACKGROUND", {}).get(test_name)
-    if job is not None:
-        submit(f"{module.__name__}::{test_name}", job)
-
-
-def take(key: str, job=None, timeout: float = 1800):
-    """The value of the job queued under ``key``: waited for when the worker has started it, run here
-    when it has not (or was never queued: ``job`` then, which must be given)."""
-    job, future = _JOBS.pop(key, (job, None))
-    if future is None or future.cancel():
-        return job()
-    return future.result(timeout=timeout)
-
-
-def result(module: ModuleType, test_name: str, timeout: float = 1800):
-    """The value of the job that ``module`` declares for ``test_name`` (`take`)."""
-    return take(f"{module.__name__}::{test_name}", module.BACKGROUND[test_name], timeout)
+    if job is None:
+        return None
+    key = f"{module.__name__}::{test_name}"
+    if key not in _JOBS:
+        _JOBS[key] = _POOL.submit(job)
+    return _JOBS[key]
 
 
 # Renders the edge-case scenes of tests.test_render_cpu{,_2dgs} in {dtype}, global and rolling shutter,
@@ -87,24 +67,5 @@ def run_script(script: str, timeout: float, **env: str) -> subprocess.CompletedP
 def wait_for_kernels(module: ModuleType, test_name: str) -> None:
     """Waits for the `compile_kernels` job that ``module`` declares for ``test_name``; fails, with its
     error output, if that compile failed."""
-    done = result(module, test_name, timeout=1300)
+    done = start(module, test_name).result(timeout=1300)
     assert done.returncode == 0, done.stderr[-2000:]
-
-
-def run_test(nodeid: str) -> tuple[str, str]:
-    """One test run whole in a pytest subprocess (`run_script`'s environment, marked tests inline)
-    -> (outcome "passed" / "failed" / "skipped", the failure's or skip's text)."""
-    with tempfile.TemporaryDirectory(prefix="egobench_test_") as tmp:
-        report = Path(tmp) / "report.xml"
-        env = dict(os.environ, NUMBA_NUM_THREADS="1", OMP_NUM_THREADS="1", PYTHONPATH=str(REPO),
-                   EGOBENCH_TESTS_INLINE="1")
-        done = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", f"--junitxml={report}",
-                               nodeid], cwd=REPO, env=env, capture_output=True, text=True, timeout=1500)
-        cases = list(ET.parse(report).getroot().iter("testcase")) if report.is_file() else []
-    if done.returncode not in (0, 1) or len(cases) != 1:
-        return "failed", f"pytest subprocess for {nodeid}: exit {done.returncode}\n{(done.stdout + done.stderr)[-3000:]}"
-    for tag, outcome in (("failure", "failed"), ("error", "failed"), ("skipped", "skipped")):
-        found = cases[0].find(tag)
-        if found is not None:
-            return outcome, (found.text or found.get("message") or "")[-4000:]
-    return "passed", ""

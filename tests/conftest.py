@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import functools
 import os
 
 # One thread per process, as Snakemake runs its workers (set before torch and numpy load their thread
@@ -37,33 +36,12 @@ def shared_data() -> Path:
 
 @pytest.hookimpl(trylast=True)  # after -m / -k deselection: only the tests that will run
 def pytest_collection_modifyitems(config, items):
-    """Queue the background jobs of the selected tests now (`tests.background`), so that their
-    subprocesses overlap the rest of the suite on a second core: first the modules' ``BACKGROUND``
-    jobs (kernel compiles and long end-to-end runs, which the suite reaches late), then the tests marked
-    ``background``, each in test order; the suite takes back those the worker has not started."""
+    """Submit the background jobs of the selected tests (a module's ``BACKGROUND``: test name -> job)
+    now (`tests.background`), so that their subprocesses (a cold numba compile, the CI workflow) overlap
+    the rest of the suite on a second core; each test then waits for its job."""
     for item in items:
         if getattr(item, "module", None) is not None:
             background.start(item.module, getattr(item, "originalname", item.name))
-    for item in items:
-        if item.get_closest_marker("background") and not background.INLINE:
-            background.submit(item.nodeid, functools.partial(background.run_test, item.nodeid))
-
-
-@pytest.hookimpl(tryfirst=True)
-def pytest_pyfunc_call(pyfuncitem):
-    """A test marked ``background`` reports the outcome of its run in the background; it runs here
-    instead when the background worker has not started it yet."""
-    if not pyfuncitem.get_closest_marker("background") or background.INLINE:
-        return None
-    nodeid = pyfuncitem.nodeid
-    outcome, text = background.take(nodeid, lambda: ("inline", ""))
-    if outcome == "inline":
-        return None  # pytest calls the test function here
-    if outcome == "skipped":
-        pytest.skip(text)
-    if outcome == "failed":
-        pytest.fail(f"(run in the background, tests/background.py)\n{text}", pytrace=False)
-    return True
 
 
 @pytest.fixture

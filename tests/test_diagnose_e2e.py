@@ -22,7 +22,6 @@ def _simulate(tmp_path, name: str, *overrides: str):
     return out
 
 
-@pytest.mark.background
 @pytest.mark.slow
 def test_simulated_null_and_hidden_vignette_through_the_cli(tmp_path):
     from egobench.cli import main
@@ -64,7 +63,7 @@ GEOMETRIC_CASES = [
     ("readout", ["readout_scale=1.4"], "readout_relative_error", 0.4, 0.08),
     ("time_offset", ["time_offset_s=0.003"], "time_offset_error_s", 3e-3, 0.25e-3),
     pytest.param("distortion", ["rectified_size=96", "n_frames=10", "distortion_k0_delta=0.008"], "k0_error", 0.008,
-                 0.3 * 0.008, marks=[pytest.mark.slow, pytest.mark.background]),
+                 0.3 * 0.008, marks=pytest.mark.slow),
 ]
 
 

@@ -81,7 +81,6 @@ def absorbed_response(case, gamma_true: float) -> np.ndarray:
     return np.clip((lin**a * rel ** (1 - a)) ** (1 / 2.2), 0, 1).astype(np.float32)
 
 
-@pytest.mark.background
 @pytest.mark.parametrize("gamma_true", [2.65, 1.75])
 def test_absorbed_response_error_is_found_through_the_exposure_changes(gamma_true):
     """On a trained run a response error survives only as a per-frame scale following the recorded
@@ -257,7 +256,6 @@ def test_trained_sweep_is_resumable_per_case(tmp_path, monkeypatch):
     assert json.loads((tmp_path / "trained_sweep.json").read_text())["n_cases"] == 4
 
 
-@pytest.mark.background
 def test_timing_causes_must_follow_the_true_motion():
     """Measured frames blurrier than the model in every direction (a sharper render, or focus) give
     the exposure-blur statistic for ANY velocity field: the velocity-permutation placebo is as large,
@@ -279,7 +277,6 @@ def test_timing_causes_must_follow_the_true_motion():
     assert cal["placebo_exceed"] == 0 and cal["placebo_n"] == 999 and cal["p_value_placebo"] == pytest.approx(1e-3)
 
 
-@pytest.mark.background
 @pytest.mark.slow
 def test_badly_fitted_trained_run_through_the_cli_says_reconstruction_error_dominates(tmp_path):
     """`egobench diagnose REC --train` (a 200-iteration run, ~14 dB held out) names no cause; the
@@ -439,7 +436,6 @@ def test_the_extensions_call_on_a_users_run_against_the_sweeps_nulls(tmp_path):
         load_shading_null(tmp_path / "bad.json")
 
 
-@pytest.mark.background
 def test_diagnose_runs_the_shading_extension_on_a_run_with_and_without_a_learned_shading(tmp_path):
     """--shading-null: a run trained with learn_shading is read as it is; a run without one gets an
     extension run with its own config plus learn_shading, in OUT/run_shading."""
@@ -845,7 +841,6 @@ def _few_views_map(F: int, H: int, W: int, principal_point) -> np.ndarray:
     return (20.0 * (1.0 - 0.6 * r**2)[None] * (1.0 - 0.3 * side * x[None, None, :])).astype(np.float32)
 
 
-@pytest.mark.background
 def test_renders_off_where_few_training_views_saw_the_surface_are_not_a_vignette():
     """A model under-fits content few training views saw (the periphery, a turn's leading edge) and
     renders it darker there at full opacity, as the hard indoor null_s5 of seed offset 3000 did
@@ -907,7 +902,6 @@ def test_a_sweeps_further_simulation_settings_are_typed_checked_and_reach_every_
     assert seen[1].exposure_metadata_error != 0.0 and seen[0].exposure_metadata_error == 0.0
 
 
-@pytest.mark.background
 def test_at_a_fixed_exposure_a_wrong_metadata_is_found_through_the_record_and_not_read_as_a_response():
     """At one true exposure and gain (the hard cases' 1 ms at gain 12) a poorly fitted run's frame-to-
     frame error hides a 25 % metadata error from the bulk test, and a per-frame scale following the
@@ -947,7 +941,6 @@ def _record_off(case, frames: list[int], error: float):
     return pred, dataclasses.replace(case.context, exposure_s=exposure)
 
 
-@pytest.mark.background
 def test_a_metadata_error_that_misses_every_held_out_frame_is_scored_on_its_own_frames_pixels():
     """Run 3 (docs/diagnosis.md): one scale per frame cannot generalise from frame to frame, so held-out
     frames score only whether the error happened to hit them (hard sweep: 5 of 12 cases missed for it).

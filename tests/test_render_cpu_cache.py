@@ -55,7 +55,7 @@ def test_compiled_and_cached_kernels_give_the_same_bits():
     """Before the surfel backward dropped 'contract' and 'nsz', its geometric gradients differed in the
     last bits between the compiling process and the cached code (the first 2DGS job of a suite trained
     to 19.38 dB, the same job on a warm cache to 19.23)."""
-    job = background.result(sys.modules[__name__], "test_compiled_and_cached_kernels_give_the_same_bits",
-                            timeout=1300)
+    job = background.start(sys.modules[__name__], "test_compiled_and_cached_kernels_give_the_same_bits").result(
+        timeout=1300)
     assert any("2dgs" in n for n in job["index_files"]) and any("raster_bwd" in n for n in job["index_files"])
     assert job["cold"] and job["warm"] == job["cold"]

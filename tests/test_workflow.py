@@ -291,7 +291,7 @@ BACKGROUND = {"test_ci_suite_runs_end_to_end": _ci_suite}
 
 @pytest.mark.slow
 def test_ci_suite_runs_end_to_end():
-    res, tmp_path = background.result(sys.modules[__name__], "test_ci_suite_runs_end_to_end", timeout=1200)
+    res, tmp_path = background.start(sys.modules[__name__], "test_ci_suite_runs_end_to_end").result(timeout=1200)
     try:
         _check_ci_suite(res, tmp_path)
     finally:
@@ -478,7 +478,7 @@ BACKGROUND["test_real_aria_scene_runs_end_to_end"] = _real_aria_scene
 def test_real_aria_scene_runs_end_to_end(shared_data):
     """ADT's real frames with a test-built MPS folder: preprocess (online + factory) -> train -> evaluate -> tables."""
     pytest.importorskip("projectaria_tools")
-    run = background.result(sys.modules[__name__], "test_real_aria_scene_runs_end_to_end", timeout=1200)
+    run = background.start(sys.modules[__name__], "test_real_aria_scene_runs_end_to_end").result(timeout=1200)
     assert run is not None  # the job found the files this test's fixture found
     res, tmp_path = run
     try:
