@@ -1,7 +1,9 @@
 """Background jobs of selected tests (a cold numba compile, the CI workflow end to end): conftest
 starts them after collection, one at a time on one worker thread in the order of the tests, so that
 their subprocesses overlap the rest of the suite on a second core; each test then waits for its own
-job's result. A test module declares its jobs as ``BACKGROUND = {test name: job}``."""
+job's result. A test module declares its jobs as ``BACKGROUND = {test name: job}``. Under pytest-xdist
+(the default, pyproject's addopts) every worker collects every test, so conftest submits nothing and a
+job starts when its test asks for it; the other workers then keep the other cores busy."""
 
 from __future__ import annotations
 
