@@ -2,8 +2,9 @@
 starts them after collection, one at a time on one worker thread in the order of the tests, so that
 their subprocesses overlap the rest of the suite on a second core; each test then waits for its own
 job's result. A test module declares its jobs as ``BACKGROUND = {test name: job}``. Under pytest-xdist
-(the default, pyproject's addopts) every worker collects every test, so conftest submits nothing and a
-job starts when its test asks for it; the other workers then keep the other cores busy."""
+(the default, pyproject's addopts) every worker collects every test, so conftest submits nothing, a
+job starts when its test asks for it, and a kernel-compile job is skipped (the test compiles or loads
+the kernels itself); the other workers keep the other cores busy."""
 
 from __future__ import annotations
 
@@ -15,6 +16,8 @@ from pathlib import Path
 from types import ModuleType
 
 REPO = Path(__file__).resolve().parents[1]
+#: in a pytest-xdist worker (every worker collects every test; the other workers use the other cores)
+UNDER_XDIST = bool(os.environ.get("PYTEST_XDIST_WORKER"))
 _POOL = ThreadPoolExecutor(max_workers=1, thread_name_prefix="egobench-test-background")
 _JOBS: dict[str, Future] = {}
 
@@ -68,6 +71,9 @@ def run_script(script: str, timeout: float, **env: str) -> subprocess.CompletedP
 
 def wait_for_kernels(module: ModuleType, test_name: str) -> None:
     """Waits for the `compile_kernels` job that ``module`` declares for ``test_name``; fails, with its
-    error output, if that compile failed."""
+    error output, if that compile failed. Under xdist it does nothing: a subprocess that compiles while
+    this worker waits would only add its start-up to the test's own compile or load."""
+    if UNDER_XDIST:
+        return
     done = start(module, test_name).result(timeout=1300)
     assert done.returncode == 0, done.stderr[-2000:]

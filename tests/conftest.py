@@ -7,9 +7,10 @@ import os
 # One thread per process, as Snakemake runs its workers (set before torch and numpy load their thread
 # pools): torch's and OpenBLAS's pools spinning on the suite's small arrays cost more than they give,
 # and the other cores run the other pytest-xdist workers and the background jobs (`tests.background`)
-# (warm suite on 2 cores, one process: 333-338 s with the libraries' defaults, 283-319 s like this). numba's pool keeps every core, so the thread-count tests
-# still compare 1 against 2 (the compiled kernels otherwise follow torch's count). Subprocesses (the
-# CLI, the workflow's jobs) inherit these unless they are set already.
+# (warm suite on 2 cores, one process: 333-338 s with the libraries' defaults, 283-319 s like this).
+# numba's pool keeps every core, so the thread-count tests still compare 1 against 2 (the compiled
+# kernels otherwise follow torch's count). Subprocesses (the CLI, the workflow's jobs) inherit these
+# unless they are set already.
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("NUMBA_NUM_THREADS", str(os.cpu_count() or 1))
 
@@ -39,7 +40,7 @@ def pytest_collection_modifyitems(config, items):
     """Submit the background jobs of the selected tests (a module's ``BACKGROUND``: test name -> job)
     now (`tests.background`), so that their subprocesses (a cold numba compile, the CI workflow) overlap
     the rest of the suite on a second core; each test then waits for its job."""
-    if os.environ.get("PYTEST_XDIST_WORKER"):
+    if background.UNDER_XDIST:
         return  # every xdist worker collects every test: a job starts when its test asks for it (`background.start`)
     for item in items:
         if getattr(item, "module", None) is not None:
