@@ -85,40 +85,90 @@ def _surfel_centre(M, valid):
     return m0, m1, d_s
 
 
+@njit(cache=True, inline="always")
+def _axis_column(v, g_in, g_rot, c, j, cam):
+    """Column c (0, 1) of the ray transform M = K [R_c s0 | R_c s1 | mean_c] of chunk entry j under one
+    pose (`ck.view_rows`) -> (M[0, c], M[1, c], M[2, c]), as `_ray_transform`."""
+    R_ = ck.ROW
+    r0, r1, r2 = g_rot[R_[c] + j], g_rot[R_[3 + c] + j], g_rot[R_[6 + c] + j]
+    sc = g_in[R_[3 + c] + j]
+    t0 = (v[0] * r0 + v[1] * r1 + v[2] * r2) * sc
+    t1 = (v[4] * r0 + v[5] * r1 + v[6] * r2) * sc
+    t2 = (v[8] * r0 + v[9] * r1 + v[10] * r2) * sc
+    return cam[0] * t0 + cam[2] * t2, cam[1] * t1 + cam[3] * t2, t2
+
+
+@njit(cache=True, inline="always")
+def _project_chunk_2dgs(v, g_in, g_rot, L, cam, near, far, width, height, out):
+    """One pose (v: `ck.view_rows`) and a chunk of surfels (`ck.gather_chunk`) -> out [14 CHUNK]: rows
+    centre x, y, depth, radii x, y (0 where culled), then the ray transform M (9, row-major), as
+    `_ray_transform`, `_surfel_centre` and gsplat's AABB. Branch-free: the loop vectorizes."""
+    R_ = ck.ROW
+    for jj in range(L):
+        j = np.uint64(jj)
+        p0, p1, p2 = g_in[j], g_in[R_[1] + j], g_in[R_[2] + j]
+        x = v[0] * p0 + v[1] * p1 + v[2] * p2 + v[3]
+        y = v[4] * p0 + v[5] * p1 + v[6] * p2 + v[7]
+        z = v[8] * p0 + v[9] * p1 + v[10] * p2 + v[11]
+        u0, v0, w0 = _axis_column(v, g_in, g_rot, 0, j, cam)
+        u1, v1, w1 = _axis_column(v, g_in, g_rot, 1, j, cam)
+        u2, v2 = cam[0] * x + cam[2] * z, cam[1] * y + cam[3] * z
+        w2 = np.float64(z)
+        d = w0 * w0 + w1 * w1 - w2 * w2
+        valid = (d != 0) & (z > near) & (z < far)
+        d_s = d if valid else 1.0
+        m0 = (u0 * w0 + u1 * w1 - u2 * w2) / d_s
+        m1 = (v0 * w0 + v1 * w1 - v2 * w2) / d_s
+        h0 = m0 * m0 - (u0 * u0 + u1 * u1 - u2 * u2) / d_s
+        h1 = m1 * m1 - (v0 * v0 + v1 * v1 - v2 * v2) / d_s
+        rx = math.ceil(EXTENT_SIGMAS * math.sqrt(max(h0, 1e-4)))
+        ry = math.ceil(EXTENT_SIGMAS * math.sqrt(max(h1, 1e-4)))
+        keep = valid & (m0 + rx > 0) & (m0 - rx < width) & (m1 + ry > 0) & (m1 - ry < height)
+        out[j], out[R_[1] + j], out[R_[2] + j] = m0, m1, z
+        out[R_[3] + j], out[R_[4] + j] = (rx if keep else 0.0), (ry if keep else 0.0)
+        out[R_[5] + j], out[R_[6] + j], out[R_[7] + j] = u0, u1, u2
+        out[R_[8] + j], out[R_[9] + j], out[R_[10] + j] = v0, v1, v2
+        out[R_[11] + j], out[R_[12] + j], out[R_[13] + j] = w0, w1, w2
+
+
+@njit(cache=True, inline="always")
+def _scatter_chunk_2dgs(out, q0, L, means2d, depths, radii, tsl):
+    """`_project_chunk_2dgs`'s rows -> flat outputs at entries [q0, q0 + L) (entry = pose * N + surfel):
+    means2d [2 per entry], depths, radii [2] int32, tsl [9]."""
+    R_ = ck.ROW
+    u1, u2, u9 = np.uint64(1), np.uint64(2), np.uint64(9)
+    for jj in range(L):
+        j = np.uint64(jj)
+        q = q0 + j
+        means2d[q * u2], means2d[q * u2 + u1], depths[q] = out[j], out[R_[1] + j], out[R_[2] + j]
+        radii[q * u2], radii[q * u2 + u1] = np.int32(out[R_[3] + j]), np.int32(out[R_[4] + j])
+        for c in range(9):
+            tsl[q * u9 + np.uint64(c)] = out[R_[5 + c] + j]
+
+
 @njit(cache=True, parallel=True)
 def project_fwd_2dgs(means, quats, scales, viewmats, cam, width, height, near, far,
                      means2d, tsl, depths, radii, normals):
     """means [N,3], quats [N,4], scales [N,3] (first two used), viewmats [I,4,4], cam (fx, fy, cx, cy)
     -> fills means2d [I,N,2], tsl [I,N,9] (ray transform, row-major), depths [I,N], radii [I,N,2]
-    int32 (gsplat's AABB, 0 where culled), normals [I,N,3] (camera frame, facing the camera)."""
+    int32 (gsplat's AABB, 0 where culled), normals [I,N,3] (camera frame, facing the camera).
+    Per chunk of surfels: inputs gathered once, then per pose a vectorized loop (as `ck.project_fwd`)."""
     N, I = means.shape[0], viewmats.shape[0]
+    m2f, tslf, depf = means2d.reshape(I * N * 2), tsl.reshape(I * N * 9), depths.reshape(I * N)
+    radf, nrmf = radii.reshape(I * N * 2), normals.reshape(I * N * 3)
     for ch in prange((N + CHUNK - 1) // CHUNK):
-        R = np.empty((3, 3))
-        M = np.empty((3, 3))
-        gnw = np.zeros(3)
-        zero_g = np.zeros((1, 1, 3))
-        for n in range(ch * CHUNK, min(N, (ch + 1) * CHUNK)):
-            R, _, _, _, _, _ = quat_rotmat(quats[n, 0], quats[n, 1], quats[n, 2], quats[n, 3], R)
-            for i in range(I):
-                V = viewmats[i]
-                x, y, z = _ray_transform(V, R, scales, means, n, cam, M)
-                d = M[2, 0] * M[2, 0] + M[2, 1] * M[2, 1] - M[2, 2] * M[2, 2]
-                valid = d != 0 and z > near and z < far
-                m0, m1, d_s = _surfel_centre(M, valid)
-                h0 = m0 * m0 - (M[0, 0] * M[0, 0] + M[0, 1] * M[0, 1] - M[0, 2] * M[0, 2]) / d_s
-                h1 = m1 * m1 - (M[1, 0] * M[1, 0] + M[1, 1] * M[1, 1] - M[1, 2] * M[1, 2]) / d_s
-                rx = math.ceil(EXTENT_SIGMAS * math.sqrt(max(h0, 1e-4)))
-                ry = math.ceil(EXTENT_SIGMAS * math.sqrt(max(h1, 1e-4)))
-                keep = valid and m0 + rx > 0 and m0 - rx < width and m1 + ry > 0 and m1 - ry < height
-                radii[i, n, 0] = np.int32(rx) if keep else 0
-                radii[i, n, 1] = np.int32(ry) if keep else 0
-                means2d[i, n, 0], means2d[i, n, 1], depths[i, n] = m0, m1, z
-                for r in range(3):
-                    for c in range(3):
-                        tsl[i, n, r * 3 + c] = M[r, c]
-                sgn = normal_grad(V, R, 2, x, y, z, zero_g, 0, 0, gnw)
-                for r in range(3):
-                    normals[i, n, r] = sgn * (V[r, 0] * R[0, 2] + V[r, 1] * R[1, 2] + V[r, 2] * R[2, 2])
+        n0 = ch * CHUNK
+        L = min(N, n0 + CHUNK) - n0
+        g_in = np.empty(6 * CHUNK, means.dtype)
+        g_rot = np.empty(12 * CHUNK)
+        out = np.empty(14 * CHUNK)
+        ck.gather_chunk(means, quats, scales, n0, L, 2, np.empty((3, 3)), g_in, g_rot)
+        for i in range(I):
+            v = ck.view_rows(viewmats[i])
+            q0 = np.uint64(i * N + n0)
+            _project_chunk_2dgs(v, g_in, g_rot, L, cam, near, far, width, height, out)
+            _scatter_chunk_2dgs(out, q0, L, m2f, depf, radf, tslf)
+            ck.normals_chunk(v, g_in, g_rot, L, q0, nrmf)
 
 
 @njit(cache=True, inline="always")
