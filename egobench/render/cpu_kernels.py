@@ -736,20 +736,23 @@ def gaussian_table(means2d, conics, radii, log_opac, needed, tab):
 
 
 @njit(cache=True, inline="always")
+def band_values(A, B, C, r2):
+    """`band_constants`' seven values for the ellipse d^T Q d <= r2, Q = [[A, B], [B, C]] (float64;
+    branch-free, so loops over ellipses vectorize)."""
+    det = A * C - B * B
+    ok = (det > 0.0) & (A > 0.0) & (C > 0.0) & (r2 > 0.0)
+    dets, As, Cs = (det, A, C) if ok else (1.0, 1.0, 1.0)
+    dyt = math.sqrt(max(r2, 0.0) * As / dets)
+    return 1.0 if ok else 0.0, Cs * r2, dets, 1.0 / Cs, math.sqrt(max(Cs * r2 / dets, 0.0)), -B / As * dyt, dyt
+
+
+@njit(cache=True, inline="always")
 def band_constants(A, B, C, r2, tab, g):
     """Columns 8-14 of table row g (read by `band_rows`) for the ellipse d^T Q d <= r2, Q = [[A, B],
     [B, C]] (float64): usable (1/0), C r2, det Q, 1/C, x half-extent, x and y offsets of the topmost point."""
-    det = A * C - B * B
-    ok = det > 0.0 and A > 0.0 and C > 0.0 and r2 > 0.0
-    dets, As, Cs = (det, A, C) if ok else (1.0, 1.0, 1.0)
-    dyt = math.sqrt(max(r2, 0.0) * As / dets)
-    tab[g, 8] = 1.0 if ok else 0.0
-    tab[g, 9] = Cs * r2
-    tab[g, 10] = dets
-    tab[g, 11] = 1.0 / Cs
-    tab[g, 12] = math.sqrt(max(Cs * r2 / dets, 0.0))
-    tab[g, 13] = -B / As * dyt
-    tab[g, 14] = dyt
+    v = band_values(A, B, C, r2)
+    for c in range(7):
+        tab[g, 8 + c] = v[c]
 
 
 @njit(cache=True, inline="always")

@@ -283,22 +283,64 @@ BAND_ENLARGE = 1.01
 
 
 @njit(cache=True, inline="always")
-def _image_ellipse(tsl, gi, n, r2):
-    """Image of the disc u^2 + v^2 <= r2 of surfel (gi, n) from its dual conic H diag(r2, r2, -1) H^T
-    (H: the ray transform's rows U, V, W) -> (centre cx, cy, Sxx, Syy, Sxy, ok): the ellipse
-    (p - c)^T S^-1 (p - c) <= 1; ok False where the disc crosses the camera plane (no bounded image)."""
-    W0, W1, W2 = float(tsl[gi, n, 6]), float(tsl[gi, n, 7]), float(tsl[gi, n, 8])
+def _image_ellipse(U0, U1, U2, V0, V1, V2, W0, W1, W2, r2):
+    """Image of the disc u^2 + v^2 <= r2 of a surfel from its dual conic H diag(r2, r2, -1) H^T (H: the
+    ray transform's rows U, V, W; float64) -> (centre cx, cy, Sxx, Syy, Sxy, ok): the ellipse
+    (p - c)^T S^-1 (p - c) <= 1; ok False (and zeros) where the disc crosses the camera plane (no
+    bounded image). Branch-free."""
     d = r2 * (W0 * W0 + W1 * W1) - W2 * W2
-    if not (W2 > 0.0 and d < 0.0):
-        return 0.0, 0.0, 0.0, 0.0, 0.0, False
-    U0, U1, U2 = float(tsl[gi, n, 0]), float(tsl[gi, n, 1]), float(tsl[gi, n, 2])
-    V0, V1, V2 = float(tsl[gi, n, 3]), float(tsl[gi, n, 4]), float(tsl[gi, n, 5])
+    ok = (W2 > 0.0) & (d < 0.0)
+    d = d if ok else -1.0
     cx = (r2 * (U0 * W0 + U1 * W1) - U2 * W2) / d
     cy = (r2 * (V0 * W0 + V1 * W1) - V2 * W2) / d
     sxx = cx * cx - (r2 * (U0 * U0 + U1 * U1) - U2 * U2) / d
     syy = cy * cy - (r2 * (V0 * V0 + V1 * V1) - V2 * V2) / d
     sxy = cx * cy - (r2 * (U0 * V0 + U1 * V1) - U2 * V2) / d
-    return cx, cy, sxx, syy, sxy, True
+    return (cx if ok else 0.0), (cy if ok else 0.0), (sxx if ok else 0.0), (syy if ok else 0.0), \
+        (sxy if ok else 0.0), ok
+
+
+@njit(cache=True, inline="always")
+def _gather_needed(means2d, tsl, log_opac, needed, i, n0, n1, rows, src):
+    """The needed table rows g = i N + n, n in [n0, n1) -> their count L; rows [L] the row numbers and
+    src [12 CHUNK] (float64) their inputs: rows 0-8 the ray transform, 9-10 the projected centre,
+    11 the exponent bound e = SIGMA_ROW + log o."""
+    N = log_opac.shape[0]
+    L = 0
+    for n in range(n0, n1):
+        g = i * N + n
+        if needed[g]:
+            rows[L] = g
+            for c in range(9):
+                src[c * CHUNK + L] = float(tsl[i, n, c])
+            src[9 * CHUNK + L] = float(means2d[i, n, 0])
+            src[10 * CHUNK + L] = float(means2d[i, n, 1])
+            src[11 * CHUNK + L] = SIGMA_ROW + float(log_opac[n])
+            L += 1
+    return L
+
+
+@njit(cache=True, inline="always")
+def _surfel_rows(src, L, out):
+    """`_gather_needed`'s inputs -> out [ck.TAB_COLS CHUNK]: the table's columns (`surfel_table`), column
+    c in out's row c. Branch-free: the loop vectorizes."""
+    R_ = ck.ROW
+    for jj in range(L):
+        j = np.uint64(jj)
+        e, mx, my = src[R_[11] + j], src[R_[9] + j], src[R_[10] + j]
+        cx, cy, sxx, syy, sxy, ok = _image_ellipse(src[j], src[R_[1] + j], src[R_[2] + j], src[R_[3] + j],
+                                                   src[R_[4] + j], src[R_[5] + j], src[R_[6] + j], src[R_[7] + j],
+                                                   src[R_[8] + j], 2.0 * e)
+        ok = ok & (e > 0.0)
+        out[j], out[R_[1] + j] = (cx if ok else mx), (cy if ok else my)
+        out[R_[2] + j], out[R_[3] + j], out[R_[4] + j] = mx, -sxy, my
+        out[R_[5] + j] = math.sqrt(e) + 1.0 if e > 0.0 else -1.0  # filter disc: FILTER_2D |d|^2 / 2 <= e
+        out[R_[6] + j] = math.sqrt(max(sxx, 0.0)) + 1.0 if ok else -1.0
+        out[R_[7] + j] = math.sqrt(max(syy, 0.0)) + 1.0 if ok else -1.0
+        # Q = adj S, r2 = det S: the ellipse without dividing by det S (tiny for surfels seen edge-on)
+        b = ck.band_values(syy, -sxy, sxx, (sxx * syy - sxy * sxy) * BAND_ENLARGE if ok else 0.0)
+        out[R_[8] + j], out[R_[9] + j], out[R_[10] + j], out[R_[11] + j] = b[0], b[1], b[2], b[3]
+        out[R_[12] + j], out[R_[13] + j], out[R_[14] + j], out[R_[15] + j] = b[4], b[5], b[6], 0.0
 
 
 @njit(cache=True, parallel=True)
@@ -311,26 +353,19 @@ def surfel_table(means2d, tsl, log_opac, needed, tab):
     centre; 2, 4 the projected centre (x, y); 5 the filter disc's radius + 1 (-1: no pixel is
     reached); 6-7 the ellipse's half-extents + 1 (-1: the disc crosses the camera plane, every pixel
     of a tile); 3, 8-14 the ellipse's `ck.band_constants` (B of Q = adj S, r2 = det S), as
-    `ck.band_rows` reads them."""
+    `ck.band_rows` reads them. Per chunk of surfels and pose: the needed rows gathered, computed in a
+    vectorized loop, written back."""
     I, N = means2d.shape[0], log_opac.shape[0]
     for ch in prange((N + CHUNK - 1) // CHUNK):
+        rows = np.empty(CHUNK, np.int64)
+        src = np.empty(12 * CHUNK)
+        out = np.empty(ck.TAB_COLS * CHUNK)
         for i in range(I):
-            for n in range(ch * CHUNK, min(N, (ch + 1) * CHUNK)):
-                g = i * N + n
-                if not needed[g]:
-                    continue
-                e = SIGMA_ROW + float(log_opac[n])
-                mx, my = float(means2d[i, n, 0]), float(means2d[i, n, 1])
-                cx, cy, sxx, syy, sxy, ok = _image_ellipse(tsl, i, n, 2.0 * e)
-                ok = ok and e > 0.0
-                tab[g, 0], tab[g, 1] = (cx, cy) if ok else (mx, my)
-                tab[g, 2], tab[g, 4] = mx, my
-                tab[g, 5] = math.sqrt(e) + 1.0 if e > 0.0 else -1.0  # filter disc: FILTER_2D |d|^2 / 2 <= e
-                tab[g, 6] = math.sqrt(max(sxx, 0.0)) + 1.0 if ok else -1.0
-                tab[g, 7] = math.sqrt(max(syy, 0.0)) + 1.0 if ok else -1.0
-                tab[g, 3], tab[g, 15] = -sxy, 0.0
-                # Q = adj S, r2 = det S: the ellipse without dividing by det S (tiny for surfels seen edge-on)
-                ck.band_constants(syy, -sxy, sxx, (sxx * syy - sxy * sxy) * BAND_ENLARGE if ok else 0.0, tab, g)
+            L = _gather_needed(means2d, tsl, log_opac, needed, i, ch * CHUNK, min(N, (ch + 1) * CHUNK), rows, src)
+            _surfel_rows(src, L, out)
+            for j in range(L):
+                for c in range(ck.TAB_COLS):
+                    tab[rows[j], c] = out[c * CHUNK + j]
 
 
 @njit(cache=True, inline="always")
