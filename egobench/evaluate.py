@@ -366,7 +366,7 @@ def _authors_normal(o, run: TrainedRun, cam) -> Tensor:
     """The normal map the authors' evaluation scores: 2DGS's rasterized normals as they come (sum of
     w n, not renormalised: a pixel with alpha < 1 holds a shorter vector), 3DGS's from the rendered
     depth (unit, zero on the border: gsplat's depth_to_normal, as their vanilla_gsplat.py)."""
-    from egobench.train.losses import depth_normals
+    from egobench.train.normal_consistency import depth_normals
 
     if run.spec.splat_mode == "2dgs":
         return o.normal[0].cpu()

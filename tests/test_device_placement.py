@@ -192,7 +192,7 @@ def test_frame_poses_velocity_shift_with_device_pose_delta(no_value_checks):
 
 def test_depth_normals_of_the_2dgs_regulariser_stay_on_the_device():
     from egobench.camera.pinhole import Pinhole
-    from egobench.train.losses import depth_normals
+    from egobench.train.normal_consistency import depth_normals
 
     cam = Pinhole(fx=10.0, fy=10.0, cx=3.5, cy=2.5, width=8, height=6)
     with fake_accelerator():

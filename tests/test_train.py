@@ -342,7 +342,8 @@ def test_depth_normals_face_the_camera_like_rendered_2dgs_normals():
     from egobench.camera.pinhole import Pinhole
     from egobench.render import render
     from egobench.render.types import Gaussians
-    from egobench.train.losses import depth_normals, twodgs_regularisers
+    from egobench.train.losses import twodgs_regularisers
+    from egobench.train.normal_consistency import depth_normals
 
     cam = Pinhole(fx=20.0, fy=20.0, cx=7.5, cy=7.5, width=16, height=16)
     # plane n . p = c with a camera-facing unit normal (n . p < 0 for points in front of the camera)
