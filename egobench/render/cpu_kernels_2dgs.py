@@ -106,10 +106,7 @@ def _project_chunk_2dgs(v, g_in, g_rot, L, cam, near, far, width, height, out):
     R_ = ck.ROW
     for jj in range(L):
         j = np.uint64(jj)
-        p0, p1, p2 = g_in[j], g_in[R_[1] + j], g_in[R_[2] + j]
-        x = v[0] * p0 + v[1] * p1 + v[2] * p2 + v[3]
-        y = v[4] * p0 + v[5] * p1 + v[6] * p2 + v[7]
-        z = v[8] * p0 + v[9] * p1 + v[10] * p2 + v[11]
+        x, y, z = ck.chunk_camera_point(v, g_in, j)
         u0, v0, w0 = _axis_column(v, g_in, g_rot, 0, j, cam)
         u1, v1, w1 = _axis_column(v, g_in, g_rot, 1, j, cam)
         u2, v2 = cam[0] * x + cam[2] * z, cam[1] * y + cam[3] * z
@@ -157,11 +154,7 @@ def project_fwd_2dgs(means, quats, scales, viewmats, cam, width, height, near, f
     m2f, tslf, depf = means2d.reshape(I * N * 2), tsl.reshape(I * N * 9), depths.reshape(I * N)
     radf, nrmf = radii.reshape(I * N * 2), normals.reshape(I * N * 3)
     for ch in prange((N + CHUNK - 1) // CHUNK):
-        n0 = ch * CHUNK
-        L = min(N, n0 + CHUNK) - n0
-        g_in = np.empty(6 * CHUNK, means.dtype)
-        g_rot = np.empty(12 * CHUNK)
-        out = np.empty(14 * CHUNK)
+        n0, L, g_in, g_rot, out = ck.chunk_scratch(ch, N, means.dtype, 12, 14)
         ck.gather_chunk(means, quats, scales, n0, L, 2, np.empty((3, 3)), g_in, g_rot)
         for i in range(I):
             v = ck.view_rows(viewmats[i])
