@@ -414,9 +414,9 @@ def test_tile_rects_and_gradient_sums_match_plain_references():
     np.add.at(abs_want, flat_ids, np.abs(isect[:, :2]).astype(np.float64))
     assert len(np.unique(flat_ids)) < I * N  # rows no intersection reaches stay zero
     for dtype in (np.float64, np.float32):  # summed in float64, then rounded once
-        out, absgrad = np.zeros((I * N, 10), dtype), np.zeros((I * N, 2))
+        out, absgrad = np.zeros((10, I * N), dtype), np.zeros((I * N, 2))  # channel first
         ck.reduce_isect_grad(isect, flat_ids, M, out, absgrad)
-        np.testing.assert_array_equal(out, sums.astype(dtype))
+        np.testing.assert_array_equal(out, sums.T.astype(dtype))
         np.testing.assert_array_equal(absgrad, abs_want)
 
 

@@ -96,15 +96,15 @@ def stage_times(sigma_px: float = 2.5, width: int = 128, n: int = 20000, repeats
     out["raster_bwd"] = _median_ms(lambda: ck.raster_bwd(*bargs), repeats)
     absg = np.zeros((I * N, 2))
     out["reduce_isect_grad"] = _median_ms(
-        lambda: ck.reduce_isect_grad(isect, st.flat_ids, st.flat_ids.shape[0], np.zeros((I * N, isect.shape[1]),
+        lambda: ck.reduce_isect_grad(isect, st.flat_ids, st.flat_ids.shape[0], np.zeros((isect.shape[1], I * N),
                                                                                          np.float32), absg), repeats)
-    g_m2 = rng.standard_normal((I, N, 2))
-    g_con = rng.standard_normal((I, N, 3))
+    g_m2 = rng.standard_normal((2, I, N))  # channel first, as `reduce_isect_grad` writes them
+    g_con = rng.standard_normal((3, I, N))
     g_dep = rng.standard_normal((I, N))
     gm, gq, gs = np.empty((N, 3)), np.empty((N, 4)), np.empty((N, 3))
     gv = np.zeros((max(1, math.ceil(N / ck.CHUNK)), I, 12))
     pb = (means.astype(np.float64), quats.astype(np.float64), scales.astype(np.float64), vm.astype(np.float64), ca,
-          width, width, cb.EPS2D, cb.NEAR_PLANE, cb.FAR_PLANE, False, g_m2, g_con, g_dep, np.zeros((I, 0, 3)),
+          width, width, cb.EPS2D, cb.NEAR_PLANE, cb.FAR_PLANE, False, g_m2, g_con, g_dep, np.zeros((3, I, 0)),
           gm, gq, gs, gv)
     out["project_bwd"] = _median_ms(lambda: ck.project_bwd(*pb), repeats)
     kernels = sum(out[k] for k in ("project_fwd", "raster_setup(incl. bin_tiles)", "gaussian_table", "raster_fwd",

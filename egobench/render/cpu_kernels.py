@@ -287,10 +287,10 @@ def project_fwd(means, quats, scales, opac, viewmats, cam, width, height, eps2d,
 def _has_upstream_grad(g_means2d, g_conics, g_depths, g_normals, i, n, want_normal):
     """Whether any upstream gradient of (pose i, Gaussian n) is non-zero (every backward term is
     linear in them: most pairs of a rolling-shutter render reach no pixel and are skipped)."""
-    live = (g_means2d[i, n, 0] != 0.0 or g_means2d[i, n, 1] != 0.0 or g_depths[i, n] != 0.0
-            or g_conics[i, n, 0] != 0.0 or g_conics[i, n, 1] != 0.0 or g_conics[i, n, 2] != 0.0)
+    live = (g_means2d[0, i, n] != 0.0 or g_means2d[1, i, n] != 0.0 or g_depths[i, n] != 0.0
+            or g_conics[0, i, n] != 0.0 or g_conics[1, i, n] != 0.0 or g_conics[2, i, n] != 0.0)
     if want_normal:
-        live = live or g_normals[i, n, 0] != 0.0 or g_normals[i, n, 1] != 0.0 or g_normals[i, n, 2] != 0.0
+        live = live or g_normals[0, i, n] != 0.0 or g_normals[1, i, n] != 0.0 or g_normals[2, i, n] != 0.0
     return live
 
 
@@ -343,21 +343,21 @@ def _cov2d_rows_grad(g00, g11, g01, A0, A1, Mc, j00, j11, tx, ty, gMc):
 @njit(cache=True, inline="always")
 def normal_grad(V, R, ax, x, y, z, g_normals, i, n, gnw):
     """Normal sgn * V[:3, :3] R[:, ax] (facing the camera at (x, y, z)): fills gnw [3] = dL/dR[:, ax]
-    from g_normals[i, n] [3] -> sgn."""
+    from g_normals[:, i, n] [3] -> sgn."""
     nx = V[0, 0] * R[0, ax] + V[0, 1] * R[1, ax] + V[0, 2] * R[2, ax]
     ny = V[1, 0] * R[0, ax] + V[1, 1] * R[1, ax] + V[1, 2] * R[2, ax]
     nz = V[2, 0] * R[0, ax] + V[2, 1] * R[1, ax] + V[2, 2] * R[2, ax]
     sgn = 1.0 if -(nx * x + ny * y + nz * z) > 0 else -1.0
     for r in range(3):
         for b in range(3):
-            gnw[b] += V[r, b] * sgn * g_normals[i, n, r]
+            gnw[b] += V[r, b] * sgn * g_normals[r, i, n]
     return sgn
 
 
 @njit(cache=True, inline="always")
 def add_view_and_mean_grads(V, R, scales, means, n, gpc, gMc, sgn, g_normals, i, ax, want_normal, gv, gm):
     """p_c = V m + t, Mc = V R diag(s), normal = sgn V R[:, ax]: adds dL/dV[:3, :4] (row-major) to
-    gv [12] and dL/dm to gm [3], from gpc = dL/dp_c, gMc [3, 3], g_normals[i, n] [3]."""
+    gv [12] and dL/dm to gm [3], from gpc = dL/dp_c, gMc [3, 3], g_normals[:, i, n] [3]."""
     for r in range(3):
         gv[r * 4 + 3] += gpc[r]
         for b in range(3):
@@ -368,7 +368,7 @@ def add_view_and_mean_grads(V, R, scales, means, n, gpc, gMc, sgn, g_normals, i,
                 acc += gMc[r, c] * R[b, c] * scales[n, c]
             gv[r * 4 + b] += acc
             if want_normal:
-                gv[r * 4 + b] += sgn * g_normals[i, n, r] * R[b, ax]
+                gv[r * 4 + b] += sgn * g_normals[r, i, n] * R[b, ax]
 
 
 @njit(cache=True, inline="always")
@@ -403,8 +403,9 @@ def quat_grad(gR, qw, qx, qy, qz, qinv, g_quats, n):
 def project_bwd(means, quats, scales, viewmats, cam, width, height, eps2d, near, far, want_normal,
                 g_means2d, g_conics, g_depths, g_normals,
                 g_means, g_quats, g_scales, g_view_parts):
-    """Backward of `project_fwd` for every entry (culled ones included, as torch's graph).
-    Fills g_means [N,3], g_quats [N,4], g_scales [N,3] and g_view_parts [chunks, I, 12]
+    """Backward of `project_fwd` for every entry (culled ones included, as torch's graph). Upstream
+    gradients channel first (`reduce_isect_grad`'s layout): g_means2d [2,I,N], g_conics [3,I,N], g_depths
+    [I,N], g_normals [3,I,N] (or [3,I,0]). Fills g_means [N,3], g_quats [N,4], g_scales [N,3] and g_view_parts [chunks, I, 12]
     (per-chunk partial dL/d viewmat[:3, :4], reduced in chunk order by the caller)."""
     N = means.shape[0]
     I = viewmats.shape[0]
@@ -441,12 +442,12 @@ def project_bwd(means, quats, scales, viewmats, cam, width, height, eps2d, near,
                 j00, j11 = fx * inv_z, fy * inv_z
                 c00, c11, c01 = _cov2d_rows(V, R, scales, n, j00, j11, tx, ty, eps2d, Mc, A0, A1)
                 det = c00 * c11 - c01 * c01
-                g00, g11, g01 = _conic_grad(g_conics[i, n, 0], g_conics[i, n, 1], g_conics[i, n, 2], c00, c11, c01,
+                g00, g11, g01 = _conic_grad(g_conics[0, i, n], g_conics[1, i, n], g_conics[2, i, n], c00, c11, c01,
                                             det, in_depth and det > 0)
                 # means2d = (fx x / zs + cx, fy y / zs + cy); depth = z
-                gx = g_means2d[i, n, 0] * fx * inv_z
-                gy = g_means2d[i, n, 1] * fy * inv_z
-                g_inv_z = g_means2d[i, n, 0] * fx * x + g_means2d[i, n, 1] * fy * y
+                gx = g_means2d[0, i, n] * fx * inv_z
+                gy = g_means2d[1, i, n] * fy * inv_z
+                g_inv_z = g_means2d[0, i, n] * fx * x + g_means2d[1, i, n] * fy * y
                 gz = g_depths[i, n]
                 g_j00, g_j11, g_tx, g_ty = _cov2d_rows_grad(g00, g11, g01, A0, A1, Mc, j00, j11, tx, ty, gMc)
                 g_inv_z += fx * g_j00 + fy * g_j11
@@ -1211,13 +1212,14 @@ def raster_bwd(tab, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles
 
 @njit(cache=True)
 def reduce_isect_grad(isect_grad, flat_ids, M, out, absgrad):
-    """Per-intersection gradients [M, C] -> per (image, Gaussian) sums written to out [I*N, C]
-    (zeros on entry, its own dtype): each row's sum is taken in float64 in intersection order
+    """Per-intersection gradients [M, C] -> per (image, Gaussian) sums written to out [C, I*N]
+    (channel first, so that each parameter's gradient is one contiguous block for the projection
+    backward; zeros on entry, its own dtype): each row's sum is taken in float64 in intersection order
     (sequential: deterministic), only for the rows some intersection reaches (~10 % of them with
     motion sampling), then rounded to out's dtype. absgrad [I*N, 2] sums |dL/d mean| per
     intersection (an empty [0, 2] array: not asked for, skipped)."""
     C = isect_grad.shape[1]
-    slot = np.full(out.shape[0], -1, np.int32)  # row -> its accumulator
+    slot = np.full(out.shape[1], -1, np.int32)  # row -> its accumulator
     rows = np.empty(M, np.int64)
     n_rows = 0
     for k in range(M):
@@ -1235,6 +1237,6 @@ def reduce_isect_grad(isect_grad, flat_ids, M, out, absgrad):
         if want_abs:
             absgrad[g, 0] += abs(isect_grad[k, 0])
             absgrad[g, 1] += abs(isect_grad[k, 1])
-    for s in range(n_rows):
-        for c in range(C):
-            out[rows[s], c] = acc[s, c]
+    for c in range(C):
+        for s in range(n_rows):
+            out[c, rows[s]] = acc[s, c]

@@ -167,32 +167,32 @@ def project_fwd_2dgs(means, quats, scales, viewmats, cam, width, height, near, f
 @njit(cache=True, inline="always")
 def _has_upstream_grad(g_means2d, g_tsl, g_depths, g_normals, i, n):
     """Whether any upstream gradient of (pose i, surfel n) is non-zero (skipped exactly otherwise)."""
-    if g_means2d[i, n, 0] != 0.0 or g_means2d[i, n, 1] != 0.0 or g_depths[i, n] != 0.0:
+    if g_means2d[0, i, n] != 0.0 or g_means2d[1, i, n] != 0.0 or g_depths[i, n] != 0.0:
         return True
     for c in range(9):
-        if g_tsl[i, n, c] != 0.0:
+        if g_tsl[c, i, n] != 0.0:
             return True
-    return g_normals[i, n, 0] != 0.0 or g_normals[i, n, 1] != 0.0 or g_normals[i, n, 2] != 0.0
+    return g_normals[0, i, n] != 0.0 or g_normals[1, i, n] != 0.0 or g_normals[2, i, n] != 0.0
 
 
 @njit(cache=True, inline="always")
 def _ray_transform_grad(M, valid, d_s, g_means2d, g_tsl, i, n, cam, gMc, gpc):
-    """dL/dM (from the rasterizer, g_tsl[i, n] [9], and from the centre, g_means2d[i, n] [2]) ->
+    """dL/dM (from the rasterizer, g_tsl[:, i, n] [9], and from the centre, g_means2d[:, i, n] [2]) ->
     gMc [3, 3] = dL/d(V R diag(s)) (third column 0: a surfel's normal axis has no scale) and
     gpc [3] = dL/d mean_c (the depth's gradient is added by the caller)."""
     s = (1.0, 1.0, -1.0)
     gq = np.empty(3)  # dL/dq, q = (w_M * s) / d: m_j = u_M^T q, v_M^T q
     P = 0.0
     for c in range(3):
-        gq[c] = g_means2d[i, n, 0] * M[0, c] + g_means2d[i, n, 1] * M[1, c]
+        gq[c] = g_means2d[0, i, n] * M[0, c] + g_means2d[1, i, n] * M[1, c]
         P += gq[c] * s[c] * M[2, c] / d_s
     gM = np.empty((3, 3))
     for c in range(3):
         q = s[c] * M[2, c] / d_s
-        gM[0, c] = g_tsl[i, n, c] + g_means2d[i, n, 0] * q
-        gM[1, c] = g_tsl[i, n, 3 + c] + g_means2d[i, n, 1] * q
+        gM[0, c] = g_tsl[c, i, n] + g_means2d[0, i, n] * q
+        gM[1, c] = g_tsl[3 + c, i, n] + g_means2d[1, i, n] * q
         gw = s[c] * (gq[c] - 2.0 * P * M[2, c]) / d_s if valid else gq[c] * s[c]
-        gM[2, c] = g_tsl[i, n, 6 + c] + gw
+        gM[2, c] = g_tsl[6 + c, i, n] + gw
     # M = K T_cl: rows 0, 1 scaled by fx, fy; row 2 also feeds rows 0, 1 through cx, cy
     for c in range(3):
         g0, g1 = cam[0] * gM[0, c], cam[1] * gM[1, c]
@@ -208,7 +208,8 @@ def _ray_transform_grad(M, valid, d_s, g_means2d, g_tsl, i, n, cam, gMc, gpc):
 def project_bwd_2dgs(means, quats, scales, viewmats, cam, near, far, g_means2d, g_tsl, g_depths, g_normals,
                      g_means, g_quats, g_scales, g_view_parts):
     """Backward of `project_fwd_2dgs` (every entry with an upstream gradient, culled ones as torch's
-    graph). Fills g_means [N,3], g_quats [N,4], g_scales [N,3] and g_view_parts [chunks, I, 12]
+    graph). Upstream gradients channel first: g_means2d [2,I,N], g_tsl [9,I,N], g_depths [I,N], g_normals
+    [3,I,N]. Fills g_means [N,3], g_quats [N,4], g_scales [N,3] and g_view_parts [chunks, I, 12]
     (per-chunk partial dL/d viewmat[:3, :4], reduced in chunk order by the caller)."""
     N, I = means.shape[0], viewmats.shape[0]
     for ch in prange(g_view_parts.shape[0]):
