@@ -136,7 +136,8 @@ def rows_hit_buffer(n_intersections: int, tile_size: int, cw: int) -> np.ndarray
 def reduce_intersections(isect: np.ndarray, flat_ids: np.ndarray, I: int, N: int, dt: torch.dtype,
                          absgrad_holder: list | None) -> Tensor:
     """Per-intersection gradient rows [M, C] -> per (image, Gaussian) sums [I, N, C] (intersection
-    order; a view of a channel-first [C, I, N] tensor); sets absgrad_holder[0].absgrad [I, N, 2] (sum of |row[:2]|) when a holder is given."""
+    order; a view of a channel-first [C, I, N] tensor); sets absgrad_holder[0].absgrad [I, N, 2] (sum
+    of |row[:2]|) when a holder is given."""
     from egobench.render import cpu_kernels as ck
 
     absg = np.zeros((I * N if absgrad_holder is not None else 0, 2))

@@ -405,8 +405,9 @@ def project_bwd(means, quats, scales, viewmats, cam, width, height, eps2d, near,
                 g_means, g_quats, g_scales, g_view_parts):
     """Backward of `project_fwd` for every entry (culled ones included, as torch's graph). Upstream
     gradients channel first (`reduce_isect_grad`'s layout): g_means2d [2,I,N], g_conics [3,I,N], g_depths
-    [I,N], g_normals [3,I,N] (or [3,I,0]). Fills g_means [N,3], g_quats [N,4], g_scales [N,3] and g_view_parts [chunks, I, 12]
-    (per-chunk partial dL/d viewmat[:3, :4], reduced in chunk order by the caller)."""
+    [I,N], g_normals [3,I,N] (or [3,I,0]). Fills g_means [N,3], g_quats [N,4], g_scales [N,3] and
+    g_view_parts [chunks, I, 12] (per-chunk partial dL/d viewmat[:3, :4], reduced in chunk order by the
+    caller)."""
     N = means.shape[0]
     I = viewmats.shape[0]
     fx, fy = cam[0], cam[1]

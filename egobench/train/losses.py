@@ -3,7 +3,6 @@ regularisers (normal consistency, distortion; PAPER-NOTES §7)."""
 
 from __future__ import annotations
 
-import torch
 from torch import Tensor
 
 from egobench.camera.pinhole import Pinhole
