@@ -75,14 +75,14 @@ def _ray_transform(V, R, scales, means, n, cam, M):
 
 
 @njit(cache=True, inline="always")
-def _surfel_centre(M, valid):
-    """Projected centre (m0, m1) and dual-conic scale d of ray transform M [3, 3] (f = (1, 1, -1) / d;
-    d = 1 where culled, as torch's substitute)."""
-    d = M[2, 0] * M[2, 0] + M[2, 1] * M[2, 1] - M[2, 2] * M[2, 2]
+def _surfel_centre(u0, u1, u2, v0, v1, v2, w0, w1, w2, z, near, far):
+    """Ray transform M (rows u, v, w) of a surfel at camera depth z -> projected centre (m0, m1), dual-conic
+    scale d (f = (1, 1, -1) / d; 1 where culled, as torch's substitute) and whether it is valid
+    (d != 0, near < z < far). Branch-free."""
+    d = w0 * w0 + w1 * w1 - w2 * w2
+    valid = (d != 0) & (z > near) & (z < far)
     d_s = d if valid else 1.0
-    m0 = (M[0, 0] * M[2, 0] + M[0, 1] * M[2, 1] - M[0, 2] * M[2, 2]) / d_s
-    m1 = (M[1, 0] * M[2, 0] + M[1, 1] * M[2, 1] - M[1, 2] * M[2, 2]) / d_s
-    return m0, m1, d_s
+    return (u0 * w0 + u1 * w1 - u2 * w2) / d_s, (v0 * w0 + v1 * w1 - v2 * w2) / d_s, d_s, valid
 
 
 @njit(cache=True, inline="always")
@@ -111,11 +111,7 @@ def _project_chunk_2dgs(v, g_in, g_rot, L, cam, near, far, width, height, out):
         u1, v1, w1 = _axis_column(v, g_in, g_rot, 1, j, cam)
         u2, v2 = cam[0] * x + cam[2] * z, cam[1] * y + cam[3] * z
         w2 = np.float64(z)
-        d = w0 * w0 + w1 * w1 - w2 * w2
-        valid = (d != 0) & (z > near) & (z < far)
-        d_s = d if valid else 1.0
-        m0 = (u0 * w0 + u1 * w1 - u2 * w2) / d_s
-        m1 = (v0 * w0 + v1 * w1 - v2 * w2) / d_s
+        m0, m1, d_s, valid = _surfel_centre(u0, u1, u2, v0, v1, v2, w0, w1, w2, z, near, far)
         h0 = m0 * m0 - (u0 * u0 + u1 * u1 - u2 * u2) / d_s
         h1 = m1 * m1 - (v0 * v0 + v1 * v1 - v2 * v2) / d_s
         rx = math.ceil(EXTENT_SIGMAS * math.sqrt(max(h0, 1e-4)))
@@ -231,9 +227,8 @@ def project_bwd_2dgs(means, quats, scales, viewmats, cam, near, far, g_means2d, 
                     continue
                 V = viewmats[i]
                 x, y, z = _ray_transform(V, R, scales, means, n, cam, M)
-                d = M[2, 0] * M[2, 0] + M[2, 1] * M[2, 1] - M[2, 2] * M[2, 2]
-                valid = d != 0 and z > near and z < far
-                _, _, d_s = _surfel_centre(M, valid)
+                _, _, d_s, valid = _surfel_centre(M[0, 0], M[0, 1], M[0, 2], M[1, 0], M[1, 1], M[1, 2], M[2, 0],
+                                                  M[2, 1], M[2, 2], z, near, far)
                 _ray_transform_grad(M, valid, d_s, g_means2d, g_tsl, i, n, cam, gMc, gpc)
                 gpc[2] += g_depths[i, n]
                 gnw[:] = 0.0
