@@ -392,7 +392,8 @@ def _tile_rects_reference(means2d, radii, depths, tile_size, tiles_x, tiles_y, b
 
 def test_tile_rects_and_gradient_sums_match_plain_references():
     """`_tile_rects` against a plain-Python rectangle list (an image that needs no bin gives none) and
-    `reduce_isect_grad` against numpy's in-order np.add.at: the same numbers bit for bit."""
+    `reduce_isect_grad` against numpy's in-order np.add.at: the same numbers bit for bit, for any
+    number of parts (threads)."""
     from egobench.render import cpu_kernels as ck
 
     rng = np.random.default_rng(4)
@@ -413,9 +414,11 @@ def test_tile_rects_and_gradient_sums_match_plain_references():
     np.add.at(sums, flat_ids, isect.astype(np.float64))  # unbuffered, in index order
     np.add.at(abs_want, flat_ids, np.abs(isect[:, :2]).astype(np.float64))
     assert len(np.unique(flat_ids)) < I * N  # rows no intersection reaches stay zero
-    for dtype in (np.float64, np.float32):  # summed in float64, then rounded once
-        out, absgrad = np.zeros((10, I * N), dtype), np.zeros((I * N, 2))  # channel first
-        ck.reduce_isect_grad(isect, flat_ids, M, out, absgrad)
+    # summed in float64, then rounded once; every entry written (out starts as NaN); one part or
+    # several (threads) give the same bits
+    for dtype, parts in ((np.float64, 1), (np.float32, 1), (np.float32, 3), (np.float64, 7)):
+        out, absgrad = np.full((10, I * N), np.nan, dtype), np.zeros((I * N, 2))  # channel first
+        ck.reduce_isect_grad(isect, flat_ids, M, out, absgrad, parts)
         np.testing.assert_array_equal(out, sums.T.astype(dtype))
         np.testing.assert_array_equal(absgrad, abs_want)
 

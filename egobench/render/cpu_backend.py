@@ -138,11 +138,13 @@ def reduce_intersections(isect: np.ndarray, flat_ids: np.ndarray, I: int, N: int
     """Per-intersection gradient rows [M, C] -> per (image, Gaussian) sums [I, N, C] (intersection
     order; a view of a channel-first [C, I, N] tensor); sets absgrad_holder[0].absgrad [I, N, 2] (sum
     of |row[:2]|) when a holder is given."""
+    import numba
+
     from egobench.render import cpu_kernels as ck
 
     absg = np.zeros((I * N if absgrad_holder is not None else 0, 2))
-    per = torch.zeros((isect.shape[1], I * N), dtype=dt)
-    ck.reduce_isect_grad(isect, flat_ids, flat_ids.shape[0], per.numpy(), absg)
+    per = torch.empty((isect.shape[1], I * N), dtype=dt)  # every entry written (zeros where no intersection)
+    ck.reduce_isect_grad(isect, flat_ids, flat_ids.shape[0], per.numpy(), absg, numba.get_num_threads())
     if absgrad_holder is not None:  # gsplat's absgrad attribute
         absgrad_holder[0].absgrad = torch.from_numpy(absg).reshape(I, N, 2).to(dt)
     return per.reshape(isect.shape[1], I, N).permute(1, 2, 0)

@@ -1212,15 +1212,10 @@ def raster_bwd(tab, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles
 
 
 @njit(cache=True)
-def reduce_isect_grad(isect_grad, flat_ids, M, out, absgrad):
-    """Per-intersection gradients [M, C] -> per (image, Gaussian) sums written to out [C, I*N]
-    (channel first, so that each parameter's gradient is one contiguous block for the projection
-    backward; zeros on entry, its own dtype): each row's sum is taken in float64 in intersection order
-    (sequential: deterministic), only for the rows some intersection reaches (~10 % of them with
-    motion sampling), then rounded to out's dtype. absgrad [I*N, 2] sums |dL/d mean| per
-    intersection (an empty [0, 2] array: not asked for, skipped)."""
-    C = isect_grad.shape[1]
-    slot = np.full(out.shape[1], -1, np.int32)  # row -> its accumulator
+def _first_touch_slots(flat_ids, M, n_out):
+    """Accumulator slots of the rows intersections reach, in order of first touch: flat_ids [M] ->
+    (slot [n_out] int32 (-1: no intersection), rows [n_rows] (slot -> row), n_rows)."""
+    slot = np.full(n_out, -1, np.int32)
     rows = np.empty(M, np.int64)
     n_rows = 0
     for k in range(M):
@@ -1228,16 +1223,37 @@ def reduce_isect_grad(isect_grad, flat_ids, M, out, absgrad):
             slot[flat_ids[k]] = n_rows
             rows[n_rows] = flat_ids[k]
             n_rows += 1
+    return slot, rows[:n_rows], n_rows
+
+
+@njit(cache=True, parallel=True)
+def reduce_isect_grad(isect_grad, flat_ids, M, out, absgrad, parts=1):
+    """Per-intersection gradients [M, C] -> per (image, Gaussian) sums written to out [C, I*N]
+    (channel first, so that each parameter's gradient is one contiguous block for the projection
+    backward; every entry is written, rows no intersection reaches with zeros, so out may come
+    uninitialised; its own dtype): each row's sum is taken in float64 in intersection order, only
+    for the rows some intersection reaches (~10 % of them with motion sampling), then rounded to
+    out's dtype. absgrad [I*N, 2] sums |dL/d mean| per intersection (zeros on entry; an empty [0, 2]
+    array: not asked for, skipped). parts (numba's thread count): each part owns a range of rows
+    (accumulator slots) and scans every intersection for its own, so a row's terms are added in the
+    same order whatever the count (bit-identical results); the output is written a channel per thread."""
+    C = isect_grad.shape[1]
+    slot, rows, n_rows = _first_touch_slots(flat_ids, M, out.shape[1])
     acc = np.zeros((n_rows, C))
     want_abs = absgrad.shape[0] > 0
-    for k in range(M):
-        g = flat_ids[k]
-        s = slot[g]
-        for c in range(C):
-            acc[s, c] += isect_grad[k, c]
-        if want_abs:
-            absgrad[g, 0] += abs(isect_grad[k, 0])
-            absgrad[g, 1] += abs(isect_grad[k, 1])
-    for c in range(C):
+    for part in prange(parts):
+        s0, s1 = part * n_rows // parts, (part + 1) * n_rows // parts
+        for k in range(M):
+            g = flat_ids[k]
+            s = slot[g]
+            if s < s0 or s >= s1:
+                continue
+            for c in range(C):
+                acc[s, c] += isect_grad[k, c]
+            if want_abs:
+                absgrad[g, 0] += abs(isect_grad[k, 0])
+                absgrad[g, 1] += abs(isect_grad[k, 1])
+    for c in prange(C):
+        out[c, :] = 0
         for s in range(n_rows):
             out[c, rows[s]] = acc[s, c]
