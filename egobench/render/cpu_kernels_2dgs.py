@@ -432,6 +432,24 @@ def _surfel(means2d, tsl, log_opac, g, N, ox, oy, cc):
     return gi, n, means2d[gi, n, 0], means2d[gi, n, 1], log_opac[n], c9, up_vp
 
 
+@njit(cache=True, inline="always")
+def _row_views(means2d, tsl):
+    """means2d [I, N, 2], tsl [I, N, 9] -> their rows as [I*N, 2], [I*N, 9] views (row image * N + surfel)."""
+    I, N = tsl.shape[0], tsl.shape[1]
+    return means2d.reshape((I * N, 2)), tsl.reshape((I * N, 9))
+
+
+@njit(cache=True, inline="always")
+def _prefetch_surfel(m2_rows, tsl_rows, feats, g):
+    """Software prefetch of what an intersection with row g reads besides the table: its centre, ray
+    transform and features. Rows are random across [I*N, ·] arrays (4.3 MB of ray transforms for 6
+    poses x 20 000 surfels, beyond L2); in a 128 px training step the forward measured 7.2 -> 6.4 ms
+    and the backward 8.2 -> 6.7 ms with it."""
+    ck.prefetch_row(m2_rows, g)
+    ck.prefetch_row(tsl_rows, g)
+    ck.prefetch_row(feats, g)
+
+
 @njit(cache=True, parallel=True, fastmath=FASTMATH)
 def raster_fwd_2dgs(means2d, tsl, log_opac, tab, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles_x,
                     cw, kc, centres, out_feat, out_T, out_last, rows_hit):
@@ -450,6 +468,7 @@ def raster_fwd_2dgs(means2d, tsl, log_opac, tab, feats, flat_ids, bin_start, bin
     one, zero = kc[1], kc[3]
     no_row, ts32 = np.int32(-1), np.int32(ts)
     rowt = state_rows(ts, cw)  # the same for every tile
+    m2_rows, tsl_rows = _row_views(means2d, tsl)
     for jb in prange(bins.shape[0]):
         b = bins[jb]
         i, o, x0, y0, x1, y1 = bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout)
@@ -461,7 +480,9 @@ def raster_fwd_2dgs(means2d, tsl, log_opac, tab, feats, flat_ids, bin_start, bin
             if n_active == 0:
                 break
             # flat_ids[k] is read where it is used: held in a local, the forward measured 12.5 -> 15.3 ms (σ 2.5)
-            ck.prefetch_row(tab, flat_ids[min(k + ck.PREFETCH_AHEAD, bin_start[b + 1] - 1)])
+            gp = flat_ids[min(k + ck.PREFETCH_AHEAD, bin_start[b + 1] - 1)]
+            ck.prefetch_row(tab, gp)
+            _prefetch_surfel(m2_rows, tsl_rows, feats, gp)
             ra, rb, ca, cb = _footprint_surfel(tab, flat_ids[k], x0, y0, ts, W, H)
             ra, rb = trim_rows_active(ra, rb, row_active)
             if ra >= rb or ca >= cb:
@@ -532,6 +553,7 @@ def raster_bwd_2dgs(means2d, tsl, log_opac, feats, flat_ids, bin_start, bins, pi
     n_tiles = tiles_x * ((H + tile_size - 1) // tile_size)
     ts = tile_size
     half, one, zero = kc[0], kc[1], kc[3]
+    m2_rows, tsl_rows = _row_views(means2d, tsl)
     for jb in prange(bins.shape[0]):
         b = bins[jb]
         i, o, x0, y0, x1, y1 = bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout)
@@ -545,6 +567,7 @@ def raster_bwd_2dgs(means2d, tsl, log_opac, feats, flat_ids, bin_start, bins, pi
         ac = np.empty(9, kc.dtype)
         for k in range(k_end - 1, bin_start[b] - 1, -1):
             g = flat_ids[k]
+            _prefetch_surfel(m2_rows, tsl_rows, feats, flat_ids[max(k - ck.PREFETCH_AHEAD, bin_start[b])])
             if not ck.composited_any(rows_hit, k):  # every term zero: its isect_grad row stays zeros
                 continue
             gi, n, mx, my, lo, c9, up_vp = _surfel(means2d, tsl, log_opac, g, N, ox, oy, cc)
