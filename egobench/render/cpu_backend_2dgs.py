@@ -18,7 +18,7 @@ from torch import Tensor
 
 from egobench.camera.pinhole import Pinhole
 from egobench.render.cpu_backend import (NEAR_PLANE, FAR_PLANE, contiguous_numpy, pose_grad, set_threads, camera_array,
-                                         composite_output, pixel_views, raster_setup, reduce_intersections,
+                                         composite_output, pixel_views, pose_sums, raster_setup, reduce_intersections,
                                          rows_hit_buffer, upstream_grad)
 from egobench.render.types import Gaussians, RenderOutput
 
@@ -118,8 +118,9 @@ class _Rasterize2DGS(torch.autograd.Function):
         c = 12  # features: colour, depth, normal
         g_carrier = None
         if ctx.needs_input_grad[11]:  # gsplat's gradient_2dgs: (dL/dM[0, 2], dL/dM[1, 2]) * M[2, 2]
-            g_carrier = per[..., 4:8:3] * torch.from_numpy(tsl_np[..., 8:9])  # columns 4 and 7, a view (no gather)
-        return (per[..., 0:2], per[..., 2:11], per[..., 11].sum(0), per[..., c:c + 3].sum(0), per[..., c + 3],
+            # columns 4 and 7 of the channel-first block (contiguous rows, no gather), as an [I, N, 2] view
+            g_carrier = (per.permute(2, 0, 1)[4:8:3] * torch.from_numpy(tsl_np[..., 8])).permute(1, 2, 0)
+        return (per[..., 0:2], per[..., 2:11], per[..., 11].sum(0), pose_sums(per, c, c + 3), per[..., c + 3],
                 per[..., c + 4:c + 7], None, None, None, None, None, g_carrier)
 
 
