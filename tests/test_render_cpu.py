@@ -486,6 +486,26 @@ def test_tables_fill_only_the_rows_needed(mode):
     assert np.isnan(part[~need]).all() and 0 < need.sum() < rows
 
 
+@pytest.mark.parametrize("with_normals", [False, True])
+def test_feature_table_fills_the_needed_rows_with_colour_depth_normal(with_normals):
+    """`feature_table` writes each needed row image * N + Gaussian as (colour, depth[, normal]) of that
+    image and Gaussian (the layout the kernels read) and leaves the other rows as they were."""
+    from egobench.render import cpu_kernels
+
+    rng = np.random.default_rng(2)
+    I, N = 3, 700
+    colors = rng.random((N, 3)).astype(np.float32)
+    depths = rng.uniform(1, 9, (I, N)).astype(np.float32)
+    normals = rng.normal(size=(I, N if with_normals else 0, 3)).astype(np.float32)
+    need = rng.random(I * N) < 0.2
+    out = np.full((I * N, 7 if with_normals else 4), np.nan, np.float32)
+    cpu_kernels.feature_table(colors, depths, normals, need, out)
+    want = np.concatenate([np.broadcast_to(colors, (I, N, 3)), depths[..., None]] + ([normals] if with_normals else []),
+                          -1).reshape(I * N, -1)
+    np.testing.assert_array_equal(out[need], want[need])
+    assert np.isnan(out[~need]).all() and 0 < need.sum() < I * N
+
+
 @pytest.mark.parametrize("mode", ["3dgs", "2dgs"])
 def test_uninitialised_buffers_are_never_read(monkeypatch, mode):
     """Every buffer the CPU backend takes from np.empty (the tables fill only the rows the binning

@@ -86,7 +86,8 @@ class RasterSetup:
     flat_ids: np.ndarray  # [M] int64 image * N + Gaussian, sorted by (bin, depth)
     bin_start: np.ndarray  # [I * tiles + 1] int64
     bins: np.ndarray  # [NB] int64 bins to render
-    feats: np.ndarray  # [I * N, Cf] colour, depth (, normal)
+    needed: np.ndarray  # [I * N] bool: the rows some intersection reads (`cpu_kernels.rows_needed`)
+    feats: np.ndarray  # [I * N, Cf] colour, depth (, normal); only the needed rows are filled
     tiles_x: int
     cw: int  # `cpu_kernels.column_group`
     kc: np.ndarray  # `cpu_kernels.compute_constants`
@@ -108,10 +109,12 @@ def raster_setup(means2d: Tensor, radii: Tensor, depths: Tensor, colors: Tensor,
         raise ValueError(f"render(backend='cpu'): {flat_ids.shape[0]} tile intersections exceed 2^31 - 1; "
                          "use a larger tile_size or backend='torch'")
     bins = np.nonzero(bin_needed.reshape(-1))[0].astype(np.int64)
-    feats = torch.cat([colors.detach()[None].expand(I, N, 3), depths.detach()[..., None]]
-                      + ([normals.detach()] if normals.shape[1] else []), -1).reshape(I * N, -1)
+    needed = ck.rows_needed(flat_ids, I * N)
+    set_threads()
+    feats = np.empty((I * N, 4 + (3 if normals.shape[1] else 0)), dtype=m2.dtype)
+    ck.feature_table(contiguous_numpy(colors), contiguous_numpy(depths), contiguous_numpy(normals), needed, feats)
     centres = (np.arange(max(W, H) + tile_size) + 0.5).astype(m2.dtype)
-    return RasterSetup(flat_ids, bin_start, bins, contiguous_numpy(feats), tiles_x, ck.column_group(tile_size),
+    return RasterSetup(flat_ids, bin_start, bins, needed, feats, tiles_x, ck.column_group(tile_size),
                        ck.compute_constants(m2.dtype), centres)
 
 
@@ -240,7 +243,7 @@ class _Rasterize(torch.autograd.Function):
         set_threads()
         tab = np.empty((I * N, ck.TAB_COLS), dtype=m2.dtype)
         ck.gaussian_table(m2, contiguous_numpy(conics), contiguous_numpy(radii), contiguous_numpy(log_opac),
-                          ck.rows_needed(st.flat_ids, I * N), tab)
+                          st.needed, tab)
         rows_hit = rows_hit_buffer(st.flat_ids.shape[0], tile_size, st.cw)
         ck.raster_fwd(tab, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, tile_size,
                       st.tiles_x, st.cw, st.kc, st.centres, out_feat, out_T, out_last, rows_hit)

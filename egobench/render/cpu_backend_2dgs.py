@@ -88,7 +88,7 @@ class _Rasterize2DGS(torch.autograd.Function):
         rows_hit = rows_hit_buffer(st.flat_ids.shape[0], tile_size, st.cw)
         set_threads()
         tab = np.empty((I * N, k2.ck.TAB_COLS), dtype=m2.dtype)
-        k2.surfel_table(m2, tsl_np, lo, k2.ck.rows_needed(st.flat_ids, I * N), tab)
+        k2.surfel_table(m2, tsl_np, lo, st.needed, tab)
         k2.raster_fwd_2dgs(m2, tsl_np, lo, tab, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, tile_size,
                            st.tiles_x, st.cw, st.kc, st.centres, out_feat, out_T, out_last, rows_hit)
         ctx.state = (m2, tsl_np, lo, st, pix_view, tile_size, out_feat, out_T, out_last, rows_hit, absgrad_target)

@@ -715,6 +715,25 @@ def rows_needed(flat_ids, n_rows):
 
 
 @njit(cache=True, parallel=True)
+def feature_table(colors, depths, normals, needed, out):
+    """The compositing's per (image, Gaussian) features, only in the rows some intersection reads:
+    colors [N, 3], depths [I, N], normals [I, N, 3] or [I, 0, 3], needed [I*N] bool (`rows_needed`)
+    -> out [I*N, 4 (+ 3)] rows image * N + Gaussian: colour, depth (, normal); the other rows are left
+    as they were (a 128 px training step reads ~11 % of them)."""
+    I, N = depths.shape
+    want_normal = normals.shape[1] > 0
+    for ch in prange((N + CHUNK - 1) // CHUNK):
+        for i in range(I):
+            for n in range(ch * CHUNK, min(N, (ch + 1) * CHUNK)):
+                g = i * N + n
+                if not needed[g]:
+                    continue
+                out[g, 0], out[g, 1], out[g, 2], out[g, 3] = colors[n, 0], colors[n, 1], colors[n, 2], depths[i, n]
+                if want_normal:
+                    out[g, 4], out[g, 5], out[g, 6] = normals[i, n, 0], normals[i, n, 1], normals[i, n, 2]
+
+
+@njit(cache=True, parallel=True)
 def gaussian_table(means2d, conics, radii, log_opac, needed, tab):
     """Per (image, Gaussian) constants of the compositing loops, computed once instead of once per
     tile intersection: means2d [I,N,2], conics [I,N,3], radii [I,N,2], log_opac [N], needed [I*N]
