@@ -343,29 +343,46 @@ def test_raster_threads_env_gives_the_kernels_their_own_count():
         del os.environ[cpu_backend.RASTER_THREADS_ENV]
 
 
-def test_stage_profiler_reports_every_stage_of_the_binned_scene():
+@pytest.mark.parametrize("mode", ["3dgs", "2dgs"])
+def test_stage_profiler_reports_every_stage_of_the_binned_scene(mode):
     """`python -m egobench.bench.cpu_profile` (docs/cpu-rasterizer.md's profile): every stage is
-    timed, the sum is the sum of the listed stages, and the intersection count is the binning's."""
+    timed, the sum is the sum of the listed stages, the intersection count is the binning's, and the
+    work counts are those of the forward's rows_hit (composited intersections, backward pixels)."""
     import numpy as np
 
     from egobench import bench
     from egobench.bench import cpu_profile
-    from egobench.render import cpu_backend, cpu_kernels
+    from egobench.render import cpu_backend, cpu_backend_2dgs, cpu_kernels
 
-    st = cpu_profile.stage_times(sigma_px=1.5, width=32, n=300, repeats=1)
-    stages = ("project_fwd", "raster_setup(incl. bin_tiles)", "gaussian_table", "raster_fwd", "raster_bwd",
-              "reduce_isect_grad", "project_bwd")
-    assert all(st[k] >= 0 for k in stages + ("bin_tiles",)) and st["render_fwd_bwd (bench step)"] > 0
-    assert st["sum_of_stages"] == pytest.approx(sum(st[k] for k in stages), abs=0.01)
+    st = cpu_profile.stage_times(sigma_px=1.5, width=32, n=300, repeats=1, mode=mode)
+    assert all(st[k] >= 0 for k in cpu_profile.STAGES + ("bin_tiles",)) and st["render_fwd_bwd (bench step)"] > 0
+    assert st["sum_of_stages"] == pytest.approx(sum(st[k] for k in cpu_profile.STAGES), abs=0.01)
     spec = bench._case_spec((32, 300, 1.5))
     g = bench.bench_scene(spec)
+    cam = cpu_backend.camera_array(bench.bench_camera(spec))
     with torch.no_grad():
-        m2, _, dep, _, rad = cpu_backend._Project.apply(
-            g.means, g.quats, g.scales, torch.eye(4)[None], torch.sigmoid(g.opacity_logits),
-            cpu_backend.camera_array(bench.bench_camera(spec)), 32, 32, False)
+        if mode == "3dgs":
+            m2, _, dep, _, rad = cpu_backend._Project.apply(g.means, g.quats, g.scales, torch.eye(4)[None],
+                                                            torch.sigmoid(g.opacity_logits), cam, 32, 32, False)
+        else:
+            m2, _, dep, _, rad = cpu_backend_2dgs._Project2DGS.apply(g.means, g.quats, g.scales, torch.eye(4)[None],
+                                                                     cam, 32, 32)
     need = np.ones((1, 4), dtype=np.bool_)
     flat, _ = cpu_kernels.bin_tiles(m2.numpy(), rad.numpy(), dep.numpy(), 16, 2, 2, need)
     assert st["intersections"] == flat.shape[0] > 0
+    assert 0 < st["intersections_composited"] < st["intersections"]
+    assert st["backward_pixel_evals"] % cpu_kernels.column_group(16) == 0
+    assert st["intersections_composited"] <= st["backward_pixel_evals"] <= st["intersections_composited"] * 16 * 16
+
+
+def test_profiler_work_counts_read_rows_hit():
+    """`cpu_profile._work`: composited intersections are those with a non-empty row range in some
+    column group, and the backward's pixel evaluations are their rows times the group width."""
+    from egobench.bench import cpu_profile
+
+    rows_hit = np.array([[[0, 0], [2, 5]], [[0, 0], [0, 0]], [[1, 2], [3, 3]]], np.int16)  # 3 intersections, 2 groups
+    assert cpu_profile._work(rows_hit, 8) == {"intersections": 3, "intersections_composited": 2,
+                                              "backward_pixel_evals": (3 + 1) * 8}
 
 
 def _tile_rects_reference(means2d, radii, depths, tile_size, tiles_x, tiles_y, bin_needed):

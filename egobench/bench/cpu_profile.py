@@ -1,10 +1,12 @@
-"""Per-stage timing of the compiled CPU backend (3DGS) on a `egobench bench raster` scene.
+"""Per-stage timing of the compiled CPU backend (3DGS and 2DGS) on a `egobench bench raster` scene.
 
-``python -m egobench.bench.cpu_profile [--sigma 2.5] [--repeats 41] [--threads 1]``: times each
+``python -m egobench.bench.cpu_profile [--mode 3dgs|2dgs|both] [--sigma 2.5] [--repeats 41] [--threads 1]``: times each
 stage of one forward + backward in isolation (median of repeats of process CPU time, or wall time
 with ``--wall``; stages are re-run on the same inputs, so each one's time excludes the others'),
 then the whole `render` + `loss.backward()` step of `egobench bench raster` and the part of it
-outside the kernels (torch glue, autograd, conversions, allocations). Prints JSON.
+outside the kernels (torch glue, autograd, conversions, allocations), and the work the compositing did
+(intersections, those composited, the backward's pixel evaluations). ``--mode both``: each, and the
+2DGS / 3DGS ratio of every stage and count. Prints JSON.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ import torch
 import torch.nn.functional as F
 
 from egobench import bench
+from egobench.host import host_info
 from egobench.render import cpu_backend as cb
 
 
@@ -40,90 +43,153 @@ def _median_ms(fn, repeats: int, warmup: int = 3) -> float:
     return statistics.median(times)
 
 
-def stage_times(sigma_px: float = 2.5, width: int = 128, n: int = 20000, repeats: int = 41,
-                tile_size: int = cb.DEFAULT_TILE) -> dict:
-    """-> {stage: median ms} of the compiled backend's stages on the benchmark scene (float32)."""
-    from egobench.render import cpu_kernels as ck
-    from egobench.render import render
+def _work(rows_hit: np.ndarray, cw: int) -> dict:
+    """Work counts from the forward's rows_hit [M, groups, 2]: intersections, those composited into any
+    pixel (the backward visits only these), and the backward's pixel evaluations (rows x cw)."""
+    span = np.clip(rows_hit[..., 1].astype(np.int64) - rows_hit[..., 0], 0, None)
+    return {"intersections": int(rows_hit.shape[0]), "intersections_composited": int((span > 0).any(1).sum()),
+            "backward_pixel_evals": int(span.sum()) * cw}
 
-    spec = bench._case_spec((width, n, sigma_px))
-    cam = bench.bench_camera(spec)
-    g = bench.bench_scene(spec)
-    T = torch.eye(4)[None]
-    wts = torch.randn(1, width, width, 3, generator=torch.Generator().manual_seed(1))
-    cb.set_threads()
+
+def _stages_3dgs(g, cam, width: int, n: int, tile_size: int, repeats: int) -> tuple[dict, dict]:
+    """(stage -> median ms, work counts) of the 3DGS kernels on one pose."""
+    from egobench.render import cpu_kernels as ck
+
     means, quats, scales = (t.detach().numpy() for t in (g.means, g.quats, g.scales))
     opac = torch.sigmoid(g.opacity_logits).detach().numpy()
     lo = F.logsigmoid(g.opacity_logits).detach().numpy()
-    vm = T.numpy()
-    ca = cb.camera_array(cam)
-    I, N = 1, n
-    m2 = np.empty((I, N, 2), np.float32)
-    con = np.empty((I, N, 3), np.float32)
-    dep = np.empty((I, N), np.float32)
-    rad = np.empty((I, N, 2), np.int32)
-    nrm = np.zeros((I, 0, 3), np.float32)
-    args = (means, quats, scales, opac, vm, ca, width, width, cb.EPS2D, cb.NEAR_PLANE, cb.FAR_PLANE, False,
-            m2, con, dep, rad, nrm)
-    out = {}
-    out["project_fwd"] = _median_ms(lambda: ck.project_fwd(*args), repeats)
-    pix_view, bin_needed = cb.pixel_views(None, I, width, width, tile_size)
-    tiles_x = math.ceil(width / tile_size)
-    out["pixel_views"] = _median_ms(lambda: cb.pixel_views(None, I, width, width, tile_size), repeats)
-    out["bin_tiles"] = _median_ms(lambda: ck.bin_tiles(m2, rad, dep, tile_size, tiles_x, tiles_x, bin_needed), repeats)
-    t_m2, t_rad, t_dep, t_col = torch.from_numpy(m2), torch.from_numpy(rad), torch.from_numpy(dep), g.colors.detach()
-    t_nrm = torch.from_numpy(nrm)
-    st = cb.raster_setup(t_m2, t_rad, t_dep, t_col, t_nrm, pix_view, bin_needed, tile_size)
-    out["raster_setup(incl. bin_tiles)"] = _median_ms(
-        lambda: cb.raster_setup(t_m2, t_rad, t_dep, t_col, t_nrm, pix_view, bin_needed, tile_size), repeats)
-    Cf = st.feats.shape[1]
-    of = np.zeros((I, width, width, Cf), np.float32)
-    oT = np.zeros((I, width, width), np.float32)
-    ol = np.zeros((I, width, width), np.int32)
+    vm, ca, I, N = np.eye(4, dtype=np.float32)[None], cb.camera_array(cam), 1, n
+    m2, con = np.empty((I, N, 2), np.float32), np.empty((I, N, 3), np.float32)
+    dep, rad, nrm = np.empty((I, N), np.float32), np.empty((I, N, 2), np.int32), np.zeros((I, 0, 3), np.float32)
+    out = {"project_fwd": _median_ms(lambda: ck.project_fwd(means, quats, scales, opac, vm, ca, width, width, cb.EPS2D,
+                                                            cb.NEAR_PLANE, cb.FAR_PLANE, False, m2, con, dep, rad, nrm),
+                                     repeats)}
+    st, pix_view, setup_ms, bin_ms = _setup(m2, rad, dep, g.colors.detach(), nrm, width, tile_size, repeats)
+    out["bin_tiles"], out["raster_setup(incl. bin_tiles)"] = bin_ms, setup_ms
     tab = np.empty((I * N, ck.TAB_COLS), np.float32)
-    out["gaussian_table"] = _median_ms(lambda: ck.gaussian_table(m2, con, rad, lo, ck.rows_needed(st.flat_ids, I * N),
-                                                                 tab), repeats)
+    out["table"] = _median_ms(lambda: ck.gaussian_table(m2, con, rad, lo, st.needed, tab), repeats)
+    Cf = st.feats.shape[1]
+    of, oT, ol = np.zeros((I, width, width, Cf), np.float32), np.zeros((I, width, width), np.float32), \
+        np.zeros((I, width, width), np.int32)
     rows_hit = cb.rows_hit_buffer(st.flat_ids.shape[0], tile_size, st.cw)
-    fargs = (tab, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, tile_size, st.tiles_x, st.cw,
-             st.kc, st.centres, of, oT, ol, rows_hit)
-    out["raster_fwd"] = _median_ms(lambda: ck.raster_fwd(*fargs), repeats)
+    common = (tab, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, tile_size, st.tiles_x, st.cw, st.kc,
+              st.centres)
+    out["raster_fwd"] = _median_ms(lambda: ck.raster_fwd(*common, of, oT, ol, rows_hit), repeats)
     rng = np.random.default_rng(0)
-    gF = rng.standard_normal(of.shape).astype(np.float32)
-    gT = rng.standard_normal(oT.shape).astype(np.float32)
+    gF, gT = rng.standard_normal(of.shape).astype(np.float32), rng.standard_normal(oT.shape).astype(np.float32)
     isect = np.zeros((st.flat_ids.shape[0], 6 + Cf), np.float32)
-    bargs = (tab, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, tile_size, st.tiles_x, st.cw,
-             st.kc, st.centres, oT, ol, gF, gT, isect, rows_hit)
-    out["raster_bwd"] = _median_ms(lambda: ck.raster_bwd(*bargs), repeats)
-    absg = np.zeros((I * N, 2))
-    out["reduce_isect_grad"] = _median_ms(
-        lambda: ck.reduce_isect_grad(isect, st.flat_ids, st.flat_ids.shape[0], np.zeros((isect.shape[1], I * N),
-                                                                                         np.float32), absg), repeats)
-    g_m2 = rng.standard_normal((2, I, N))  # channel first, as `reduce_isect_grad` writes them
-    g_con = rng.standard_normal((3, I, N))
-    g_dep = rng.standard_normal((I, N))
-    gm, gq, gs = np.empty((N, 3)), np.empty((N, 4)), np.empty((N, 3))
-    gv = np.zeros((max(1, math.ceil(N / ck.CHUNK)), I, 12))
-    pb = (means.astype(np.float64), quats.astype(np.float64), scales.astype(np.float64), vm.astype(np.float64), ca,
-          width, width, cb.EPS2D, cb.NEAR_PLANE, cb.FAR_PLANE, False, g_m2, g_con, g_dep, np.zeros((3, I, 0)),
-          gm, gq, gs, gv)
-    out["project_bwd"] = _median_ms(lambda: ck.project_bwd(*pb), repeats)
-    kernels = sum(out[k] for k in ("project_fwd", "raster_setup(incl. bin_tiles)", "gaussian_table", "raster_fwd",
-                                   "raster_bwd", "reduce_isect_grad", "project_bwd"))
-    out["sum_of_stages"] = kernels
+    out["raster_bwd"] = _median_ms(lambda: ck.raster_bwd(*common, oT, ol, gF, gT, isect, rows_hit), repeats)
+    out["reduce_isect_grad"] = _reduce_ms(isect, st.flat_ids, I * N, repeats)
+    grads = (rng.standard_normal((2, I, N)), rng.standard_normal((3, I, N)), rng.standard_normal((I, N)),
+             np.zeros((3, I, 0)))  # channel first, as `reduce_isect_grad` writes them
+    gm, gq, gs, gv = np.empty((N, 3)), np.empty((N, 4)), np.empty((N, 3)), np.zeros((max(1, math.ceil(N / ck.CHUNK)), I, 12))
+    f64 = [a.astype(np.float64) for a in (means, quats, scales, vm)]
+    out["project_bwd"] = _median_ms(lambda: ck.project_bwd(*f64, ca, width, width, cb.EPS2D, cb.NEAR_PLANE, cb.FAR_PLANE,
+                                                           False, *grads, gm, gq, gs, gv), repeats)
+    return out, _work(rows_hit, st.cw)
+
+
+def _stages_2dgs(g, cam, width: int, n: int, tile_size: int, repeats: int) -> tuple[dict, dict]:
+    """(stage -> median ms, work counts) of the 2DGS kernels on one pose (colour, depth, normal and the
+    depth distortion, as `render(mode="2dgs")` composites them)."""
+    from egobench.render import cpu_kernels as ck
+    from egobench.render import cpu_kernels_2dgs as k2
+
+    means, quats, scales = (t.detach().numpy() for t in (g.means, g.quats, g.scales))
+    lo = F.logsigmoid(g.opacity_logits).detach().numpy()
+    vm, ca, I, N = np.eye(4, dtype=np.float32)[None], cb.camera_array(cam), 1, n
+    m2, tsl, dep = np.empty((I, N, 2), np.float32), np.empty((I, N, 9), np.float32), np.empty((I, N), np.float32)
+    nrm, rad = np.empty((I, N, 3), np.float32), np.empty((I, N, 2), np.int32)
+    out = {"project_fwd": _median_ms(lambda: k2.project_fwd_2dgs(means, quats, scales, vm, ca, width, width,
+                                                                 cb.NEAR_PLANE, cb.FAR_PLANE, m2, tsl, dep, rad, nrm),
+                                     repeats)}
+    st, pix_view, setup_ms, bin_ms = _setup(m2, rad, dep, g.colors.detach(), nrm, width, tile_size, repeats)
+    out["bin_tiles"], out["raster_setup(incl. bin_tiles)"] = bin_ms, setup_ms
+    tab = np.empty((I * N, ck.TAB_COLS), np.float32)
+    out["table"] = _median_ms(lambda: k2.surfel_table(m2, tsl, lo, st.needed, tab), repeats)
+    Cf = st.feats.shape[1]
+    of, oT, ol = np.zeros((I, width, width, Cf + 1), np.float32), np.zeros((I, width, width), np.float32), \
+        np.zeros((I, width, width), np.int32)
+    rows_hit = cb.rows_hit_buffer(st.flat_ids.shape[0], tile_size, st.cw)
+    common = (m2, tsl, lo)
+    rest = (st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, tile_size, st.tiles_x, st.cw, st.kc, st.centres)
+    out["raster_fwd"] = _median_ms(lambda: k2.raster_fwd_2dgs(*common, tab, *rest, of, oT, ol, rows_hit), repeats)
+    rng = np.random.default_rng(0)
+    g_state = rng.standard_normal((I, width, width, Cf + 2)).astype(np.float32)
+    g_state[..., Cf + 1] = of[..., k2.DEPTH_CH]  # the forward's depth, as the backend passes it
+    gT = rng.standard_normal(oT.shape).astype(np.float32)
+    isect = np.zeros((st.flat_ids.shape[0], 12 + Cf), np.float32)
+    out["raster_bwd"] = _median_ms(lambda: k2.raster_bwd_2dgs(*common, *rest, oT, ol, g_state, gT, isect, rows_hit),
+                                   repeats)
+    out["reduce_isect_grad"] = _reduce_ms(isect, st.flat_ids, I * N, repeats)
+    grads = (rng.standard_normal((2, I, N)), rng.standard_normal((9, I, N)), rng.standard_normal((I, N)),
+             rng.standard_normal((3, I, N)))
+    gm, gq, gs, gv = np.empty((N, 3)), np.empty((N, 4)), np.empty((N, 3)), np.zeros((max(1, math.ceil(N / k2.CHUNK)), I, 12))
+    f64 = [a.astype(np.float64) for a in (means, quats, scales, vm)]
+    out["project_bwd"] = _median_ms(lambda: k2.project_bwd_2dgs(*f64, ca, cb.NEAR_PLANE, cb.FAR_PLANE, *grads, gm, gq, gs,
+                                                                gv), repeats)
+    return out, _work(rows_hit, st.cw)
+
+
+def _setup(m2, rad, dep, colors, nrm, width: int, tile_size: int, repeats: int):
+    """(`raster_setup`'s result, its pixel views, its median ms, `bin_tiles`' median ms)."""
+    from egobench.render import cpu_kernels as ck
+
+    pix_view, bin_needed = cb.pixel_views(None, 1, width, width, tile_size)
+    tiles_x = math.ceil(width / tile_size)
+    args = (torch.from_numpy(m2), torch.from_numpy(rad), torch.from_numpy(dep), colors, torch.from_numpy(nrm), pix_view,
+            bin_needed, tile_size)
+    st = cb.raster_setup(*args)
+    bin_ms = _median_ms(lambda: ck.bin_tiles(m2, rad, dep, tile_size, tiles_x, tiles_x, bin_needed), repeats)
+    return st, pix_view, _median_ms(lambda: cb.raster_setup(*args), repeats), bin_ms
+
+
+def _reduce_ms(isect: np.ndarray, flat_ids: np.ndarray, rows: int, repeats: int) -> float:
+    import numba
+
+    from egobench.render import cpu_kernels as ck
+
+    out = np.empty((isect.shape[1], rows), np.float32)
+    return _median_ms(lambda: ck.reduce_isect_grad(isect, flat_ids, flat_ids.shape[0], out, np.zeros((0, 2)),
+                                                   numba.get_num_threads()), repeats)
+
+
+#: the stages whose sum is ``sum_of_stages`` (``bin_tiles`` is inside ``raster_setup``)
+STAGES = ("project_fwd", "raster_setup(incl. bin_tiles)", "table", "raster_fwd", "raster_bwd", "reduce_isect_grad",
+          "project_bwd")
+
+
+def stage_times(sigma_px: float = 2.5, width: int = 128, n: int = 20000, repeats: int = 41,
+                tile_size: int = cb.DEFAULT_TILE, mode: str = "3dgs") -> dict:
+    """-> {stage: median ms, and the work counts} of the compiled backend's stages on the benchmark
+    scene (float32, one pose), mode "3dgs" or "2dgs"; the whole bench step and the glue outside the
+    kernels (step - stages)."""
+    from egobench.render import render
+
+    spec = bench._case_spec((width, n, sigma_px))
+    cam, g = bench.bench_camera(spec), bench.bench_scene(spec)
+    cb.set_threads()
+    stages = {"3dgs": _stages_3dgs, "2dgs": _stages_2dgs}[mode]
+    out, work = stages(g, cam, width, n, tile_size, repeats)
+    out["sum_of_stages"] = sum(out[k] for k in STAGES)
     params = {k: v.detach().requires_grad_(True) for k, v in g.tensors().items()}
+    wts = torch.randn(1, width, width, 3, generator=torch.Generator().manual_seed(1))
 
     def step():
-        o = render(bench.Gaussians(**params), cam, T[0], backend="cpu", tile_size=tile_size)
+        o = render(bench.Gaussians(**params), cam, torch.eye(4), backend="cpu", tile_size=tile_size, mode=mode)
         ((o.rgb * wts).sum() + 0.01 * o.depth.sum()).backward()
 
     out["render_fwd_bwd (bench step)"] = _median_ms(step, repeats)
-    out["glue = step - stages"] = out["render_fwd_bwd (bench step)"] - kernels
-    out["intersections"] = int(st.flat_ids.shape[0])
-    return {k: (round(v, 3) if isinstance(v, float) else v) for k, v in out.items()}
+    out["glue = step - stages"] = out["render_fwd_bwd (bench step)"] - out["sum_of_stages"]
+    out = {k: round(v, 3) for k, v in out.items()}
+    out.update(work)
+    out["ns_per_backward_pixel_eval"] = round(out["raster_bwd"] * 1e6 / max(1, work["backward_pixel_evals"]), 2)
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--mode", choices=("3dgs", "2dgs", "both"), default="3dgs", help="splat type (both: each and the ratio)")
     p.add_argument("--sigma", type=float, default=2.5, help="median screen sigma, pixels")
     p.add_argument("--repeats", type=int, default=41)
     p.add_argument("--threads", type=int, default=1)
@@ -132,8 +198,15 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(a.threads)
     if a.wall:
         CLOCK["fn"] = time.perf_counter
-    print(json.dumps({"sigma_px": a.sigma, "threads": a.threads, "clock": "wall" if a.wall else "process CPU",
-                      "stages_ms": stage_times(a.sigma, repeats=a.repeats)}, indent=1))
+    modes = ("3dgs", "2dgs") if a.mode == "both" else (a.mode,)
+    rec = {"sigma_px": a.sigma, "threads": a.threads, "clock": "wall" if a.wall else "process CPU",
+           "host": host_info()}
+    for m in modes:
+        rec[f"stages_ms_{m}"] = stage_times(a.sigma, repeats=a.repeats, mode=m)
+    if a.mode == "both":
+        r3, r2 = rec["stages_ms_3dgs"], rec["stages_ms_2dgs"]
+        rec["ratio_2dgs_to_3dgs"] = {k: round(r2[k] / r3[k], 2) for k in r3 if r3[k] > 0}
+    print(json.dumps(rec, indent=1))
     return 0
 
 
