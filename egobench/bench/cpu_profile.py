@@ -82,10 +82,9 @@ def _stages_3dgs(g, cam, width: int, n: int, tile_size: int, repeats: int) -> tu
     out["reduce_isect_grad"] = _reduce_ms(isect, st.flat_ids, I * N, repeats)
     grads = (rng.standard_normal((2, I, N)), rng.standard_normal((3, I, N)), rng.standard_normal((I, N)),
              np.zeros((3, I, 0)))  # channel first, as `reduce_isect_grad` writes them
-    gm, gq, gs, gv = np.empty((N, 3)), np.empty((N, 4)), np.empty((N, 3)), np.zeros((max(1, math.ceil(N / ck.CHUNK)), I, 12))
-    f64 = [a.astype(np.float64) for a in (means, quats, scales, vm)]
-    out["project_bwd"] = _median_ms(lambda: ck.project_bwd(*f64, ca, width, width, cb.EPS2D, cb.NEAR_PLANE, cb.FAR_PLANE,
-                                                           False, *grads, gm, gq, gs, gv), repeats)
+    f64, res = _projection_bwd_buffers(means, quats, scales, vm, ck.CHUNK)
+    out["project_bwd"] = _median_ms(lambda: ck.project_bwd(*f64, ca, width, width, cb.EPS2D, cb.NEAR_PLANE,
+                                                           cb.FAR_PLANE, False, *grads, *res), repeats)
     return out, _work(rows_hit, st.cw)
 
 
@@ -124,10 +123,9 @@ def _stages_2dgs(g, cam, width: int, n: int, tile_size: int, repeats: int) -> tu
     out["reduce_isect_grad"] = _reduce_ms(isect, st.flat_ids, I * N, repeats)
     grads = (rng.standard_normal((2, I, N)), rng.standard_normal((9, I, N)), rng.standard_normal((I, N)),
              rng.standard_normal((3, I, N)))
-    gm, gq, gs, gv = np.empty((N, 3)), np.empty((N, 4)), np.empty((N, 3)), np.zeros((max(1, math.ceil(N / k2.CHUNK)), I, 12))
-    f64 = [a.astype(np.float64) for a in (means, quats, scales, vm)]
-    out["project_bwd"] = _median_ms(lambda: k2.project_bwd_2dgs(*f64, ca, cb.NEAR_PLANE, cb.FAR_PLANE, *grads, gm, gq, gs,
-                                                                gv), repeats)
+    f64, res = _projection_bwd_buffers(means, quats, scales, vm, k2.CHUNK)
+    out["project_bwd"] = _median_ms(lambda: k2.project_bwd_2dgs(*f64, ca, cb.NEAR_PLANE, cb.FAR_PLANE, *grads, *res),
+                                    repeats)
     return out, _work(rows_hit, st.cw)
 
 
@@ -142,6 +140,13 @@ def _setup(m2, rad, dep, colors, nrm, width: int, tile_size: int, repeats: int):
     st = cb.raster_setup(*args)
     bin_ms = _median_ms(lambda: ck.bin_tiles(m2, rad, dep, tile_size, tiles_x, tiles_x, bin_needed), repeats)
     return st, pix_view, _median_ms(lambda: cb.raster_setup(*args), repeats), bin_ms
+
+
+def _projection_bwd_buffers(means, quats, scales, vm, chunk: int) -> tuple[list, tuple]:
+    """The projection backward's float64 inputs and its outputs (g_means, g_quats, g_scales, pose parts)."""
+    N, I = means.shape[0], vm.shape[0]
+    res = (np.empty((N, 3)), np.empty((N, 4)), np.empty((N, 3)), np.zeros((max(1, math.ceil(N / chunk)), I, 12)))
+    return [a.astype(np.float64) for a in (means, quats, scales, vm)], res
 
 
 def _reduce_ms(isect: np.ndarray, flat_ids: np.ndarray, rows: int, repeats: int) -> float:
@@ -189,7 +194,8 @@ def stage_times(sigma_px: float = 2.5, width: int = 128, n: int = 20000, repeats
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--mode", choices=("3dgs", "2dgs", "both"), default="3dgs", help="splat type (both: each and the ratio)")
+    p.add_argument("--mode", choices=("3dgs", "2dgs", "both"), default="3dgs",
+                   help="splat type (both: each and the ratio)")
     p.add_argument("--sigma", type=float, default=2.5, help="median screen sigma, pixels")
     p.add_argument("--repeats", type=int, default=41)
     p.add_argument("--threads", type=int, default=1)
