@@ -504,6 +504,27 @@ def test_tables_fill_only_the_rows_needed(mode):
 
 
 @pytest.mark.parametrize("with_normals", [False, True])
+def test_live_pairs_marks_the_pairs_with_any_upstream_gradient(with_normals):
+    """`live_pairs` (the projection backwards skip the other pairs exactly): a pair is live when any
+    channel of any gradient is non-zero at it, the normals only when asked for; a block [n0, n0 + L)."""
+    from egobench.render import cpu_kernels
+
+    rng = np.random.default_rng(7)
+    I, N, n0, L = 4, 300, 37, 200
+    sparse = lambda *shape: rng.normal(size=shape) * (rng.random(shape) < 0.03)
+    g_m2, g_second, g_dep, g_nrm = sparse(2, I, N), sparse(9, I, N), sparse(I, N), sparse(3, I, N)
+    live = np.ones((I, 256), bool)
+    cpu_kernels.live_pairs(g_m2, g_second, g_dep, g_nrm, with_normals, n0, L, live)
+    want = (g_m2 != 0).any(0) | (g_second != 0).any(0) | (g_dep != 0)
+    if with_normals:
+        want |= (g_nrm != 0).any(0)
+    np.testing.assert_array_equal(live[:, :L], want[:, n0:n0 + L])
+    assert 0 < want[:, n0:n0 + L].sum() < I * L
+    only_normals = ((g_nrm != 0).any(0) & ~want)[:, n0:n0 + L]
+    assert with_normals or (only_normals.any() and not live[:, :L][only_normals].any())
+
+
+@pytest.mark.parametrize("with_normals", [False, True])
 def test_feature_table_fills_the_needed_rows_with_colour_depth_normal(with_normals):
     """`feature_table` writes each needed row image * N + Gaussian as (colour, depth[, normal]) of that
     image and Gaussian (the layout the kernels read) and leaves the other rows as they were."""

@@ -161,17 +161,6 @@ def project_fwd_2dgs(means, quats, scales, viewmats, cam, width, height, near, f
 
 
 @njit(cache=True, inline="always")
-def _has_upstream_grad(g_means2d, g_tsl, g_depths, g_normals, i, n):
-    """Whether any upstream gradient of (pose i, surfel n) is non-zero (skipped exactly otherwise)."""
-    if g_means2d[0, i, n] != 0.0 or g_means2d[1, i, n] != 0.0 or g_depths[i, n] != 0.0:
-        return True
-    for c in range(9):
-        if g_tsl[c, i, n] != 0.0:
-            return True
-    return g_normals[0, i, n] != 0.0 or g_normals[1, i, n] != 0.0 or g_normals[2, i, n] != 0.0
-
-
-@njit(cache=True, inline="always")
 def _ray_transform_grad(M, valid, d_s, g_means2d, g_tsl, i, n, cam, gMc, gpc):
     """dL/dM (from the rasterizer, g_tsl[:, i, n] [9], and from the centre, g_means2d[:, i, n] [2]) ->
     gMc [3, 3] = dL/d(V R diag(s)) (third column 0: a surfel's normal axis has no scale) and
@@ -217,13 +206,19 @@ def project_bwd_2dgs(means, quats, scales, viewmats, cam, near, far, g_means2d, 
         gm = np.empty(3)
         gpc = np.empty(3)
         gnw = np.empty(3)
-        for n in range(ch * CHUNK, min(N, (ch + 1) * CHUNK)):
+        live = np.empty((I, CHUNK), np.bool_)
+        n0 = ch * CHUNK
+        ck.live_pairs(g_means2d, g_tsl, g_depths, g_normals, True, n0, min(N, n0 + CHUNK) - n0, live)
+        for n in range(n0, min(N, n0 + CHUNK)):
+            if not ck.any_live(live, n - n0):
+                ck.zero_gaussian_grads(g_means, g_quats, g_scales, n)
+                continue
             R, qw, qx, qy, qz, qinv = quat_rotmat(quats[n, 0], quats[n, 1], quats[n, 2], quats[n, 3], R)
             gR[:] = 0.0
             gs[:] = 0.0
             gm[:] = 0.0
             for i in range(I):
-                if not _has_upstream_grad(g_means2d, g_tsl, g_depths, g_normals, i, n):
+                if not live[i, n - n0]:
                     continue
                 V = viewmats[i]
                 x, y, z = _ray_transform(V, R, scales, means, n, cam, M)
