@@ -313,6 +313,17 @@ def live_pairs(g_means2d, g_second, g_depths, g_normals, with_normals, n0, L, li
 
 
 @njit(cache=True, inline="always")
+def live_chunk(ch, N, g_means2d, g_second, g_depths, g_normals, with_normals):
+    """Chunk ch of N Gaussians -> (first Gaussian n0, count L, `live_pairs`' mask [I, CHUNK] for them):
+    the projection backwards' per-chunk start."""
+    n0 = ch * CHUNK
+    L = min(N, n0 + CHUNK) - n0
+    live = np.empty((g_depths.shape[0], CHUNK), np.bool_)
+    live_pairs(g_means2d, g_second, g_depths, g_normals, with_normals, n0, L, live)
+    return n0, L, live
+
+
+@njit(cache=True, inline="always")
 def any_live(live, j):
     """Whether column j of `live_pairs`' mask has a live pose."""
     for i in range(live.shape[0]):
@@ -460,10 +471,8 @@ def project_bwd(means, quats, scales, viewmats, cam, width, height, eps2d, near,
         A1 = np.empty(3)
         gMc = np.empty((3, 3))
         gnw = np.empty(3)
-        live = np.empty((I, CHUNK), np.bool_)
-        n0 = ch * CHUNK
-        live_pairs(g_means2d, g_conics, g_depths, g_normals, want_normal, n0, min(N, n0 + CHUNK) - n0, live)
-        for n in range(n0, min(N, n0 + CHUNK)):
+        n0, L, live = live_chunk(ch, N, g_means2d, g_conics, g_depths, g_normals, want_normal)
+        for n in range(n0, n0 + L):
             if not any_live(live, n - n0):
                 zero_gaussian_grads(g_means, g_quats, g_scales, n)
                 continue
@@ -1276,7 +1285,7 @@ def raster_bwd(tab, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles
 @njit(cache=True)
 def _first_touch_slots(flat_ids, M, n_out):
     """Accumulator slots of the rows intersections reach, in order of first touch: flat_ids [M] ->
-    (slot [n_out] int32 (-1: no intersection), rows [n_rows] (slot -> row), n_rows)."""
+    (slot [n_out] int32 (-1: no intersection), rows [n_rows] (slot -> row))."""
     slot = np.full(n_out, -1, np.int32)
     rows = np.empty(M, np.int64)
     n_rows = 0
@@ -1285,7 +1294,7 @@ def _first_touch_slots(flat_ids, M, n_out):
             slot[flat_ids[k]] = n_rows
             rows[n_rows] = flat_ids[k]
             n_rows += 1
-    return slot, rows[:n_rows], n_rows
+    return slot, rows[:n_rows]
 
 
 @njit(cache=True, parallel=True)
@@ -1300,7 +1309,8 @@ def reduce_isect_grad(isect_grad, flat_ids, M, out, absgrad, parts=1):
     (accumulator slots) and scans every intersection for its own, so a row's terms are added in the
     same order whatever the count (bit-identical results); the output is written a channel per thread."""
     C = isect_grad.shape[1]
-    slot, rows, n_rows = _first_touch_slots(flat_ids, M, out.shape[1])
+    slot, rows = _first_touch_slots(flat_ids, M, out.shape[1])
+    n_rows = rows.shape[0]
     acc = np.zeros((n_rows, C))
     want_abs = absgrad.shape[0] > 0
     for part in prange(parts):

@@ -206,10 +206,8 @@ def project_bwd_2dgs(means, quats, scales, viewmats, cam, near, far, g_means2d, 
         gm = np.empty(3)
         gpc = np.empty(3)
         gnw = np.empty(3)
-        live = np.empty((I, CHUNK), np.bool_)
-        n0 = ch * CHUNK
-        ck.live_pairs(g_means2d, g_tsl, g_depths, g_normals, True, n0, min(N, n0 + CHUNK) - n0, live)
-        for n in range(n0, min(N, n0 + CHUNK)):
+        n0, L, live = ck.live_chunk(ch, N, g_means2d, g_tsl, g_depths, g_normals, True)
+        for n in range(n0, n0 + L):
             if not ck.any_live(live, n - n0):
                 ck.zero_gaussian_grads(g_means, g_quats, g_scales, n)
                 continue
