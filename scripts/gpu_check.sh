@@ -1,11 +1,13 @@
 #!/usr/bin/env bash
 # The GPU path's checks in one call (issue 30): on a bare CUDA machine, from the repository root,
-# install the wheels carried in .whl/ (scripts/gpu_wheels.sh: what the image lacks), JIT-build gsplat's CUDA extension, then run, each under its own share of the time:
-#   the CPU kernels' and CPU training's thread scaling 1..16 (bench raster/train --scaling) and the
-#   OpenMP wait policy's effect at 16 threads;
-#   pytest -m cuda; bench raster, bench cast (rays/s by chunk size) and bench train at 2400 px / 1M
-#   Gaussians (with and without motion sampling); two simulated frames at the paper's resolution
-#   (s/frame); config/paper_smoke.yaml end to end, as far as time allows.
+# install the wheels carried in .whl/ (scripts/gpu_wheels.sh: what the image lacks), JIT-build
+# gsplat's CUDA extension, then run, each under its own share of the time:
+#   pytest -m cuda (the GPU path's check first);
+#   CPU training's thread scaling 1..16 (bench train --scaling, 128 then 512 px), the OpenMP wait
+#   policy's effect at 16 threads, the CPU kernels' scaling (bench raster --scaling);
+#   bench raster, bench cast (rays/s by chunk size) and bench train at 2400 px / 1M Gaussians (with
+#   and without motion sampling); two simulated frames at the paper's resolution (s/frame);
+#   config/paper_smoke.yaml end to end, as far as time allows.
 # Writes OUT_DIR/summary.txt (one line per step: exit code, seconds) and OUT_DIR/logs.tar.gz (each
 # step's log, the benchmarks' JSON, the smoke run's tables and logs).
 #   usage: bash scripts/gpu_check.sh OUT_DIR [BUDGET_SECONDS]     (EGOBENCH_CACHE: LPIPS weights)
@@ -44,10 +46,18 @@ print(\"torch\", torch.__version__, \"cuda\", torch.version.cuda, torch.cuda.get
 print(\"numpy\", numpy.__version__, \"numba\", numba.__version__)"'
 step install 90 python3 -m pip install --no-index --no-deps --no-compile --no-cache-dir --upgrade \
   --target /tmp/site .whl/*.whl
+# which threading layer numba's parallel kernels use here (OMP_WAIT_POLICY matters only for 'omp')
+step numba_layer 60 python3 -c "import numba, numpy as np
+f = numba.njit(parallel=True)(lambda a: a.sum())
+f(np.ones(1000)); print('numba threading layer:', numba.threading_layer())"
+step gsplat_build 300 env VERBOSE=1 python3 -c "
+import time; t = time.time()
+from gsplat.cuda._backend import _C
+print('gsplat extension:', _C, f'{time.time() - t:.1f} s')
+assert _C is not None"
+step pytest_cuda 100 python3 -m pytest -m cuda -v -p no:cacheprovider --continue-on-collection-errors
 # the compiled CPU kernels and training on the host's 16 cores (issue 32: scaling past 2 threads)
 CPU_ENV="OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=${CPU_POOL:-16} NUMBA_CACHE_DIR=/tmp/numba_cache"
-step cpu_raster_scaling 150 bash -c "env $CPU_ENV python3 -m egobench.cli bench raster --backend cpu \
-  --mode both --scaling 1,2,4,8,16 --repeats 7 > $LOGS/cpu_raster_scaling.json"
 for px in 128 512; do  # one record each, so that a time limit keeps the first
   step cpu_train_scaling_$px 200 bash -c "env $CPU_ENV python3 -m egobench.cli bench train --resolution $px \
     --method ours --method ours_2dgs --points 20000 --scaling 1,2,4,8,16 --iterations 100 \
@@ -58,12 +68,8 @@ done
 step cpu_wait_policy 150 bash -c "for p in default ACTIVE default ACTIVE; do echo \$p; w=OMP_WAIT_POLICY=ACTIVE; \
   [ \$p = ACTIVE ] || w=; env $CPU_ENV \$w python3 -m egobench.bench.cpu_profile --sigma 2.5 --repeats 15 \
   --threads \${CPU_PROFILE_THREADS:-16} --wall | tee -a $LOGS/cpu_wait_policy.json | grep -E 'step|glue|sum_of'; done"
-step gsplat_build 300 env VERBOSE=1 python3 -c "
-import time; t = time.time()
-from gsplat.cuda._backend import _C
-print('gsplat extension:', _C, f'{time.time() - t:.1f} s')
-assert _C is not None"
-step pytest_cuda 100 python3 -m pytest -m cuda -v -p no:cacheprovider --continue-on-collection-errors
+step cpu_raster_scaling 150 bash -c "env $CPU_ENV python3 -m egobench.cli bench raster --backend cpu \
+  --mode both --scaling 1,2,4,8,16 --repeats 7 > $LOGS/cpu_raster_scaling.json"
 step bench_raster 45 bash -c "python3 -m egobench.cli bench raster --device cuda --mode both \
   --backend gsplat --backend torch --repeats 7 > $LOGS/bench_raster.json"
 step bench_cast 60 bash -c "python3 -m egobench.cli bench cast --device cuda --side 512 --repeats 3 \
