@@ -265,6 +265,12 @@ def cpu_threads(n: int, torch_n: int | None = None):
             os.environ[RASTER_THREADS_ENV] = saved
 
 
+#: untimed training iterations of each method before `bench_train` times it: without them the first
+#: timed run of a method paid its kernels' compilation (cold numba cache: most of a 100-iteration run)
+#: or cache loading (warm: 4-12 % of it at 128 px on a Zen 4 box).
+WARMUP_ITERATIONS = 3
+
+
 def bench_train(device: str = "cpu", backend: str = "auto", sides: tuple[int, ...] = (64, 128),
                 iterations: int = 30, recording: str | None = None, n_points: int = 4000,
                 methods: tuple[str, ...] = ("no_motion_sampling", "ours"), threads: tuple[int, ...] = ()) -> dict:
@@ -275,7 +281,8 @@ def bench_train(device: str = "cpu", backend: str = "auto", sides: tuple[int, ..
     ``threads`` (CPU): time every case at each of these thread counts, torch's and the kernels' alike
     (`cpu_threads`, as `egobench train` runs by default). The record's
     ``ratio_2dgs_to_3dgs`` pairs each 2DGS method with its 3DGS twin (time per iteration), and
-    ``thread_speedup`` gives each case's it/s at the last thread count over the first."""
+    ``thread_speedup`` gives each case's it/s at the last thread count over the first. Each method
+    first trains `WARMUP_ITERATIONS` untimed iterations at each resolution."""
     import resource
     import tempfile
     from pathlib import Path
@@ -292,6 +299,11 @@ def bench_train(device: str = "cpu", backend: str = "auto", sides: tuple[int, ..
         for side in sides:
             rec = recording or plane_recording(Path(tmp) / f"rec{side}", size=side, n_frames=17, angular_speed_rad_s=6.0,
                                              frame_interval_s=0.01, n_points=n_points)
+            for method in dict.fromkeys(methods):  # compile or load the method's kernels before any timing
+                cfg = TrainConfig(iterations=WARMUP_ITERATIONS, max_side=side, device=device, backend=backend,
+                                  motion_warmup_frac=0.0, refine_start_frac=1.0)
+                with cpu_threads((threads or (0,))[0]):
+                    train(rec, method, cfg, Path(tmp) / f"warmup_{method}{side}", progress=False)
             for method, n_threads in [(m, t) for m in methods for t in (threads or (0,))]:
                 cfg = TrainConfig(iterations=iterations, max_side=side, device=device, backend=backend,
                                   motion_warmup_frac=0.0, refine_start_frac=1.0)
@@ -316,6 +328,8 @@ def bench_train(device: str = "cpu", backend: str = "auto", sides: tuple[int, ..
             "threads": torch.get_num_threads(),
             "recording": str(recording) if recording else f"plane_recording (17 frames, textured plane, {n_points} points)",
             "thread_policy": TRAIN_THREAD_POLICY if threads else None,
+            "warmup": f"{WARMUP_ITERATIONS} untimed iterations of each method at each resolution first (kernel "
+                      "compilation or cache loading, first-touch allocations)",
             "results": results, "ratio_2dgs_to_3dgs": train_2dgs_ratios(results),
             "thread_speedup": train_thread_speedups(results)}
 
