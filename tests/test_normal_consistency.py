@@ -1,6 +1,7 @@
 """The compiled 2DGS normal-consistency loss against its torch oracle (value and gradients), and
 finite differences."""
 
+import numpy as np
 import torch
 
 from egobench.camera.pinhole import Pinhole
@@ -67,3 +68,74 @@ def test_a_plane_rendered_with_its_own_normal_is_consistent():
     assert float(normal_consistency(depth, normal, alpha, interior, cam)) < 1e-12
     # the whole image: the 60 border pixels have err = 1
     assert abs(float(normal_consistency(depth, normal, alpha, torch.ones_like(alpha), cam)) - 60 / 256) < 1e-12
+
+
+def _scatter_reference(P, N, wts, rays, g):
+    """The kernels' sums written the plain way (Python floats, pixels in row-major order, each pixel's
+    terms scattered to its four neighbours): value, dL/d depth, dL/d normal."""
+    import math
+
+    H, W = wts.shape
+
+    def unit(x):
+        s = max(math.sqrt(x[0] * x[0] + x[1] * x[1] + x[2] * x[2]), 1e-12)
+        return [x[0] / s, x[1] / s, x[2] / s], s
+
+    def unit_grad(gr, x, s):
+        if s > 1e-12:
+            d = x[0] * gr[0] + x[1] * gr[1] + x[2] * gr[2]
+            return [(gr[c] - x[c] * d) / s for c in range(3)]
+        return [gr[c] / s for c in range(3)]
+
+    total, gP, g_normal = 0.0, np.zeros((H, W, 3)), np.zeros((H, W, 3))
+    for v in range(H):
+        for u in range(W):
+            if not (0 < v < H - 1 and 0 < u < W - 1):
+                total += wts[v, u] * (1.0 - 0.0)
+                continue
+            a = [P[v + 1, u, c] - P[v - 1, u, c] for c in range(3)]
+            b = [P[v, u + 1, c] - P[v, u - 1, c] for c in range(3)]
+            dn, sd = unit([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+            rn, sr = unit(list(N[v, u]))
+            total += wts[v, u] * (1.0 - (rn[0] * dn[0] + rn[1] * dn[1] + rn[2] * dn[2]))
+            w = -g * wts[v, u]
+            g_normal[v, u] = unit_grad([w * dn[c] for c in range(3)], rn, sr)
+            gn = unit_grad([w * rn[c] for c in range(3)], dn, sd)
+            ga = [b[1] * gn[2] - b[2] * gn[1], b[2] * gn[0] - b[0] * gn[2], b[0] * gn[1] - b[1] * gn[0]]
+            gb = [gn[1] * a[2] - gn[2] * a[1], gn[2] * a[0] - gn[0] * a[2], gn[0] * a[1] - gn[1] * a[0]]
+            for c in range(3):
+                gP[v + 1, u, c] += ga[c]
+                gP[v - 1, u, c] -= ga[c]
+                gP[v, u + 1, c] += gb[c]
+                gP[v, u - 1, c] -= gb[c]
+    g_depth = rays[..., 0] * gP[..., 0] + rays[..., 1] * gP[..., 1] + rays[..., 2] * gP[..., 2]
+    return total, g_depth, g_normal
+
+
+def test_compiled_kernels_are_the_row_major_scatter_bit_for_bit_on_any_thread_count():
+    """The kernels run rows in parallel: the value sums the pixels' terms in pixel order, and each
+    point gathers its neighbours' gradient terms in the order the serial scatter added them, so the
+    bits are the scatter's at every thread count."""
+    import numba
+
+    from egobench.train.normal_consistency import _nc_backward, _nc_forward
+
+    rng = np.random.default_rng(4)
+    H, W = 9, 11
+    P = rng.normal(size=(H, W, 3)) + np.array([0.0, 0.0, 3.0])
+    P[4] = P[3]  # a row of zero depth normals: the eps branch
+    N = rng.normal(size=(H, W, 3))
+    N[2, 3] = 0.0
+    wts, rays = rng.random((H, W)), rng.normal(size=(H, W, 3))
+    total, g_depth, g_normal = _scatter_reference(P, N, wts, rays, 0.7)
+    saved = numba.get_num_threads()
+    try:
+        for threads in sorted({1, min(2, numba.config.NUMBA_NUM_THREADS)}):
+            numba.set_num_threads(threads)
+            got_depth, got_normal = np.full((H, W), np.nan), np.full((H, W, 3), np.nan)
+            _nc_backward(P, rays, N, wts, 0.7, got_depth, got_normal)
+            assert _nc_forward(P, N, wts) == total
+            assert np.array_equal(got_depth.view(np.uint64), g_depth.view(np.uint64))
+            assert np.array_equal(got_normal.view(np.uint64), g_normal.view(np.uint64))
+    finally:
+        numba.set_num_threads(saved)

@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 import torch
-from numba import njit
+from numba import njit, prange
 from torch import Tensor
 
 from egobench.camera.pinhole import Pinhole
@@ -53,10 +53,11 @@ def _unit(x, y, z):
 
 @njit(cache=True, inline="always")
 def _depth_normal(P, v, u):
-    """cross(P[v+1, u] - P[v-1, u], P[v, u+1] - P[v, u-1]) at an interior pixel -> (n, a, b)."""
+    """cross(P[v+1, u] - P[v-1, u], P[v, u+1] - P[v, u-1]) at an interior pixel -> (n0, n1, n2, a0, a1, a2,
+    b0, b1, b2), flat (numba's parfor analysis rejects nested tuples in a prange body)."""
     a0, a1, a2 = P[v + 1, u, 0] - P[v - 1, u, 0], P[v + 1, u, 1] - P[v - 1, u, 1], P[v + 1, u, 2] - P[v - 1, u, 2]
     b0, b1, b2 = P[v, u + 1, 0] - P[v, u - 1, 0], P[v, u + 1, 1] - P[v, u - 1, 1], P[v, u + 1, 2] - P[v, u - 1, 2]
-    return (a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0), (a0, a1, a2), (b0, b1, b2)
+    return a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0, a0, a1, a2, b0, b1, b2
 
 
 @njit(cache=True, inline="always")
@@ -68,49 +69,81 @@ def _unit_grad(gx, gy, gz, x, y, z, s):
     return gx / s, gy / s, gz / s
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def _nc_forward(P, N, wts):
     """P [H, W, 3] back-projected points, N [H, W, 3] rendered normals, wts [H, W] alpha mask / count
-    (float64) -> sum_p wts (1 - unit(N) . unit(depth normal)) (depth normal 0 on the border)."""
+    (float64) -> sum_p wts (1 - unit(N) . unit(depth normal)) (depth normal 0 on the border). The
+    terms in parallel over rows, their sum in pixel order (the same bits for any thread count)."""
     H, W = wts.shape
-    total = 0.0
-    for v in range(H):
+    terms = np.empty((H, W))
+    for v in prange(H):
         for u in range(W):
             dot = 0.0
             if 0 < v < H - 1 and 0 < u < W - 1:
-                n, _, _ = _depth_normal(P, v, u)
-                d0, d1, d2, _ = _unit(n[0], n[1], n[2])
+                n0, n1, n2 = _depth_normal(P, v, u)[:3]
+                d0, d1, d2, _ = _unit(n0, n1, n2)
                 r0, r1, r2, _ = _unit(N[v, u, 0], N[v, u, 1], N[v, u, 2])
                 dot = r0 * d0 + r1 * d1 + r2 * d2
-            total += wts[v, u] * (1.0 - dot)
+            terms[v, u] = wts[v, u] * (1.0 - dot)
+    total = 0.0
+    for v in range(H):
+        for u in range(W):
+            total += terms[v, u]
     return total
 
 
-@njit(cache=True)
-def _nc_backward(P, rays, N, wts, g, g_depth, g_normal):
-    """Backward of `_nc_forward` for upstream gradient g -> fills g_depth [H, W] and g_normal [H, W, 3]."""
+@njit(cache=True, parallel=True)
+def _nc_pixel_grads(P, N, wts, g, g_normal, ga, gb):
+    """Per interior pixel: g_normal [H, W, 3], and dL/da, dL/db [H, W, 3] of its depth normal a x b
+    (a, b: `_depth_normal`'s central differences); zero on the border."""
     H, W = wts.shape
-    gP = np.zeros((H, W, 3))
-    g_normal[:] = 0.0
-    for v in range(1, H - 1):
-        for u in range(1, W - 1):
-            n, a, b = _depth_normal(P, v, u)
-            d0, d1, d2, sd = _unit(n[0], n[1], n[2])
+    for v in prange(H):
+        for u in range(W):
+            for c in range(3):
+                g_normal[v, u, c] = ga[v, u, c] = gb[v, u, c] = 0.0
+            if not (0 < v < H - 1 and 0 < u < W - 1):
+                continue
+            n0, n1, n2, a0, a1, a2, b0, b1, b2 = _depth_normal(P, v, u)
+            d0, d1, d2, sd = _unit(n0, n1, n2)
             r0, r1, r2, sr = _unit(N[v, u, 0], N[v, u, 1], N[v, u, 2])
             w = -g * wts[v, u]
             g_normal[v, u, 0], g_normal[v, u, 1], g_normal[v, u, 2] = _unit_grad(w * d0, w * d1, w * d2, r0, r1, r2, sr)
             gn0, gn1, gn2 = _unit_grad(w * r0, w * r1, w * r2, d0, d1, d2, sd)
             # n = a x b: dL/da = b x gn, dL/db = gn x a
-            ga = (b[1] * gn2 - b[2] * gn1, b[2] * gn0 - b[0] * gn2, b[0] * gn1 - b[1] * gn0)
-            gb = (gn1 * a[2] - gn2 * a[1], gn2 * a[0] - gn0 * a[2], gn0 * a[1] - gn1 * a[0])
-            for c in range(3):
-                gP[v + 1, u, c] += ga[c]
-                gP[v - 1, u, c] -= ga[c]
-                gP[v, u + 1, c] += gb[c]
-                gP[v, u - 1, c] -= gb[c]
-    for v in range(H):
+            ga[v, u, 0], ga[v, u, 1], ga[v, u, 2] = b1 * gn2 - b2 * gn1, b2 * gn0 - b0 * gn2, b0 * gn1 - b1 * gn0
+            gb[v, u, 0], gb[v, u, 1], gb[v, u, 2] = gn1 * a2 - gn2 * a1, gn2 * a0 - gn0 * a2, gn0 * a1 - gn1 * a0
+
+
+@njit(cache=True, inline="always")
+def _gathered(ga, gb, v, u, H, W, c):
+    """dL/dP[v, u, c]: +ga above, +gb left, -gb right, -ga below (zero terms where a neighbour is missing;
+    adding a zero to a sum that started at +0.0 leaves its bits unchanged)."""
+    s = 0.0
+    if v > 0:
+        s += ga[v - 1, u, c]
+    if u > 0:
+        s += gb[v, u - 1, c]
+    if u < W - 1:
+        s -= gb[v, u + 1, c]
+    if v < H - 1:
+        s -= ga[v + 1, u, c]
+    return s
+
+
+@njit(cache=True, parallel=True)
+def _nc_backward(P, rays, N, wts, g, g_depth, g_normal):
+    """Backward of `_nc_forward` for upstream gradient g -> fills g_depth [H, W] and g_normal [H, W, 3].
+    Each point gathers its four neighbours' terms (a = P[v+1] - P[v-1] along rows, b = P[u+1] - P[u-1]
+    along columns) in the order a scatter over pixels in row-major order would add them, so the sums
+    are the same bits as that scatter's, for any thread count."""
+    H, W = wts.shape
+    ga, gb = np.empty((H, W, 3)), np.empty((H, W, 3))
+    _nc_pixel_grads(P, N, wts, g, g_normal, ga, gb)
+    for v in prange(H):
         for u in range(W):
-            g_depth[v, u] = rays[v, u, 0] * gP[v, u, 0] + rays[v, u, 1] * gP[v, u, 1] + rays[v, u, 2] * gP[v, u, 2]
+            s0, s1 = _gathered(ga, gb, v, u, H, W, 0), _gathered(ga, gb, v, u, H, W, 1)
+            s2 = _gathered(ga, gb, v, u, H, W, 2)
+            g_depth[v, u] = rays[v, u, 0] * s0 + rays[v, u, 1] * s1 + rays[v, u, 2] * s2
 
 
 @functools.lru_cache(maxsize=8)
