@@ -386,7 +386,7 @@ def test_profiler_work_counts_read_rows_hit():
 
 
 def _tile_rects_reference(means2d, radii, depths, tile_size, tiles_x, tiles_y, bin_needed):
-    """`cpu_kernels._tile_rects` in plain Python: visible pairs in (image, Gaussian) order, tile ranges
+    """`cpu_kernels.visible_rects` in plain Python: visible pairs in (image, Gaussian) order, tile ranges
     clipped to each image's box of needed bins."""
     rects, vis, keys = [], [], []
     I, N = depths.shape
@@ -408,7 +408,8 @@ def _tile_rects_reference(means2d, radii, depths, tile_size, tiles_x, tiles_y, b
 
 
 def test_tile_rects_and_gradient_sums_match_plain_references():
-    """`_tile_rects` against a plain-Python rectangle list (an image that needs no bin gives none) and
+    """`visible_rects` against a plain-Python rectangle list (an image that needs no bin gives none; the
+    pairs cut into 1, 2, 3 or 7 ranges, across image boundaries, as threads would) and
     `reduce_isect_grad` against numpy's in-order np.add.at: the same numbers bit for bit, for any
     number of parts (threads)."""
     from egobench.render import cpu_kernels as ck
@@ -421,8 +422,13 @@ def test_tile_rects_and_gradient_sums_match_plain_references():
     bin_needed = rng.random((I, tiles_x * tiles_y)) < 0.7
     bin_needed[2] = False
     want = _tile_rects_reference(means2d, radii, depths, ts, tiles_x, tiles_y, bin_needed)
-    for got, ref in zip(ck._tile_rects(means2d, radii, depths, ts, tiles_x, tiles_y, bin_needed), want):
+    for got, ref in zip(ck.visible_rects(means2d, radii, depths, ts, tiles_x, tiles_y, bin_needed), want):
         np.testing.assert_array_equal(got, ref)
+    boxes = ck._needed_boxes(bin_needed, tiles_x, tiles_y)
+    for parts in (2, 3, 7):
+        for got, ref in zip(ck._tile_rects(means2d, radii, depths, ts, tiles_x, tiles_y, boxes, parts), want):
+            assert got.dtype == ref.dtype
+            np.testing.assert_array_equal(got, ref)
     assert 0 < len(want[1]) < I * N and not np.any(want[1] // N == 2)
     M = 4000
     flat_ids = rng.integers(0, I * N, size=M).astype(np.int64)

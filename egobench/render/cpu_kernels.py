@@ -528,7 +528,7 @@ def bin_tiles(means2d, radii, depths, tile_size, tiles_x, tiles_y, bin_needed):
     depths [I,N], bin_needed [I, tiles] bool -> (flat_ids [M] int64 (image * N + Gaussian),
     bin_start [I * tiles + 1] int64). The depth order is a stable LSD radix sort of the depths'
     bit patterns (positive floats order like their bits), ties by (image, Gaussian)."""
-    rect, vis, keys = _tile_rects(means2d, radii, depths, tile_size, tiles_x, tiles_y, bin_needed)
+    rect, vis, keys = visible_rects(means2d, radii, depths, tile_size, tiles_x, tiles_y, bin_needed)
     bits = 32 if keys.dtype == np.float32 else 64
     ukeys = keys.view(np.uint32 if bits == 32 else np.uint64)
     perm = None
@@ -542,50 +542,90 @@ def bin_tiles(means2d, radii, depths, tile_size, tiles_x, tiles_y, bin_needed):
     return _fill_bins(rect[perm], vis[perm], depths.shape[1], tiles_x, tiles_y, bin_needed)
 
 
+#: the fewest (image, Gaussian) pairs per thread for which `visible_rects` splits the work
+RECT_PART_MIN = 4096
+
+
 @njit(cache=True)
-def _tile_rects(means2d, radii, depths, tile_size, tiles_x, tiles_y, bin_needed):
-    """Tile rectangles [nv, 4] int32 (x0, x1, y0, y1) of the nv visible (image, Gaussian) pairs, their
-    flat ids (ascending) and depths."""
-    I, N = depths.shape
-    n_tiles = tiles_x * tiles_y
-    # each image's tile ranges are clipped to the bounding box of its needed bins (as torch_backend)
-    bx0 = np.full(I, tiles_x, np.int64)
-    bx1 = np.zeros(I, np.int64)
-    by0 = np.full(I, tiles_y, np.int64)
-    by1 = np.zeros(I, np.int64)
+def _needed_boxes(bin_needed, tiles_x, tiles_y):
+    """Per image, the bounding box of its needed bins in tiles -> (bx0, bx1, by0, by1) [I] (empty when
+    none is needed): each image's tile ranges are clipped to it (as torch_backend)."""
+    I = bin_needed.shape[0]
+    bx0, bx1 = np.full(I, tiles_x, np.int64), np.zeros(I, np.int64)
+    by0, by1 = np.full(I, tiles_y, np.int64), np.zeros(I, np.int64)
     for i in range(I):
-        for t in range(n_tiles):
+        for t in range(tiles_x * tiles_y):
             if bin_needed[i, t]:
                 tx, ty = t % tiles_x, t // tiles_x
-                bx0[i] = min(bx0[i], tx)
-                bx1[i] = max(bx1[i], tx + 1)
-                by0[i] = min(by0[i], ty)
-                by1[i] = max(by1[i], ty + 1)
-    rect = np.empty((I * N, 4), np.int32)
-    vis = np.empty(I * N, np.int64)
-    keys = np.empty(I * N, depths.dtype)
+                bx0[i], bx1[i] = min(bx0[i], tx), max(bx1[i], tx + 1)
+                by0[i], by1[i] = min(by0[i], ty), max(by1[i], ty + 1)
+    return bx0, bx1, by0, by1
+
+
+@njit(cache=True)
+def _rects_part(means2d, radii, depths, tile_size, tiles_x, tiles_y, boxes, k0, k1):
+    """The visible pairs among k0 <= k < k1 (k = image * N + Gaussian), in k order -> (rect [nv, 4]
+    int32 (x0, x1, y0, y1), k [nv], depth [nv]): views of buffers of k1 - k0 rows."""
+    N = depths.shape[1]
+    bx0, bx1, by0, by1 = boxes
+    rect, vis, keys = np.empty((k1 - k0, 4), np.int32), np.empty(k1 - k0, np.int64), np.empty(k1 - k0, depths.dtype)
     nv = 0
-    for i in range(I):
-        for n in range(N):
+    for ii in range(k0 // N, (k1 + N - 1) // N):
+        i = np.uint64(ii)
+        x_lo, x_hi, y_lo, y_hi = bx0[i], bx1[i], by0[i], by1[i]
+        for nn in range(max(k0 - ii * N, 0), min(k1 - ii * N, N)):
+            n = np.uint64(nn)  # unsigned: no negative-index wraparound in the loads
             if radii[i, n, 0] <= 0 or radii[i, n, 1] <= 0:
                 continue
             # rows first: with motion sampling most pairs miss their pose's band of rows
             my, ry = means2d[i, n, 1] / tile_size, radii[i, n, 1] / tile_size
-            y0 = max(max(min(int(math.floor(my - ry)), tiles_y), 0), by0[i])
-            y1 = min(max(min(int(math.ceil(my + ry)), tiles_y), 0), by1[i])
+            y0 = max(max(min(int(math.floor(my - ry)), tiles_y), 0), y_lo)
+            y1 = min(max(min(int(math.ceil(my + ry)), tiles_y), 0), y_hi)
             if y1 <= y0:
                 continue
             mx, rx = means2d[i, n, 0] / tile_size, radii[i, n, 0] / tile_size
-            x0 = max(max(min(int(math.floor(mx - rx)), tiles_x), 0), bx0[i])
-            x1 = min(max(min(int(math.ceil(mx + rx)), tiles_x), 0), bx1[i])
+            x0 = max(max(min(int(math.floor(mx - rx)), tiles_x), 0), x_lo)
+            x1 = min(max(min(int(math.ceil(mx + rx)), tiles_x), 0), x_hi)
             if x1 <= x0:
                 continue
-            k = i * N + n
             rect[nv, 0], rect[nv, 1], rect[nv, 2], rect[nv, 3] = x0, x1, y0, y1
-            vis[nv] = k
+            vis[nv] = ii * N + nn
             keys[nv] = depths[i, n]
             nv += 1
-    return rect[:nv].copy(), vis[:nv].copy(), keys[:nv].copy()
+    return rect[:nv], vis[:nv], keys[:nv]
+
+
+@njit(cache=True, parallel=True)
+def _tile_rects(means2d, radii, depths, tile_size, tiles_x, tiles_y, boxes, parts):
+    """`_rects_part` over ``parts`` ranges of pairs in parallel, concatenated in order: the same result
+    as one range, for any number of parts."""
+    I, N = depths.shape
+    rect, vis, keys = np.empty((I * N, 4), np.int32), np.empty(I * N, np.int64), np.empty(I * N, depths.dtype)
+    counts = np.empty(parts, np.int64)
+    for c in prange(parts):
+        k0, k1 = c * (I * N) // parts, (c + 1) * (I * N) // parts
+        r, v, d = _rects_part(means2d, radii, depths, tile_size, tiles_x, tiles_y, boxes, k0, k1)
+        counts[c] = m = v.shape[0]
+        rect[k0:k0 + m], vis[k0:k0 + m], keys[k0:k0 + m] = r, v, d
+    offsets = np.zeros(parts + 1, np.int64)
+    offsets[1:] = np.cumsum(counts)
+    out_rect, out_vis = np.empty((offsets[-1], 4), np.int32), np.empty(offsets[-1], np.int64)
+    out_keys = np.empty(offsets[-1], depths.dtype)
+    for c in prange(parts):
+        k0, o0, m = c * (I * N) // parts, offsets[c], counts[c]
+        out_rect[o0:o0 + m], out_vis[o0:o0 + m], out_keys[o0:o0 + m] = rect[k0:k0 + m], vis[k0:k0 + m], keys[k0:k0 + m]
+    return out_rect, out_vis, out_keys
+
+
+def visible_rects(means2d, radii, depths, tile_size, tiles_x, tiles_y, bin_needed):
+    """Tile rectangles [nv, 4] int32 (x0, x1, y0, y1) of the nv visible (image, Gaussian) pairs, their
+    flat ids (ascending) and depths; the pairs in one range per kernel thread (one range: no parallel
+    loop, which costs ~20 % on one thread), the same result for any thread count."""
+    boxes = _needed_boxes(bin_needed, tiles_x, tiles_y)
+    parts = min(numba.get_num_threads(), depths.size // RECT_PART_MIN)
+    if parts <= 1:
+        return _rects_part(means2d, radii, depths, tile_size, tiles_x, tiles_y, boxes, 0, depths.size)
+    return _tile_rects(means2d, radii, depths, tile_size, tiles_x, tiles_y, boxes, parts)
 
 
 @njit(cache=True)
