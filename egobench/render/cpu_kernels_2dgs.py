@@ -60,17 +60,25 @@ __all__ = ["project_fwd_2dgs", "project_bwd_2dgs", "raster_fwd_2dgs", "raster_bw
 
 
 @njit(cache=True, inline="always")
+def _axis(w, r0, r1, r2, sc, cam):
+    """One column of the ray transform M = K [R_c s0 | R_c s1 | mean_c]: w the view's rotation V[:3, :3]
+    as a row-major 9-tuple, (r0, r1, r2) a column of the surfel's rotation, sc its scale along it ->
+    (M[0, c], M[1, c], M[2, c]) = K (w r) sc."""
+    t0 = (w[0] * r0 + w[1] * r1 + w[2] * r2) * sc
+    t1 = (w[3] * r0 + w[4] * r1 + w[5] * r2) * sc
+    t2 = (w[6] * r0 + w[7] * r1 + w[8] * r2) * sc
+    return cam[0] * t0 + cam[2] * t2, cam[1] * t1 + cam[3] * t2, t2
+
+
+@njit(cache=True, inline="always")
 def _ray_transform(V, R, scales, means, n, cam, M):
     """Fills M [3, 3] = K [R_c[:, 0] s0 | R_c[:, 1] s1 | mean_c] (R_c = V[:3, :3] R) -> camera-frame
     centre (x, y, z)."""
-    fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
     x, y, z = camera_point(V, means, n)
+    w = (V[0, 0], V[0, 1], V[0, 2], V[1, 0], V[1, 1], V[1, 2], V[2, 0], V[2, 1], V[2, 2])
     for c in range(2):
-        t0 = (V[0, 0] * R[0, c] + V[0, 1] * R[1, c] + V[0, 2] * R[2, c]) * scales[n, c]
-        t1 = (V[1, 0] * R[0, c] + V[1, 1] * R[1, c] + V[1, 2] * R[2, c]) * scales[n, c]
-        t2 = (V[2, 0] * R[0, c] + V[2, 1] * R[1, c] + V[2, 2] * R[2, c]) * scales[n, c]
-        M[0, c], M[1, c], M[2, c] = fx * t0 + cx * t2, fy * t1 + cy * t2, t2
-    M[0, 2], M[1, 2], M[2, 2] = fx * x + cx * z, fy * y + cy * z, z
+        M[0, c], M[1, c], M[2, c] = _axis(w, R[0, c], R[1, c], R[2, c], scales[n, c], cam)
+    M[0, 2], M[1, 2], M[2, 2] = cam[0] * x + cam[2] * z, cam[1] * y + cam[3] * z, z
     return x, y, z
 
 
@@ -87,15 +95,10 @@ def _surfel_centre(u0, u1, u2, v0, v1, v2, w0, w1, w2, z, near, far):
 
 @njit(cache=True, inline="always")
 def _axis_column(v, g_in, g_rot, c, j, cam):
-    """Column c (0, 1) of the ray transform M = K [R_c s0 | R_c s1 | mean_c] of chunk entry j under one
-    pose (`ck.view_rows`) -> (M[0, c], M[1, c], M[2, c]), as `_ray_transform`."""
+    """Column c (0, 1) of the ray transform of chunk entry j under one pose (`ck.view_rows`) -> `_axis`."""
     R_ = ck.ROW
-    r0, r1, r2 = g_rot[R_[c] + j], g_rot[R_[3 + c] + j], g_rot[R_[6 + c] + j]
-    sc = g_in[R_[3 + c] + j]
-    t0 = (v[0] * r0 + v[1] * r1 + v[2] * r2) * sc
-    t1 = (v[4] * r0 + v[5] * r1 + v[6] * r2) * sc
-    t2 = (v[8] * r0 + v[9] * r1 + v[10] * r2) * sc
-    return cam[0] * t0 + cam[2] * t2, cam[1] * t1 + cam[3] * t2, t2
+    w = (v[0], v[1], v[2], v[4], v[5], v[6], v[8], v[9], v[10])  # `ck.view_rows`: rows 4 wide
+    return _axis(w, g_rot[R_[c] + j], g_rot[R_[3 + c] + j], g_rot[R_[6 + c] + j], g_in[R_[3 + c] + j], cam)
 
 
 @njit(cache=True, inline="always")
