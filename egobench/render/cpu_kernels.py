@@ -173,6 +173,14 @@ def view_rows(V):
 
 
 @njit(cache=True, inline="always")
+def rotated_axis(v, r0, r1, r2, sc):
+    """A Gaussian's axis (r0, r1, r2) (a column of its rotation) scaled by sc, in the camera frame of one
+    pose (`view_rows` v) -> V[:3, :3] r sc (3 scalars)."""
+    return ((v[0] * r0 + v[1] * r1 + v[2] * r2) * sc, (v[4] * r0 + v[5] * r1 + v[6] * r2) * sc,
+            (v[8] * r0 + v[9] * r1 + v[10] * r2) * sc)
+
+
+@njit(cache=True, inline="always")
 def chunk_camera_point(v, g_in, j):
     """Camera-frame centre (x, y, z) of chunk entry j (`gather_chunk`) under one pose (`view_rows`)."""
     R_ = ROW
@@ -201,12 +209,8 @@ def _project_chunk(v, g_in, g_rot, L, cam, lims, eps2d, near, far, width, height
         c11 = eps2d
         c01 = 0.0
         for c in range(3):
-            # Mc[r, c] = sum_b V[r, b] R[b, c] s[c]
-            r0, r1, r2 = g_rot[R_[c] + j], g_rot[R_[3 + c] + j], g_rot[R_[6 + c] + j]
-            sc = g_in[R_[3 + c] + j]
-            mc0 = (v[0] * r0 + v[1] * r1 + v[2] * r2) * sc
-            mc1 = (v[4] * r0 + v[5] * r1 + v[6] * r2) * sc
-            mc2 = (v[8] * r0 + v[9] * r1 + v[10] * r2) * sc
+            mc0, mc1, mc2 = rotated_axis(v, g_rot[R_[c] + j], g_rot[R_[3 + c] + j], g_rot[R_[6 + c] + j],
+                                         g_in[R_[3 + c] + j])
             a0 = j00 * (mc0 - tx * mc2)
             a1 = j11 * (mc1 - ty * mc2)
             c00 += a0 * a0
@@ -346,9 +350,9 @@ def zero_gaussian_grads(g_means, g_quats, g_scales, n):
 def _cov2d_rows(V, R, scales, n, j00, j11, tx, ty, eps2d, Mc, A0, A1):
     """Fills Mc [3, 3] = V[:3, :3] R diag(s) and the rows A0, A1 [3] of J Mc (J: EWA Jacobian with
     j00, j11, tx, ty) -> 2D covariance (c00, c11, c01) with the eps2d dilation."""
+    v = view_rows(V)
     for c in range(3):
-        for r in range(3):
-            Mc[r, c] = (V[r, 0] * R[0, c] + V[r, 1] * R[1, c] + V[r, 2] * R[2, c]) * scales[n, c]
+        Mc[0, c], Mc[1, c], Mc[2, c] = rotated_axis(v, R[0, c], R[1, c], R[2, c], scales[n, c])
         A0[c] = j00 * (Mc[0, c] - tx * Mc[2, c])
         A1[c] = j11 * (Mc[1, c] - ty * Mc[2, c])
     c00 = eps2d + A0[0] * A0[0] + A0[1] * A0[1] + A0[2] * A0[2]

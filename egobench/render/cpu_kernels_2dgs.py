@@ -60,13 +60,10 @@ __all__ = ["project_fwd_2dgs", "project_bwd_2dgs", "raster_fwd_2dgs", "raster_bw
 
 
 @njit(cache=True, inline="always")
-def _axis(w, r0, r1, r2, sc, cam):
-    """One column of the ray transform M = K [R_c s0 | R_c s1 | mean_c]: w the view's rotation V[:3, :3]
-    as a row-major 9-tuple, (r0, r1, r2) a column of the surfel's rotation, sc its scale along it ->
-    (M[0, c], M[1, c], M[2, c]) = K (w r) sc."""
-    t0 = (w[0] * r0 + w[1] * r1 + w[2] * r2) * sc
-    t1 = (w[3] * r0 + w[4] * r1 + w[5] * r2) * sc
-    t2 = (w[6] * r0 + w[7] * r1 + w[8] * r2) * sc
+def _axis(v, r0, r1, r2, sc, cam):
+    """One column of the ray transform M = K [R_c s0 | R_c s1 | mean_c] for one pose (`ck.view_rows` v),
+    (r0, r1, r2) a column of the surfel's rotation, sc its scale along it -> (M[0, c], M[1, c], M[2, c])."""
+    t0, t1, t2 = ck.rotated_axis(v, r0, r1, r2, sc)
     return cam[0] * t0 + cam[2] * t2, cam[1] * t1 + cam[3] * t2, t2
 
 
@@ -75,9 +72,9 @@ def _ray_transform(V, R, scales, means, n, cam, M):
     """Fills M [3, 3] = K [R_c[:, 0] s0 | R_c[:, 1] s1 | mean_c] (R_c = V[:3, :3] R) -> camera-frame
     centre (x, y, z)."""
     x, y, z = camera_point(V, means, n)
-    w = (V[0, 0], V[0, 1], V[0, 2], V[1, 0], V[1, 1], V[1, 2], V[2, 0], V[2, 1], V[2, 2])
+    v = ck.view_rows(V)
     for c in range(2):
-        M[0, c], M[1, c], M[2, c] = _axis(w, R[0, c], R[1, c], R[2, c], scales[n, c], cam)
+        M[0, c], M[1, c], M[2, c] = _axis(v, R[0, c], R[1, c], R[2, c], scales[n, c], cam)
     M[0, 2], M[1, 2], M[2, 2] = cam[0] * x + cam[2] * z, cam[1] * y + cam[3] * z, z
     return x, y, z
 
@@ -97,8 +94,7 @@ def _surfel_centre(u0, u1, u2, v0, v1, v2, w0, w1, w2, z, near, far):
 def _axis_column(v, g_in, g_rot, c, j, cam):
     """Column c (0, 1) of the ray transform of chunk entry j under one pose (`ck.view_rows`) -> `_axis`."""
     R_ = ck.ROW
-    w = (v[0], v[1], v[2], v[4], v[5], v[6], v[8], v[9], v[10])  # `ck.view_rows`: rows 4 wide
-    return _axis(w, g_rot[R_[c] + j], g_rot[R_[3 + c] + j], g_rot[R_[6 + c] + j], g_in[R_[3 + c] + j], cam)
+    return _axis(v, g_rot[R_[c] + j], g_rot[R_[3 + c] + j], g_rot[R_[6 + c] + j], g_in[R_[3 + c] + j], cam)
 
 
 @njit(cache=True, inline="always")
