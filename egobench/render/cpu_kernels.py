@@ -567,13 +567,12 @@ def _needed_boxes(bin_needed, tiles_x, tiles_y):
 
 
 @njit(cache=True)
-def _rects_part(means2d, radii, depths, tile_size, tiles_x, tiles_y, boxes, k0, k1):
-    """The visible pairs among k0 <= k < k1 (k = image * N + Gaussian), in k order -> (rect [nv, 4]
-    int32 (x0, x1, y0, y1), k [nv], depth [nv]): views of buffers of k1 - k0 rows."""
+def _rects_part(means2d, radii, depths, tile_size, tiles_x, tiles_y, boxes, k0, k1, rect, vis, keys):
+    """The visible pairs among k0 <= k < k1 (k = image * N + Gaussian), in k order: their tile rectangles
+    (x0, x1, y0, y1), k and depth written to rect, vis, keys from row k0 on -> their count."""
     N = depths.shape[1]
     bx0, bx1, by0, by1 = boxes
-    rect, vis, keys = np.empty((k1 - k0, 4), np.int32), np.empty(k1 - k0, np.int64), np.empty(k1 - k0, depths.dtype)
-    nv = 0
+    nv = k0
     for ii in range(k0 // N, (k1 + N - 1) // N):
         i = np.uint64(ii)
         x_lo, x_hi, y_lo, y_hi = bx0[i], bx1[i], by0[i], by1[i]
@@ -596,40 +595,42 @@ def _rects_part(means2d, radii, depths, tile_size, tiles_x, tiles_y, boxes, k0, 
             vis[nv] = ii * N + nn
             keys[nv] = depths[i, n]
             nv += 1
-    return rect[:nv], vis[:nv], keys[:nv]
+    return nv - k0
 
 
 @njit(cache=True, parallel=True)
-def _tile_rects(means2d, radii, depths, tile_size, tiles_x, tiles_y, boxes, parts):
-    """`_rects_part` over ``parts`` ranges of pairs in parallel, concatenated in order: the same result
-    as one range, for any number of parts."""
-    I, N = depths.shape
-    rect, vis, keys = np.empty((I * N, 4), np.int32), np.empty(I * N, np.int64), np.empty(I * N, depths.dtype)
+def _tile_rects(means2d, radii, depths, tile_size, tiles_x, tiles_y, boxes, parts, rect, vis, keys):
+    """`_rects_part` over ``parts`` ranges of pairs in parallel (rows from each range's first pair on),
+    then packed in order -> the count: the same rows as one range, for any number of parts."""
+    total = depths.size
     counts = np.empty(parts, np.int64)
     for c in prange(parts):
-        k0, k1 = c * (I * N) // parts, (c + 1) * (I * N) // parts
-        r, v, d = _rects_part(means2d, radii, depths, tile_size, tiles_x, tiles_y, boxes, k0, k1)
-        counts[c] = m = v.shape[0]
-        rect[k0:k0 + m], vis[k0:k0 + m], keys[k0:k0 + m] = r, v, d
-    offsets = np.zeros(parts + 1, np.int64)
-    offsets[1:] = np.cumsum(counts)
-    out_rect, out_vis = np.empty((offsets[-1], 4), np.int32), np.empty(offsets[-1], np.int64)
-    out_keys = np.empty(offsets[-1], depths.dtype)
-    for c in prange(parts):
-        k0, o0, m = c * (I * N) // parts, offsets[c], counts[c]
-        out_rect[o0:o0 + m], out_vis[o0:o0 + m], out_keys[o0:o0 + m] = rect[k0:k0 + m], vis[k0:k0 + m], keys[k0:k0 + m]
-    return out_rect, out_vis, out_keys
+        counts[c] = _rects_part(means2d, radii, depths, tile_size, tiles_x, tiles_y, boxes, c * total // parts,
+                                (c + 1) * total // parts, rect, vis, keys)
+    nv = counts[0]
+    for c in range(1, parts):  # in order, each range moved down (never past its own rows): sequential
+        k0 = c * total // parts
+        for q in range(counts[c]):
+            rect[nv + q, 0], rect[nv + q, 1] = rect[k0 + q, 0], rect[k0 + q, 1]
+            rect[nv + q, 2], rect[nv + q, 3] = rect[k0 + q, 2], rect[k0 + q, 3]
+            vis[nv + q], keys[nv + q] = vis[k0 + q], keys[k0 + q]
+        nv += counts[c]
+    return nv
 
 
 def visible_rects(means2d, radii, depths, tile_size, tiles_x, tiles_y, bin_needed):
     """Tile rectangles [nv, 4] int32 (x0, x1, y0, y1) of the nv visible (image, Gaussian) pairs, their
     flat ids (ascending) and depths; the pairs in one range per kernel thread (one range: no parallel
-    loop, which costs ~20 % on one thread), the same result for any thread count."""
+    loop), the same result for any thread count."""
     boxes = _needed_boxes(bin_needed, tiles_x, tiles_y)
+    rect, vis = np.empty((depths.size, 4), np.int32), np.empty(depths.size, np.int64)
+    keys = np.empty(depths.size, depths.dtype)
     parts = min(numba.get_num_threads(), depths.size // RECT_PART_MIN)
     if parts <= 1:
-        return _rects_part(means2d, radii, depths, tile_size, tiles_x, tiles_y, boxes, 0, depths.size)
-    return _tile_rects(means2d, radii, depths, tile_size, tiles_x, tiles_y, boxes, parts)
+        nv = _rects_part(means2d, radii, depths, tile_size, tiles_x, tiles_y, boxes, 0, depths.size, rect, vis, keys)
+    else:
+        nv = _tile_rects(means2d, radii, depths, tile_size, tiles_x, tiles_y, boxes, parts, rect, vis, keys)
+    return rect[:nv], vis[:nv], keys[:nv]
 
 
 @njit(cache=True)
