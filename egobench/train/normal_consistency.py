@@ -92,26 +92,25 @@ def _nc_forward(P, N, wts):
     return total
 
 
-@njit(cache=True, parallel=True)
-def _nc_pixel_grads(P, N, wts, g, g_normal, ga, gb):
-    """Per interior pixel: g_normal [H, W, 3], and dL/da, dL/db [H, W, 3] of its depth normal a x b
+@njit(cache=True, inline="always")
+def _nc_row_grads(P, N, wts, g, g_normal, ga, gb, v):
+    """Per pixel of row v: g_normal [H, W, 3], and dL/da, dL/db [H, W, 3] of its depth normal a x b
     (a, b: `_depth_normal`'s central differences); zero on the border."""
     H, W = wts.shape
-    for v in prange(H):
-        for u in range(W):
-            for c in range(3):
-                g_normal[v, u, c] = ga[v, u, c] = gb[v, u, c] = 0.0
-            if not (0 < v < H - 1 and 0 < u < W - 1):
-                continue
-            n0, n1, n2, a0, a1, a2, b0, b1, b2 = _depth_normal(P, v, u)
-            d0, d1, d2, sd = _unit(n0, n1, n2)
-            r0, r1, r2, sr = _unit(N[v, u, 0], N[v, u, 1], N[v, u, 2])
-            w = -g * wts[v, u]
-            g_normal[v, u, 0], g_normal[v, u, 1], g_normal[v, u, 2] = _unit_grad(w * d0, w * d1, w * d2, r0, r1, r2, sr)
-            gn0, gn1, gn2 = _unit_grad(w * r0, w * r1, w * r2, d0, d1, d2, sd)
-            # n = a x b: dL/da = b x gn, dL/db = gn x a
-            ga[v, u, 0], ga[v, u, 1], ga[v, u, 2] = b1 * gn2 - b2 * gn1, b2 * gn0 - b0 * gn2, b0 * gn1 - b1 * gn0
-            gb[v, u, 0], gb[v, u, 1], gb[v, u, 2] = gn1 * a2 - gn2 * a1, gn2 * a0 - gn0 * a2, gn0 * a1 - gn1 * a0
+    for u in range(W):
+        for c in range(3):
+            g_normal[v, u, c] = ga[v, u, c] = gb[v, u, c] = 0.0
+        if not (0 < v < H - 1 and 0 < u < W - 1):
+            continue
+        n0, n1, n2, a0, a1, a2, b0, b1, b2 = _depth_normal(P, v, u)
+        d0, d1, d2, sd = _unit(n0, n1, n2)
+        r0, r1, r2, sr = _unit(N[v, u, 0], N[v, u, 1], N[v, u, 2])
+        w = -g * wts[v, u]
+        g_normal[v, u, 0], g_normal[v, u, 1], g_normal[v, u, 2] = _unit_grad(w * d0, w * d1, w * d2, r0, r1, r2, sr)
+        gn0, gn1, gn2 = _unit_grad(w * r0, w * r1, w * r2, d0, d1, d2, sd)
+        # n = a x b: dL/da = b x gn, dL/db = gn x a
+        ga[v, u, 0], ga[v, u, 1], ga[v, u, 2] = b1 * gn2 - b2 * gn1, b2 * gn0 - b0 * gn2, b0 * gn1 - b1 * gn0
+        gb[v, u, 0], gb[v, u, 1], gb[v, u, 2] = gn1 * a2 - gn2 * a1, gn2 * a0 - gn0 * a2, gn0 * a1 - gn1 * a0
 
 
 @njit(cache=True, inline="always")
@@ -138,7 +137,8 @@ def _nc_backward(P, rays, N, wts, g, g_depth, g_normal):
     are the same bits as that scatter's, for any thread count."""
     H, W = wts.shape
     ga, gb = np.empty((H, W, 3)), np.empty((H, W, 3))
-    _nc_pixel_grads(P, N, wts, g, g_normal, ga, gb)
+    for v in prange(H):
+        _nc_row_grads(P, N, wts, g, g_normal, ga, gb, v)
     for v in prange(H):
         for u in range(W):
             s0, s1 = _gathered(ga, gb, v, u, H, W, 0), _gathered(ga, gb, v, u, H, W, 1)
