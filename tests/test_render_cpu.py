@@ -431,6 +431,8 @@ def test_tile_rects_and_gradient_sums_match_plain_references():
         for got, ref in zip(out, want):
             np.testing.assert_array_equal(got[:nv], ref)
     assert 0 < len(want[1]) < I * N and not np.any(want[1] // N == 2)
+    flat_ids, bin_start = ck.bin_tiles(means2d[:, :0], radii[:, :0], depths[:, :0], ts, tiles_x, tiles_y, bin_needed)
+    assert flat_ids.shape == (0,) and bin_start.shape == (I * tiles_x * tiles_y + 1,) and not bin_start.any()
     M = 4000
     flat_ids = rng.integers(0, I * N, size=M).astype(np.int64)
     isect = rng.normal(size=(M, 10)).astype(np.float32)

@@ -571,6 +571,8 @@ def _rects_part(means2d, radii, depths, tile_size, tiles_x, tiles_y, boxes, k0, 
     """The visible pairs among k0 <= k < k1 (k = image * N + Gaussian), in k order: their tile rectangles
     (x0, x1, y0, y1), k and depth written to rect, vis, keys from row k0 on -> their count."""
     N = depths.shape[1]
+    if k1 <= k0:  # no pairs (also N = 0)
+        return 0
     bx0, bx1, by0, by1 = boxes
     nv = k0
     for ii in range(k0 // N, (k1 + N - 1) // N):
