@@ -105,7 +105,8 @@ def test_bench_train_cli_small(capsys):
     assert rows["ours"]["pose_samples_mean"] > 1.0 and rows["no_motion_sampling"]["pose_samples_mean"] == 1.0
 
 
-@pytest.mark.parametrize("flag, value", [("--iterations", "0"), ("--points", "0"), ("--resolution", "4")])
+@pytest.mark.parametrize("flag, value", [("--iterations", "0"), ("--points", "0"), ("--resolution", "4"),
+                                         ("--rounds", "0")])
 def test_bench_train_rejects_bad_arguments(flag, value):
     from egobench.cli import main
 
@@ -147,6 +148,39 @@ def test_bench_train_warms_each_method_up_before_timing_it(monkeypatch):
                          ("ours", 5, 2), ("ours", 5, 1)]
     assert [r["iters_per_s"] for r in rec["results"]] == [3.0, 4.0, 5.0, 6.0, 7.0, 8.0]  # timed runs only
     assert str(w) in rec["warmup"]
+
+
+def test_bench_train_rounds_alternate_the_order_and_compare_within_each_round(monkeypatch):
+    """--rounds 3: the cases run forward, backward, forward; each ratio and speed-up is taken within its
+    round, and the record gives the median over rounds with the per-round values."""
+    import types
+
+    import egobench.train
+
+    calls = []
+    speed = {("ours", 1): [30.0, 20.0, 33.0], ("ours", 2): [45.0, 40.0, 33.0],
+             ("ours_2dgs", 1): [20.0, 10.0, 30.0], ("ours_2dgs", 2): [36.0, 10.0, 30.0]}
+
+    def fake_train(rec, method, cfg, out_dir, progress):
+        if cfg.iterations == bench.WARMUP_ITERATIONS:
+            return types.SimpleNamespace(iters_per_s=1.0, raster_time_share=0.5, num_gaussians=7,
+                                         record={"motion_samples": {"mean": 1.0}})
+        key = (method, torch.get_num_threads())
+        calls.append(key)
+        rnd = sum(c == key for c in calls) - 1
+        return types.SimpleNamespace(iters_per_s=speed[key][rnd], raster_time_share=0.5, num_gaussians=7,
+                                     record={"motion_samples": {"mean": 1.0}})
+
+    monkeypatch.setattr(egobench.train, "train", fake_train)
+    rec = bench.bench_train("cpu", sides=(16,), iterations=5, methods=("ours", "ours_2dgs"), threads=(1, 2), rounds=3)
+    forward = [("ours", 1), ("ours", 2), ("ours_2dgs", 1), ("ours_2dgs", 2)]
+    assert calls == forward + forward[::-1] + forward
+    assert [r["round"] for r in rec["results"]] == [0] * 4 + [1] * 4 + [2] * 4 and rec["rounds"] == 3
+    ratio1 = [x for x in rec["ratio_2dgs_to_3dgs"] if x["threads"] == 1][0]
+    assert ratio1["per_round"] == [1.5, 2.0, 1.1] and ratio1["ratio_2dgs_to_3dgs"] == 1.5
+    sp = {x["method"]: x for x in rec["thread_speedup"]}
+    assert sp["ours"]["per_round"] == [1.5, 2.0, 1.0] and sp["ours"]["speedup_2_vs_1"] == 1.5
+    assert sp["ours_2dgs"]["per_round"] == [1.8, 1.0, 1.0] and sp["ours_2dgs"]["speedup_2_vs_1"] == 1.0
 
 
 @pytest.mark.parametrize("what", ["train", "raster"])

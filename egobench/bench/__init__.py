@@ -273,7 +273,8 @@ WARMUP_ITERATIONS = 3
 
 def bench_train(device: str = "cpu", backend: str = "auto", sides: tuple[int, ...] = (64, 128),
                 iterations: int = 30, recording: str | None = None, n_points: int = 4000,
-                methods: tuple[str, ...] = ("no_motion_sampling", "ours"), threads: tuple[int, ...] = ()) -> dict:
+                methods: tuple[str, ...] = ("no_motion_sampling", "ours"), threads: tuple[int, ...] = (),
+                rounds: int = 1) -> dict:
     """The training benchmark record: one row per (resolution, method[, threads]) with iterations/s,
     the rasterizer's share of the step time, the Gaussian count and peak memory (CUDA: the allocator's
     peak for that run; CPU: the process's max RSS so far). No densification (refine_start_frac=1),
@@ -282,7 +283,10 @@ def bench_train(device: str = "cpu", backend: str = "auto", sides: tuple[int, ..
     (`cpu_threads`, as `egobench train` runs by default). The record's
     ``ratio_2dgs_to_3dgs`` pairs each 2DGS method with its 3DGS twin (time per iteration), and
     ``thread_speedup`` gives each case's it/s at the last thread count over the first. Each method
-    first trains `WARMUP_ITERATIONS` untimed iterations at each resolution."""
+    first trains `WARMUP_ITERATIONS` untimed iterations at each resolution. ``rounds`` > 1 times every
+    case that many times, the order of the cases reversed every other round (drift weighs on both
+    ends alike); ratios and speed-ups are then taken within each round and given as the median over
+    rounds with the per-round values (a noisy machine: compare like with like, in the same round)."""
     import resource
     import tempfile
     from pathlib import Path
@@ -304,7 +308,8 @@ def bench_train(device: str = "cpu", backend: str = "auto", sides: tuple[int, ..
                                   motion_warmup_frac=0.0, refine_start_frac=1.0)
                 with cpu_threads((threads or (0,))[0]):
                     train(rec, method, cfg, Path(tmp) / f"warmup_{method}{side}", progress=False)
-            for method, n_threads in [(m, t) for m in methods for t in (threads or (0,))]:
+            cases = [(m, t) for m in methods for t in (threads or (0,))]
+            for rnd, (method, n_threads) in [(r, c) for r in range(rounds) for c in (cases[::-1] if r % 2 else cases)]:
                 cfg = TrainConfig(iterations=iterations, max_side=side, device=device, backend=backend,
                                   motion_warmup_frac=0.0, refine_start_frac=1.0)
                 if device.startswith("cuda"):
@@ -322,12 +327,12 @@ def bench_train(device: str = "cpu", backend: str = "auto", sides: tuple[int, ..
                     "iterations": iterations, "iters_per_s": round(res.iters_per_s, 3),
                     "raster_time_share": round(res.raster_time_share, 3), "num_gaussians": res.num_gaussians,
                     "pose_samples_mean": res.record["motion_samples"]["mean"],
-                    "peak_memory_mib": round(peak, 1), "peak_memory_kind": kind,
+                    "peak_memory_mib": round(peak, 1), "peak_memory_kind": kind, "round": rnd,
                 })
     return {"benchmark": "train", "device": device, "backend": backend, "torch": torch.__version__,
             "threads": torch.get_num_threads(),
             "recording": str(recording) if recording else f"plane_recording (17 frames, textured plane, {n_points} points)",
-            "thread_policy": TRAIN_THREAD_POLICY if threads else None,
+            "thread_policy": TRAIN_THREAD_POLICY if threads else None, "rounds": rounds,
             "warmup": f"{WARMUP_ITERATIONS} untimed iterations of each method at each resolution first (kernel "
                       "compilation or cache loading, first-touch allocations)",
             "results": results, "ratio_2dgs_to_3dgs": train_2dgs_ratios(results),
@@ -338,23 +343,45 @@ def bench_train(device: str = "cpu", backend: str = "auto", sides: tuple[int, ..
 TWIN_3DGS = {"ours_2dgs": "ours", "2dgs_no_motion_sampling": "no_motion_sampling"}
 
 
+def _over_rounds(per_round: list[float]) -> dict:
+    """Per-round values -> their median (3 decimals) and the values themselves."""
+    import statistics
+
+    return {"median": round(statistics.median(per_round), 3), "per_round": [round(v, 3) for v in per_round]}
+
+
 def train_2dgs_ratios(rows: list[dict]) -> list[dict]:
-    """Time per iteration of each 2DGS method over its 3DGS twin's, per (resolution, threads)."""
-    speed = {(r["method"], r["resolution"], r["threads"]): r["iters_per_s"] for r in rows}
-    return [{"method_2dgs": m2, "method_3dgs": m3, "resolution": side, "threads": t,
-             "ratio_2dgs_to_3dgs": round(speed[(m3, side, t)] / speed[(m2, side, t)], 3)}
-            for (m2, side, t) in speed for m3 in [TWIN_3DGS.get(m2)] if (m3, side, t) in speed]
+    """Time per iteration of each 2DGS method over its 3DGS twin's, per (resolution, threads), taken within
+    each round: ``ratio_2dgs_to_3dgs`` is the median over rounds, ``per_round`` the values."""
+    speed = {(r["method"], r["resolution"], r["threads"], r.get("round", 0)): r["iters_per_s"] for r in rows}
+    out = []
+    for m2, side, t in dict.fromkeys(k[:3] for k in speed):
+        m3 = TWIN_3DGS.get(m2)
+        per = [speed[(m3, side, t, r)] / speed[(m2, side, t, r)] for (m, s_, t_, r) in speed
+               if (m, s_, t_) == (m2, side, t) and (m3, side, t, r) in speed]
+        if per:
+            agg = _over_rounds(per)
+            out.append({"method_2dgs": m2, "method_3dgs": m3, "resolution": side, "threads": t,
+                        "ratio_2dgs_to_3dgs": agg["median"], "per_round": agg["per_round"]})
+    return out
 
 
 def train_thread_speedups(rows: list[dict]) -> list[dict]:
-    """it/s at the most threads over it/s at the fewest, per (method, resolution) timed at several."""
+    """it/s at the most threads over it/s at the fewest, per (method, resolution) timed at several, taken
+    within each round: the median over rounds and ``per_round``."""
     out = []
     for method, side in dict.fromkeys((r["method"], r["resolution"]) for r in rows):
-        by_t = {r["threads"]: r["iters_per_s"] for r in rows if (r["method"], r["resolution"]) == (method, side)}
-        if len(by_t) > 1:
-            lo, hi = min(by_t), max(by_t)
+        mine = [r for r in rows if (r["method"], r["resolution"]) == (method, side)]
+        counts = sorted({r["threads"] for r in mine})
+        if len(counts) > 1:
+            lo, hi = counts[0], counts[-1]
+            per = []
+            for rnd in dict.fromkeys(r.get("round", 0) for r in mine):
+                by_t = {r["threads"]: r["iters_per_s"] for r in mine if r.get("round", 0) == rnd}
+                per.append(by_t[hi] / by_t[lo])
+            agg = _over_rounds(per)
             out.append({"method": method, "resolution": side, "threads": [lo, hi],
-                        f"speedup_{hi}_vs_{lo}": round(by_t[hi] / by_t[lo], 3)})
+                        f"speedup_{hi}_vs_{lo}": agg["median"], "per_round": agg["per_round"]})
     return out
 
 
@@ -427,6 +454,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     train.add_argument("--recording", default=None, help="a recording folder instead of the synthetic one")
     train.add_argument("--method", action="append",
                        help="method to train (repeatable; default no_motion_sampling and ours; e.g. ours_2dgs)")
+    train.add_argument("--rounds", type=int, default=1,
+                       help="time every case this many times, alternating their order; ratios and speed-ups "
+                            "per round, reported as medians with the per-round values")
     parser.add_argument("--scaling", default="",
                         help="comma-separated thread counts (e.g. 1,2,4). train: every case at each, torch's and "
                              "the compiled kernels' alike, as `egobench train` sets them; raster (CPU): the last "
@@ -453,7 +483,7 @@ def run(args: argparse.Namespace) -> int:
     if args.what == "cast":
         _report(bench_cast(args.device, args.repeats, side=args.side, chunks=tuple(args.chunk)))
         return 0
-    for name in ("iterations", "points"):
+    for name in ("iterations", "points", "rounds"):
         if getattr(args, name) < 1:
             raise ValueError(f"--{name}: expected a positive integer, got {getattr(args, name)}")
     sides = tuple(args.resolution or (64, 128))
@@ -465,7 +495,7 @@ def run(args: argparse.Namespace) -> int:
 
         keep_freed_memory()  # as `egobench train` runs on the CPU (host.allocator in the record)
     _report(bench_train(args.device, chosen[0], sides, args.iterations, args.recording, args.points, methods,
-                        threads))
+                        threads, args.rounds))
     return 0
 
 
