@@ -271,6 +271,32 @@ def cpu_threads(n: int, torch_n: int | None = None):
 WARMUP_ITERATIONS = 3
 
 
+def _timed_training(rec, method: str, cfg, n_threads: int, out_dir) -> dict:
+    """One timed training run (threads: `cpu_threads`) -> its benchmark row (it/s, the rasterizer's share,
+    peak memory: CUDA's allocator peak or the process's max RSS so far)."""
+    import resource
+
+    from egobench.model.methods import get_method
+    from egobench.train import train
+
+    device = cfg.device
+    if device.startswith("cuda"):
+        torch.cuda.reset_peak_memory_stats()
+    with cpu_threads(n_threads):
+        res = train(rec, method, cfg, out_dir, progress=False)
+    if device.startswith("cuda"):
+        peak, kind = torch.cuda.max_memory_allocated() / 2**20, "cuda max_memory_allocated"
+    else:
+        peak, kind = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, "process max RSS (cumulative)"
+    spec = get_method(method)
+    return {"method": method, "threads": n_threads or torch.get_num_threads(),
+            "motion_sampling": spec.motion_sampling == "adaptive", "splat_mode": spec.splat_mode,
+            "resolution": cfg.max_side, "iterations": cfg.iterations, "iters_per_s": round(res.iters_per_s, 3),
+            "raster_time_share": round(res.raster_time_share, 3), "num_gaussians": res.num_gaussians,
+            "pose_samples_mean": res.record["motion_samples"]["mean"],
+            "peak_memory_mib": round(peak, 1), "peak_memory_kind": kind}
+
+
 def bench_train(device: str = "cpu", backend: str = "auto", sides: tuple[int, ...] = (64, 128),
                 iterations: int = 30, recording: str | None = None, n_points: int = 4000,
                 methods: tuple[str, ...] = ("no_motion_sampling", "ours"), threads: tuple[int, ...] = (),
@@ -287,7 +313,6 @@ def bench_train(device: str = "cpu", backend: str = "auto", sides: tuple[int, ..
     case that many times, the order of the cases reversed every other round (drift weighs on both
     ends alike); ratios and speed-ups are then taken within each round and given as the median over
     rounds with the per-round values (a noisy machine: compare like with like, in the same round)."""
-    import resource
     import tempfile
     from pathlib import Path
 
@@ -312,23 +337,8 @@ def bench_train(device: str = "cpu", backend: str = "auto", sides: tuple[int, ..
             for rnd, (method, n_threads) in [(r, c) for r in range(rounds) for c in (cases[::-1] if r % 2 else cases)]:
                 cfg = TrainConfig(iterations=iterations, max_side=side, device=device, backend=backend,
                                   motion_warmup_frac=0.0, refine_start_frac=1.0)
-                if device.startswith("cuda"):
-                    torch.cuda.reset_peak_memory_stats()
-                with cpu_threads(n_threads):
-                    res = train(rec, method, cfg, Path(tmp) / f"{method}{side}t{n_threads}", progress=False)
-                if device.startswith("cuda"):
-                    peak, kind = torch.cuda.max_memory_allocated() / 2**20, "cuda max_memory_allocated"
-                else:
-                    peak, kind = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, "process max RSS (cumulative)"
-                results.append({
-                    "method": method, "threads": n_threads or torch.get_num_threads(),
-                    "motion_sampling": get_method(method).motion_sampling == "adaptive",
-                    "splat_mode": get_method(method).splat_mode, "resolution": side,
-                    "iterations": iterations, "iters_per_s": round(res.iters_per_s, 3),
-                    "raster_time_share": round(res.raster_time_share, 3), "num_gaussians": res.num_gaussians,
-                    "pose_samples_mean": res.record["motion_samples"]["mean"],
-                    "peak_memory_mib": round(peak, 1), "peak_memory_kind": kind, "round": rnd,
-                })
+                out_dir = Path(tmp) / f"{method}{side}t{n_threads}r{rnd}"
+                results.append({**_timed_training(rec, method, cfg, n_threads, out_dir), "round": rnd})
     return {"benchmark": "train", "device": device, "backend": backend, "torch": torch.__version__,
             "threads": torch.get_num_threads(),
             "recording": str(recording) if recording else f"plane_recording (17 frames, textured plane, {n_points} points)",
