@@ -111,15 +111,6 @@ def _clip_limits(cam, width, height):
     return lxp, lxn, lyp, lyn
 
 
-@njit(cache=True, inline="always")
-def camera_point(V, means, n):
-    """Camera-frame centre (x, y, z) of Gaussian n under world-to-camera V [4, 4]."""
-    x = V[0, 0] * means[n, 0] + V[0, 1] * means[n, 1] + V[0, 2] * means[n, 2] + V[0, 3]
-    y = V[1, 0] * means[n, 0] + V[1, 1] * means[n, 1] + V[1, 2] * means[n, 2] + V[1, 3]
-    z = V[2, 0] * means[n, 0] + V[2, 1] * means[n, 1] + V[2, 2] * means[n, 2] + V[2, 3]
-    return x, y, z
-
-
 #: The projection's per-chunk scratch: rows of CHUNK entries in one flat array each, indexed with unsigned
 #: offsets (no wrap-around code), so that the Gaussian loop reads and writes at unit stride through few base
 #: pointers and LLVM vectorizes it (8 float64 lanes); row k starts at ROW[k].
@@ -173,6 +164,19 @@ def view_rows(V):
 
 
 @njit(cache=True, inline="always")
+def view_point(v, m0, m1, m2):
+    """World point (m0, m1, m2) in the camera frame of one pose (`view_rows` v) -> (x, y, z)."""
+    return (v[0] * m0 + v[1] * m1 + v[2] * m2 + v[3], v[4] * m0 + v[5] * m1 + v[6] * m2 + v[7],
+            v[8] * m0 + v[9] * m1 + v[10] * m2 + v[11])
+
+
+@njit(cache=True, inline="always")
+def camera_point(V, means, n):
+    """Camera-frame centre (x, y, z) of Gaussian n under world-to-camera V [4, 4]."""
+    return view_point(view_rows(V), means[n, 0], means[n, 1], means[n, 2])
+
+
+@njit(cache=True, inline="always")
 def rotated_axis(v, r0, r1, r2, sc):
     """A Gaussian's axis (r0, r1, r2) (a column of its rotation) scaled by sc, in the camera frame of one
     pose (`view_rows` v) -> V[:3, :3] r sc (3 scalars)."""
@@ -184,9 +188,7 @@ def rotated_axis(v, r0, r1, r2, sc):
 def chunk_camera_point(v, g_in, j):
     """Camera-frame centre (x, y, z) of chunk entry j (`gather_chunk`) under one pose (`view_rows`)."""
     R_ = ROW
-    m0, m1, m2 = g_in[j], g_in[R_[1] + j], g_in[R_[2] + j]
-    return (v[0] * m0 + v[1] * m1 + v[2] * m2 + v[3], v[4] * m0 + v[5] * m1 + v[6] * m2 + v[7],
-            v[8] * m0 + v[9] * m1 + v[10] * m2 + v[11])
+    return view_point(v, g_in[j], g_in[R_[1] + j], g_in[R_[2] + j])
 
 
 @njit(cache=True, inline="always")
