@@ -126,19 +126,24 @@ def test_bench_train_pairs_2dgs_with_its_3dgs_twin_and_times_thread_counts():
     assert torch.get_num_threads() == rec["threads"]  # restored
 
 
+def _train_result(iters_per_s: float):
+    """What a faked `egobench.train.train` returns: the fields `bench_train` reads."""
+    import types
+
+    return types.SimpleNamespace(iters_per_s=iters_per_s, raster_time_share=0.5, num_gaussians=7,
+                                 record={"motion_samples": {"mean": 1.0}})
+
+
 def test_bench_train_warms_each_method_up_before_timing_it(monkeypatch):
     """The first timed run of a method once paid its kernels' compilation or cache loading: each method
     now trains untimed first (once, at the first thread count), and only the timed runs make rows."""
-    import types
-
     import egobench.train
 
     calls = []
 
     def fake_train(rec, method, cfg, out_dir, progress):
         calls.append((method, cfg.iterations, torch.get_num_threads()))
-        return types.SimpleNamespace(iters_per_s=float(len(calls)), raster_time_share=0.5, num_gaussians=7,
-                                     record={"motion_samples": {"mean": 1.0}})
+        return _train_result(float(len(calls)))
 
     monkeypatch.setattr(egobench.train, "train", fake_train)
     rec = bench.bench_train("cpu", sides=(16,), iterations=5, methods=("ours", "ours_2dgs", "ours"), threads=(2, 1))
@@ -153,8 +158,6 @@ def test_bench_train_warms_each_method_up_before_timing_it(monkeypatch):
 def test_bench_train_rounds_alternate_the_order_and_compare_within_each_round(monkeypatch):
     """--rounds 3: the cases run forward, backward, forward; each ratio and speed-up is taken within its
     round, and the record gives the median over rounds with the per-round values."""
-    import types
-
     import egobench.train
 
     calls = []
@@ -163,13 +166,11 @@ def test_bench_train_rounds_alternate_the_order_and_compare_within_each_round(mo
 
     def fake_train(rec, method, cfg, out_dir, progress):
         if cfg.iterations == bench.WARMUP_ITERATIONS:
-            return types.SimpleNamespace(iters_per_s=1.0, raster_time_share=0.5, num_gaussians=7,
-                                         record={"motion_samples": {"mean": 1.0}})
+            return _train_result(1.0)
         key = (method, torch.get_num_threads())
         calls.append(key)
         rnd = sum(c == key for c in calls) - 1
-        return types.SimpleNamespace(iters_per_s=speed[key][rnd], raster_time_share=0.5, num_gaussians=7,
-                                     record={"motion_samples": {"mean": 1.0}})
+        return _train_result(speed[key][rnd])
 
     monkeypatch.setattr(egobench.train, "train", fake_train)
     rec = bench.bench_train("cpu", sides=(16,), iterations=5, methods=("ours", "ours_2dgs"), threads=(1, 2), rounds=3)

@@ -313,6 +313,7 @@ def bench_train(device: str = "cpu", backend: str = "auto", sides: tuple[int, ..
     case that many times, the order of the cases reversed every other round (drift weighs on both
     ends alike); ratios and speed-ups are then taken within each round and given as the median over
     rounds with the per-round values (a noisy machine: compare like with like, in the same round)."""
+    import dataclasses
     import tempfile
     from pathlib import Path
 
@@ -328,15 +329,14 @@ def bench_train(device: str = "cpu", backend: str = "auto", sides: tuple[int, ..
         for side in sides:
             rec = recording or plane_recording(Path(tmp) / f"rec{side}", size=side, n_frames=17, angular_speed_rad_s=6.0,
                                              frame_interval_s=0.01, n_points=n_points)
+            cfg = TrainConfig(iterations=iterations, max_side=side, device=device, backend=backend,
+                              motion_warmup_frac=0.0, refine_start_frac=1.0)
             for method in dict.fromkeys(methods):  # compile or load the method's kernels before any timing
-                cfg = TrainConfig(iterations=WARMUP_ITERATIONS, max_side=side, device=device, backend=backend,
-                                  motion_warmup_frac=0.0, refine_start_frac=1.0)
                 with cpu_threads((threads or (0,))[0]):
-                    train(rec, method, cfg, Path(tmp) / f"warmup_{method}{side}", progress=False)
+                    train(rec, method, dataclasses.replace(cfg, iterations=WARMUP_ITERATIONS),
+                          Path(tmp) / f"warmup_{method}{side}", progress=False)
             cases = [(m, t) for m in methods for t in (threads or (0,))]
             for rnd, (method, n_threads) in [(r, c) for r in range(rounds) for c in (cases[::-1] if r % 2 else cases)]:
-                cfg = TrainConfig(iterations=iterations, max_side=side, device=device, backend=backend,
-                                  motion_warmup_frac=0.0, refine_start_frac=1.0)
                 out_dir = Path(tmp) / f"{method}{side}t{n_threads}r{rnd}"
                 results.append({**_timed_training(rec, method, cfg, n_threads, out_dir), "round": rnd})
     return {"benchmark": "train", "device": device, "backend": backend, "torch": torch.__version__,
@@ -364,11 +364,12 @@ def train_2dgs_ratios(rows: list[dict]) -> list[dict]:
     """Time per iteration of each 2DGS method over its 3DGS twin's, per (resolution, threads), taken within
     each round: ``ratio_2dgs_to_3dgs`` is the median over rounds, ``per_round`` the values."""
     speed = {(r["method"], r["resolution"], r["threads"], r.get("round", 0)): r["iters_per_s"] for r in rows}
+    rounds = sorted({k[3] for k in speed})
     out = []
     for m2, side, t in dict.fromkeys(k[:3] for k in speed):
         m3 = TWIN_3DGS.get(m2)
-        per = [speed[(m3, side, t, r)] / speed[(m2, side, t, r)] for (m, s_, t_, r) in speed
-               if (m, s_, t_) == (m2, side, t) and (m3, side, t, r) in speed]
+        per = [speed[(m3, side, t, r)] / speed[(m2, side, t, r)] for r in rounds
+               if (m2, side, t, r) in speed and (m3, side, t, r) in speed]
         if per:
             agg = _over_rounds(per)
             out.append({"method_2dgs": m2, "method_3dgs": m3, "resolution": side, "threads": t,
