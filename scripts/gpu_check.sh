@@ -7,7 +7,7 @@
 #   policy's effect at 16 threads, the CPU kernels' scaling (bench raster --scaling);
 #   bench raster, bench cast (rays/s by chunk size) and bench train at 2400 px / 1M Gaussians (with
 #   and without motion sampling); two simulated frames at the paper's resolution (s/frame);
-#   config/paper_smoke.yaml end to end, as far as time allows.
+#   config/paper_smoke.yaml end to end, as far as time allows (the jobs toward SMOKE_FIRST first).
 # Writes OUT_DIR/summary.txt (one line per step: exit code, seconds) and OUT_DIR/logs.tar.gz (each
 # step's log, the benchmarks' JSON, the smoke run's tables and logs).
 #   usage: bash scripts/gpu_check.sh OUT_DIR [BUDGET_SECONDS]     (EGOBENCH_CACHE: LPIPS weights)
@@ -80,8 +80,15 @@ step sim_frames 150 python3 -m egobench.cli simulate --out /tmp/sim2400 --kind o
   --set n_frames=2 --set rectified_size=2400 --set compute_device=cuda
 SMOKE=$(($(left) - 30))
 # a smoke run killed by its time limit leaves a lock; the next call unlocks and resumes it (frames, checkpoints)
+# the jobs toward SMOKE_FIRST run first (default: the diagnosis, the one job no lease has finished);
+# nvidia-smi samples the GPU's memory every 2 s meanwhile (gpu_memory.csv)
+SMOKE_FIRST=${SMOKE_FIRST:-results/paper_smoke/diagnosis/bike_shop/ours}
+nvidia-smi --query-gpu=timestamp,memory.used,utilization.gpu --format=csv -l 2 >"$LOGS/gpu_memory.csv" 2>&1 &
+MONITOR=$!
 step paper_smoke "$SMOKE" bash -c "python3 -m snakemake --unlock --configfile config/paper_smoke.yaml >/dev/null 2>&1; \
-  python3 -m snakemake --cores 16 --resources gpu=1 --keep-going --configfile config/paper_smoke.yaml"
+  python3 -m snakemake --cores 16 --resources gpu=1 --keep-going --configfile config/paper_smoke.yaml \
+  --prioritize $SMOKE_FIRST"
+kill "$MONITOR" 2>/dev/null
 
 # what the smoke run left (small files only; recordings and checkpoints stay on the machine)
 find results/paper_smoke .snakemake/log -type f \( -name '*.csv' -o -name '*.json' -o -name '*.tex' \
