@@ -78,7 +78,8 @@ def test_coverage_needs_ground_truth(recording):
 def test_training_view_count_is_the_number_of_training_frames_that_hold_each_surface(recording):
     """Every training frame moved to the held-out frame's pose holds each of its surfaces: the count is
     the number of training frames wherever the pixel has depth and lies in the valid area, else 0; one
-    of them turned 180 deg holds none; a coarse grid repeats its samples' counts blockwise."""
+    of them turned 180 deg holds none; a coarse grid repeats its samples' counts blockwise, also where the
+    image is not a whole number of blocks."""
     f = recording.test_frames[0]
     depth = _gt_depth(recording, f)
     depth[:4] = 0.0  # no surface rendered in the top rows
@@ -96,4 +97,9 @@ def test_training_view_count_is_the_number_of_training_frames_that_hold_each_sur
     real = training_view_count(recording, f, depth)
     coarse = training_view_count(recording, f, depth, max_grid=8)  # stride 4: samples at 2, 6, ..., 30
     assert np.array_equal(coarse, np.repeat(np.repeat(real[2::4, 2::4], 4, 0), 4, 1))
+    # stride 6 leaves a short last block (30..31): it is sampled at its last pixel, and the map keeps [H, W]
+    short = training_view_count(recording, f, depth, max_grid=6)
+    at = np.array([3, 9, 15, 21, 27, 31])
+    assert short.shape == depth.shape == (32, 32)
+    assert np.array_equal(short, np.repeat(np.repeat(real[np.ix_(at, at)], 6, 0), 6, 1)[:32, :32])
     assert real[valid].min() < real[valid].max() <= n_train  # the real walk: some surfaces in few views or none

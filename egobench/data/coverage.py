@@ -92,7 +92,7 @@ def training_view_count(recording: Recording, frame: Frame, depth_m: np.ndarray,
     cam, mask = recording.camera, recording.mask.numpy().astype(bool)
     H, W = depth_m.shape
     stride = max(1, -(-max(H, W) // max_grid))
-    v, u = np.mgrid[stride // 2:H:stride, stride // 2:W:stride]
+    v, u = np.meshgrid(_block_centres(H, stride), _block_centres(W, stride), indexing="ij")
     z = np.asarray(depth_m, dtype=np.float64)[v, u]
     keep = z > 0
     rays = cam.unproject(torch.from_numpy(np.stack([u[keep], v[keep]], axis=1).astype(np.float64))).numpy()
@@ -109,6 +109,12 @@ def training_view_count(recording: Recording, frame: Frame, depth_m: np.ndarray,
     grid = np.zeros(v.shape, np.float32)
     grid[keep] = count
     return np.repeat(np.repeat(grid, stride, axis=0), stride, axis=1)[:H, :W]
+
+
+def _block_centres(n: int, stride: int) -> np.ndarray:
+    """[ceil(n / stride)] the sampled pixel of each stride-wide block of 0..n-1: its centre, or the last
+    pixel where the final block is cut short (so that the blocks cover all n pixels)."""
+    return np.minimum(np.arange(-(-n // stride)) * stride + stride // 2, n - 1)
 
 
 __all__ = ["heldout_coverage", "training_view_count", "DEPTH_TOLERANCE", "STRIDE_PX"]
