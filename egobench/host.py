@@ -143,16 +143,22 @@ def default_threads(environ=None) -> dict[str, int] | None:
 #: glibc accepts on 64-bit) come from the heap, and up to 1 GB of freed heap stays mapped.
 MMAP_THRESHOLD_BYTES = 32 << 20
 TRIM_THRESHOLD_BYTES = 1 << 30
-_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # mallopt's parameter numbers (malloc.h)
+#: ... and of a process that works on whole image stacks (`keep_freed_memory(whole_images=True)`, the
+#: diagnosis): no block is mapped on its own, and up to 2 GB (mallopt's int) of freed heap stays.
+WHOLE_IMAGES_TRIM_THRESHOLD_BYTES = (1 << 31) - 1
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD, _M_MMAP_MAX = -1, -3, -4  # mallopt's parameter numbers (malloc.h)
 _ALLOCATOR: dict[str, int] | None = None  # what `keep_freed_memory` set in this process
 
 
-def keep_freed_memory(environ=None) -> dict[str, int] | None:
+def keep_freed_memory(environ=None, whole_images: bool = False) -> dict[str, int] | None:
     """Linux/glibc: keep a training step's freed buffers for the next step instead of returning them
     to the OS. A CPU step allocates its tile state, Gaussian table and image-sized tensors anew;
     with glibc's defaults many of those are mapped and unmapped every step (~2000 page faults a
-    step at 128 px), 10-13 % of the step's time (docs/cpu-rasterizer.md, "Page faults"). Leaves
-    malloc alone where GLIBC_TUNABLES sets it or there is no glibc -> the settings applied, or None."""
+    step at 128 px), 10-13 % of the step's time (docs/cpu-rasterizer.md, "Page faults").
+    ``whole_images``: also blocks above 32 MB come from the heap (M_MMAP_MAX 0), for the diagnosis's
+    [F, H, W, 3] stacks: at 1200 px its page faults were 46 % of its time (docs/diagnosis.md, "Cost at
+    the paper's resolution"); the price is a larger peak RSS. Leaves malloc alone where GLIBC_TUNABLES
+    sets it or there is no glibc -> the settings applied, or None."""
     global _ALLOCATOR
     env = os.environ if environ is None else environ
     if not sys.platform.startswith("linux") or "malloc" in env.get("GLIBC_TUNABLES", ""):
@@ -163,9 +169,15 @@ def keep_freed_memory(environ=None) -> dict[str, int] | None:
         mallopt = ctypes.CDLL("libc.so.6").mallopt
     except (OSError, AttributeError):  # musl and other libcs: no glibc mallopt
         return None
-    if not (mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES) and mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES)):
+    settings = {"mmap_threshold_bytes": MMAP_THRESHOLD_BYTES,
+                "trim_threshold_bytes": WHOLE_IMAGES_TRIM_THRESHOLD_BYTES if whole_images else TRIM_THRESHOLD_BYTES}
+    calls = [(_M_MMAP_THRESHOLD, settings["mmap_threshold_bytes"]), (_M_TRIM_THRESHOLD, settings["trim_threshold_bytes"])]
+    if whole_images:
+        settings["mmap_max"] = 0
+        calls.append((_M_MMAP_MAX, 0))
+    if not all(mallopt(param, value) for param, value in calls):
         return None
-    _ALLOCATOR = {"mmap_threshold_bytes": MMAP_THRESHOLD_BYTES, "trim_threshold_bytes": TRIM_THRESHOLD_BYTES}
+    _ALLOCATOR = settings
     return dict(_ALLOCATOR)
 
 

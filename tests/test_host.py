@@ -157,7 +157,8 @@ def test_a_training_run_is_bitwise_the_same_with_torch_on_one_and_on_two_threads
 def test_keep_freed_memory_sets_glibc_malloc_unless_tunables_chose_and_the_record_says_so(monkeypatch):
     """`keep_freed_memory` (egobench train on the CPU) raises glibc's mmap and trim thresholds so a
     step's freed buffers are reused, not unmapped and faulted in again; GLIBC_TUNABLES that set malloc
-    are the user's choice (mallopt is not called); elsewhere than Linux it does nothing."""
+    are the user's choice (mallopt is not called); elsewhere than Linux it does nothing. With
+    ``whole_images`` (the diagnosis) no block is mapped on its own."""
     import ctypes
     import sys
 
@@ -181,9 +182,13 @@ def test_keep_freed_memory_sets_glibc_malloc_unless_tunables_chose_and_the_recor
     assert host.keep_freed_memory({}) == want
     assert calls == [(-3, 32 << 20), (-1, 1 << 30)]  # M_MMAP_THRESHOLD, M_TRIM_THRESHOLD of malloc.h
     assert host.host_info()["allocator"] == want
+    calls.clear()  # the diagnosis: no block mapped on its own (M_MMAP_MAX 0), mallopt's largest trim threshold
+    images = {"mmap_threshold_bytes": 32 << 20, "trim_threshold_bytes": (1 << 31) - 1, "mmap_max": 0}
+    assert host.keep_freed_memory({}, whole_images=True) == images == host.host_info()["allocator"]
+    assert calls == [(-3, 32 << 20), (-1, (1 << 31) - 1), (-4, 0)]
     monkeypatch.setattr(sys, "platform", "darwin")
     monkeypatch.setattr(host, "_ALLOCATOR", None)
-    assert host.keep_freed_memory({}) is None and len(calls) == 2 and host.host_info()["allocator"] is None
+    assert host.keep_freed_memory({}) is None and len(calls) == 3 and host.host_info()["allocator"] is None
 
 
 def test_numba_pool_is_capped_only_before_numba_loads():

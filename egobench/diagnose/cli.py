@@ -65,6 +65,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from egobench.host import keep_freed_memory
+
+    keep_freed_memory(whole_images=True)  # reuse the freed image stacks (docs/diagnosis.md, "Cost at ...")
     cfg = DiagnosisConfig(alpha=args.alpha, max_causes=args.max_causes).validate()
     out = Path(args.out)
     if args.sweep and args.trained:

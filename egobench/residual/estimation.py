@@ -362,6 +362,26 @@ def binned_means(x: np.ndarray, y: np.ndarray, w: np.ndarray, bins: int = 12) ->
 
 
 # ============================================================================ geometric
+class WarpSource:
+    """A prediction [f, H, W, 3] (display values) as `warp` samples it, float32: the display values for
+    one instant, the decoded linear irradiance for an exposure integral; each made once, on first use."""
+
+    def __init__(self, predicted: np.ndarray, gamma: float):
+        self._predicted, self._gamma = predicted, float(gamma)
+        self._display: np.ndarray | None = None
+        self._linear: np.ndarray | None = None
+
+    def display(self) -> np.ndarray:
+        if self._display is None:
+            self._display = np.ascontiguousarray(self._predicted, dtype=np.float32)
+        return self._display
+
+    def linear(self) -> np.ndarray:
+        if self._linear is None:
+            self._linear = decode(self._predicted, self._gamma).astype(np.float32)
+        return self._linear
+
+
 class GeometricCause(Cause):
     """Shared machinery: per-frame first-order slopes, frame-level test, Gauss-Newton refinement."""
 
@@ -384,15 +404,19 @@ class GeometricCause(Cause):
         None where they are not built from the velocity that way."""
         return None
 
-    def warp_prediction(self, predicted, theta, ctx, frames) -> tuple[np.ndarray, np.ndarray]:
+    def warp_prediction(self, predicted, theta, ctx, frames, source: WarpSource | None = None
+                        ) -> tuple[np.ndarray, np.ndarray]:
+        """(predicted [f, H, W, 3] moved by theta's displacement, float64; inside [f, H, W]).
+        ``source``: predicted's `WarpSource` when several calls warp the same stack (`refine`)."""
         parts = self.displacement(np.asarray(theta, dtype=np.float64), ctx, frames, predicted.shape)
+        src = WarpSource(predicted, ctx.gamma_assumed) if source is None else source
         inside = np.ones(predicted.shape[:3], dtype=bool)
         if len(parts) == 1:
-            out, inside = warp(predicted, parts[0][1])
+            out, inside = warp(src.display(), parts[0][1])
             return out.astype(np.float64), inside
         # several instants (exposure integral): average irradiance, i.e. in linear space
-        lin = decode(predicted, ctx.gamma_assumed)
-        acc = np.zeros_like(lin)
+        lin = src.linear()
+        acc = np.zeros(lin.shape, dtype=np.float64)
         for weight, disp in parts:
             w_img, ins = warp(lin, disp)
             acc += weight * w_img
@@ -439,14 +463,15 @@ class GeometricCause(Cause):
         """Gauss-Newton on the warped prediction (numeric Jacobian), pooled over the frames."""
         theta = np.asarray(theta, dtype=np.float64).copy()
         eps = self.step_sizes(data.ctx)
+        src = WarpSource(data.p, data.ctx.gamma_assumed)
         for _ in range(iterations):
-            base, inside = self.warp_prediction(data.p, theta, data.ctx, data.frames)
+            base, inside = self.warp_prediction(data.p, theta, data.ctx, data.frames, src)
             cols = []
             for i in range(len(theta)):
                 d = np.zeros_like(theta)
                 d[i] = eps[i]
-                plus, ins_p = self.warp_prediction(data.p, theta + d, data.ctx, data.frames)
-                minus, ins_m = self.warp_prediction(data.p, theta - d, data.ctx, data.frames)
+                plus, ins_p = self.warp_prediction(data.p, theta + d, data.ctx, data.frames, src)
+                minus, ins_m = self.warp_prediction(data.p, theta - d, data.ctx, data.frames, src)
                 inside &= ins_p & ins_m
                 cols.append((plus - minus) / (2 * eps[i]))
             m = data.usable & inside[..., None]

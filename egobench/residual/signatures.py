@@ -12,6 +12,7 @@ u - d(u) ("measured(u) = predicted(u - d(u))"), so to first order
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 
@@ -166,25 +167,36 @@ def warp(img: np.ndarray, displacement_px: np.ndarray) -> tuple[np.ndarray, np.n
     """Sample img [F, H, W, C] at u - d(u) (Lanczos-4); displacement_px [F, H, W, 2] (du, dv).
 
     Returns (warped [F, H, W, C] float32, inside [F, H, W] bool: the sample lies in the image).
+    Works a frame at a time (float64 sample positions, cast to float32 for OpenCV), so that at the
+    paper's 2400 px no [F, H, W] temporaries are allocated.
     """
     F, H, W, C = img.shape
     if displacement_px.shape != (F, H, W, 2):
         raise ValueError(f"displacement_px: expected shape {[F, H, W, 2]}, got {list(displacement_px.shape)}")
-    v, u = np.meshgrid(np.arange(H, dtype=np.float64), np.arange(W, dtype=np.float64), indexing="ij")
-    su = u[None] - displacement_px[..., 0]
-    sv = v[None] - displacement_px[..., 1]
-    inside = (su >= 0) & (su <= W - 1) & (sv >= 0) & (sv <= H - 1)
+    v, u = _pixel_rows_cols(H, W)
     import cv2
 
     out = np.empty((F, H, W, C), dtype=np.float32)
+    inside = np.empty((F, H, W), dtype=bool)
     for f in range(F):  # one remap per frame (Lanczos-4: near band-limited, so sub-pixel shifts do not blur)
+        su = u - displacement_px[f, ..., 0]
+        sv = v - displacement_px[f, ..., 1]
+        inside[f] = (su >= 0) & (su <= W - 1) & (sv >= 0) & (sv <= H - 1)
         frame = np.ascontiguousarray(img[f], dtype=np.float32)
         if not displacement_px[f].any():  # at the pixel centres Lanczos-4 is the identity (weights 0 and 1)
             out[f] = frame  # e.g. the exposure integral's middle instant
             continue
-        out[f] = cv2.remap(frame, su[f].astype(np.float32), sv[f].astype(np.float32), interpolation=cv2.INTER_LANCZOS4,
+        out[f] = cv2.remap(frame, su.astype(np.float32), sv.astype(np.float32), interpolation=cv2.INTER_LANCZOS4,
                            borderMode=cv2.BORDER_REPLICATE).reshape(H, W, C)
     return out, inside
+
+
+@functools.lru_cache(maxsize=4)
+def _pixel_rows_cols(height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """(v, u) [H, W] float64: each pixel's row and column (read-only; shared by every `warp`)."""
+    v, u = np.meshgrid(np.arange(height, dtype=np.float64), np.arange(width, dtype=np.float64), indexing="ij")
+    v.flags.writeable = u.flags.writeable = False
+    return v, u
 
 
 def radial_coordinates(height: int, width: int, centre: tuple[float, float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
