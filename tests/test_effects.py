@@ -171,3 +171,25 @@ def test_synthetic_injection_hooks():
     # exposure blur averages the image over the exposure: a linear-in-time image keeps its mean
     blurred = EFFECTS["exposure_blur"].synth_irradiance(lambda t, d: t[None, :, :, None] * np.ones(3), t_model, None, 0.008)
     np.testing.assert_allclose(blurred[0, :, :, 0], t_model, atol=1e-15)
+
+
+def test_exposure_blur_instants_are_the_velocity_times_each_sub_exposure_time():
+    """The blur's warp parts (made one at a time when read): n_sub equal weights, displacement = pixel
+    velocity x (tau x T) at the sub-exposure instants tau in (-1/2, 1/2), symmetric about the row's time."""
+    from types import SimpleNamespace
+
+    from egobench.effects.exposure_blur import ExposureBlurCause
+
+    velocity = np.random.default_rng(0).normal(size=(3, 4, 5, 2)).astype(np.float32) * 100.0
+    ctx = SimpleNamespace(pixel_velocity_px_s=velocity)
+    cause = ExposureBlurCause()
+    parts = cause.displacement(np.array([0.009]), ctx, np.array([2, 0]), (2, 4, 5, 3))
+    assert len(parts) == cause.n_sub == 9
+    times = [(k + 0.5) / 9 - 0.5 for k in range(9)]
+    for (weight, disp), t in zip(parts, times, strict=True):
+        assert weight == 1.0 / 9 and disp.dtype == np.float64
+        np.testing.assert_allclose(disp, velocity[[2, 0]].astype(np.float64) * (t * 0.009), rtol=1e-15)
+    np.testing.assert_allclose(parts[0][1], -parts[8][1], rtol=1e-15)  # symmetric instants
+    assert not parts[4][1].any()  # the middle instant is the row's own time
+    with pytest.raises(IndexError):
+        parts[9]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -37,7 +38,7 @@ class ExposureBlurCause(GeometricCause):
     def displacement(self, theta, ctx, frames, shape):
         v = ctx.pixel_velocity_px_s[frames].astype(np.float64)
         taus = (np.arange(self.n_sub) + 0.5) / self.n_sub - 0.5
-        return [(1.0 / self.n_sub, v * (tau * theta[0])) for tau in taus]
+        return _Instants(1.0 / self.n_sub, v, [tau * theta[0] for tau in taus])
 
     def step_sizes(self, ctx):
         return np.array([5e-4])
@@ -70,6 +71,23 @@ class ExposureBlurCause(GeometricCause):
             res.params["first_order_estimate"] = {"exposure_s": float(beta)}
             res.params["conditioned_on_shift_s"] = {"centre": float(theta_shift[0]), "row_slope": float(theta_shift[1])}
         return res
+
+
+class _Instants(Sequence):
+    """The exposure's sub-instants as (weight, displacement [f, H, W, 2] = velocity x time) pairs, each
+    displacement made when it is read: all n_sub at once were the diagnosis's largest block at its peak
+    memory (docs/diagnosis.md, "Cost at the paper's resolution")."""
+
+    def __init__(self, weight: float, velocity_px_s: np.ndarray, times_s: list):
+        self._weight, self._velocity, self._times = weight, velocity_px_s, times_s
+
+    def __len__(self) -> int:
+        return len(self._times)
+
+    def __getitem__(self, i):
+        if not 0 <= i < len(self._times):  # (also ends the iteration Sequence derives from this)
+            raise IndexError(i)
+        return self._weight, self._velocity * self._times[i]
 
 
 class ExposureBlur(Effect):
