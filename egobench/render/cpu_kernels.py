@@ -254,10 +254,7 @@ def normals_chunk(v, g_in, g_rot, L, q0, normals):
     for jj in range(L):
         j = np.uint64(jj)
         x, y, z = chunk_camera_point(v, g_in, j)
-        a0, a1, a2 = g_rot[R_[9] + j], g_rot[R_[10] + j], g_rot[R_[11] + j]
-        nx = v[0] * a0 + v[1] * a1 + v[2] * a2
-        ny = v[4] * a0 + v[5] * a1 + v[6] * a2
-        nz = v[8] * a0 + v[9] * a1 + v[10] * a2
+        nx, ny, nz = rotated_axis(v, g_rot[R_[9] + j], g_rot[R_[10] + j], g_rot[R_[11] + j], 1.0)  # (x 1.0: exact)
         sgn = 1.0 if -(nx * x + ny * y + nz * z) > 0 else -1.0
         q = q0 + j
         normals[q * _U3], normals[q * _U3 + _U1], normals[q * _U3 + _U2] = sgn * nx, sgn * ny, sgn * nz
