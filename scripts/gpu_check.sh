@@ -22,11 +22,14 @@ START=$SECONDS
 
 left() { echo $((BUDGET - (SECONDS - START))); }
 
+# wanted NAME: STEPS names NAME (or is unset / says all)
+wanted() { [[ " ${STEPS:-all} " == *" all "* || " ${STEPS:-all} " == *" $1 "* ]]; }
+
 # step NAME SECONDS CMD...: run CMD with at most SECONDS (and never past the budget), log to LOGS/NAME.log
 step() {
   local name=$1 want=$2 budget t began rc
   shift 2
-  [[ " ${STEPS:-all} " == *" all "* || " ${STEPS:-all} " == *" $name "* ]] || return 0
+  wanted "$name" || return 0
   budget=$(left)
   t=$((want < budget ? want : budget))
   if ((t < 5)); then echo "$name: skipped (no time left)" | tee -a "$OUT/summary.txt"; return; fi
@@ -83,12 +86,15 @@ SMOKE=$(($(left) - 30))
 # the jobs toward SMOKE_FIRST run first (default: the diagnosis, the one job no lease has finished);
 # nvidia-smi samples the GPU's memory every 2 s meanwhile (gpu_memory.csv)
 SMOKE_FIRST=${SMOKE_FIRST:-results/paper_smoke/diagnosis/bike_shop/ours}
-nvidia-smi --query-gpu=timestamp,memory.used,utilization.gpu --format=csv -l 2 >"$LOGS/gpu_memory.csv" 2>&1 &
-MONITOR=$!
+MONITOR=
+if wanted paper_smoke; then
+  nvidia-smi --query-gpu=timestamp,memory.used,utilization.gpu --format=csv -l 2 >"$LOGS/gpu_memory.csv" 2>&1 &
+  MONITOR=$!
+fi
 step paper_smoke "$SMOKE" bash -c "python3 -m snakemake --unlock --configfile config/paper_smoke.yaml >/dev/null 2>&1; \
   python3 -m snakemake --cores 16 --resources gpu=1 --keep-going --configfile config/paper_smoke.yaml \
   --prioritize $SMOKE_FIRST"
-kill "$MONITOR" 2>/dev/null
+[[ -n $MONITOR ]] && kill "$MONITOR" 2>/dev/null
 
 # what the smoke run left (small files only; recordings and checkpoints stay on the machine)
 find results/paper_smoke .snakemake/log -type f \( -name '*.csv' -o -name '*.json' -o -name '*.tex' \

@@ -410,12 +410,12 @@ class GeometricCause(Cause):
         ``source``: predicted's `WarpSource` when several calls warp the same stack (`refine`)."""
         parts = self.displacement(np.asarray(theta, dtype=np.float64), ctx, frames, predicted.shape)
         src = WarpSource(predicted, ctx.gamma_assumed) if source is None else source
-        inside = np.ones(predicted.shape[:3], dtype=bool)
         if len(parts) == 1:
             out, inside = warp(src.display(), parts[0][1])
             return out.astype(np.float64), inside
         # several instants (exposure integral): average irradiance, i.e. in linear space
         lin = src.linear()
+        inside = np.ones(predicted.shape[:3], dtype=bool)
         acc = np.zeros(lin.shape, dtype=np.float64)
         for weight, disp in parts:
             w_img, ins = warp(lin, disp)
