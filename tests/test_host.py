@@ -173,6 +173,7 @@ def test_keep_freed_memory_sets_glibc_malloc_unless_tunables_chose_and_the_recor
             calls.append((param, value))
             return 1
 
+    host.host_info()  # loads numba and llvmlite, which open their libraries through ctypes.CDLL, before it is faked
     monkeypatch.setattr(ctypes, "CDLL", lambda name: FakeLibc())
     monkeypatch.setattr(host, "_ALLOCATOR", None)
     assert host.keep_freed_memory({"GLIBC_TUNABLES": "glibc.malloc.trim_threshold=0"}) is None and calls == []
