@@ -9,7 +9,8 @@ Conventions (stated once, used everywhere):
   averaged over the "valid" region (pixels at least 5 from the border) and over channels.
   It equals ``skimage.metrics.structural_similarity(a, b, channel_axis=-1, data_range=1.0,
   gaussian_weights=True, sigma=1.5, use_sample_covariance=False)``. `ssim_loss` uses the same
-  kernel, in torch, differentiable.
+  kernel, in torch, differentiable (the training's compiled CPU loss, `egobench.train.photometric`,
+  is checked against it).
 * depth_si_l1: median scaling (pred * median(gt) / median(pred) over valid pixels), then mean
   absolute error in the ground truth's unit (metres).
 * normal_l1: both normals normalised to unit length, then the mean over valid pixels of the sum
@@ -84,7 +85,7 @@ def psnr(pred, target, mask=None) -> float:
 
 # ----------------------------------------------------------------------------- SSIM
 @functools.lru_cache(maxsize=8)
-def _gaussian_1d(window: int, sigma: float, dtype: torch.dtype, device: torch.device) -> Tensor:
+def gaussian_taps(window: int, sigma: float, dtype: torch.dtype, device: torch.device) -> Tensor:
     """Normalised Gaussian taps [window] (as scipy.ndimage with truncate so that radius = window // 2),
     cached per dtype and device: the training loss does not copy them to the GPU every iteration."""
     x = torch.arange(window, dtype=torch.float64) - (window - 1) / 2.0
@@ -102,7 +103,7 @@ def ssim_map(pred: Tensor, target: Tensor, window: int = SSIM_WINDOW, sigma: flo
     x = pred.permute(0, 3, 1, 2)  # [B, C, H, W]
     y = target.permute(0, 3, 1, 2).to(x.dtype)
     stack = torch.cat([x, y, x * x, y * y, x * y], dim=1)  # [B, 5C, H, W]
-    g = _gaussian_1d(window, float(sigma), x.dtype, x.device)
+    g = gaussian_taps(window, float(sigma), x.dtype, x.device)
     n = stack.shape[1]
     stack = F.conv2d(stack, g.view(1, 1, window, 1).expand(n, 1, window, 1), groups=n)
     stack = F.conv2d(stack, g.view(1, 1, 1, window).expand(n, 1, 1, window), groups=n)

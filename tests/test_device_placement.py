@@ -41,12 +41,12 @@ FAKE = torch.device("meta")  # the stand-in accelerator (see module docstring)
 
 @pytest.fixture(autouse=True)
 def _clear_ssim_taps_cache():
-    """`metrics._gaussian_1d` caches taps per device; fake tensors must not outlive their mode."""
-    from egobench.metrics import _gaussian_1d
+    """`metrics.gaussian_taps` caches taps per device; fake tensors must not outlive their mode."""
+    from egobench.metrics import gaussian_taps
 
-    _gaussian_1d.cache_clear()
+    gaussian_taps.cache_clear()
     yield
-    _gaussian_1d.cache_clear()
+    gaussian_taps.cache_clear()
 
 
 @contextmanager

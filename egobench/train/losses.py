@@ -1,5 +1,5 @@
-"""Training losses: the photometric loss on valid pixels (0.8 L1 + 0.2 (1 - SSIM)) and the 2DGS
-regularisers (normal consistency, distortion; PAPER-NOTES §7)."""
+"""The 2DGS regularisers of the training loss (normal consistency, distortion; PAPER-NOTES §7). The
+photometric loss (0.8 L1 + 0.2 (1 - SSIM) on the valid pixels) is `egobench.train.photometric`."""
 
 from __future__ import annotations
 
@@ -8,16 +8,6 @@ from torch import Tensor
 from egobench.camera.pinhole import Pinhole
 from egobench.train.config import TrainConfig
 from egobench.train.normal_consistency import normal_consistency
-
-
-def photometric_loss(pred: Tensor, gt: Tensor, mask3: Tensor, n_mask: float, ssim_lambda: float) -> Tensor:
-    """(1 - l) L1 + l (1 - SSIM) of ``pred`` vs ``gt`` [H, W, 3] over the valid pixels ``mask3`` [H, W, 1]
-    (``n_mask``: their count x 3)."""
-    from egobench.metrics import ssim_loss
-
-    l1 = ((pred - gt).abs() * mask3).sum() / n_mask
-    ssim_term = ssim_loss((pred * mask3)[None], (gt * mask3)[None])
-    return (1 - ssim_lambda) * l1 + ssim_lambda * ssim_term
 
 
 def twodgs_regularisers(outs: list, cam: Pinhole, config: TrainConfig, it: int, mask3: Tensor) -> Tensor:
