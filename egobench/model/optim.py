@@ -29,7 +29,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
+import numpy as np
 import torch
+from numba import njit, prange
 from torch import Tensor
 
 from gsplat.strategy import DefaultStrategy
@@ -84,7 +86,27 @@ class Densifier:
             "width": width, "height": height, "n_cameras": means2d.shape[0],
             "radii": radii2, "gaussian_ids": None, "means2d": means2d,
         }
-        self.strategy._update_state(params, self.state, info, packed=False)
+        s = self.strategy
+        if means2d.device.type != "cpu" or s.absgrad or s.refine_scale2d_stop_iter > 0:
+            s._update_state(params, self.state, info, packed=False)
+            return
+        self._update_state_cpu(params, info)
+
+    def _update_state_cpu(self, params: dict, info: dict) -> None:
+        """gsplat's `_update_state` (packed=False, no absgrad, no 2D-scale statistics), bit for bit: the same
+        torch ops up to the per-view norms, then one compiled pass instead of the masked gathers and
+        index_add_ (~1.5 ms of a 128 px step)."""
+        n_gaussian = len(params["means"])
+        for key in ("grad2d", "count"):
+            if self.state[key] is None:
+                self.state[key] = torch.zeros(n_gaussian)
+        grads = info["means2d"].grad.clone()  # [C, N, 2]
+        grads[..., 0] *= info["width"] / 2.0 * info["n_cameras"]
+        grads[..., 1] *= info["height"] / 2.0 * info["n_cameras"]
+        norms = grads.norm(dim=-1)  # [C, N]
+        visible = (info["radii"] > 0.0).all(dim=-1)  # [C, N]
+        _add_visible(norms.contiguous().numpy(), visible.contiguous().numpy(), self.state["grad2d"].numpy(),
+                     self.state["count"].numpy())
 
     @torch.no_grad()
     def refine(self, params: dict, optimizers: dict, step: int) -> dict:
@@ -155,3 +177,17 @@ class Densifier:
 def make_adam(param: torch.nn.Parameter, lr: float) -> torch.optim.Adam:
     """One Adam per parameter (gsplat: eps 1e-15, batch size 1)."""
     return torch.optim.Adam([{"params": [param], "lr": lr}], eps=1e-15)
+
+
+@njit(cache=True, parallel=True)
+def _add_visible(norms, visible, grad2d, count):
+    """Per Gaussian n, over the views c in order where visible[c, n]: grad2d[n] += norms[c, n] and
+    count[n] += 1 (float32; for each n the additions of gsplat's index_add_, in its order)."""
+    one = np.float32(1.0)
+    for n in prange(norms.shape[1]):
+        g, k = grad2d[n], count[n]
+        for c in range(norms.shape[0]):
+            if visible[c, n]:
+                g += norms[c, n]
+                k += one
+        grad2d[n], count[n] = g, k

@@ -35,6 +35,7 @@ from egobench.model.predict import (
 from egobench.train.checkpoint import checkpoint_matches, resumable_checkpoint, write_checkpoint
 from egobench.train.config import TrainConfig
 from egobench.train.data import TrainingData, image_to_float, prepare_data
+from egobench.train.finite import all_finite
 from egobench.train.losses import twodgs_regularisers
 from egobench.train.photometric import photometric_loss
 from egobench.train.record import train_record
@@ -100,9 +101,7 @@ def _check_finite(it: int, named: list[tuple[str, Tensor]]) -> None:
     """Raise TrainingDiverged naming the first non-finite tensor of ``named``. One host sync for
     all of them (a CUDA run does not stall on each tensor); the per-tensor search runs only on failure."""
     named = [(n, t.detach()) for n, t in named if t is not None]
-    # A NaN or an infinity anywhere makes the sum non-finite: one pass per tensor without a mask.
-    # A sum that overflows from finite values only sends us to the exact search below.
-    if not named or bool(torch.isfinite(torch.stack([t.sum(dtype=torch.float64) for _, t in named]).sum())):
+    if all_finite([t for _, t in named]):
         return
     for name, value in named:
         bad = int((~torch.isfinite(value)).sum())
