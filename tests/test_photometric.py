@@ -84,6 +84,8 @@ def test_bad_shapes_are_named():
     pred = torch.zeros(12, 12, 3)
     with pytest.raises(ValueError, match="same shape"):
         photometric_loss(pred, torch.zeros(12, 13, 3), torch.ones(12, 12, 1), 432.0, 0.2)
+    with pytest.raises(ValueError, match=r"mask3: expected \[H, W, 1\] or \[H, W, C\]"):
+        photometric_loss(pred, pred, torch.ones(12, 12), 432.0, 0.2)
     with pytest.raises(ValueError, match="at least 11x11"):
         photometric_loss(torch.zeros(10, 12, 3), torch.zeros(10, 12, 3), torch.ones(10, 12, 1), 360.0, 0.2)
 

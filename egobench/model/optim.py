@@ -26,10 +26,9 @@ Gaussians. An initial point cloud larger than the cap is subsampled by the train
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Literal
-
-import math
 
 import numpy as np
 import torch
@@ -201,9 +200,8 @@ def _visible(radii, c, n):
 @njit(cache=True, parallel=True)
 def _add_visible(grads, scale, radii, grad2d, count):
     """grads [C, N, 2], scale [2], radii [C, N, R]. Per Gaussian n, over the views c in order where it is
-    visible: grad2d[n] += |grads[c, n] * scale|
-    and count[n] += 1 (float32; torch's norm and, for each n, the additions of gsplat's index_add_ in its
-    order)."""
+    visible: grad2d[n] += |grads[c, n] * scale| and count[n] += 1 (float32; torch's norm and, for each n,
+    the additions of gsplat's index_add_ in its order)."""
     one = np.float32(1.0)
     for n in prange(grads.shape[1]):
         g, k = grad2d[n], count[n]

@@ -34,6 +34,8 @@ def photometric_loss_torch(pred: Tensor, gt: Tensor, mask3: Tensor, n_mask: floa
 ROWS_PER_TASK = 8
 #: the blur's half width: SSIM_WINDOW taps, centre included
 HALF = SSIM_WINDOW // 2
+if SSIM_WINDOW != 11:  # `_window` and `_tuple11` spell the taps out
+    raise ImportError(f"egobench.train.photometric: the compiled blur has 11 taps, SSIM_WINDOW is {SSIM_WINDOW}")
 
 # The row loops below run over 1-D contiguous rows with few arrays each, so that LLVM vectorizes them
 # (a loop over several 2-D arrays needed more runtime alias checks than it makes). Every blur is a gather:
@@ -238,12 +240,14 @@ class _PhotometricCPU(torch.autograd.Function):
 
 
 def photometric_loss(pred: Tensor, gt: Tensor, mask3: Tensor, n_mask: float, ssim_lambda: float) -> Tensor:
-    """`photometric_loss_torch`'s value and gradient with respect to ``pred``; compiled on the CPU.
-    pred, gt [H, W, C], mask3 [H, W, 1] (0/1) -> scalar."""
-    if pred.device.type != "cpu":
+    """`photometric_loss_torch`'s value and gradient with respect to ``pred``; compiled on the CPU (float32
+    and float64). pred, gt [H, W, C], mask3 [H, W, 1] (0/1) -> scalar."""
+    if pred.device.type != "cpu" or pred.dtype not in (torch.float32, torch.float64):
         return photometric_loss_torch(pred, gt, mask3, n_mask, ssim_lambda)
     if pred.dim() != 3 or pred.shape != gt.shape:
         raise ValueError(f"pred, gt: expected [H, W, C] of the same shape, got {list(pred.shape)} and {list(gt.shape)}")
+    if mask3.shape not in ((*pred.shape[:2], 1), pred.shape):
+        raise ValueError(f"mask3: expected [H, W, 1] or [H, W, C] for pred {list(pred.shape)}, got {list(mask3.shape)}")
     if pred.shape[0] < SSIM_WINDOW or pred.shape[1] < SSIM_WINDOW:
         raise ValueError(f"pred: images must be at least {SSIM_WINDOW}x{SSIM_WINDOW} for SSIM, "
                          f"got {pred.shape[1]}x{pred.shape[0]}")
