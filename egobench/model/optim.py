@@ -83,30 +83,31 @@ class Densifier:
         self._follow(params)
         if means2d.grad is None:
             raise ValueError("means2d: no gradient; the renderer must return means2d with retain_grad()")
+        s = self.strategy
+        if means2d.device.type == "cpu" and not s.absgrad and s.refine_scale2d_stop_iter == 0:
+            self._update_state_cpu(params, means2d, radii, width, height)
+            return
         radii2 = radii if radii.dim() == 3 else radii[..., None].expand(*radii.shape, 2)  # gsplat wants [C, N, 2]
         info = {
             "width": width, "height": height, "n_cameras": means2d.shape[0],
             "radii": radii2, "gaussian_ids": None, "means2d": means2d,
         }
-        s = self.strategy
-        if means2d.device.type != "cpu" or s.absgrad or s.refine_scale2d_stop_iter > 0:
-            s._update_state(params, self.state, info, packed=False)
-            return
-        self._update_state_cpu(params, info)
+        s._update_state(params, self.state, info, packed=False)
 
-    def _update_state_cpu(self, params: dict, info: dict) -> None:
+    def _update_state_cpu(self, params: dict, means2d: Tensor, radii: Tensor, width: int, height: int) -> None:
         """gsplat's `_update_state` (packed=False, no absgrad, no 2D-scale statistics), bit for bit, in one
         compiled pass instead of its scaled copy, norms, masked gathers and index_add_ (~1.9 ms of a 128 px
-        step)."""
+        step). means2d [C, N, 2] with .grad, radii [C, N] or [C, N, 2] pixels."""
         n_gaussian = len(params["means"])
         for key in ("grad2d", "count"):
             if self.state[key] is None:
                 self.state[key] = torch.zeros(n_gaussian)
-        grads = info["means2d"].grad.detach().contiguous().numpy()  # [C, N, 2] pixels
-        scale = np.array([info["width"] / 2.0 * info["n_cameras"], info["height"] / 2.0 * info["n_cameras"]],
+        grads = means2d.grad.detach().contiguous().numpy()  # [C, N, 2] pixels
+        n_cameras = means2d.shape[0]
+        scale = np.array([width / 2.0 * n_cameras, height / 2.0 * n_cameras],
                          dtype=grads.dtype)  # torch's float32 op casts the Python scalar so
-        radii = info["radii"][..., :1] if info["radii"].stride(-1) == 0 else info["radii"]  # an expanded [C, N]
-        _add_visible(grads, scale, radii.contiguous().numpy(), self.state["grad2d"].numpy(),
+        radii3 = radii if radii.dim() == 3 else radii[..., None]  # [C, N, R]
+        _add_visible(grads, scale, radii3.contiguous().numpy(), self.state["grad2d"].numpy(),
                      self.state["count"].numpy())
 
     @torch.no_grad()
