@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
+from egobench.model.adam import adam_step
 from egobench.model.optim import GAUSSIAN_PARAMS, DensifySchedule, Densifier, make_adam
 from egobench.train.config import TrainConfig
 from egobench.train.data import TrainingData
@@ -50,10 +51,8 @@ class TrainState:
         return {name: value[fi] for name, value in self.extra.items() if name in PER_FRAME}
 
     def step_optimisers(self, it: int) -> None:
-        """Adam steps of every parameter, the lr schedule, then the densifier's refinement at ``it``."""
-        for o in [*self.optimizers.values(), *self.extra_optimizers.values()]:
-            o.step()
-            o.zero_grad(set_to_none=True)
+        """Adam steps of every parameter (`adam_step`), the lr schedule, then the densifier's refinement at ``it``."""
+        adam_step([*self.optimizers.values(), *self.extra_optimizers.values()])
         self.scheduler.step()
         self.densifier.refine(self.params, self.optimizers, it)
 
