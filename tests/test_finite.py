@@ -1,10 +1,13 @@
 """`all_finite`, the trainer's divergence test: against torch.isfinite on CPU tensors of each float dtype,
-with NaN and infinities placed anywhere (also past a vector's width and in non-contiguous views)."""
+with NaN and infinities placed anywhere (also past a vector's width and in non-contiguous views);
+`has_zero_row` and `render`'s check of its Gaussians, compiled and through torch."""
 
 import pytest
 import torch
 
-from egobench.train.finite import all_finite
+from egobench.render import _gaussians_valid, render
+from egobench.render.finite import all_finite, has_zero_row
+from egobench.render.types import Gaussians
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
@@ -27,3 +30,61 @@ def test_all_finite_on_views_empty_and_other_dtypes():
     assert all_finite([view]) is False
     assert all_finite([torch.tensor([1.0, float("inf")], dtype=torch.bfloat16)]) is False  # the torch path
     assert all_finite([torch.tensor([1.0, 2.0], dtype=torch.float16)]) is True
+
+
+def _torch_zero_row(t):
+    return bool(((t * t).sum(-1) == 0).any())
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.float16])
+def test_has_zero_row_is_the_squared_norm_test(dtype):
+    """A zero row anywhere, a row whose squares underflow in the dtype, none; the compiled pass (float32,
+    float64) and the torch path (float16) against the torch expression."""
+    g = torch.Generator().manual_seed(1)
+    tiny = {torch.float32: 1e-30, torch.float64: 1e-200, torch.float16: 1e-4}[dtype]
+    for n in (1, 5, 33):
+        for pos in (0, n // 2, n - 1):
+            q = torch.randn(n, 4, generator=g).to(dtype)
+            assert has_zero_row(q) is False
+            q[pos] = 0.0
+            assert has_zero_row(q) is True
+            q[pos] = torch.tensor([tiny, -tiny, tiny, 0.0], dtype=dtype)
+            assert has_zero_row(q) is _torch_zero_row(q) is True
+            q[pos, 0] = 1e-3 if dtype == torch.float16 else 1e-15  # its square is representable
+            assert has_zero_row(q) is _torch_zero_row(q) is False
+    assert has_zero_row(torch.empty(0, 4)) is False
+    assert has_zero_row(torch.zeros(6, 4)[:, ::2]) is True  # non-contiguous
+
+
+def _gaussians(dtype, n=40):
+    g = torch.Generator().manual_seed(2)
+    return {"means": torch.randn(n, 3, generator=g).to(dtype) + torch.tensor([0.0, 0.0, 4.0], dtype=dtype),
+            "quats": torch.randn(n, 4, generator=g).to(dtype), "log_scales": torch.full((n, 3), -3.0, dtype=dtype),
+            "opacity_logits": torch.zeros(n, dtype=dtype), "colors": torch.rand(n, 3, generator=g).to(dtype)}
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float16])
+def test_render_check_finds_each_bad_tensor(dtype):
+    """`_gaussians_valid`, compiled (float32) and through torch (float16): NaN or inf in any tensor, or a
+    zero quaternion, is invalid; a valid set is valid."""
+    assert _gaussians_valid(Gaussians(**_gaussians(dtype))) is True
+    for name in ("means", "quats", "log_scales", "opacity_logits", "colors"):
+        for bad in (float("nan"), float("inf")):
+            tensors = _gaussians(dtype)
+            tensors[name].view(-1)[7] = bad
+            assert _gaussians_valid(Gaussians(**tensors)) is False, (name, bad)
+    tensors = _gaussians(dtype)
+    tensors["quats"][-1] = 0.0
+    assert _gaussians_valid(Gaussians(**tensors)) is False
+
+
+@pytest.mark.parametrize("backend", ["cpu", "torch"])
+def test_render_names_a_zero_quaternion(backend):
+    from egobench.camera.pinhole import Pinhole
+
+    cam = Pinhole(fx=40.0, fy=40.0, cx=16.0, cy=12.0, width=32, height=24)
+    tensors = _gaussians(torch.float32)
+    assert render(Gaussians(**tensors), cam, torch.eye(4), backend=backend).rgb.shape == (1, 24, 32, 3)
+    tensors["quats"][3] = 0.0
+    with pytest.raises(ValueError, match="quats must be non-zero quaternions"):
+        render(Gaussians(**tensors), cam, torch.eye(4), backend=backend)

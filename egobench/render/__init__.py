@@ -17,6 +17,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from egobench.camera.pinhole import Pinhole
+from egobench.render.finite import all_finite, has_zero_row
 from egobench.render.types import Gaussians, RenderOutput, SplatMode
 
 __all__ = ["render", "render_rolling_shutter_reference", "Gaussians", "RenderOutput", "gsplat_cuda_available",
@@ -63,6 +64,22 @@ def resolve_backend(backend: str, device: torch.device | str) -> str:
     return backend
 
 
+_GAUSSIAN_TENSORS = ("means", "quats", "log_scales", "opacity_logits", "colors")
+
+
+def _gaussians_valid(g: Gaussians) -> bool:
+    """Every tensor finite and no zero quaternion: compiled passes on the CPU (`egobench.render.finite`);
+    elsewhere one host sync, where a NaN or inf entry makes a sum NaN or inf (a tenth of the cost of
+    isfinite(t).all()) and a sum that overflows from finite entries answers False."""
+    tensors = [getattr(g, name).detach() for name in _GAUSSIAN_TENSORS]
+    quats = tensors[1]
+    if quats.device.type == "cpu" and quats.dtype in (torch.float32, torch.float64):
+        return all_finite(tensors) and not has_zero_row(quats)
+    checks = [torch.isfinite(t.sum()) for t in tensors]
+    checks.append(~((quats * quats).sum(-1) == 0).any())
+    return bool(torch.stack(checks).all())
+
+
 def _check_gaussians(g: Gaussians) -> int:
     if not isinstance(g, Gaussians):
         raise ValueError(f"render: gaussians must be an egobench.render.types.Gaussians, got {type(g).__name__}")
@@ -81,16 +98,11 @@ def _check_gaussians(g: Gaussians) -> int:
                              f"got {t.dtype}, {t.device}")
     if not means.dtype.is_floating_point:
         raise ValueError(f"render: gaussians.means must be a floating-point tensor, got {means.dtype}")
-    names = ("means", "quats", "log_scales", "opacity_logits", "colors")
-    # a NaN or inf entry makes the sum NaN or inf, so a finite sum proves every entry finite (a
-    # tenth of the cost of isfinite(t).all()); entries are checked one by one only when it is not
-    checks = [torch.isfinite(getattr(g, name).detach().sum()) for name in names]
-    checks.append(~(g.quats.detach().norm(dim=-1) == 0).any())
-    if not bool(torch.stack(checks).all()):  # one host sync; name the culprit only on failure
-        for name, ok in zip(names, checks):
-            if not bool(ok) and not bool(torch.isfinite(getattr(g, name).detach()).all()):  # (not: the sum overflowed)
+    if not _gaussians_valid(g):  # name the culprit only on failure
+        for name in _GAUSSIAN_TENSORS:
+            if not bool(torch.isfinite(getattr(g, name).detach()).all()):  # (not: a sum that overflowed)
                 raise ValueError(f"render: gaussians.{name} must be finite (no NaN/inf)")
-        if not bool(checks[-1]):
+        if has_zero_row(g.quats):
             raise ValueError("render: gaussians.quats must be non-zero quaternions (w, x, y, z); found a zero quaternion")
     return n
 
