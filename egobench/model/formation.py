@@ -532,7 +532,8 @@ class FormationModel:
         """Trainer path (authors' code): image = encode(decode(x) * k * V), RGB clamped to [0, 1].
 
         With scene_gamma=False the colour is linear: image = encode(x * k * V). Noise and
-        quantisation are never applied here. Differentiable (zero gradient where clamped).
+        quantisation are never applied here. Differentiable (zero gradient where clamped). With
+        `GammaResponse` on the CPU this is `gamma_exposure.gamma_expose` (these torch ops its oracle).
         """
         cfg = self.config
         _check_image(scene_colour, "scene_colour")
@@ -540,6 +541,12 @@ class FormationModel:
         if cfg.exposure_gain:
             scale = scale * _per_image(scale_k, scene_colour, "scale_k", positive=True)
         scale = scale * self._shading(scene_colour, vignette, white_balance)
+        if isinstance(self.response, GammaResponse):
+            from egobench.model.gamma_exposure import compiled_exposure_applies, gamma_expose
+
+            if compiled_exposure_applies(scene_colour, scale):  # one compiled pass on the CPU
+                return gamma_expose(scene_colour, scale, self.response.gamma, self.response.toe_linear,
+                                    decode=scene_gamma, clamp=cfg.clamp)
         image = self._expose(scene_colour, scale, scene_gamma)
         return image.clamp(0.0, 1.0) if cfg.clamp else image
 
