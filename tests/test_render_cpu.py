@@ -644,3 +644,18 @@ def test_projection_backward_reads_float32_gradients_as_float64_copies(monkeypat
     for a, b in zip(*outs):
         np.testing.assert_array_equal(a, b)
     assert all(np.abs(a).max() > 0 for a in outs[0])
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_radix_order_is_numpys_stable_argsort(dtype):
+    """`_radix_order` of positive floats' bit patterns: the stable ascending order (ties keep their
+    index order), for empty, one and many keys with ties across every radix digit."""
+    from egobench.render import cpu_kernels
+
+    rng = np.random.default_rng(7)
+    uint = np.uint32 if dtype == np.float32 else np.uint64
+    for n in (0, 1, 5000):
+        keys = (rng.integers(1, 40, n) * 0.37).astype(dtype)  # many ties
+        keys[: n // 3] = rng.random(n // 3).astype(dtype) * 1e4 + 1e-3  # spread over exponents
+        order = cpu_kernels._radix_order(keys.view(uint), keys.dtype.itemsize * 8)
+        np.testing.assert_array_equal(order, np.argsort(keys, kind="stable"))

@@ -532,17 +532,34 @@ def bin_tiles(means2d, radii, depths, tile_size, tiles_x, tiles_y, bin_needed):
     bin_start [I * tiles + 1] int64). The depth order is a stable LSD radix sort of the depths'
     bit patterns (positive floats order like their bits), ties by (image, Gaussian)."""
     rect, vis, keys = visible_rects(means2d, radii, depths, tile_size, tiles_x, tiles_y, bin_needed)
-    bits = 32 if keys.dtype == np.float32 else 64
-    ukeys = keys.view(np.uint32 if bits == 32 else np.uint64)
-    perm = None
-    for shift in range(0, bits, 16):
-        digit = ((ukeys >> shift) & 0xFFFF).astype(np.uint16)
-        p = np.argsort(digit if perm is None else digit[perm], kind="stable")
-        perm = p if perm is None else perm[p]
-    if perm is None:
-        return _fill_bins(rect, vis, depths.shape[1], tiles_x, tiles_y, bin_needed)
-    # rectangles in depth order too: _fill_bins then reads them sequentially (no cache misses)
-    return _fill_bins(rect[perm], vis[perm], depths.shape[1], tiles_x, tiles_y, bin_needed)
+    perm = _radix_order(keys.view(np.uint32 if keys.dtype == np.float32 else np.uint64), keys.dtype.itemsize * 8)
+    return _fill_bins(rect, vis, perm, depths.shape[1], tiles_x, tiles_y, bin_needed)
+
+
+#: bits per pass of `_radix_order` (a 2048-bucket histogram stays in L1)
+RADIX_BITS = 11
+
+
+@njit(cache=True)
+def _radix_order(ukeys, bits):
+    """The stable ascending order [n] int64 of unsigned keys [n] (``bits`` wide): an LSD radix sort,
+    RADIX_BITS per pass; equal keys keep their order."""
+    n = ukeys.shape[0]
+    perm, spare = np.arange(n), np.empty(n, np.int64)
+    mask = (1 << RADIX_BITS) - 1
+    for shift in range(0, bits, RADIX_BITS):
+        start = np.zeros(mask + 2, np.int64)
+        for j in range(n):
+            start[((ukeys[j] >> shift) & mask) + 1] += 1
+        for d in range(mask + 1):
+            start[d + 1] += start[d]
+        for j in range(n):
+            q = perm[j]
+            d = (ukeys[q] >> shift) & mask
+            spare[start[d]] = q
+            start[d] += 1
+        perm, spare = spare, perm
+    return perm
 
 
 #: the fewest (image, Gaussian) pairs per thread for which `visible_rects` splits the work
@@ -635,18 +652,19 @@ def visible_rects(means2d, radii, depths, tile_size, tiles_x, tiles_y, bin_neede
 
 
 @njit(cache=True)
-def _fill_bins(rect, order, N, tiles_x, tiles_y, bin_needed):
-    """Counting sort of the intersections of the pairs in ``order`` (front to back; rect [nv, 4]
-    their tile rectangles, in the same order) by bin."""
+def _fill_bins(rect, vis, perm, N, tiles_x, tiles_y, bin_needed):
+    """Counting sort by bin of the intersections of the visible pairs taken in the order ``perm`` (front
+    to back; rect [nv, 4] their tile rectangles and vis [nv] their flat ids, in `visible_rects`' order;
+    read through perm: the [nv, 4] gather in numpy cost more than the counting sort)."""
     I = bin_needed.shape[0]
     n_tiles = tiles_x * tiles_y
-    nv = order.shape[0]
+    nv = perm.shape[0]
     counts = np.zeros(I * n_tiles + 1, np.int64)
     for j in range(nv):
-        k = order[j]
-        i = k // N
-        for ty in range(rect[j, 2], rect[j, 3]):
-            for tx in range(rect[j, 0], rect[j, 1]):
+        q = perm[j]
+        i = vis[q] // N
+        for ty in range(rect[q, 2], rect[q, 3]):
+            for tx in range(rect[q, 0], rect[q, 1]):
                 b = i * n_tiles + ty * tiles_x + tx
                 if bin_needed[i, b - i * n_tiles]:
                     counts[b + 1] += 1
@@ -654,10 +672,11 @@ def _fill_bins(rect, order, N, tiles_x, tiles_y, bin_needed):
     fill = bin_start[:-1].copy()
     flat_ids = np.empty(bin_start[-1], np.int64)
     for j in range(nv):
-        k = order[j]
+        q = perm[j]
+        k = vis[q]
         i = k // N
-        for ty in range(rect[j, 2], rect[j, 3]):
-            for tx in range(rect[j, 0], rect[j, 1]):
+        for ty in range(rect[q, 2], rect[q, 3]):
+            for tx in range(rect[q, 0], rect[q, 1]):
                 b = i * n_tiles + ty * tiles_x + tx
                 if bin_needed[i, b - i * n_tiles]:
                     flat_ids[fill[b]] = k
