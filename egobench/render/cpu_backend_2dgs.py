@@ -94,7 +94,7 @@ class _Rasterize2DGS(torch.autograd.Function):
         ctx.state = (m2, tsl_np, lo, st, pix_view, tile_size, out_feat, out_T, out_last, rows_hit, absgrad_target)
         ctx.shapes = (I, N, colors.dtype)
         feat = torch.from_numpy(out_feat)
-        return feat[..., :Cf].contiguous(), torch.from_numpy(out_T), feat[..., Cf].contiguous()
+        return feat[..., :Cf], torch.from_numpy(out_T), feat[..., Cf]  # views: no copies of the image
 
     @staticmethod
     def backward(ctx, g_feat, g_T, g_dist):
@@ -118,8 +118,11 @@ class _Rasterize2DGS(torch.autograd.Function):
         c = 12  # features: colour, depth, normal
         g_carrier = None
         if ctx.needs_input_grad[11]:  # gsplat's gradient_2dgs: (dL/dM[0, 2], dL/dM[1, 2]) * M[2, 2]
-            # columns 4 and 7 of the channel-first block (contiguous rows, no gather), as an [I, N, 2] view
-            g_carrier = (per.permute(2, 0, 1)[4:8:3] * torch.from_numpy(tsl_np[..., 8])).permute(1, 2, 0)
+            # from rows 4 and 7 of the channel-first block, in the carrier's own layout (no copy by autograd)
+            per_cf = per.permute(2, 0, 1).reshape(per.shape[2], I * N).numpy()
+            carrier = np.empty((I, N, 2), per_cf.dtype)
+            k2.carrier_grad(per_cf[4], per_cf[7], tsl_np.reshape(I * N, 9), carrier.reshape(I * N, 2))
+            g_carrier = torch.from_numpy(carrier)
         return (per[..., 0:2], per[..., 2:11], per[..., 11].sum(0), pose_sums(per, c, c + 3), per[..., c + 3],
                 per[..., c + 4:c + 7], None, None, None, None, None, g_carrier)
 

@@ -239,6 +239,16 @@ def project_bwd_2dgs(means, quats, scales, viewmats, cam, near, far, g_means2d, 
 # ------------------------------------------------------------------------------------------
 
 
+@njit(cache=True, parallel=True)
+def carrier_grad(g_m02, g_m12, tsl, out):
+    """gsplat's gradient_2dgs: dL/dM[0, 2], dL/dM[1, 2] [K] and the ray transforms tsl [K, 9] ->
+    out [K, 2] = (dL/dM[0, 2], dL/dM[1, 2]) M[2, 2] (K = images x surfels)."""
+    for k in prange(out.shape[0]):
+        m22 = tsl[k, 8]
+        out[k, 0] = g_m02[k] * m22
+        out[k, 1] = g_m12[k] * m22
+
+
 @njit(cache=True, inline="always")
 def _cross_coefs(tsl, gi, n, ox, oy, cc):
     """Fills cc [9] with h_u x h_v = C0 + lx C1 + ly C2 (lx, ly pixel minus tile centre (ox, oy)):
