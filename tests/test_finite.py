@@ -88,3 +88,19 @@ def test_render_names_a_zero_quaternion(backend):
     tensors["quats"][3] = 0.0
     with pytest.raises(ValueError, match="quats must be non-zero quaternions"):
         render(Gaussians(**tensors), cam, torch.eye(4), backend=backend)
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_render_check_and_zero_rows_on_cuda():
+    """The torch path with its one host sync: the same answers as on the CPU."""
+    assert _gaussians_valid(Gaussians(**{k: v.cuda() for k, v in _gaussians(torch.float32).items()})) is True
+    for name, bad in (("colors", float("nan")), ("means", float("inf"))):
+        tensors = {k: v.cuda() for k, v in _gaussians(torch.float32).items()}
+        tensors[name].view(-1)[3] = bad
+        assert _gaussians_valid(Gaussians(**tensors)) is False
+    q = torch.randn(9, 4, device="cuda")
+    assert has_zero_row(q) is False
+    q[8] = 0.0
+    assert has_zero_row(q) is True and _gaussians_valid(Gaussians(**{**{k: v.cuda() for k, v in _gaussians(
+        torch.float32, n=9).items()}, "quats": q})) is False
