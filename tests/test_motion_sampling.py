@@ -196,3 +196,43 @@ def test_the_pose_sample_staircase_renders_a_readout_about_one_nth_short(n):
     t_rendered = (pixel_pose_index(r, n).to(torch.float64) + 0.5) / n
     slope = float(np.polyfit(r[0].numpy(), t_rendered[0].numpy(), 1)[0])
     assert 0.8 / n < 1.0 - slope <= 1.0 / n
+
+
+def test_pose_sample_cache_gives_frame_poses_bits_and_computes_once():
+    """`frame_poses` with a run's `PoseSampleCache`: the uncached result bit for bit (with and without a
+    pose delta, several n and exposure samples), each (frame, n, M) sampled once, the pixel index once
+    per n; rendering from the cached poses leaves them as they were; the pose delta still gets a gradient."""
+    from egobench.model import motion_sampling
+    from egobench.model.methods import get_method
+    from egobench.model.predict import PoseSampleCache, frame_poses
+
+    uv, z = centre_points()
+    rec = make_recording(12.0, uv, z)
+    f, ratio = rec.frames[0], rec.row_time_ratio
+    cache, calls = PoseSampleCache(), []
+    real = motion_sampling.exposure_pose_samples
+    for spec in (get_method("ours"), get_method("no_viba")):
+        for n, m in ((3, 1), (3, 1), (1, 2), (5, 2), (3, 1)):
+            delta = torch.tensor([1e-3, -2e-3, 5e-4, 1e-2, 0.0, -3e-3], requires_grad=True)
+            kw = {"pose_delta": delta} if spec.pose_optimisation else {}
+            want, want_ppi = frame_poses(rec, f, spec, n, ratio, n_exposure_samples=m, **kw)
+            motion_sampling.exposure_pose_samples = lambda *a: calls.append(a[2:]) or real(*a)
+            try:
+                got, got_ppi = frame_poses(rec, f, spec, n, ratio, n_exposure_samples=m, cache=cache, **kw)
+            finally:
+                motion_sampling.exposure_pose_samples = real
+            assert torch.equal(got, want) and (got_ppi is None) == (want_ppi is None)
+            assert got_ppi is None or torch.equal(got_ppi, want_ppi)
+            if spec.pose_optimisation:
+                got.sum().backward()
+                assert delta.grad is not None and bool(delta.grad.abs().sum() > 0)
+    assert sorted(calls) == [(1, 2), (3, 1), (5, 2)] and sorted(cache.ppi) == [3, 5]
+    cached = {k: v.clone() for k, v in cache.poses.items()}
+    from egobench.render import render
+    from egobench.render.types import Gaussians
+
+    g = Gaussians(torch.randn(30, 3) + torch.tensor([0.0, 0.0, 4.0]), torch.randn(30, 4), torch.full((30, 3), -3.0),
+                  torch.zeros(30), torch.rand(30, 3))
+    poses, ppi = frame_poses(rec, f, get_method("no_viba"), 3, ratio, cache=cache)
+    render(g, rec.camera, poses[0], pixel_pose_index=ppi, backend="cpu")
+    assert all(torch.equal(cache.poses[k], v) for k, v in cached.items())

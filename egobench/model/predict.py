@@ -120,14 +120,35 @@ def predict_image(rgb: Tensor, spec: MethodSpec, k: Tensor | float, vignette: Te
     return formation.predict(rgb, scale_k=k, vignette=vignette, scene_gamma=spec.scene_gamma)
 
 
+class PoseSampleCache:
+    """One run's trainable-free part of `frame_poses` (the trainer asks for it every step): a frame's
+    trajectory samples per (frame, n, M) and the pixel pose index per n, for a fixed row time ratio."""
+
+    def __init__(self) -> None:
+        self.poses: dict[tuple[int, int, int], Tensor] = {}  # (frame timestamp, n, M) -> [M, n, 4, 4] float32
+        self.ppi: dict[int, Tensor] = {}  # n -> [H, W] int64
+
+    def samples(self, recording: Recording, frame: Frame, n: int, n_exposure_samples: int,
+                row_time_ratio: Tensor) -> tuple[Tensor, Tensor | None]:
+        from egobench.model.motion_sampling import exposure_pose_samples, pixel_pose_index
+
+        key = (int(frame.timestamp_ns), n, n_exposure_samples)
+        if key not in self.poses:
+            self.poses[key] = exposure_pose_samples(recording, frame, n, n_exposure_samples).to(torch.float32)
+        if n > 1 and n not in self.ppi:
+            self.ppi[n] = pixel_pose_index(row_time_ratio, n)
+        return self.poses[key], self.ppi.get(n) if n > 1 else None
+
+
 def frame_poses(recording: Recording, frame: Frame, spec: MethodSpec, n: int, row_time_ratio: Tensor,
                 pose_delta: Tensor | None = None, twist: Tensor | None = None,
-                n_exposure_samples: int = 1) -> tuple[Tensor, Tensor | None]:
+                n_exposure_samples: int = 1, cache: PoseSampleCache | None = None) -> tuple[Tensor, Tensor | None]:
     """Poses to render one frame: (T_world_camera [M, K, 4, 4] float32, pixel_pose_index [H, W] | None).
 
     M exposure samples (averaged by the caller), K rolling-shutter samples gathered per pixel.
     ``pose_delta`` [6] (se(3), right-multiplied) and ``twist`` [6] are the per-frame trainables of
-    pose-optimising / velocity-shift methods.
+    pose-optimising / velocity-shift methods. ``cache`` (a run's, for its fixed ``row_time_ratio``)
+    keeps the trajectory samples and pixel indices between calls.
     """
     from egobench.geometry import se3_exp
     from egobench.model.motion_sampling import exposure_pose_samples, pixel_pose_index
@@ -137,6 +158,8 @@ def frame_poses(recording: Recording, frame: Frame, spec: MethodSpec, n: int, ro
     if n == 1 and n_exposure_samples == 1:
         poses = frame.T_world_camera.to(torch.float32)[None, None]
         ppi = None
+    elif cache is not None:
+        poses, ppi = cache.samples(recording, frame, n, n_exposure_samples, row_time_ratio)
     else:
         poses = exposure_pose_samples(recording, frame, n, n_exposure_samples).to(torch.float32)
         ppi = pixel_pose_index(row_time_ratio, n) if n > 1 else None

@@ -30,7 +30,8 @@ from egobench.data.recording import Recording
 from egobench.model.methods import MethodSpec, get_method
 from egobench.model.optim import GAUSSIAN_PARAMS
 from egobench.model.predict import (
-    RenderSettings, formation_model, frame_poses, gaussians_from_params, mean_rgb, predict_image, render_frame,
+    PoseSampleCache, RenderSettings, formation_model, frame_poses, gaussians_from_params, mean_rgb, predict_image,
+    render_frame,
 )
 from egobench.train.checkpoint import checkpoint_matches, resumable_checkpoint, write_checkpoint
 from egobench.train.config import TrainConfig
@@ -76,6 +77,7 @@ class StepContext:
     k: Tensor  # [F] exposure*gain normaliser of the training frames
     row_time_ratio: Tensor  # [H, W] R(u): pixel-pose indices are built on the device
     shading_r2: Tensor | None = None  # [H, W] normalised r^2 of the learnable shading (learn_shading), else None
+    pose_samples: PoseSampleCache = field(default_factory=PoseSampleCache)  # the frames' trajectory samples
 
 
 def step_context(data: TrainingData, config: TrainConfig, device: torch.device) -> StepContext:
@@ -121,7 +123,7 @@ def _forward(state: TrainState, ctx: StepContext, it: int, fi: int) -> tuple[Ten
     warm = it >= config.motion_warmup_iter
     poses, ppi = frame_poses(data.recording, data.frames[fi], spec, data.n_samples[fi] if warm else 1,
                              ctx.row_time_ratio, **state.frame_trainables(fi),
-                             n_exposure_samples=spec.render_exposure_samples if warm else 1)
+                             n_exposure_samples=spec.render_exposure_samples if warm else 1, cache=ctx.pose_samples)
     g = gaussians_from_params(state.params)
     _sync(ctx.settings.device)
     t0 = time.perf_counter()
