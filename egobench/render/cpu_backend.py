@@ -210,7 +210,8 @@ class _Project(torch.autograd.Function):
         g_m2, g_con = upstream_grad(g_m2, (I, N, 2), dt_np), upstream_grad(g_con, (I, N, 3), dt_np)
         g_dep = upstream_grad(g_dep, (I, N), dt_np)
         g_nrm = upstream_grad(g_nrm if want_normal else None, (I, N if want_normal else 0, 3), dt_np)
-        gm, gq, gs = np.empty((N, 3)), np.empty((N, 4)), np.empty((N, 3))
+        # in the parameters' dtype: the kernel rounds its float64 sums once as it stores them, as .to() would
+        gm, gq, gs = np.empty((N, 3), dt_np), np.empty((N, 4), dt_np), np.empty((N, 3), dt_np)
         n_chunks = max(1, math.ceil(N / ck.CHUNK))
         gv_parts = np.zeros((n_chunks, I, 12))
         set_threads()
@@ -299,7 +300,13 @@ def render_cpu(gaussians: Gaussians, camera: Pinhole, viewmats: Tensor, *, pixel
     rgb, alpha, depth = composite_output(feats, trans, background)
     normal = feats[..., 4:7] if want_normal else None
     return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, normal=normal, means2d=means2d_out,
-                        radii=radii.amax(-1), extras={"backend": "cpu", "tile_size": ts})
+                        radii=radius_max(radii), extras={"backend": "cpu", "tile_size": ts})
+
+
+def radius_max(radii: Tensor) -> Tensor:
+    """radii [I, N, 2] int32 (x, y) -> [I, N], the larger (numpy: a third of ``amax(-1)``'s time)."""
+    r = radii.numpy()
+    return torch.from_numpy(np.maximum(r[..., 0], r[..., 1]))
 
 
 def camera_array(camera: Pinhole) -> np.ndarray:

@@ -18,8 +18,8 @@ from torch import Tensor
 
 from egobench.camera.pinhole import Pinhole
 from egobench.render.cpu_backend import (NEAR_PLANE, FAR_PLANE, contiguous_numpy, pose_grad, set_threads, camera_array,
-                                         composite_output, pixel_views, pose_sums, raster_setup, reduce_intersections,
-                                         rows_hit_buffer, upstream_grad)
+                                         composite_output, pixel_views, pose_sums, radius_max, raster_setup,
+                                         reduce_intersections, rows_hit_buffer, upstream_grad)
 from egobench.render.types import Gaussians, RenderOutput
 
 
@@ -55,7 +55,7 @@ class _Project2DGS(torch.autograd.Function):
         dt_np = contiguous_numpy(means).dtype
         grads = tuple(upstream_grad(g, shape, dt_np) for g, shape in
                       ((g_m2, (I, N, 2)), (g_tsl, (I, N, 9)), (g_dep, (I, N)), (g_nrm, (I, N, 3))))
-        gm, gq, gs = np.empty((N, 3)), np.empty((N, 4)), np.empty((N, 3))
+        gm, gq, gs = np.empty((N, 3), dt_np), np.empty((N, 4), dt_np), np.empty((N, 3), dt_np)  # see cpu_backend
         gv_parts = np.zeros((max(1, math.ceil(N / k2.CHUNK)), I, 12))
         set_threads()
         k2.project_bwd_2dgs(*(contiguous_numpy(t).astype(np.float64) for t in (means, quats, scales, viewmats)), ctx.cam,
@@ -154,4 +154,4 @@ def render_cpu_2dgs(gaussians: Gaussians, camera: Pinhole, viewmats: Tensor, *, 
         extras["means2d_values"] = means2d_out
         means2d = carrier
     return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, normal=feats[..., 4:7], means2d=means2d,
-                        radii=radii.amax(-1), extras=extras)
+                        radii=radius_max(radii), extras=extras)
