@@ -320,6 +320,6 @@ def composite_output(feats: Tensor, trans: Tensor, background: Tensor | None) ->
     trans = trans[..., None]
     alpha = 1.0 - trans
     rgb = feats[..., :3]
-    if background is not None:
+    if background is not None and bool(background.any()):  # a black background adds nothing (the default)
         rgb = rgb + trans * background
     return rgb, alpha, feats[..., 3:4] / alpha.clamp(min=1e-10)
