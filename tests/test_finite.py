@@ -104,3 +104,24 @@ def test_render_check_and_zero_rows_on_cuda():
     q[8] = 0.0
     assert has_zero_row(q) is True and _gaussians_valid(Gaussians(**{**{k: v.cuda() for k, v in _gaussians(
         torch.float32, n=9).items()}, "quats": q})) is False
+
+
+@pytest.mark.parametrize("backend", ["cpu", "torch"])
+def test_render_names_a_bad_pose(backend):
+    """A pose with NaN or inf, or a last row other than [0, 0, 0, 1] (beyond torch.allclose's tolerance), is
+    named; a last row within it renders."""
+    from egobench.camera.pinhole import Pinhole
+
+    cam = Pinhole(fx=40.0, fy=40.0, cx=16.0, cy=12.0, width=32, height=24)
+    g = Gaussians(**_gaussians(torch.float32))
+    for bad in (float("nan"), float("inf")):
+        T = torch.eye(4).repeat(2, 1, 1)
+        T[1, 0, 3] = bad
+        with pytest.raises(ValueError, match="T_world_camera must be finite"):
+            render(g, cam, T, backend=backend)
+    T = torch.eye(4)
+    T[3, 2] = 1e-4
+    with pytest.raises(ValueError, match=r"last row \[0, 0, 0, 1\]"):
+        render(g, cam, T, backend=backend)
+    T[3, 2] = 5e-7  # within atol 1e-6
+    assert render(g, cam, T, backend=backend).rgb.shape == (1, 24, 32, 3)
