@@ -33,10 +33,10 @@ from egobench.model.predict import (
     PoseSampleCache, RenderSettings, formation_model, frame_poses, gaussians_from_params, mean_rgb, predict_image,
     render_frame,
 )
+from egobench.render.finite import all_finite
 from egobench.train.checkpoint import checkpoint_matches, resumable_checkpoint, write_checkpoint
 from egobench.train.config import TrainConfig
 from egobench.train.data import TrainingData, image_to_float, prepare_data
-from egobench.render.finite import all_finite
 from egobench.train.losses import twodgs_regularisers
 from egobench.train.photometric import photometric_loss
 from egobench.train.record import train_record
