@@ -609,8 +609,7 @@ def test_backward_visits_only_the_rows_the_forward_composited(monkeypatch, mode)
 def test_projection_backward_reads_float32_gradients_as_float64_copies(monkeypatch, mode):
     """The projection backward gets the upstream gradients in their own dtype (no float64 copies of
     [I, N, 9] arrays a step): every value is widened to float64 as it is read, so its outputs equal,
-    bit for bit, those from float64 copies of the same gradients (normals and pose gradients included).
-    Its float32 outputs are its float64 sums rounded once."""
+    bit for bit, those from float64 copies of the same gradients (normals and pose gradients included)."""
     from egobench.render import cpu_kernels as ck
     from egobench.render import cpu_kernels_2dgs as k2
 
@@ -630,10 +629,8 @@ def test_projection_backward_reads_float32_gradients_as_float64_copies(monkeypat
     w = torch.randn(out.rgb.shape, generator=torch.Generator().manual_seed(2))
     ((out.rgb * w).sum() + out.normal.sum() + out.depth.sum()).backward()
     args = got["args"]
-    # the upstream gradients: the float32 arrays before the four outputs (means, quats, scales: float32 too)
-    grads = [j for j, a in enumerate(args[:-4]) if isinstance(a, np.ndarray) and a.dtype == np.float32]
+    grads = [j for j, a in enumerate(args) if isinstance(a, np.ndarray) and a.dtype == np.float32]
     assert len(grads) == 4  # means2d, conics / ray transforms, depths, normals
-    assert [a.dtype for a in args[-4:-1]] == [np.float32] * 3
     outs = []
     for widen in (False, True):
         run = [np.copy(a) if isinstance(a, np.ndarray) else a for a in args]
@@ -647,13 +644,6 @@ def test_projection_backward_reads_float32_gradients_as_float64_copies(monkeypat
     for a, b in zip(*outs):
         np.testing.assert_array_equal(a, b)
     assert all(np.abs(a).max() > 0 for a in outs[0])
-    # float32 outputs are the float64 ones rounded once (what .to(float32) gave before)
-    run = [np.copy(a) if isinstance(a, np.ndarray) else a for a in args]
-    run[-4:-1] = [np.zeros(a.shape) for a in run[-4:-1]]
-    run[-1][:] = 0
-    kernel(*run)
-    for wide, narrow in zip(run[-4:-1], outs[0][:3]):
-        np.testing.assert_array_equal(wide.astype(np.float32), narrow)
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])

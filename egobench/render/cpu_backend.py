@@ -210,8 +210,7 @@ class _Project(torch.autograd.Function):
         g_m2, g_con = upstream_grad(g_m2, (I, N, 2), dt_np), upstream_grad(g_con, (I, N, 3), dt_np)
         g_dep = upstream_grad(g_dep, (I, N), dt_np)
         g_nrm = upstream_grad(g_nrm if want_normal else None, (I, N if want_normal else 0, 3), dt_np)
-        # in the parameters' dtype: the kernel rounds its float64 sums once as it stores them, as .to() would
-        gm, gq, gs = np.empty((N, 3), dt_np), np.empty((N, 4), dt_np), np.empty((N, 3), dt_np)
+        gm, gq, gs = np.empty((N, 3)), np.empty((N, 4)), np.empty((N, 3))  # float64 (one compiled variant)
         n_chunks = max(1, math.ceil(N / ck.CHUNK))
         gv_parts = np.zeros((n_chunks, I, 12))
         set_threads()

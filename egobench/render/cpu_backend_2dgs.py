@@ -55,7 +55,7 @@ class _Project2DGS(torch.autograd.Function):
         dt_np = contiguous_numpy(means).dtype
         grads = tuple(upstream_grad(g, shape, dt_np) for g, shape in
                       ((g_m2, (I, N, 2)), (g_tsl, (I, N, 9)), (g_dep, (I, N)), (g_nrm, (I, N, 3))))
-        gm, gq, gs = np.empty((N, 3), dt_np), np.empty((N, 4), dt_np), np.empty((N, 3), dt_np)  # see cpu_backend
+        gm, gq, gs = np.empty((N, 3)), np.empty((N, 4)), np.empty((N, 3))
         gv_parts = np.zeros((max(1, math.ceil(N / k2.CHUNK)), I, 12))
         set_threads()
         k2.project_bwd_2dgs(*(contiguous_numpy(t).astype(np.float64) for t in (means, quats, scales, viewmats)), ctx.cam,
