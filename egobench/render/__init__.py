@@ -18,7 +18,6 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from egobench.camera.pinhole import Pinhole
-from egobench.render.finite import all_finite, has_zero_row
 from egobench.render.types import Gaussians, RenderOutput, SplatMode
 
 __all__ = ["render", "render_rolling_shutter_reference", "Gaussians", "RenderOutput", "gsplat_cuda_available",
@@ -72,6 +71,8 @@ def _gaussians_valid(g: Gaussians) -> bool:
     """Every tensor finite and no zero quaternion: compiled passes on the CPU (`egobench.render.finite`);
     elsewhere one host sync, where a NaN or inf entry makes a sum NaN or inf (a tenth of the cost of
     isfinite(t).all()) and a sum that overflows from finite entries answers False."""
+    from egobench.render.finite import all_finite, has_zero_row  # numba: loaded when a render needs it
+
     tensors = [getattr(g, name).detach() for name in _GAUSSIAN_TENSORS]
     quats = tensors[1]
     if quats.device.type == "cpu" and quats.dtype in (torch.float32, torch.float64):
@@ -103,6 +104,8 @@ def _check_gaussians(g: Gaussians) -> int:
         for name in _GAUSSIAN_TENSORS:
             if not bool(torch.isfinite(getattr(g, name).detach()).all()):  # (not: a sum that overflowed)
                 raise ValueError(f"render: gaussians.{name} must be finite (no NaN/inf)")
+        from egobench.render.finite import has_zero_row
+
         if has_zero_row(g.quats):
             raise ValueError("render: gaussians.quats must be non-zero quaternions (w, x, y, z); found a zero quaternion")
     return n
