@@ -234,5 +234,5 @@ def test_pose_sample_cache_gives_frame_poses_bits_and_computes_once():
     g = Gaussians(torch.randn(30, 3) + torch.tensor([0.0, 0.0, 4.0]), torch.randn(30, 4), torch.full((30, 3), -3.0),
                   torch.zeros(30), torch.rand(30, 3))
     poses, ppi = frame_poses(rec, f, get_method("no_viba"), 3, ratio, cache=cache)
-    render(g, rec.camera, poses[0], pixel_pose_index=ppi, backend="cpu")
+    render(g, rec.camera, poses[0], pixel_pose_index=ppi, backend="torch")
     assert all(torch.equal(cache.poses[k], v) for k, v in cached.items())
