@@ -151,18 +151,14 @@ def frame_poses(recording: Recording, frame: Frame, spec: MethodSpec, n: int, ro
     keeps the trajectory samples and pixel indices between calls.
     """
     from egobench.geometry import se3_exp
-    from egobench.model.motion_sampling import exposure_pose_samples, pixel_pose_index
 
     if spec.motion_sampling == "velocity_shift":
         return _velocity_shift_poses(recording, frame, n, row_time_ratio, pose_delta, twist, n_exposure_samples)
     if n == 1 and n_exposure_samples == 1:
         poses = frame.T_world_camera.to(torch.float32)[None, None]
         ppi = None
-    elif cache is not None:
-        poses, ppi = cache.samples(recording, frame, n, n_exposure_samples, row_time_ratio)
-    else:
-        poses = exposure_pose_samples(recording, frame, n, n_exposure_samples).to(torch.float32)
-        ppi = pixel_pose_index(row_time_ratio, n) if n > 1 else None
+    else:  # without a run's cache, a throwaway one: one code path
+        poses, ppi = (cache or PoseSampleCache()).samples(recording, frame, n, n_exposure_samples, row_time_ratio)
     if pose_delta is not None:
         poses = poses.to(pose_delta.device) @ se3_exp(pose_delta.to(torch.float32))
     return poses, ppi
