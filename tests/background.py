@@ -7,9 +7,11 @@ job starts when its test asks for it; the other workers keep the other cores bus
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
+import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from types import ModuleType
@@ -74,3 +76,125 @@ def wait_for_kernels(module: ModuleType, test_name: str) -> None:
     in its own worker) measured slower on a cold cache, 425.0 s against 389.6-406.5 s of fresh-clone pytest."""
     done = start(module, test_name).result(timeout=1300)
     assert done.returncode == 0, done.stderr[-2000:]
+
+
+# Renders the edge-case scene of each set in {modes} (float32, the training dtype), global and rolling
+# shutter, and backpropagates; prints one JSON line: per set, one digest of every map and gradient, and
+# numba's cache hits and misses of its rasterizer kernels in this process.
+DIGEST_SCRIPT = """
+import hashlib, json, torch
+from egobench.render import cpu_kernels, cpu_kernels_2dgs
+from tests.test_render import pose
+from tests.test_render_cpu import CAM, edge_case_scene, run
+from tests.test_render_cpu_2dgs import run2, surfel_scene
+T = pose(0.1, -0.05, (0.02, 0.0, 0.0)).to(torch.float32)
+Ts = torch.stack([T, pose(0.0, 0.02, (0.01, 0, 0)).to(torch.float32)])
+idx = (torch.arange(CAM.height) >= CAM.height // 2).long()[:, None].expand(CAM.height, CAM.width).contiguous()
+sets = {{"3dgs": (run, edge_case_scene, cpu_kernels, ""), "2dgs": (run2, surfel_scene, cpu_kernels_2dgs, "_2dgs")}}
+out = {{}}
+for mode in {modes!r}:
+    render, scene, module, suffix = sets[mode]
+    h = hashlib.sha1()
+    for pose_, kw in ((T, {{}}), (Ts, {{"pixel_pose_index": idx}})):
+        maps, grads, _ = render(scene(3, torch.float32), CAM, pose_, "cpu", **kw)
+        h.update(maps.numpy().tobytes())
+        for name in sorted(grads):
+            if grads[name] is not None:
+                h.update(name.encode() + grads[name].numpy().tobytes())
+    stats = [getattr(module, k + suffix).stats for k in {kernels!r}]
+    out[mode] = {{"digest": h.hexdigest(), "hits": sum(sum(s.cache_hits.values()) for s in stats),
+                 "misses": sum(sum(s.cache_misses.values()) for s in stats)}}
+print(json.dumps(out))
+"""
+#: the rasterizer kernels whose cache hits and misses `kernel_digests` counts (with "_2dgs" for 2DGS)
+RASTER_KERNELS = ("project_fwd", "project_bwd", "raster_fwd", "raster_bwd")
+
+
+def kernel_digests(modes: tuple[str, ...], **env: str) -> dict:
+    """Renders the float32 kernel sets ``modes`` ("3dgs", "2dgs") in a subprocess (`DIGEST_SCRIPT`; ``env``
+    added, e.g. NUMBA_CACHE_DIR) -> {set: {"digest", "hits", "misses"}}; fails with its error output."""
+    done = run_script(DIGEST_SCRIPT.format(modes=tuple(modes), kernels=RASTER_KERNELS), timeout=1200, **env)
+    assert done.returncode == 0, done.stderr[-2000:]
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+#: the float32 kernel sets an xdist suite compiles at its start, one per worker (`warm_up`)
+WARM_UP_SETS = ("3dgs", "2dgs")
+#: a session this small (a file, a -k selection) compiles only what its tests use
+WARM_UP_MIN_TESTS = 100
+
+
+def _warm_up_folder(tmp_path_factory) -> Path:
+    """The folder of the warm-up records, shared by the session's xdist workers."""
+    return tmp_path_factory.getbasetemp().parent / "egobench-kernel-warm-up"
+
+
+def _cached(kernel_set: str) -> bool:
+    """Does numba's cache hold an index for every float32 rasterizer kernel of ``kernel_set`` ("3dgs",
+    "2dgs")? (An index of stale source reads as cached; the worker that needs those kernels then compiles
+    them itself.)"""
+    from egobench.render import cpu_kernels, cpu_kernels_2dgs
+
+    module, suffix = (cpu_kernels, "") if kernel_set == "3dgs" else (cpu_kernels_2dgs, "_2dgs")
+    stem = module.__name__.rsplit(".", 1)[-1]
+    return all(any(Path(getattr(module, name + suffix).stats.cache_path).glob(f"{stem}.{name}{suffix}-*.nbi"))
+               for name in RASTER_KERNELS)
+
+
+def warm_up(session, tmp_path_factory) -> None:
+    """On a cold cache, under pytest-xdist, at a worker's first test: workers gw0 and gw1 each compile one
+    float32 kernel set of `WARM_UP_SETS` into the suite's numba cache (`kernel_digests`, on their own core)
+    and wait for each other, so that no two processes compile the same set side by side and the tests load
+    them; the records (digests, cache hits and misses) serve the cold/warm cache test (`cold_warm_up`).
+    gw0 decides which sets the cache lacks, for both."""
+    worker, workers = os.environ.get("PYTEST_XDIST_WORKER", ""), int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0"))
+    helpers = min(workers, len(WARM_UP_SETS))
+    index = int(worker.removeprefix("gw")) if worker.startswith("gw") else helpers
+    if index >= helpers or len(session.items) < WARM_UP_MIN_TESTS:
+        return
+    folder = _warm_up_folder(tmp_path_factory)
+    if index == 0:
+        folder.mkdir(exist_ok=True)
+        _write_atomically(folder / "cold.json", json.dumps([s for s in WARM_UP_SETS if not _cached(s)]))
+    cold = json.loads(_wait_for(folder / "cold.json"))
+    mine = cold[index::helpers]
+    if mine:
+        done = run_script(DIGEST_SCRIPT.format(modes=tuple(mine), kernels=RASTER_KERNELS), timeout=1200)
+        record = json.loads(done.stdout.strip().splitlines()[-1]) if done.returncode == 0 else {}
+        _write_atomically(folder / f"{worker}.json", json.dumps({"sets": record, "error": done.stderr[-2000:]}))
+    for k in range(min(helpers, len(cold))):
+        _wait_for(folder / f"gw{k}.json")
+
+
+def cold_warm_up(tmp_path_factory) -> dict | None:
+    """The warm-up's records {set: {"digest", "hits", "misses"}} when this session's warm-up compiled
+    every set of `WARM_UP_SETS` (`warm_up`); None when it did not run, found a set cached or loaded any
+    kernel from the cache. Fails with the warm-up's error output where a compile failed."""
+    folder = _warm_up_folder(tmp_path_factory)
+    cold = folder / "cold.json"
+    if not cold.is_file() or set(json.loads(cold.read_text())) != set(WARM_UP_SETS):
+        return None
+    sets = {}
+    for path in sorted(folder.glob("gw*.json")):
+        record = json.loads(path.read_text())
+        assert record["sets"], f"{path.name}: the warm-up's compile failed: {record['error']}"
+        sets.update(record["sets"])
+    if set(sets) != set(WARM_UP_SETS) or any(r["hits"] for r in sets.values()):
+        return None
+    return sets
+
+
+def _write_atomically(path: Path, text: str) -> None:
+    partial = path.with_name(path.name + ".partial")
+    partial.write_text(text)
+    partial.replace(path)
+
+
+def _wait_for(path: Path, timeout: float = 1300.0) -> str:
+    """The text of ``path`` once another worker has written it; fails after ``timeout`` s, naming it."""
+    deadline = time.monotonic() + timeout
+    while not path.is_file():
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"{path}: no kernel warm-up record after {timeout:.0f} s (its worker stopped?)")
+        time.sleep(0.5)
+    return path.read_text()

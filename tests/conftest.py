@@ -47,6 +47,13 @@ def pytest_collection_modifyitems(config, items):
             background.start(item.module, getattr(item, "originalname", item.name))
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _float32_kernels_warmed_up(request, tmp_path_factory) -> None:
+    """On a cold numba cache under pytest-xdist, the first two workers compile the float32 3DGS and 2DGS
+    kernels, one set each, before their first test (`background.warm_up`); the tests then load them."""
+    background.warm_up(request.session, tmp_path_factory)
+
+
 @pytest.fixture
 def two_kernel_threads() -> None:
     """Skip, saying why, where numba's pool has one thread: a 1-against-2-thread test would compare 1 with 1."""
