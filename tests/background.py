@@ -3,7 +3,9 @@ starts them after collection, one at a time on one worker thread in the order of
 their subprocesses overlap the rest of the suite on a second core; each test then waits for its own
 job's result. A test module declares its jobs as ``BACKGROUND = {test name: job}``. Under pytest-xdist
 (the default, pyproject's addopts) every worker collects every test, so conftest submits nothing and a
-job starts when its test asks for it; the other workers keep the other cores busy."""
+job starts when its test asks for it; the other workers keep the other cores busy. A worker's jobs are its
+own, so on a cold numba cache the first two workers compile the rasterizer's kernel sets once each before
+their first test, coordinated through files (`warm_up`)."""
 
 from __future__ import annotations
 
@@ -80,30 +82,35 @@ def wait_for_kernels(module: ModuleType, test_name: str) -> None:
 
 # Renders the edge-case scene of each set in {modes} (float32, the training dtype), global and rolling
 # shutter, and backpropagates; prints one JSON line: per set, one digest of every map and gradient, and
-# numba's cache hits and misses of its rasterizer kernels in this process.
+# numba's cache hits and misses of its rasterizer kernels in this process. Then renders each set in the
+# dtypes {more_dtypes} too (compiles them into the cache; no digest).
 DIGEST_SCRIPT = """
 import hashlib, json, torch
 from egobench.render import cpu_kernels, cpu_kernels_2dgs
 from tests.test_render import pose
 from tests.test_render_cpu import CAM, edge_case_scene, run
 from tests.test_render_cpu_2dgs import run2, surfel_scene
-T = pose(0.1, -0.05, (0.02, 0.0, 0.0)).to(torch.float32)
-Ts = torch.stack([T, pose(0.0, 0.02, (0.01, 0, 0)).to(torch.float32)])
-idx = (torch.arange(CAM.height) >= CAM.height // 2).long()[:, None].expand(CAM.height, CAM.width).contiguous()
 sets = {{"3dgs": (run, edge_case_scene, cpu_kernels, ""), "2dgs": (run2, surfel_scene, cpu_kernels_2dgs, "_2dgs")}}
+idx = (torch.arange(CAM.height) >= CAM.height // 2).long()[:, None].expand(CAM.height, CAM.width).contiguous()
+def renders(mode, dtype):
+    render, scene, _, _ = sets[mode]
+    T = pose(0.1, -0.05, (0.02, 0.0, 0.0)).to(dtype)
+    Ts = torch.stack([T, pose(0.0, 0.02, (0.01, 0, 0)).to(dtype)])
+    return [render(scene(3, dtype), CAM, pose_, "cpu", **kw) for pose_, kw in ((T, {{}}), (Ts, {{"pixel_pose_index": idx}}))]
 out = {{}}
 for mode in {modes!r}:
-    render, scene, module, suffix = sets[mode]
     h = hashlib.sha1()
-    for pose_, kw in ((T, {{}}), (Ts, {{"pixel_pose_index": idx}})):
-        maps, grads, _ = render(scene(3, torch.float32), CAM, pose_, "cpu", **kw)
+    for maps, grads, _ in renders(mode, torch.float32):
         h.update(maps.numpy().tobytes())
         for name in sorted(grads):
             if grads[name] is not None:
                 h.update(name.encode() + grads[name].numpy().tobytes())
+    _, _, module, suffix = sets[mode]
     stats = [getattr(module, k + suffix).stats for k in {kernels!r}]
     out[mode] = {{"digest": h.hexdigest(), "hits": sum(sum(s.cache_hits.values()) for s in stats),
                  "misses": sum(sum(s.cache_misses.values()) for s in stats)}}
+    for dtype in {more_dtypes!r}:
+        renders(mode, getattr(torch, dtype))
 print(json.dumps(out))
 """
 #: the rasterizer kernels whose cache hits and misses `kernel_digests` counts (with "_2dgs" for 2DGS)
@@ -113,12 +120,13 @@ RASTER_KERNELS = ("project_fwd", "project_bwd", "raster_fwd", "raster_bwd")
 def kernel_digests(modes: tuple[str, ...], **env: str) -> dict:
     """Renders the float32 kernel sets ``modes`` ("3dgs", "2dgs") in a subprocess (`DIGEST_SCRIPT`; ``env``
     added, e.g. NUMBA_CACHE_DIR) -> {set: {"digest", "hits", "misses"}}; fails with its error output."""
-    done = run_script(DIGEST_SCRIPT.format(modes=tuple(modes), kernels=RASTER_KERNELS), timeout=1200, **env)
+    done = run_script(DIGEST_SCRIPT.format(modes=tuple(modes), kernels=RASTER_KERNELS, more_dtypes=()),
+                      timeout=1200, **env)
     assert done.returncode == 0, done.stderr[-2000:]
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
-#: the float32 kernel sets an xdist suite compiles at its start, one per worker (`warm_up`)
+#: the kernel sets an xdist suite compiles at its start, one per worker, float32 and float64 (`warm_up`)
 WARM_UP_SETS = ("3dgs", "2dgs")
 #: a session this small (a file, a -k selection) compiles only what its tests use
 WARM_UP_MIN_TESTS = 100
@@ -143,8 +151,8 @@ def _cached(kernel_set: str) -> bool:
 
 def warm_up(session, tmp_path_factory) -> None:
     """On a cold cache, under pytest-xdist, at a worker's first test: workers gw0 and gw1 each compile one
-    float32 kernel set of `WARM_UP_SETS` into the suite's numba cache (`kernel_digests`, on their own core)
-    and wait for each other, so that no two processes compile the same set side by side and the tests load
+    kernel set of `WARM_UP_SETS` into the suite's numba cache (`DIGEST_SCRIPT`, float32 then float64, on
+    their own core) and wait for each other, so that no two processes compile the same set side by side and the tests load
     them; the records (digests, cache hits and misses) serve the cold/warm cache test (`cold_warm_up`).
     gw0 decides which sets the cache lacks, for both."""
     worker, workers = os.environ.get("PYTEST_XDIST_WORKER", ""), int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0"))
@@ -159,7 +167,8 @@ def warm_up(session, tmp_path_factory) -> None:
     cold = json.loads(_wait_for(folder / "cold.json"))
     mine = cold[index::helpers]
     if mine:
-        done = run_script(DIGEST_SCRIPT.format(modes=tuple(mine), kernels=RASTER_KERNELS), timeout=1200)
+        script = DIGEST_SCRIPT.format(modes=tuple(mine), kernels=RASTER_KERNELS, more_dtypes=("float64",))
+        done = run_script(script, timeout=1200)
         record = json.loads(done.stdout.strip().splitlines()[-1]) if done.returncode == 0 else {}
         _write_atomically(folder / f"{worker}.json", json.dumps({"sets": record, "error": done.stderr[-2000:]}))
     for k in range(min(helpers, len(cold))):
