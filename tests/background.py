@@ -9,6 +9,7 @@ their first test, coordinated through files (`warm_up`)."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import subprocess
@@ -191,6 +192,25 @@ def cold_warm_up(tmp_path_factory) -> dict | None:
     if set(sets) != set(WARM_UP_SETS) or any(r["hits"] for r in sets.values()):
         return None
     return sets
+
+
+def compile_key() -> str:
+    """What the bits of a compiled kernel depend on, as one hash: egobench's source, the numba, llvmlite
+    and torch versions, the host CPU LLVM compiles for, and numba's settings other than its thread count
+    and cache folder."""
+    import llvmlite
+    import llvmlite.binding as llvm
+    import numba
+    import torch
+
+    h = hashlib.sha256()
+    for path in sorted((REPO / "egobench").rglob("*.py")):
+        h.update(path.relative_to(REPO).as_posix().encode() + b"\0" + path.read_bytes())
+    settings = {k: v for k, v in os.environ.items()
+                if k.startswith("NUMBA_") and k not in ("NUMBA_NUM_THREADS", "NUMBA_CACHE_DIR")}
+    h.update(json.dumps([numba.__version__, llvmlite.__version__, torch.__version__, llvm.get_host_cpu_name(),
+                         llvm.get_host_cpu_features().flatten(), sorted(settings.items())]).encode())
+    return h.hexdigest()
 
 
 def _write_atomically(path: Path, text: str) -> None:
