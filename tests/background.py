@@ -38,30 +38,13 @@ def start(module: ModuleType, test_name: str) -> Future | None:
     return _JOBS[key]
 
 
-# Renders the edge-case scenes of tests.test_render_cpu{,_2dgs} in {dtype}, global and rolling shutter,
-# and backpropagates: every compiled kernel of {modes} for that dtype.
-_RENDER_SCRIPT = """
-import torch
-from tests.test_render import pose
-from tests.test_render_cpu import CAM, edge_case_scene, run
-from tests.test_render_cpu_2dgs import run2, surfel_scene
-Ts = torch.stack([pose(0.0, 0.02 * k, (0.01 * k, 0, 0)) for k in range(2)]).to(torch.{dtype})
-idx = (torch.arange(CAM.height) >= CAM.height // 2).long()[:, None].expand(CAM.height, CAM.width).contiguous()
-for T, kw in ((Ts[0], {{}}), (Ts, {{"pixel_pose_index": idx}})):
-    if "3dgs" in {modes!r}:
-        run(edge_case_scene(3, torch.{dtype}), CAM, T, "cpu", **kw)
-    if "2dgs" in {modes!r}:
-        run2(surfel_scene(3, torch.{dtype}), CAM, T, "cpu", **kw)
-"""
-
-
 def compile_kernels(dtype: str, modes: tuple[str, ...]):
     """A job that compiles the CPU rasterizer's kernels of ``modes`` ("3dgs", "2dgs") for ``dtype``
     ("float32", "float64") into numba's cache in a subprocess -> its CompletedProcess. On a cold cache
     the compiles (~40 s per mode and dtype here) then run on the second core, and the tests that need
     those kernels, waiting for the job first, load them instead of compiling them again; on a warm
     cache the job only loads them."""
-    script = _RENDER_SCRIPT.format(dtype=dtype, modes=tuple(modes))
+    script = render_script(modes, (dtype,))
     return lambda: run_script(script, timeout=1200)
 
 
@@ -81,11 +64,11 @@ def wait_for_kernels(module: ModuleType, test_name: str) -> None:
     assert done.returncode == 0, done.stderr[-2000:]
 
 
-# Renders the edge-case scene of each set in {modes} (float32, the training dtype), global and rolling
-# shutter, and backpropagates; prints one JSON line: per set, one digest of every map and gradient, and
-# numba's cache hits and misses of its rasterizer kernels in this process. Then renders each set in the
-# dtypes {more_dtypes} too (compiles them into the cache; no digest).
-DIGEST_SCRIPT = """
+# Renders the edge-case scene of each set in {modes} in each dtype of {dtypes}, global and rolling shutter,
+# and backpropagates (every compiled kernel of that set and dtype); prints one JSON line: per set and dtype,
+# one digest of every map and gradient, and numba's cache hits and misses of the set's rasterizer kernels
+# {kernels} in this process.
+RENDER_SCRIPT = """
 import hashlib, json, torch
 from egobench.render import cpu_kernels, cpu_kernels_2dgs
 from tests.test_render import pose
@@ -93,38 +76,49 @@ from tests.test_render_cpu import CAM, edge_case_scene, run
 from tests.test_render_cpu_2dgs import run2, surfel_scene
 sets = {{"3dgs": (run, edge_case_scene, cpu_kernels, ""), "2dgs": (run2, surfel_scene, cpu_kernels_2dgs, "_2dgs")}}
 idx = (torch.arange(CAM.height) >= CAM.height // 2).long()[:, None].expand(CAM.height, CAM.width).contiguous()
-def renders(mode, dtype):
-    render, scene, _, _ = sets[mode]
-    T = pose(0.1, -0.05, (0.02, 0.0, 0.0)).to(dtype)
-    Ts = torch.stack([T, pose(0.0, 0.02, (0.01, 0, 0)).to(dtype)])
-    return [render(scene(3, dtype), CAM, pose_, "cpu", **kw) for pose_, kw in ((T, {{}}), (Ts, {{"pixel_pose_index": idx}}))]
+def counts(module, suffix):
+    stats = [getattr(module, k + suffix).stats for k in {kernels!r}]
+    return (sum(sum(s.cache_hits.values()) for s in stats), sum(sum(s.cache_misses.values()) for s in stats))
 out = {{}}
 for mode in {modes!r}:
-    h = hashlib.sha1()
-    for maps, grads, _ in renders(mode, torch.float32):
-        h.update(maps.numpy().tobytes())
-        for name in sorted(grads):
-            if grads[name] is not None:
-                h.update(name.encode() + grads[name].numpy().tobytes())
-    _, _, module, suffix = sets[mode]
-    stats = [getattr(module, k + suffix).stats for k in {kernels!r}]
-    out[mode] = {{"digest": h.hexdigest(), "hits": sum(sum(s.cache_hits.values()) for s in stats),
-                 "misses": sum(sum(s.cache_misses.values()) for s in stats)}}
-    for dtype in {more_dtypes!r}:
-        renders(mode, getattr(torch, dtype))
+    render, scene, module, suffix = sets[mode]
+    for name in {dtypes!r}:
+        dtype, before, h = getattr(torch, name), counts(module, suffix), hashlib.sha1()
+        T = pose(0.1, -0.05, (0.02, 0.0, 0.0)).to(dtype)
+        Ts = torch.stack([T, pose(0.0, 0.02, (0.01, 0, 0)).to(dtype)])
+        for pose_, kw in ((T, {{}}), (Ts, {{"pixel_pose_index": idx}})):
+            maps, grads, _ = render(scene(3, dtype), CAM, pose_, "cpu", **kw)
+            h.update(maps.numpy().tobytes())
+            for g in sorted(grads):
+                if grads[g] is not None:
+                    h.update(g.encode() + grads[g].numpy().tobytes())
+        hits, misses = (x - y for x, y in zip(counts(module, suffix), before))
+        out[mode + "-" + name] = {{"digest": h.hexdigest(), "hits": hits, "misses": misses}}
 print(json.dumps(out))
 """
+
+
+def render_script(modes: tuple[str, ...], dtypes: tuple[str, ...]) -> str:
+    """`RENDER_SCRIPT` for the sets ``modes`` ("3dgs", "2dgs") in ``dtypes`` ("float32", "float64")."""
+    return RENDER_SCRIPT.format(modes=tuple(modes), dtypes=tuple(dtypes), kernels=RASTER_KERNELS)
+
+
 #: the rasterizer kernels whose cache hits and misses `kernel_digests` counts (with "_2dgs" for 2DGS)
 RASTER_KERNELS = ("project_fwd", "project_bwd", "raster_fwd", "raster_bwd")
 
 
 def kernel_digests(modes: tuple[str, ...], **env: str) -> dict:
-    """Renders the float32 kernel sets ``modes`` ("3dgs", "2dgs") in a subprocess (`DIGEST_SCRIPT`; ``env``
+    """Renders the float32 kernel sets ``modes`` ("3dgs", "2dgs") in a subprocess (`RENDER_SCRIPT`; ``env``
     added, e.g. NUMBA_CACHE_DIR) -> {set: {"digest", "hits", "misses"}}; fails with its error output."""
-    done = run_script(DIGEST_SCRIPT.format(modes=tuple(modes), kernels=RASTER_KERNELS, more_dtypes=()),
-                      timeout=1200, **env)
+    done = run_script(render_script(tuple(modes), ("float32",)), timeout=1200, **env)
     assert done.returncode == 0, done.stderr[-2000:]
-    return json.loads(done.stdout.strip().splitlines()[-1])
+    return _float32_records(done.stdout)
+
+
+def _float32_records(stdout: str) -> dict:
+    """`RENDER_SCRIPT`'s output -> its float32 records by set."""
+    records = json.loads(stdout.strip().splitlines()[-1])
+    return {key.removesuffix("-float32"): r for key, r in records.items() if key.endswith("-float32")}
 
 
 #: the kernel sets an xdist suite compiles at its start, one per worker, float32 and float64 (`warm_up`)
@@ -152,12 +146,12 @@ def _cached(kernel_set: str) -> bool:
 
 def warm_up(session, tmp_path_factory) -> None:
     """On a cold cache, under pytest-xdist, at a worker's first test: workers gw0 and gw1 each compile one
-    kernel set of `WARM_UP_SETS` into the suite's numba cache (`DIGEST_SCRIPT`, float32 then float64, on
+    kernel set of `WARM_UP_SETS` into the suite's numba cache (`RENDER_SCRIPT`, float32 then float64, on
     their own core) and wait for each other, so that no two processes compile the same set side by side and the tests load
     them; the records (digests, cache hits and misses) serve the cold/warm cache test (`cold_warm_up`).
     gw0 decides which sets the cache lacks, for both."""
-    worker, workers = os.environ.get("PYTEST_XDIST_WORKER", ""), int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0"))
-    helpers = min(workers, len(WARM_UP_SETS))
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "")
+    helpers = min(int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0")), len(WARM_UP_SETS))
     index = int(worker.removeprefix("gw")) if worker.startswith("gw") else helpers
     if index >= helpers or len(session.items) < WARM_UP_MIN_TESTS:
         return
@@ -168,9 +162,8 @@ def warm_up(session, tmp_path_factory) -> None:
     cold = json.loads(_wait_for(folder / "cold.json"))
     mine = cold[index::helpers]
     if mine:
-        script = DIGEST_SCRIPT.format(modes=tuple(mine), kernels=RASTER_KERNELS, more_dtypes=("float64",))
-        done = run_script(script, timeout=1200)
-        record = json.loads(done.stdout.strip().splitlines()[-1]) if done.returncode == 0 else {}
+        done = run_script(render_script(mine, ("float32", "float64")), timeout=1200)
+        record = _float32_records(done.stdout) if done.returncode == 0 else {}
         _write_atomically(folder / f"{worker}.json", json.dumps({"sets": record, "error": done.stderr[-2000:]}))
     for k in range(min(helpers, len(cold))):
         _wait_for(folder / f"gw{k}.json")
