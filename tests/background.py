@@ -147,8 +147,9 @@ def _cached(kernel_set: str) -> bool:
 def warm_up(session, tmp_path_factory) -> None:
     """On a cold cache, under pytest-xdist, at a worker's first test: workers gw0 and gw1 each compile one
     kernel set of `WARM_UP_SETS` into the suite's numba cache (`RENDER_SCRIPT`, float32 then float64, on
-    their own core) and wait for each other, so that no two processes compile the same set side by side and the tests load
-    them; the records (digests, cache hits and misses) serve the cold/warm cache test (`cold_warm_up`).
+    their own core) and wait for each other, so that no two processes compile the same set side by side
+    and the tests load them; the float32 records (digests, cache hits and misses) serve the cold/warm
+    cache test (`cold_warm_up`).
     gw0 decides which sets the cache lacks, for both."""
     worker = os.environ.get("PYTEST_XDIST_WORKER", "")
     helpers = min(int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0")), len(WARM_UP_SETS))

@@ -48,9 +48,10 @@ def pytest_collection_modifyitems(config, items):
 
 
 @pytest.fixture(scope="session", autouse=True)
-def _float32_kernels_warmed_up(request, tmp_path_factory) -> None:
-    """On a cold numba cache under pytest-xdist, the first two workers compile the float32 3DGS and 2DGS
-    kernels, one set each, before their first test (`background.warm_up`); the tests then load them."""
+def _kernels_warmed_up(request, tmp_path_factory) -> None:
+    """On a cold numba cache under pytest-xdist, the first two workers compile the 3DGS and 2DGS kernels
+    (float32 and float64), one set each, before their first test (`background.warm_up`); the tests then
+    load them."""
     background.warm_up(request.session, tmp_path_factory)
 
 
