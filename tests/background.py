@@ -70,18 +70,18 @@ def wait_for_kernels(module: ModuleType, test_name: str) -> None:
 # {kernels} in this process.
 RENDER_SCRIPT = """
 import hashlib, json, torch
-from egobench.render import cpu_kernels, cpu_kernels_2dgs
+from tests.background import kernel_module
 from tests.test_render import pose
 from tests.test_render_cpu import CAM, edge_case_scene, run
 from tests.test_render_cpu_2dgs import run2, surfel_scene
-sets = {{"3dgs": (run, edge_case_scene, cpu_kernels, ""), "2dgs": (run2, surfel_scene, cpu_kernels_2dgs, "_2dgs")}}
+sets = {{"3dgs": (run, edge_case_scene), "2dgs": (run2, surfel_scene)}}
 idx = (torch.arange(CAM.height) >= CAM.height // 2).long()[:, None].expand(CAM.height, CAM.width).contiguous()
 def counts(module, suffix):
     stats = [getattr(module, k + suffix).stats for k in {kernels!r}]
     return (sum(sum(s.cache_hits.values()) for s in stats), sum(sum(s.cache_misses.values()) for s in stats))
 out = {{}}
 for mode in {modes!r}:
-    render, scene, module, suffix = sets[mode]
+    (render, scene), (module, suffix) = sets[mode], kernel_module(mode)
     for name in {dtypes!r}:
         dtype, before, h = getattr(torch, name), counts(module, suffix), hashlib.sha1()
         T = pose(0.1, -0.05, (0.02, 0.0, 0.0)).to(dtype)
@@ -132,13 +132,18 @@ def _warm_up_folder(tmp_path_factory) -> Path:
     return tmp_path_factory.getbasetemp().parent / "egobench-kernel-warm-up"
 
 
+def kernel_module(kernel_set: str) -> tuple[ModuleType, str]:
+    """The kernels' module of ``kernel_set`` ("3dgs", "2dgs") and its kernel names' suffix."""
+    from egobench.render import cpu_kernels, cpu_kernels_2dgs
+
+    return (cpu_kernels, "") if kernel_set == "3dgs" else (cpu_kernels_2dgs, "_2dgs")
+
+
 def _cached(kernel_set: str) -> bool:
     """Does numba's cache hold an index for every float32 rasterizer kernel of ``kernel_set`` ("3dgs",
     "2dgs")? (An index of stale source reads as cached; the worker that needs those kernels then compiles
     them itself.)"""
-    from egobench.render import cpu_kernels, cpu_kernels_2dgs
-
-    module, suffix = (cpu_kernels, "") if kernel_set == "3dgs" else (cpu_kernels_2dgs, "_2dgs")
+    module, suffix = kernel_module(kernel_set)
     stem = module.__name__.rsplit(".", 1)[-1]
     return all(any(Path(getattr(module, name + suffix).stats.cache_path).glob(f"{stem}.{name}{suffix}-*.nbi"))
                for name in RASTER_KERNELS)

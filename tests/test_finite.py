@@ -82,14 +82,12 @@ def test_render_names_a_zero_quaternion():
     """(The check runs before any backend; the torch backend renders the valid case without compiling.)"""
     from egobench.camera.pinhole import Pinhole
 
-    backend = "torch"
-
     cam = Pinhole(fx=40.0, fy=40.0, cx=16.0, cy=12.0, width=32, height=24)
     tensors = _gaussians(torch.float32)
-    assert render(Gaussians(**tensors), cam, torch.eye(4), backend=backend).rgb.shape == (1, 24, 32, 3)
+    assert render(Gaussians(**tensors), cam, torch.eye(4), backend="torch").rgb.shape == (1, 24, 32, 3)
     tensors["quats"][3] = 0.0
     with pytest.raises(ValueError, match="quats must be non-zero quaternions"):
-        render(Gaussians(**tensors), cam, torch.eye(4), backend=backend)
+        render(Gaussians(**tensors), cam, torch.eye(4), backend="torch")
 
 
 @pytest.mark.cuda
@@ -113,18 +111,16 @@ def test_render_names_a_bad_pose():
     named; a last row within it renders (the check runs before any backend)."""
     from egobench.camera.pinhole import Pinhole
 
-    backend = "torch"
-
     cam = Pinhole(fx=40.0, fy=40.0, cx=16.0, cy=12.0, width=32, height=24)
     g = Gaussians(**_gaussians(torch.float32))
     for bad in (float("nan"), float("inf")):
         T = torch.eye(4).repeat(2, 1, 1)
         T[1, 0, 3] = bad
         with pytest.raises(ValueError, match="T_world_camera must be finite"):
-            render(g, cam, T, backend=backend)
+            render(g, cam, T, backend="torch")
     T = torch.eye(4)
     T[3, 2] = 1e-4
     with pytest.raises(ValueError, match=r"last row \[0, 0, 0, 1\]"):
-        render(g, cam, T, backend=backend)
+        render(g, cam, T, backend="torch")
     T[3, 2] = 5e-7  # within atol 1e-6
-    assert render(g, cam, T, backend=backend).rgb.shape == (1, 24, 32, 3)
+    assert render(g, cam, T, backend="torch").rgb.shape == (1, 24, 32, 3)

@@ -158,7 +158,8 @@ def frame_poses(recording: Recording, frame: Frame, spec: MethodSpec, n: int, ro
         poses = frame.T_world_camera.to(torch.float32)[None, None]
         ppi = None
     else:  # without a run's cache, a throwaway one: one code path
-        poses, ppi = (cache or PoseSampleCache()).samples(recording, frame, n, n_exposure_samples, row_time_ratio)
+        cache = cache if cache is not None else PoseSampleCache()
+        poses, ppi = cache.samples(recording, frame, n, n_exposure_samples, row_time_ratio)
     if pose_delta is not None:
         poses = poses.to(pose_delta.device) @ se3_exp(pose_delta.to(torch.float32))
     return poses, ppi
