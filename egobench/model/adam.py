@@ -20,7 +20,7 @@ from numba import njit, prange
 from torch import Tensor
 
 from egobench.model.optim import _fma
-from egobench.render.cpu_backend import set_threads
+from egobench.render.cpu_backend import contiguous_numpy, set_threads
 
 
 @njit(cache=True, parallel=True)
@@ -75,10 +75,6 @@ def _state(opt: torch.optim.Adam, p: Tensor) -> dict:
     return state
 
 
-def _flat(t: Tensor) -> Tensor:
-    return t.detach().contiguous().view(-1)
-
-
 def _step_parameter(opt: torch.optim.Adam, group: dict, p: Tensor) -> None:
     state = _state(opt, p)
     counter = state["step"].numpy()
@@ -88,11 +84,11 @@ def _step_parameter(opt: torch.optim.Adam, group: dict, p: Tensor) -> None:
     coef = np.array([1 - beta1, beta2, 1 - beta2, (1 - beta2**step) ** 0.5, group["eps"],
                      -(group["lr"] / (1 - beta1**step))], dtype=np.float32 if p.dtype == torch.float32 else np.float64)
     targets = [t.detach() for t in (p, state["exp_avg"], state["exp_avg_sq"])]
-    arrays = [_flat(t) for t in targets]  # copies only where a tensor is not contiguous
-    _adam_update(arrays[0].numpy(), _flat(p.grad).numpy(), arrays[1].numpy(), arrays[2].numpy(), coef)
+    arrays = [contiguous_numpy(t).reshape(-1) for t in targets]  # copies only where a tensor is not contiguous
+    _adam_update(arrays[0], contiguous_numpy(p.grad).reshape(-1), arrays[1], arrays[2], coef)
     for target, flat in zip(targets, arrays):
         if not target.is_contiguous():
-            target.copy_(flat.view(target.shape))
+            target.copy_(torch.from_numpy(flat).view(target.shape))
 
 
 @torch.no_grad()
