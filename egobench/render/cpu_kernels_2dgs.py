@@ -51,9 +51,11 @@ DEPTH_CH = 3  # feature channel holding the depth (colour 0-2, depth 3, normal 4
 #: reassoc, contract, nsz) its geometric gradients differed in the last bits between the process that
 #: compiled the kernel and every process that loaded it from numba's cache (same inputs: 459 of 4009
 #: entries, up to 5e-5; also with reassoc + nsz), so the first 2DGS run on a cold cache trained differently
-#: from the same run on a warm one. Reassociation alone is consistent and keeps the vectorised reductions
-#: (backward 6.5 s against 5.6 s over 300 iterations at 128 px; no flags: 6x slower). Test:
-#: tests/test_render_cpu_cache.py.
+#: from the same run on a warm one. The cause: the compiling process runs the parfor body's standalone
+#: library, a loading one the copy optimized inside the kernel's module, and their FMAs differ
+#: (docs/cpu-rasterizer.md, "Compiled against loaded code"). Reassociation alone is consistent and keeps the
+#: vectorised reductions (backward 6.5 s against 5.6 s over 300 iterations at 128 px; no flags: 6x slower).
+#: Test: tests/test_render_cpu_cache.py.
 FASTMATH_BWD = {"reassoc"}
 
 __all__ = ["project_fwd_2dgs", "project_bwd_2dgs", "raster_fwd_2dgs", "raster_bwd_2dgs", "CHUNK"]
