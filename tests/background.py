@@ -110,7 +110,7 @@ RASTER_KERNELS = ("project_fwd", "project_bwd", "raster_fwd", "raster_bwd")
 def kernel_digests(modes: tuple[str, ...], **env: str) -> dict:
     """Renders the float32 kernel sets ``modes`` ("3dgs", "2dgs") in a subprocess (`RENDER_SCRIPT`; ``env``
     added, e.g. NUMBA_CACHE_DIR) -> {set: {"digest", "hits", "misses"}}; fails with its error output."""
-    done = run_script(render_script(tuple(modes), ("float32",)), timeout=1200, **env)
+    done = run_script(render_script(modes, ("float32",)), timeout=1200, **env)
     assert done.returncode == 0, done.stderr[-2000:]
     return _float32_records(done.stdout)
 
