@@ -66,10 +66,11 @@ def wait_for_kernels(module: ModuleType, test_name: str) -> None:
 
 # Renders the edge-case scene of each set in {modes} in each dtype of {dtypes}, global and rolling shutter,
 # and backpropagates (every compiled kernel of that set and dtype); prints one JSON line: per set and dtype,
-# one digest of every map and gradient, and numba's cache hits and misses of the set's rasterizer kernels
-# {kernels} in this process.
+# one digest of every map and gradient, numba's cache hits and misses of the set's rasterizer kernels
+# {kernels} in this process, and how the kernels came to be there (`kernel_build.BUILT`).
 RENDER_SCRIPT = """
 import hashlib, json, torch
+from egobench.render import kernel_build
 from tests.background import kernel_module
 from tests.test_render import pose
 from tests.test_render_cpu import CAM, edge_case_scene, run
@@ -93,7 +94,8 @@ for mode in {modes!r}:
                 if grads[g] is not None:
                     h.update(g.encode() + grads[g].numpy().tobytes())
         hits, misses = (x - y for x, y in zip(counts(module, suffix), before))
-        out[mode + "-" + name] = {{"digest": h.hexdigest(), "hits": hits, "misses": misses}}
+        built = kernel_build.BUILT.get((name, mode))
+        out[mode + "-" + name] = {{"digest": h.hexdigest(), "hits": hits, "misses": misses, "built": built}}
 print(json.dumps(out))
 """
 
@@ -109,7 +111,7 @@ RASTER_KERNELS = ("project_fwd", "project_bwd", "raster_fwd", "raster_bwd")
 
 def kernel_digests(modes: tuple[str, ...], **env: str) -> dict:
     """Renders the float32 kernel sets ``modes`` ("3dgs", "2dgs") in a subprocess (`RENDER_SCRIPT`; ``env``
-    added, e.g. NUMBA_CACHE_DIR) -> {set: {"digest", "hits", "misses"}}; fails with its error output."""
+    added, e.g. NUMBA_CACHE_DIR) -> {set: {"digest", "hits", "misses", "built"}}; fails with its error output."""
     done = run_script(render_script(modes, ("float32",)), timeout=1200, **env)
     assert done.returncode == 0, done.stderr[-2000:]
     return _float32_records(done.stdout)
@@ -140,13 +142,11 @@ def kernel_module(kernel_set: str) -> tuple[ModuleType, str]:
 
 
 def _cached(kernel_set: str) -> bool:
-    """Does numba's cache hold an index for every float32 rasterizer kernel of ``kernel_set`` ("3dgs",
-    "2dgs")? (An index of stale source reads as cached; the worker that needs those kernels then compiles
-    them itself.)"""
-    module, suffix = kernel_module(kernel_set)
-    stem = module.__name__.rsplit(".", 1)[-1]
-    return all(any(Path(getattr(module, name + suffix).stats.cache_path).glob(f"{stem}.{name}{suffix}-*.nbi"))
-               for name in RASTER_KERNELS)
+    """Has ``kernel_set`` ("3dgs", "2dgs") been built for float32 and float64 into numba's cache for this
+    source, these libraries and this CPU (`kernel_build.marker_path`)?"""
+    from egobench.render import kernel_build
+
+    return all(kernel_build.marker_path(dtype, kernel_set).is_file() for dtype in ("float32", "float64"))
 
 
 def warm_up(session, tmp_path_factory) -> None:
@@ -176,9 +176,9 @@ def warm_up(session, tmp_path_factory) -> None:
 
 
 def cold_warm_up(tmp_path_factory) -> dict | None:
-    """The warm-up's records {set: {"digest", "hits", "misses"}} when this session's warm-up compiled
-    every set of `WARM_UP_SETS` (`warm_up`); None when it did not run, found a set cached or loaded any
-    kernel from the cache. Fails with the warm-up's error output where a compile failed."""
+    """The warm-up's records {set: {"digest", "hits", "misses", "built"}} when this session's warm-up built
+    every set of `WARM_UP_SETS` in a child (`warm_up`, `kernel_build`); None when it did not run or found a
+    set built. Fails with the warm-up's error output where a compile failed."""
     folder = _warm_up_folder(tmp_path_factory)
     cold = folder / "cold.json"
     if not cold.is_file() or set(json.loads(cold.read_text())) != set(WARM_UP_SETS):
@@ -188,7 +188,7 @@ def cold_warm_up(tmp_path_factory) -> dict | None:
         record = json.loads(path.read_text())
         assert record["sets"], f"{path.name}: the warm-up's compile failed: {record['error']}"
         sets.update(record["sets"])
-    if set(sets) != set(WARM_UP_SETS) or any(r["hits"] for r in sets.values()):
+    if set(sets) != set(WARM_UP_SETS) or any(r["built"] != "child" for r in sets.values()):
         return None
     return sets
 

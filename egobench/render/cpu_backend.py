@@ -276,6 +276,9 @@ def render_cpu(gaussians: Gaussians, camera: Pinhole, viewmats: Tensor, *, pixel
                mode: str = "3dgs") -> RenderOutput:
     """Render with the compiled kernels; same contract as the torch path of `render`.
     viewmats [I, 4, 4] world-to-camera; pixel_pose_index [H, W] or None; mode "3dgs" or "2dgs"."""
+    from egobench.render import kernel_build
+
+    kernel_build.ensure_built(gaussians.means.dtype, mode)  # compiled in a child, loaded here: same code everywhere
     if mode == "2dgs":
         from egobench.render import cpu_backend_2dgs
 
