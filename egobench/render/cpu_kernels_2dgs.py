@@ -47,16 +47,6 @@ _follow_helper_edits()
 
 FILTER_2D = 2.0  # 2D low-pass filter: exponent FILTER_2D |pixel - centre|^2 / 2 (gsplat's FILTER_INV_SQUARE)
 DEPTH_CH = 3  # feature channel holding the depth (colour 0-2, depth 3, normal 4-6)
-#: fast-math flags of the surfel backward: reassociation only. With the forward's (`cpu_kernels.FASTMATH`:
-#: reassoc, contract, nsz) its geometric gradients differed in the last bits between the process that
-#: compiled the kernel and every process that loaded it from numba's cache (same inputs: 459 of 4009
-#: entries, up to 5e-5; also with reassoc + nsz), so the first 2DGS run on a cold cache trained differently
-#: from the same run on a warm one. The cause: the compiling process runs the parfor body's standalone
-#: library, a loading one the copy optimized inside the kernel's module, and their FMAs differ
-#: (docs/cpu-rasterizer.md, "Compiled against loaded code"). Reassociation alone is consistent and keeps the
-#: vectorised reductions (backward 6.5 s against 5.6 s over 300 iterations at 128 px; no flags: 6x slower).
-#: Test: tests/test_render_cpu_cache.py.
-FASTMATH_BWD = {"reassoc"}
 
 __all__ = ["project_fwd_2dgs", "project_bwd_2dgs", "raster_fwd_2dgs", "raster_bwd_2dgs", "CHUNK"]
 
@@ -543,7 +533,7 @@ def _write_surfel_grad(isect_grad, k, ac, up_vp, tsl, gi, n, ox, oy, gmx, gmy, g
         isect_grad[k, 12 + c] = gf[c] + (gz if c == DEPTH_CH else 0.0)
 
 
-@njit(cache=True, parallel=True, fastmath=FASTMATH_BWD)
+@njit(cache=True, parallel=True, fastmath=FASTMATH)
 def raster_bwd_2dgs(means2d, tsl, log_opac, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles_x,
                     cw, kc, centres, out_T, out_last, g_state, g_T, isect_grad, rows_hit):
     """Back-to-front backward of `raster_fwd_2dgs`. g_state [Iout, H, W, Cf + 2]: dL/dF (Cf channels),
