@@ -67,24 +67,23 @@ def wait_for_kernels(module: ModuleType, test_name: str) -> None:
 # Renders the edge-case scene of each set in {modes} in each dtype of {dtypes}, global and rolling shutter,
 # and backpropagates (every compiled kernel of that set and dtype); prints one JSON line: per set and dtype,
 # one digest of every map and gradient, numba's cache hits and misses of the set's rasterizer kernels
-# {kernels} in this process, and how the kernels came to be there (`kernel_build.BUILT`).
+# (`kernel_build.KERNELS`) in this process, and how the kernels came to be there (`kernel_build.BUILT`).
 RENDER_SCRIPT = """
 import hashlib, json, torch
 from egobench.render import kernel_build
-from tests.background import kernel_module
 from tests.test_render import pose
 from tests.test_render_cpu import CAM, edge_case_scene, run
 from tests.test_render_cpu_2dgs import run2, surfel_scene
 sets = {{"3dgs": (run, edge_case_scene), "2dgs": (run2, surfel_scene)}}
 idx = (torch.arange(CAM.height) >= CAM.height // 2).long()[:, None].expand(CAM.height, CAM.width).contiguous()
-def counts(module, suffix):
-    stats = [getattr(module, k + suffix).stats for k in {kernels!r}]
+def counts(mode):
+    stats = [d.stats for d in kernel_build.kernel_dispatchers(mode)]
     return (sum(sum(s.cache_hits.values()) for s in stats), sum(sum(s.cache_misses.values()) for s in stats))
 out = {{}}
 for mode in {modes!r}:
-    (render, scene), (module, suffix) = sets[mode], kernel_module(mode)
+    render, scene = sets[mode]
     for name in {dtypes!r}:
-        dtype, before, h = getattr(torch, name), counts(module, suffix), hashlib.sha1()
+        dtype, before, h = getattr(torch, name), counts(mode), hashlib.sha1()
         T = pose(0.1, -0.05, (0.02, 0.0, 0.0)).to(dtype)
         Ts = torch.stack([T, pose(0.0, 0.02, (0.01, 0, 0)).to(dtype)])
         for pose_, kw in ((T, {{}}), (Ts, {{"pixel_pose_index": idx}})):
@@ -93,7 +92,7 @@ for mode in {modes!r}:
             for g in sorted(grads):
                 if grads[g] is not None:
                     h.update(g.encode() + grads[g].numpy().tobytes())
-        hits, misses = (x - y for x, y in zip(counts(module, suffix), before))
+        hits, misses = (x - y for x, y in zip(counts(mode), before))
         built = kernel_build.BUILT.get((name, mode))
         out[mode + "-" + name] = {{"digest": h.hexdigest(), "hits": hits, "misses": misses, "built": built}}
 print(json.dumps(out))
@@ -102,11 +101,7 @@ print(json.dumps(out))
 
 def render_script(modes: tuple[str, ...], dtypes: tuple[str, ...]) -> str:
     """`RENDER_SCRIPT` for the sets ``modes`` ("3dgs", "2dgs") in ``dtypes`` ("float32", "float64")."""
-    return RENDER_SCRIPT.format(modes=tuple(modes), dtypes=tuple(dtypes), kernels=RASTER_KERNELS)
-
-
-#: the rasterizer kernels whose cache hits and misses `kernel_digests` counts (with "_2dgs" for 2DGS)
-RASTER_KERNELS = ("project_fwd", "project_bwd", "raster_fwd", "raster_bwd")
+    return RENDER_SCRIPT.format(modes=tuple(modes), dtypes=tuple(dtypes))
 
 
 def kernel_digests(modes: tuple[str, ...], **env: str) -> dict:
@@ -132,13 +127,6 @@ WARM_UP_MIN_TESTS = 100
 def _warm_up_folder(tmp_path_factory) -> Path:
     """The folder of the warm-up records, shared by the session's xdist workers."""
     return tmp_path_factory.getbasetemp().parent / "egobench-kernel-warm-up"
-
-
-def kernel_module(kernel_set: str) -> tuple[ModuleType, str]:
-    """The kernels' module of ``kernel_set`` ("3dgs", "2dgs") and its kernel names' suffix."""
-    from egobench.render import cpu_kernels, cpu_kernels_2dgs
-
-    return (cpu_kernels, "") if kernel_set == "3dgs" else (cpu_kernels_2dgs, "_2dgs")
 
 
 def _cached(kernel_set: str) -> bool:

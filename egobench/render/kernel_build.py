@@ -1,11 +1,10 @@
 """Builds the compiled CPU rasterizer's kernels in a child process, so that every process runs the code
-numba cached (docs/cpu-rasterizer.md, "The kernels built in a child process").
+numba cached (docs/cpu-rasterizer.md, "Where the kernels compile").
 
 Why: numba compiles a parallel kernel's loop body first as a library of its own and keeps it in the
 compiling process; the kernel that numba caches holds another copy, optimized again. LLVM's linker
 binds the first, so the process that compiles a kernel runs other machine code than every process that
-loads it: other bits under fast-math contraction, 3x the time for a loop body in a function of its own
-(stop 55). So the first process that renders a (dtype, mode) with the compiled backend runs
+loads it: other bits under fast-math contraction (stop 55). So the first process that renders a (dtype, mode) with the compiled backend runs
 ``python -m egobench.render.kernel_build`` under a file lock, which compiles into numba's cache and
 leaves a marker there (`marker_path`); then it, and every later process, loads. A kernel that still
 misses the cache compiles in the process, as numba does by default.
@@ -95,14 +94,17 @@ def ensure_built(dtype: torch.dtype, mode: str) -> str:
 
 @contextlib.contextmanager
 def _locked(path: Path):
-    """An exclusive lock on ``path`` (created), held for the block (no lock where fcntl is missing)."""
+    """An exclusive lock on ``path`` (created), held for the block (none where fcntl is missing or the
+    folder cannot be written: the child then reports why it failed)."""
     try:
         import fcntl
-    except ImportError:
+
+        path.parent.mkdir(parents=True, exist_ok=True)
+        handle = open(path, "a")
+    except (ImportError, OSError):
         yield
         return
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "a") as handle:
+    with handle:
         fcntl.flock(handle, fcntl.LOCK_EX)
         try:
             yield
