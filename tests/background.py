@@ -182,21 +182,16 @@ def cold_warm_up(tmp_path_factory) -> dict | None:
 
 
 def compile_key() -> str:
-    """What the bits of a compiled kernel depend on, as one hash: egobench's source, the numba, llvmlite
-    and torch versions, the host CPU LLVM compiles for, and numba's settings other than its thread count
-    and cache folder."""
-    import llvmlite
-    import llvmlite.binding as llvm
-    import numba
+    """What the digests of `RENDER_SCRIPT` depend on, as one hash: the kernels' build key
+    (`kernel_build.build_key`: their source, Python, numba, llvmlite, the CPU, numba's settings), the rest of
+    egobench's source and the torch version."""
     import torch
 
-    h = hashlib.sha256()
+    from egobench.render import kernel_build
+
+    h = hashlib.sha256(f"{kernel_build.build_key()}\0{torch.__version__}".encode())
     for path in sorted((REPO / "egobench").rglob("*.py")):
         h.update(path.relative_to(REPO).as_posix().encode() + b"\0" + path.read_bytes())
-    settings = {k: v for k, v in os.environ.items()
-                if k.startswith("NUMBA_") and k not in ("NUMBA_NUM_THREADS", "NUMBA_CACHE_DIR")}
-    h.update(json.dumps([numba.__version__, llvmlite.__version__, torch.__version__, llvm.get_host_cpu_name(),
-                         llvm.get_host_cpu_features().flatten(), sorted(settings.items())]).encode())
     return h.hexdigest()
 
 
