@@ -33,6 +33,7 @@ import llvmlite.binding as ll
 from llvmlite import ir
 from numba import njit, prange, types
 from numba.core import cgutils
+from numba.core.compiler import Compiler
 from numba.extending import intrinsic, overload
 
 # Threading layer: OpenMP first. numba's workqueue workers sleep after every parallel loop, and on the 2-core
@@ -687,6 +688,22 @@ def _fill_bins(rect, vis, perm, N, tiles_x, tiles_y, bin_needed):
 #: fast-math flags of the compositing loops: reassociation and FMA contraction let LLVM vectorize
 #: the per-row loops (results stay deterministic: the compiled order is fixed); no nnan/ninf
 FASTMATH = {"reassoc", "contract", "nsz"}
+
+
+class NoAliasCompiler(Compiler):
+    """numba's compiler with every array argument marked noalias, as numba compiles a parfor's loop body
+    (without it, the split 2DGS bodies ran ~1.5x slower: stop 57's exploration). Only for functions whose
+    array arguments never overlap."""
+
+    def define_pipelines(self):
+        self.state.flags.noalias = True
+        return super().define_pipelines()
+
+
+#: the compile options of a `prange` body split into a function of its own: those numba gives a parfor
+#: body (fast-math, numpy's error model: no division test; noalias arguments), so it vectorizes as one
+BIN_BODY = dict(cache=True, fastmath=FASTMATH, error_model="numpy", pipeline_class=NoAliasCompiler)
+
 COLUMN_GROUP = 8  # columns per contiguous block of a tile's state (tile sizes that are multiples of 8)
 SIGMA_ROW = 5.56  # exponent bound of the rows a Gaussian can reach (> SIGMA_SKIP: a safe superset)
 #: Taylor coefficients of exp, highest degree first (degree 13)
@@ -1195,6 +1212,59 @@ def _exponent(dx, dy, hA, B, hC, lo):
     return (hA * dx + B * dy) * dx + hC * dy * dy - lo
 
 
+@njit(**BIN_BODY)
+def _fwd_bin(b, tab, feats, flat_ids, bin_start, pix_view, tile_size, tiles_x, cw, kc, centres, out_feat, out_T,
+             out_last, rows_hit, rowt):
+    """`raster_fwd` on bin b (image i, tile t): its `prange` body as a function of its own, so that numba's
+    parfor passes compile it once (`BIN_BODY`: the 3DGS set compiles ~1/4 faster at the same speed;
+    docs/cpu-rasterizer.md, stop 57)."""
+    Iout, H, W = pix_view.shape
+    Cf = feats.shape[1]
+    n_tiles = tiles_x * ((H + tile_size - 1) // tile_size)
+    ts = tile_size
+    zero, no_row, ts32 = kc[3], np.int32(-1), np.int32(ts)
+    i, o, x0, y0, x1, y1 = bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout)
+    T, acc, last, cxt, cyt, wbuf, sbuf, row_active, n_active = tile_state_fwd(pix_view, o, i, x0, y0, x1, y1,
+                                                                               ts, cw, Cf, kc, centres)
+    for k in range(bin_start[b], bin_start[b + 1]):
+        if n_active == 0:
+            break
+        g = flat_ids[k]
+        gp = flat_ids[min(k + PREFETCH_AHEAD, bin_start[b + 1] - 1)]
+        prefetch_row(tab, gp)
+        prefetch_row(feats, gp)
+        mx, my, A, B, C, lo = tab[g, 0], tab[g, 1], tab[g, 2], tab[g, 3], tab[g, 4], tab[g, 5]
+        hA, hC = kc[0] * A, kc[0] * C
+        ra, rb, ca, cb = _footprint_tab(tab, g, x0, y0, ts, W, H)
+        ra, rb = trim_rows_active(ra, rb, row_active)
+        if ra >= rb or ca >= cb:
+            continue
+        k1 = np.int32(k + 1)
+        for q in range(ca // cw, (cb - 1) // cw + 1):
+            # rows of this column group the ellipse can reach (fewer than the footprint's)
+            qra, qrb = band_rows(tab, g, x0, y0, max(ca, q * cw), min(cb, q * cw + cw), ra, rb)
+            if qra >= qrb:
+                continue
+            pa, pb = q * ts * cw + qra * cw, q * ts * cw + qrb * cw
+            stopped = 0
+            r_lo, r_hi = ts32, no_row
+            # (accumulating the features in this loop measured slower: 7.7 against 7.1 ms)
+            for pp in range(pa, pb):  # unsigned index: no wraparound test; branch-free: vectorizes
+                p = np.uint64(pp)
+                s = _exponent(cxt[p] - mx, cyt[p] - my, hA, B, hC, lo)
+                w, T[p], last[p], stop = composite_pixel(s, T[p], last[p], k1, kc)
+                wbuf[p] = w
+                sbuf[p] = 1 if stop else 0
+                stopped += 1 if stop else 0
+                r_lo, r_hi = track_rows(w, rowt[p], r_lo, r_hi, zero, ts32, no_row)
+            accumulate_features(acc, wbuf, feats, g, pa, pb)
+            rows_hit[k, q, 0], rows_hit[k, q, 1] = r_lo, r_hi + 1
+            if stopped:
+                n_active -= stopped
+                retire_stopped(row_active, sbuf, qra, qrb, q * cw, q * cw + 1, ts, cw)
+    finish_tile_fwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, T, last, acc, out_feat, out_T, out_last)
+
+
 @njit(cache=True, parallel=True, fastmath=FASTMATH)
 def raster_fwd(tab, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles_x,
                cw, kc, centres, out_feat, out_T, out_last, rows_hit):
@@ -1210,54 +1280,95 @@ def raster_fwd(tab, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles
     branch-free loop (it vectorizes). rows_hit [M, ts // cw, 2] int16 (zeros on entry): per intersection
     and column group, the rows [first, last + 1) it was composited into (w > 0), else an empty range;
     the backward visits only those."""
+    rowt = state_rows(tile_size, cw)  # the same for every tile
+    for jb in prange(bins.shape[0]):
+        _fwd_bin(bins[jb], tab, feats, flat_ids, bin_start, pix_view, tile_size, tiles_x, cw, kc, centres, out_feat,
+                 out_T, out_last, rows_hit, rowt)
+
+
+@njit(**BIN_BODY)
+def _bwd_bin(b, tab, feats, flat_ids, bin_start, pix_view, tile_size, tiles_x, cw, kc, centres, out_T, out_last, g_feat,
+             g_T, isect_grad, rows_hit):
+    """`raster_bwd` on bin b (image i, tile t): its `prange` body as a function of its own, so that numba's
+    parfor passes compile it once (`BIN_BODY`: the 3DGS set compiles ~1/4 faster at the same speed;
+    docs/cpu-rasterizer.md, stop 57)."""
     Iout, H, W = pix_view.shape
     Cf = feats.shape[1]
     n_tiles = tiles_x * ((H + tile_size - 1) // tile_size)
     ts = tile_size
-    zero, no_row, ts32 = kc[3], np.int32(-1), np.int32(ts)
-    rowt = state_rows(ts, cw)  # the same for every tile
-    for jb in prange(bins.shape[0]):
-        b = bins[jb]
-        i, o, x0, y0, x1, y1 = bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout)
-        T, acc, last, cxt, cyt, wbuf, sbuf, row_active, n_active = tile_state_fwd(pix_view, o, i, x0, y0, x1, y1,
-                                                                                   ts, cw, Cf, kc, centres)
-        for k in range(bin_start[b], bin_start[b + 1]):
-            if n_active == 0:
-                break
-            g = flat_ids[k]
-            gp = flat_ids[min(k + PREFETCH_AHEAD, bin_start[b + 1] - 1)]
-            prefetch_row(tab, gp)
-            prefetch_row(feats, gp)
-            mx, my, A, B, C, lo = tab[g, 0], tab[g, 1], tab[g, 2], tab[g, 3], tab[g, 4], tab[g, 5]
-            hA, hC = kc[0] * A, kc[0] * C
-            ra, rb, ca, cb = _footprint_tab(tab, g, x0, y0, ts, W, H)
-            ra, rb = trim_rows_active(ra, rb, row_active)
-            if ra >= rb or ca >= cb:
+    zero = kc[3]
+    i, o, x0, y0, x1, y1 = bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout)
+    T, gTT, suffix, gF, last, cxt, cyt, ebuf, wbuf, gf, k_end = tile_state_bwd(
+        pix_view, o, i, x0, y0, x1, y1, ts, cw, Cf, kc, centres, out_T, out_last, g_T, g_feat, bin_start[b])
+    for k in range(k_end - 1, bin_start[b] - 1, -1):
+        g = flat_ids[k]
+        gp = flat_ids[max(k - PREFETCH_AHEAD, bin_start[b])]
+        prefetch_row(tab, gp)
+        prefetch_row(feats, gp)
+        if not composited_any(rows_hit, k):
+            continue
+        mx, my, A, B, C, lo = tab[g, 0], tab[g, 1], tab[g, 2], tab[g, 3], tab[g, 4], tab[g, 5]
+        hA, hC = kc[0] * A, kc[0] * C
+        gmx = zero
+        gmy = zero
+        ga = zero
+        gb = zero
+        gc = zero
+        glo = zero
+        k32 = np.int32(k)
+        for c in range(Cf):
+            gf[c] = zero
+        for q in range(rows_hit.shape[1]):
+            qra, qrb = rows_hit[k, q, 0], rows_hit[k, q, 1]
+            if qra >= qrb:
                 continue
-            k1 = np.int32(k + 1)
-            for q in range(ca // cw, (cb - 1) // cw + 1):
-                # rows of this column group the ellipse can reach (fewer than the footprint's)
-                qra, qrb = band_rows(tab, g, x0, y0, max(ca, q * cw), min(cb, q * cw + cw), ra, rb)
-                if qra >= qrb:
-                    continue
-                pa, pb = q * ts * cw + qra * cw, q * ts * cw + qrb * cw
-                stopped = 0
-                r_lo, r_hi = ts32, no_row
-                # (accumulating the features in this loop measured slower: 7.7 against 7.1 ms)
+            pa, pb = q * ts * cw + qra * cw, q * ts * cw + qrb * cw
+            if Cf == 4:  # colour + depth: dL/dw and the feature gradients in the same pass
+                f0, f1, f2, f3 = feats[g, 0], feats[g, 1], feats[g, 2], feats[g, 3]
+                s0 = zero
+                s1 = zero
+                s2 = zero
+                s3 = zero
                 for pp in range(pa, pb):  # unsigned index: no wraparound test; branch-free: vectorizes
                     p = np.uint64(pp)
-                    s = _exponent(cxt[p] - mx, cyt[p] - my, hA, B, hC, lo)
-                    w, T[p], last[p], stop = composite_pixel(s, T[p], last[p], k1, kc)
-                    wbuf[p] = w
-                    sbuf[p] = 1 if stop else 0
-                    stopped += 1 if stop else 0
-                    r_lo, r_hi = track_rows(w, rowt[p], r_lo, r_hi, zero, ts32, no_row)
-                accumulate_features(acc, wbuf, feats, g, pa, pb)
-                rows_hit[k, q, 0], rows_hit[k, q, 1] = r_lo, r_hi + 1
-                if stopped:
-                    n_active -= stopped
-                    retire_stopped(row_active, sbuf, qra, qrb, q * cw, q * cw + 1, ts, cw)
-        finish_tile_fwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, T, last, acc, out_feat, out_T, out_last)
+                    dx = cxt[p] - mx
+                    dy = cyt[p] - my
+                    s = _exponent(dx, dy, hA, B, hC, lo)
+                    w, T[p], T_exc, a_ratio, live = uncomposite_pixel(s, T[p], last[p], k32, kc)
+                    e = gF[0, p] * f0 + gF[1, p] * f1 + gF[2, p] * f2 + gF[3, p] * f3
+                    G, suffix[p] = exponent_grad(e, w, a_ratio, live, suffix[p], gTT[p], zero)
+                    gmx -= G * (A * dx + B * dy)
+                    gmy -= G * (B * dx + C * dy)
+                    ga += G * dx * dx
+                    gb += G * dx * dy
+                    gc += G * dy * dy
+                    glo -= G
+                    s0 += w * gF[0, p]
+                    s1 += w * gF[1, p]
+                    s2 += w * gF[2, p]
+                    s3 += w * gF[3, p]
+                gf[0] += s0
+                gf[1] += s1
+                gf[2] += s2
+                gf[3] += s3
+                continue
+            feature_dot(ebuf, gF, feats, g, pa, pb, zero)
+            for pp in range(pa, pb):
+                p = np.uint64(pp)
+                dx = cxt[p] - mx
+                dy = cyt[p] - my
+                s = _exponent(dx, dy, hA, B, hC, lo)
+                w, T[p], T_exc, a_ratio, live = uncomposite_pixel(s, T[p], last[p], k32, kc)
+                wbuf[p] = w
+                G, suffix[p] = exponent_grad(ebuf[p], w, a_ratio, live, suffix[p], gTT[p], zero)
+                gmx -= G * (A * dx + B * dy)
+                gmy -= G * (B * dx + C * dy)
+                ga += G * dx * dx
+                gb += G * dx * dy
+                gc += G * dy * dy
+                glo -= G
+            add_feature_grads(gf, wbuf, gF, pa, pb, zero)
+        _write_isect_grad(isect_grad, k, kc[0], gmx, gmy, ga, gb, gc, glo, gf)
 
 
 @njit(cache=True, parallel=True, fastmath=FASTMATH)
@@ -1266,85 +1377,9 @@ def raster_bwd(tab, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles
     """Back-to-front backward of `raster_fwd` (T recovered by division, as gsplat): isect_grad
     [M, 6 + Cf] per intersection (dL/d mean x, y; dL/d conic a, b, c; dL/d log opacity; dL/d features).
     rows_hit: the forward's; the pixels outside those rows were not composited into (zero terms)."""
-    Iout, H, W = pix_view.shape
-    Cf = feats.shape[1]
-    n_tiles = tiles_x * ((H + tile_size - 1) // tile_size)
-    ts = tile_size
-    zero = kc[3]
     for jb in prange(bins.shape[0]):
-        b = bins[jb]
-        i, o, x0, y0, x1, y1 = bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout)
-        T, gTT, suffix, gF, last, cxt, cyt, ebuf, wbuf, gf, k_end = tile_state_bwd(
-            pix_view, o, i, x0, y0, x1, y1, ts, cw, Cf, kc, centres, out_T, out_last, g_T, g_feat, bin_start[b])
-        for k in range(k_end - 1, bin_start[b] - 1, -1):
-            g = flat_ids[k]
-            gp = flat_ids[max(k - PREFETCH_AHEAD, bin_start[b])]
-            prefetch_row(tab, gp)
-            prefetch_row(feats, gp)
-            if not composited_any(rows_hit, k):
-                continue
-            mx, my, A, B, C, lo = tab[g, 0], tab[g, 1], tab[g, 2], tab[g, 3], tab[g, 4], tab[g, 5]
-            hA, hC = kc[0] * A, kc[0] * C
-            gmx = zero
-            gmy = zero
-            ga = zero
-            gb = zero
-            gc = zero
-            glo = zero
-            k32 = np.int32(k)
-            for c in range(Cf):
-                gf[c] = zero
-            for q in range(rows_hit.shape[1]):
-                qra, qrb = rows_hit[k, q, 0], rows_hit[k, q, 1]
-                if qra >= qrb:
-                    continue
-                pa, pb = q * ts * cw + qra * cw, q * ts * cw + qrb * cw
-                if Cf == 4:  # colour + depth: dL/dw and the feature gradients in the same pass
-                    f0, f1, f2, f3 = feats[g, 0], feats[g, 1], feats[g, 2], feats[g, 3]
-                    s0 = zero
-                    s1 = zero
-                    s2 = zero
-                    s3 = zero
-                    for pp in range(pa, pb):  # unsigned index: no wraparound test; branch-free: vectorizes
-                        p = np.uint64(pp)
-                        dx = cxt[p] - mx
-                        dy = cyt[p] - my
-                        s = _exponent(dx, dy, hA, B, hC, lo)
-                        w, T[p], T_exc, a_ratio, live = uncomposite_pixel(s, T[p], last[p], k32, kc)
-                        e = gF[0, p] * f0 + gF[1, p] * f1 + gF[2, p] * f2 + gF[3, p] * f3
-                        G, suffix[p] = exponent_grad(e, w, a_ratio, live, suffix[p], gTT[p], zero)
-                        gmx -= G * (A * dx + B * dy)
-                        gmy -= G * (B * dx + C * dy)
-                        ga += G * dx * dx
-                        gb += G * dx * dy
-                        gc += G * dy * dy
-                        glo -= G
-                        s0 += w * gF[0, p]
-                        s1 += w * gF[1, p]
-                        s2 += w * gF[2, p]
-                        s3 += w * gF[3, p]
-                    gf[0] += s0
-                    gf[1] += s1
-                    gf[2] += s2
-                    gf[3] += s3
-                    continue
-                feature_dot(ebuf, gF, feats, g, pa, pb, zero)
-                for pp in range(pa, pb):
-                    p = np.uint64(pp)
-                    dx = cxt[p] - mx
-                    dy = cyt[p] - my
-                    s = _exponent(dx, dy, hA, B, hC, lo)
-                    w, T[p], T_exc, a_ratio, live = uncomposite_pixel(s, T[p], last[p], k32, kc)
-                    wbuf[p] = w
-                    G, suffix[p] = exponent_grad(ebuf[p], w, a_ratio, live, suffix[p], gTT[p], zero)
-                    gmx -= G * (A * dx + B * dy)
-                    gmy -= G * (B * dx + C * dy)
-                    ga += G * dx * dx
-                    gb += G * dx * dy
-                    gc += G * dy * dy
-                    glo -= G
-                add_feature_grads(gf, wbuf, gF, pa, pb, zero)
-            _write_isect_grad(isect_grad, k, kc[0], gmx, gmy, ga, gb, gc, glo, gf)
+        _bwd_bin(bins[jb], tab, feats, flat_ids, bin_start, pix_view, tile_size, tiles_x, cw, kc, centres, out_T,
+                 out_last, g_feat, g_T, isect_grad, rows_hit)
 
 
 @njit(cache=True)
