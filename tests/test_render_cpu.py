@@ -5,6 +5,7 @@ input, on random scenes with edge cases, global and rolling shutter; determinism
 from __future__ import annotations
 
 import math
+import re
 import sys
 
 import numpy as np
@@ -659,3 +660,34 @@ def test_radix_order_is_numpys_stable_argsort(dtype):
         keys[: n // 3] = rng.random(n // 3).astype(dtype) * 1e4 + 1e-3  # spread over exponents
         order = cpu_kernels._radix_order(keys.view(uint), keys.dtype.itemsize * 8)
         np.testing.assert_array_equal(order, np.argsort(keys, kind="stable"))
+
+
+def _divide(a, b, out):
+    for i in range(out.shape[0]):
+        out[i] = a[i] / b[i]
+
+
+def test_per_bin_bodies_compile_with_a_parfor_bodys_flags():
+    """`BIN_BODY` gives a plain function what numba gives a parfor body: array arguments marked noalias
+    and numpy's error model (no zero-division test), so that a division loop vectorizes; a plain
+    fast-math function keeps the test and only its return slots are noalias. The 3DGS per-bin bodies use it."""
+    from numba import njit
+
+    from egobench.render import cpu_kernels as ck
+
+    x = np.linspace(1.0, 2.0, 64, dtype=np.float32)
+    irs = {}
+    for name, options in (("bin", {**ck.BIN_BODY, "cache": False}), ("plain", {"fastmath": ck.FASTMATH})):
+        fn = njit(**options)(_divide)
+        out = np.empty_like(x)
+        fn(x, x[::-1].copy(), out)
+        np.testing.assert_allclose(out, x / x[::-1], rtol=1e-6)
+        irs[name] = next(iter(fn.inspect_llvm().values()))
+    head = {k: next(line for line in ir.splitlines() if line.startswith("define") and "_divide" in line)
+            for k, ir in irs.items()}
+    assert head["bin"].count("noalias") >= head["plain"].count("noalias") + 3  # a, b and out's data
+    assert "ZeroDivisionError" in irs["plain"] and "ZeroDivisionError" not in irs["bin"]
+    assert re.search(r"<\d+ x float>", irs["bin"])
+    for kernel in (ck._fwd_bin, ck._bwd_bin):
+        assert kernel._compiler.pipeline_class is ck.NoAliasCompiler
+        assert kernel.targetoptions["error_model"] == "numpy"
