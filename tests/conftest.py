@@ -39,12 +39,15 @@ def shared_data() -> Path:
 def pytest_collection_modifyitems(config, items):
     """Submit the background jobs of the selected tests (a module's ``BACKGROUND``: test name -> job)
     now (`tests.background`), so that their subprocesses (a cold numba compile, the CI workflow) overlap
-    the rest of the suite on a second core; each test then waits for its job."""
+    the rest of the suite on a second core; each test then waits for its job. A module's
+    ``background_wanted(config)``, where defined, may say that its jobs are not needed up front (a test
+    can still start its job when it asks for it)."""
     if background.UNDER_XDIST:
         return  # every xdist worker collects every test: a job starts when its test asks for it (`background.start`)
     for item in items:
-        if getattr(item, "module", None) is not None:
-            background.start(item.module, getattr(item, "originalname", item.name))
+        module = getattr(item, "module", None)
+        if module is not None and getattr(module, "background_wanted", lambda config: True)(config):
+            background.start(module, getattr(item, "originalname", item.name))
 
 
 @pytest.fixture(scope="session", autouse=True)
