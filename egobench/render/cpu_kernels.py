@@ -970,6 +970,14 @@ def bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout):
 
 
 @njit(cache=True, inline="always")
+def tile_of_bin(b, pix_view, ts, tiles_x):
+    """`bin_tile` of bin b, its sizes read from the view map pix_view [Iout, H, W] (ts-pixel tiles, tiles_x
+    per row) -> (i, o, x0, y0, x1, y1)."""
+    Iout, H, W = pix_view.shape
+    return bin_tile(b, tiles_x * ((H + ts - 1) // ts), tiles_x, ts, W, H, Iout)
+
+
+@njit(cache=True, inline="always")
 def _start_tile_fwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, one, T, row_active):
     """T = 1 at the tile's pixels whose view is i (counted per row in row_active) -> pixels to composite."""
     n_active = 0
@@ -1218,12 +1226,11 @@ def _fwd_bin(b, tab, feats, flat_ids, bin_start, pix_view, tile_size, tiles_x, c
     """`raster_fwd` on bin b (image i, tile t): its `prange` body as a function of its own, so that numba's
     parfor passes compile it once (`BIN_BODY`: the 3DGS set compiles ~20 % faster and runs as fast;
     docs/cpu-rasterizer.md, stop 57)."""
-    Iout, H, W = pix_view.shape
+    H, W = pix_view.shape[1], pix_view.shape[2]
     Cf = feats.shape[1]
-    n_tiles = tiles_x * ((H + tile_size - 1) // tile_size)
     ts = tile_size
     zero, no_row, ts32 = kc[3], np.int32(-1), np.int32(ts)
-    i, o, x0, y0, x1, y1 = bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout)
+    i, o, x0, y0, x1, y1 = tile_of_bin(b, pix_view, ts, tiles_x)
     T, acc, last, cxt, cyt, wbuf, sbuf, row_active, n_active = tile_state_fwd(pix_view, o, i, x0, y0, x1, y1,
                                                                                ts, cw, Cf, kc, centres)
     for k in range(bin_start[b], bin_start[b + 1]):
@@ -1289,15 +1296,11 @@ def raster_fwd(tab, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles
 @njit(**BIN_BODY)
 def _bwd_bin(b, tab, feats, flat_ids, bin_start, pix_view, tile_size, tiles_x, cw, kc, centres, out_T, out_last, g_feat,
              g_T, isect_grad, rows_hit):
-    """`raster_bwd` on bin b (image i, tile t): its `prange` body as a function of its own, so that numba's
-    parfor passes compile it once (`BIN_BODY`: the 3DGS set compiles ~20 % faster and runs as fast;
-    docs/cpu-rasterizer.md, stop 57)."""
-    Iout, H, W = pix_view.shape
+    """`raster_bwd` on bin b: its `prange` body, compiled as `_fwd_bin` is."""
     Cf = feats.shape[1]
-    n_tiles = tiles_x * ((H + tile_size - 1) // tile_size)
     ts = tile_size
     zero = kc[3]
-    i, o, x0, y0, x1, y1 = bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout)
+    i, o, x0, y0, x1, y1 = tile_of_bin(b, pix_view, ts, tiles_x)
     T, gTT, suffix, gF, last, cxt, cyt, ebuf, wbuf, gf, k_end = tile_state_bwd(
         pix_view, o, i, x0, y0, x1, y1, ts, cw, Cf, kc, centres, out_T, out_last, g_T, g_feat, bin_start[b])
     for k in range(k_end - 1, bin_start[b] - 1, -1):
