@@ -267,3 +267,6 @@ def test_bench_raster_both_gives_the_2dgs_to_3dgs_ratio_and_thread_speedups(two_
         by = rec[mode]["thread_scaling"]["by_threads"]
         assert rec["thread_speedup"][mode]["speedup_2_vs_1"] == pytest.approx(
             by["1"]["median_ms"] / by["2"]["median_ms"], abs=1e-3)
+        sharing = rec[mode]["thread_scaling"]["core_sharing"]  # probed before and after the scaling runs
+        assert rec["thread_speedup"][mode]["shared_cache"] is sharing["shared_cache"]
+        assert {"before", "after"} <= set(sharing) and "cross_to_own" in sharing["before"]

@@ -151,7 +151,8 @@ def bench_raster_both(device: str = "cpu", **kw) -> dict:
     ratios = [{"image": a["image"], "sigma_px_median": a["scene"]["sigma_px_median"], "ms_3dgs": a["median_ms"],
                "ms_2dgs": b["median_ms"], "ratio_2dgs_to_3dgs": round(b["median_ms"] / a["median_ms"], 3)}
               for a, b in zip(r3["cases"], r2["cases"])]
-    speedup = {m: {k: v for k, v in r.get("thread_scaling", {}).items() if k.startswith("speedup_")}
+    speedup = {m: {**{k: v for k, v in r.get("thread_scaling", {}).items() if k.startswith("speedup_")},
+                   "shared_cache": r.get("thread_scaling", {}).get("core_sharing", {}).get("shared_cache")}
                for m, r in (("3dgs", r3), ("2dgs", r2))}
     return {"benchmark": "raster", "mode": "both", "ratio_2dgs_to_3dgs": ratios, "thread_speedup": speedup,
             "3dgs": r3, "2dgs": r2}
@@ -198,13 +199,16 @@ def bench_raster(device: str = "cpu", repeats: int = 7, backend: str = "auto", t
         result["thread_scaling"] = {"skipped": f"numba's pool has {numba.config.NUMBA_NUM_THREADS} thread(s) "
                                                f"(NUMBA_NUM_THREADS / OMP_NUM_THREADS when it loaded)"}
     elif not device.startswith("cuda") and scaling_threads:
-        scaling = {}
+        from egobench.bench import core_sharing
+
+        scaling, before = {}, core_sharing.probe()
         for n_threads in scaling_threads:
             with cpu_threads(n_threads, torch_n=1):
                 scaling[str(n_threads)] = time_fwd_bwd(_step(g, cam, T, w, backend=backends[0], tile_size=tile_size,
                                                              mode=mode), device, repeats)
         result["thread_scaling"] = {"backend": backends[0], "image": case["image"], "policy": RASTER_THREAD_POLICY,
-                                    "sigma_px_median": spec.sigma_px_median, "by_threads": scaling}
+                                    "sigma_px_median": spec.sigma_px_median, "by_threads": scaling,
+                                    "core_sharing": core_sharing.bracket(before, core_sharing.probe())}
         first, last = str(scaling_threads[0]), str(scaling_threads[-1])
         result["thread_scaling"][f"speedup_{last}_vs_{first}"] = round(
             scaling[first]["median_ms"] / scaling[last]["median_ms"], 3)
@@ -279,11 +283,16 @@ def _timed_training(rec, method: str, cfg, n_threads: int, out_dir) -> dict:
     from egobench.model.methods import get_method
     from egobench.train import train
 
+    from egobench.bench import core_sharing
+
     device = cfg.device
     if device.startswith("cuda"):
         torch.cuda.reset_peak_memory_stats()
+    shared = n_threads > 1 and not device.startswith("cuda")  # where two threads sit decides their speed-up
+    before = core_sharing.probe() if shared else None
     with cpu_threads(n_threads):
         res = train(rec, method, cfg, out_dir, progress=False)
+    sharing = core_sharing.bracket(before, core_sharing.probe()) if shared else None
     if device.startswith("cuda"):
         peak, kind = torch.cuda.max_memory_allocated() / 2**20, "cuda max_memory_allocated"
     else:
@@ -294,7 +303,7 @@ def _timed_training(rec, method: str, cfg, n_threads: int, out_dir) -> dict:
             "resolution": cfg.max_side, "iterations": cfg.iterations, "iters_per_s": round(res.iters_per_s, 3),
             "raster_time_share": round(res.raster_time_share, 3), "num_gaussians": res.num_gaussians,
             "pose_samples_mean": res.record["motion_samples"]["mean"],
-            "peak_memory_mib": round(peak, 1), "peak_memory_kind": kind}
+            "peak_memory_mib": round(peak, 1), "peak_memory_kind": kind, "core_sharing": sharing}
 
 
 def bench_train(device: str = "cpu", backend: str = "auto", sides: tuple[int, ...] = (64, 128),
@@ -379,20 +388,26 @@ def train_2dgs_ratios(rows: list[dict]) -> list[dict]:
 
 def train_thread_speedups(rows: list[dict]) -> list[dict]:
     """it/s at the most threads over it/s at the fewest, per (method, resolution) timed at several, taken
-    within each round: the median over rounds and ``per_round``."""
+    within each round: the median over rounds and ``per_round``; ``per_round_shared_cache`` whether that
+    round's multi-thread run had its threads on one shared cache (`core_sharing.bracket`), and the
+    medians of the rounds that had and had not (``by_core_sharing``)."""
+    from egobench.bench.core_sharing import split_by_sharing
+
     out = []
     for method, side in dict.fromkeys((r["method"], r["resolution"]) for r in rows):
         mine = [r for r in rows if (r["method"], r["resolution"]) == (method, side)]
         counts = sorted({r["threads"] for r in mine})
         if len(counts) > 1:
             lo, hi = counts[0], counts[-1]
-            per = []
+            per, shared = [], []
             for rnd in dict.fromkeys(r.get("round", 0) for r in mine):
-                by_t = {r["threads"]: r["iters_per_s"] for r in mine if r.get("round", 0) == rnd}
-                per.append(by_t[hi] / by_t[lo])
+                by_t = {r["threads"]: r for r in mine if r.get("round", 0) == rnd}
+                per.append(by_t[hi]["iters_per_s"] / by_t[lo]["iters_per_s"])
+                shared.append((by_t[hi].get("core_sharing") or {}).get("shared_cache"))
             agg = _over_rounds(per)
             out.append({"method": method, "resolution": side, "threads": [lo, hi],
-                        f"speedup_{hi}_vs_{lo}": agg["median"], "per_round": agg["per_round"]})
+                        f"speedup_{hi}_vs_{lo}": agg["median"], "per_round": agg["per_round"],
+                        "per_round_shared_cache": shared, "by_core_sharing": split_by_sharing(per, shared)})
     return out
 
 

@@ -1,0 +1,98 @@
+"""The probe of whether two kernel threads share a cache, and how the benchmarks report it."""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+import pytest
+import torch
+
+from egobench import bench
+from egobench.bench import core_sharing as cs
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_each_thread_reads_its_own_row_or_the_others(threads):
+    """Rows differ ((t + 1) value + j), so a swapped or mixed row would change the sums; integer-valued
+    float64 sums are exact in any order."""
+    if threads > numba.config.NUMBA_NUM_THREADS:
+        pytest.skip("numba's pool has one thread")
+    before = numba.get_num_threads()
+    numba.set_num_threads(threads)
+    try:
+        buf, out = np.zeros((2, 1000)), np.zeros(2)
+        cs.write_rows(buf, 5.0)
+        np.testing.assert_array_equal(buf, [5.0 + np.arange(1000), 10.0 + np.arange(1000)])
+        rows = [5.0 * 1000 + 499500.0, 10.0 * 1000 + 499500.0]
+        cs.read_rows(buf, 0, out)
+        assert out.tolist() == rows
+        cs.read_rows(buf, 1, out)
+        assert out.tolist() == rows[::-1]
+    finally:
+        numba.set_num_threads(before)
+
+
+def test_classify_by_the_cross_to_own_ratio():
+    assert cs.classify(24e-6, 24.2e-6) == {"own_read_us": 24.0, "cross_read_us": 24.2, "cross_to_own": 1.01,
+                                           "shared_cache": True}
+    assert cs.classify(25.4e-6, 89.8e-6)["shared_cache"] is False  # stop 58's two dies: ratio 3.54
+    assert cs.classify(10e-6, 15e-6)["shared_cache"] is True and cs.classify(10e-6, 15.1e-6)["shared_cache"] is False
+
+
+@pytest.mark.parametrize("a, b, want", [(True, True, True), (False, False, False), (True, False, None),
+                                        (None, None, None), (None, True, None)])
+def test_bracket_agrees_only_where_both_probes_do(a, b, want):
+    rec = cs.bracket({"shared_cache": a}, {"shared_cache": b})
+    assert rec["shared_cache"] is want and rec["before"] == {"shared_cache": a}
+
+
+def test_split_by_sharing_medians_each_state_apart():
+    got = cs.split_by_sharing([1.6, 1.2, 1.65, 1.3], [True, False, True, None])
+    assert got == {"shared_cache": {"median": 1.625, "rounds": 2}, "not_shared": {"median": 1.2, "rounds": 1}}
+    assert cs.split_by_sharing([1.6], [None])["shared_cache"] == {"median": None, "rounds": 0}
+
+
+def test_probe_needs_two_threads_and_restores_the_count(monkeypatch):
+    if numba.config.NUMBA_NUM_THREADS >= 2:
+        numba.set_num_threads(1)
+        rec = cs.probe(repeats=3, nbytes=1 << 16)
+        assert numba.get_num_threads() == 1
+        numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
+        assert isinstance(rec["shared_cache"], bool) and rec["own_read_us"] > 0 and rec["cross_read_us"] > 0
+        assert rec["cross_to_own"] == pytest.approx(rec["cross_read_us"] / rec["own_read_us"], abs=0.02)
+    monkeypatch.setattr(numba.config, "NUMBA_NUM_THREADS", 1)
+    assert cs.probe() == {"shared_cache": None, "reason": "numba's pool has one thread (NUMBA_NUM_THREADS=1)"}
+
+
+def test_bench_train_reports_each_rounds_core_sharing(monkeypatch, two_kernel_threads):
+    """Every multi-thread run is bracketed by two probes; a round counts as shared (or not) only where both
+    agree, and the speed-ups are also given apart by state."""
+    import egobench.train
+
+    from tests.test_bench import _train_result
+
+    speed = {("ours", 1): [30.0, 20.0, 33.0], ("ours", 2): [45.0, 40.0, 33.0],
+             ("ours_2dgs", 1): [20.0, 10.0, 30.0], ("ours_2dgs", 2): [36.0, 10.0, 30.0]}
+    calls = []
+
+    def fake_train(rec, method, cfg, out_dir, progress):
+        if cfg.iterations == bench.WARMUP_ITERATIONS:
+            return _train_result(1.0)
+        key = (method, torch.get_num_threads())
+        calls.append(key)
+        return _train_result(speed[key][sum(c == key for c in calls) - 1])
+
+    # the 2-thread runs in order: ours r0, ours_2dgs r0, ours_2dgs r1, ours r1, ours r2, ours_2dgs r2
+    states = iter([True, True, False, False, True, False, False, False, True, True, True, True])
+    monkeypatch.setattr(egobench.train, "train", fake_train)
+    monkeypatch.setattr(cs, "probe", lambda: {"shared_cache": next(states)})
+    rec = bench.bench_train("cpu", sides=(16,), iterations=5, methods=("ours", "ours_2dgs"), threads=(1, 2), rounds=3)
+    assert next(states, "done") == "done"  # two probes per 2-thread run, none for the 1-thread runs
+    assert all(r["core_sharing"] is None for r in rec["results"] if r["threads"] == 1)
+    sp = {x["method"]: x for x in rec["thread_speedup"]}
+    assert sp["ours"]["per_round_shared_cache"] == [True, False, True]
+    assert sp["ours"]["by_core_sharing"] == {"shared_cache": {"median": 1.25, "rounds": 2},
+                                             "not_shared": {"median": 2.0, "rounds": 1}}
+    assert sp["ours_2dgs"]["per_round_shared_cache"] == [False, None, True]
+    assert sp["ours_2dgs"]["by_core_sharing"] == {"shared_cache": {"median": 1.0, "rounds": 1},
+                                                  "not_shared": {"median": 1.8, "rounds": 1}}
