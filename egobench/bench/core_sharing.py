@@ -59,9 +59,9 @@ def _median_read_s(buf: np.ndarray, cross: int, repeats: int) -> float:
 
 def classify(own_s: float, cross_s: float) -> dict:
     """Read times (seconds) -> the probe's record: times in microseconds, their ratio, shared or not."""
-    ratio = cross_s / own_s
+    ratio = round(cross_s / own_s, 2)  # the state follows the ratio as recorded
     return {"own_read_us": round(own_s * 1e6, 1), "cross_read_us": round(cross_s * 1e6, 1),
-            "cross_to_own": round(ratio, 2), "shared_cache": bool(ratio <= SHARED_MAX_RATIO)}
+            "cross_to_own": ratio, "shared_cache": bool(ratio <= SHARED_MAX_RATIO)}
 
 
 def probe(repeats: int = 15, nbytes: int = PROBE_BYTES) -> dict:
