@@ -10,6 +10,8 @@ without motion sampling on the synthetic `egobench.sim.plane.plane_recording` (o
 resolutions; ``--resolution 2400 --points 1000000 --device cuda`` is the paper-scale case.
 ``cast``: the simulator's ray casting (`egobench.sim.world.Scene.cast`, the cost of simulating a
 frame): 128 x 128 rays x 8 temporal samples from inside the indoor scene in one call.
+Every multi-thread CPU timing is bracketed by `core_sharing.probe` (do the two threads share a cache?
+on a VM that changes within seconds and decides the two-thread speed-up).
 """
 
 from __future__ import annotations
@@ -280,10 +282,9 @@ def _timed_training(rec, method: str, cfg, n_threads: int, out_dir) -> dict:
     peak memory: CUDA's allocator peak or the process's max RSS so far)."""
     import resource
 
+    from egobench.bench import core_sharing
     from egobench.model.methods import get_method
     from egobench.train import train
-
-    from egobench.bench import core_sharing
 
     device = cfg.device
     if device.startswith("cuda"):
