@@ -203,14 +203,15 @@ def bench_raster(device: str = "cpu", repeats: int = 7, backend: str = "auto", t
     elif not device.startswith("cuda") and scaling_threads:
         from egobench.bench import core_sharing
 
-        scaling, before = {}, core_sharing.probe()
-        for n_threads in scaling_threads:
-            with cpu_threads(n_threads, torch_n=1):
-                scaling[str(n_threads)] = time_fwd_bwd(_step(g, cam, T, w, backend=backends[0], tile_size=tile_size,
-                                                             mode=mode), device, repeats)
+        scaling = {}
+        with core_sharing.bracketing() as sharing:
+            for n_threads in scaling_threads:
+                with cpu_threads(n_threads, torch_n=1):
+                    scaling[str(n_threads)] = time_fwd_bwd(_step(g, cam, T, w, backend=backends[0],
+                                                                 tile_size=tile_size, mode=mode), device, repeats)
         result["thread_scaling"] = {"backend": backends[0], "image": case["image"], "policy": RASTER_THREAD_POLICY,
                                     "sigma_px_median": spec.sigma_px_median, "by_threads": scaling,
-                                    "core_sharing": core_sharing.bracket(before, core_sharing.probe())}
+                                    "core_sharing": sharing}
         first, last = str(scaling_threads[0]), str(scaling_threads[-1])
         result["thread_scaling"][f"speedup_{last}_vs_{first}"] = round(
             scaling[first]["median_ms"] / scaling[last]["median_ms"], 3)
@@ -289,11 +290,9 @@ def _timed_training(rec, method: str, cfg, n_threads: int, out_dir) -> dict:
     device = cfg.device
     if device.startswith("cuda"):
         torch.cuda.reset_peak_memory_stats()
-    shared = n_threads > 1 and not device.startswith("cuda")  # where two threads sit decides their speed-up
-    before = core_sharing.probe() if shared else None
-    with cpu_threads(n_threads):
+    # where two threads sit decides their speed-up
+    with core_sharing.bracketing(n_threads > 1 and not device.startswith("cuda")) as sharing, cpu_threads(n_threads):
         res = train(rec, method, cfg, out_dir, progress=False)
-    sharing = core_sharing.bracket(before, core_sharing.probe()) if shared else None
     if device.startswith("cuda"):
         peak, kind = torch.cuda.max_memory_allocated() / 2**20, "cuda max_memory_allocated"
     else:
@@ -304,7 +303,7 @@ def _timed_training(rec, method: str, cfg, n_threads: int, out_dir) -> dict:
             "resolution": cfg.max_side, "iterations": cfg.iterations, "iters_per_s": round(res.iters_per_s, 3),
             "raster_time_share": round(res.raster_time_share, 3), "num_gaussians": res.num_gaussians,
             "pose_samples_mean": res.record["motion_samples"]["mean"],
-            "peak_memory_mib": round(peak, 1), "peak_memory_kind": kind, "core_sharing": sharing}
+            "peak_memory_mib": round(peak, 1), "peak_memory_kind": kind, "core_sharing": sharing or None}
 
 
 def bench_train(device: str = "cpu", backend: str = "auto", sides: tuple[int, ...] = (64, 128),

@@ -16,13 +16,14 @@ from __future__ import annotations
 
 import statistics
 import time
+from contextlib import contextmanager
 
 import numpy as np
 from numba import njit, prange
 
 #: bytes each thread writes and reads: past a Zen 4 / Zen 5 core's 1 MB L2, well inside one die's L3
 PROBE_BYTES = 2 << 20
-#: cross / own read-time ratio up to which the two threads are taken to share a cache
+#: cross / own read-time ratio up to which the two threads are taken to share one cache
 SHARED_MAX_RATIO = 1.5
 
 
@@ -87,6 +88,17 @@ def bracket(before: dict, after: dict) -> dict:
     where both agree, None where they differ (the placement changed during the run) or none could run."""
     a, b = before.get("shared_cache"), after.get("shared_cache")
     return {"before": before, "after": after, "shared_cache": a if a is not None and a == b else None}
+
+
+@contextmanager
+def bracketing(enabled: bool = True):
+    """Probe before and after the block; yields a dict that holds `bracket`'s record once the block has run
+    (stays empty when not ``enabled``)."""
+    record: dict = {}
+    before = probe() if enabled else None
+    yield record
+    if enabled:
+        record.update(bracket(before, probe()))
 
 
 def split_by_sharing(values: list[float], shared: list[bool | None]) -> dict:
