@@ -450,6 +450,38 @@ def test_tile_rects_and_gradient_sums_match_plain_references():
         np.testing.assert_array_equal(absgrad, abs_want)
 
 
+def test_fill_bins_matches_a_plain_counting_sort_for_any_number_of_ranges():
+    """`fill_bins`' kernels against a plain-Python bucket sort (entries in perm order, each into every
+    needed bin of its rectangle): the same flat_ids and bin_start whether the sorted entries are one range
+    or cut into 2, 3 or 7 (threads); an image needing no bin gets none."""
+    from egobench.render import cpu_kernels as ck
+
+    rng = np.random.default_rng(11)
+    I, N, tiles_x, tiles_y, nv = 4, 500, 5, 3, 1500
+    x0, y0 = rng.integers(0, tiles_x, nv), rng.integers(0, tiles_y, nv)
+    rect = np.stack([x0, x0 + rng.integers(1, 3, nv), y0, y0 + rng.integers(1, 3, nv)], 1)
+    rect = np.minimum(rect, [tiles_x, tiles_x, tiles_y, tiles_y]).astype(np.int32)
+    vis = np.sort(rng.choice(I * N, nv, replace=False)).astype(np.int64)
+    perm = rng.permutation(nv).astype(np.int64)
+    bin_needed = rng.random((I, tiles_x * tiles_y)) < 0.6
+    bin_needed[1] = False
+    bins = [[] for _ in range(I * tiles_x * tiles_y)]
+    for q in perm:
+        i = vis[q] // N
+        for ty in range(rect[q, 2], rect[q, 3]):
+            for tx in range(rect[q, 0], rect[q, 1]):
+                if bin_needed[i, ty * tiles_x + tx]:
+                    bins[i * tiles_x * tiles_y + ty * tiles_x + tx].append(vis[q])
+    want_ids = np.array([k for b in bins for k in b], np.int64)
+    want_start = np.concatenate([[0], np.cumsum([len(b) for b in bins])])
+    assert 0 < len(want_ids) and not any(bins[tiles_x * tiles_y:2 * tiles_x * tiles_y])
+    got = [ck._fill_bins(rect, vis, perm, N, tiles_x, bin_needed), ck.fill_bins(rect, vis, perm, N, tiles_x, bin_needed)]
+    got += [ck._fill_bins_parts(rect, vis, perm, N, tiles_x, bin_needed, parts) for parts in (2, 3, 7)]
+    for flat_ids, bin_start in got:
+        np.testing.assert_array_equal(flat_ids, want_ids)
+        np.testing.assert_array_equal(bin_start, want_start)
+
+
 def _captured_raster(monkeypatch, mode: str, sigma_px: float):
     """Kernel arguments of one render + backward (mode "3dgs" or "2dgs") on an `egobench bench raster`
     scene (64 px, 1500 Gaussians, float32) -> backward args; the last two are isect_grad and the

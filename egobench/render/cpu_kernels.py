@@ -534,7 +534,7 @@ def bin_tiles(means2d, radii, depths, tile_size, tiles_x, tiles_y, bin_needed):
     bit patterns (positive floats order like their bits), ties by (image, Gaussian)."""
     rect, vis, keys = visible_rects(means2d, radii, depths, tile_size, tiles_x, tiles_y, bin_needed)
     perm = _radix_order(keys.view(np.uint32 if keys.dtype == np.float32 else np.uint64), keys.dtype.itemsize * 8)
-    return _fill_bins(rect, vis, perm, depths.shape[1], tiles_x, tiles_y, bin_needed)
+    return fill_bins(rect, vis, perm, depths.shape[1], tiles_x, bin_needed)
 
 
 #: bits per pass of `_radix_order` (a 2048-bucket histogram stays in L1)
@@ -652,37 +652,83 @@ def visible_rects(means2d, radii, depths, tile_size, tiles_x, tiles_y, bin_neede
     return rect[:nv], vis[:nv], keys[:nv]
 
 
-@njit(cache=True)
-def _fill_bins(rect, vis, perm, N, tiles_x, tiles_y, bin_needed):
-    """Counting sort by bin of the intersections of the visible pairs taken in the order ``perm`` (front
-    to back; rect [nv, 4] their tile rectangles and vis [nv] their flat ids, in `visible_rects`' order;
-    read through perm: a numpy [nv, 4] gather cost ~0.27 ms at 128 px, most of this sort's own time)."""
-    I = bin_needed.shape[0]
-    n_tiles = tiles_x * tiles_y
-    nv = perm.shape[0]
-    counts = np.zeros(I * n_tiles + 1, np.int64)
-    for j in range(nv):
-        q = perm[j]
-        i = vis[q] // N
-        for ty in range(rect[q, 2], rect[q, 3]):
-            for tx in range(rect[q, 0], rect[q, 1]):
-                b = i * n_tiles + ty * tiles_x + tx
-                if bin_needed[i, b - i * n_tiles]:
-                    counts[b + 1] += 1
-    bin_start = np.cumsum(counts)
-    fill = bin_start[:-1].copy()
-    flat_ids = np.empty(bin_start[-1], np.int64)
-    for j in range(nv):
+#: the fewest sorted intersections per kernel thread for which `fill_bins` splits the work
+FILL_PART_MIN = 4096
+
+
+@njit(cache=True, inline="always")
+def _bin_walk(rect, vis, perm, j0, j1, N, tiles_x, bin_needed, slot, flat_ids, place):
+    """The intersections of the sorted entries j0 <= j < j1 (entry j: visible pair perm[j]; rect [nv, 4] its
+    tiles, vis [nv] its flat id) with needed bins: counted into slot [I * tiles] (place False), or written
+    at flat_ids[slot[b]], slot[b] advanced (place True)."""
+    n_tiles = bin_needed.shape[1]
+    for j in range(j0, j1):
         q = perm[j]
         k = vis[q]
         i = k // N
         for ty in range(rect[q, 2], rect[q, 3]):
             for tx in range(rect[q, 0], rect[q, 1]):
-                b = i * n_tiles + ty * tiles_x + tx
-                if bin_needed[i, b - i * n_tiles]:
-                    flat_ids[fill[b]] = k
-                    fill[b] += 1
+                t = ty * tiles_x + tx
+                if bin_needed[i, t]:
+                    b = i * n_tiles + t
+                    if place:
+                        flat_ids[slot[b]] = k
+                    slot[b] += 1
+
+
+@njit(cache=True)
+def _slots_from_counts(counts):
+    """counts [parts, bins] (each range's intersections per bin) -> (flat_ids [M] unfilled, bin_start
+    [bins + 1]); counts become each range's first slot in every bin (ranges in order within a bin)."""
+    n_bins = counts.shape[1]
+    bin_start = np.empty(n_bins + 1, np.int64)
+    s = 0
+    for b in range(n_bins):
+        bin_start[b] = s
+        for p in range(counts.shape[0]):
+            c = counts[p, b]
+            counts[p, b] = s
+            s += c
+    bin_start[n_bins] = s
+    return np.empty(s, np.int64), bin_start
+
+
+@njit(cache=True)
+def _fill_bins(rect, vis, perm, N, tiles_x, bin_needed):
+    """Counting sort by bin of the visible pairs' intersections, the pairs taken in the order ``perm``
+    (front to back; read through perm: a numpy [nv, 4] gather cost ~0.27 ms at 128 px) -> (flat_ids,
+    bin_start), on one thread."""
+    slot = np.zeros((1, bin_needed.size), np.int64)
+    _bin_walk(rect, vis, perm, 0, perm.shape[0], N, tiles_x, bin_needed, slot[0], slot[0], False)
+    flat_ids, bin_start = _slots_from_counts(slot)
+    _bin_walk(rect, vis, perm, 0, perm.shape[0], N, tiles_x, bin_needed, slot[0], flat_ids, True)
     return flat_ids, bin_start
+
+
+@njit(cache=True, parallel=True)
+def _fill_bins_parts(rect, vis, perm, N, tiles_x, bin_needed, parts):
+    """`_fill_bins` with the sorted entries cut into ``parts`` contiguous ranges, counted and written in
+    parallel: the same arrays for any number of parts (a bin's entries stay in sorted order)."""
+    nv = perm.shape[0]
+    slot = np.zeros((parts, bin_needed.size), np.int64)
+    for p in prange(parts):
+        _bin_walk(rect, vis, perm, p * nv // parts, (p + 1) * nv // parts, N, tiles_x, bin_needed, slot[p],
+                  slot[p], False)
+    flat_ids, bin_start = _slots_from_counts(slot)
+    for p in prange(parts):
+        _bin_walk(rect, vis, perm, p * nv // parts, (p + 1) * nv // parts, N, tiles_x, bin_needed, slot[p],
+                  flat_ids, True)
+    return flat_ids, bin_start
+
+
+def fill_bins(rect, vis, perm, N, tiles_x, bin_needed):
+    """rect [nv, 4] int32 and vis [nv] (`visible_rects`), perm [nv] their depth order, bin_needed [I, tiles]
+    -> (flat_ids [M] int64, bin_start [I * tiles + 1] int64): one range of entries per kernel thread (one
+    range: no parallel loop), the same result for any thread count."""
+    parts = min(numba.get_num_threads(), perm.shape[0] // FILL_PART_MIN)
+    if parts <= 1:
+        return _fill_bins(rect, vis, perm, N, tiles_x, bin_needed)
+    return _fill_bins_parts(rect, vis, perm, N, tiles_x, bin_needed, parts)
 
 
 #: fast-math flags of the compositing loops: reassociation and FMA contraction let LLVM vectorize
