@@ -126,12 +126,12 @@ def test_bench_train_pairs_2dgs_with_its_3dgs_twin_and_times_thread_counts():
     assert torch.get_num_threads() == rec["threads"]  # restored
 
 
-def _train_result(iters_per_s: float):
+def _train_result(iters_per_s: float, core_sharing: dict | None = None):
     """What a faked `egobench.train.train` returns: the fields `bench_train` reads."""
     import types
 
     return types.SimpleNamespace(iters_per_s=iters_per_s, raster_time_share=0.5, num_gaussians=7,
-                                 record={"motion_samples": {"mean": 1.0}})
+                                 record={"motion_samples": {"mean": 1.0}, "train": {"core_sharing": core_sharing}})
 
 
 def test_bench_train_warms_each_method_up_before_timing_it(monkeypatch):

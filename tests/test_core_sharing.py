@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from egobench import bench
-from egobench.bench import core_sharing as cs
+from egobench import core_sharing as cs
 
 
 @pytest.mark.parametrize("threads", [1, 2])
@@ -74,14 +74,16 @@ def test_probe_needs_two_threads_and_restores_the_count(monkeypatch):
 
 
 def test_bench_train_reports_each_rounds_core_sharing(monkeypatch, two_kernel_threads):
-    """Every multi-thread run is bracketed by two probes; a round counts as shared (or not) only where both
-    agree, and the speed-ups are also given apart by state."""
+    """Each row carries its run's record (train.json's `train.core_sharing`); a round counts as shared (or
+    not) where its two-thread run's probes agreed, and the speed-ups are also given apart by state."""
     import egobench.train
 
     from tests.test_bench import _train_result
 
     speed = {("ours", 1): [30.0, 20.0, 33.0], ("ours", 2): [45.0, 40.0, 33.0],
              ("ours_2dgs", 1): [20.0, 10.0, 30.0], ("ours_2dgs", 2): [36.0, 10.0, 30.0]}
+    # the 2-thread runs in order: ours r0, ours_2dgs r0, ours_2dgs r1, ours r1, ours r2, ours_2dgs r2
+    states = iter([True, False, None, False, True, True])
     calls = []
 
     def fake_train(rec, method, cfg, out_dir, progress):
@@ -89,14 +91,12 @@ def test_bench_train_reports_each_rounds_core_sharing(monkeypatch, two_kernel_th
             return _train_result(1.0)
         key = (method, torch.get_num_threads())
         calls.append(key)
-        return _train_result(speed[key][sum(c == key for c in calls) - 1])
+        sharing = {"shared_cache": next(states)} if key[1] == 2 else None
+        return _train_result(speed[key][sum(c == key for c in calls) - 1], sharing)
 
-    # the 2-thread runs in order: ours r0, ours_2dgs r0, ours_2dgs r1, ours r1, ours r2, ours_2dgs r2
-    states = iter([True, True, False, False, True, False, False, False, True, True, True, True])
     monkeypatch.setattr(egobench.train, "train", fake_train)
-    monkeypatch.setattr(cs, "probe", lambda: {"shared_cache": next(states)})
     rec = bench.bench_train("cpu", sides=(16,), iterations=5, methods=("ours", "ours_2dgs"), threads=(1, 2), rounds=3)
-    assert next(states, "done") == "done"  # two probes per 2-thread run, none for the 1-thread runs
+    assert next(states, "done") == "done"
     assert all(r["core_sharing"] is None for r in rec["results"] if r["threads"] == 1)
     sp = {x["method"]: x for x in rec["thread_speedup"]}
     assert sp["ours"]["per_round_shared_cache"] == [True, False, True]
@@ -105,3 +105,25 @@ def test_bench_train_reports_each_rounds_core_sharing(monkeypatch, two_kernel_th
     assert sp["ours_2dgs"]["per_round_shared_cache"] == [False, None, True]
     assert sp["ours_2dgs"]["by_core_sharing"] == {"shared_cache": {"median": 1.0, "rounds": 1},
                                                   "not_shared": {"median": 1.8, "rounds": 1}}
+
+
+@pytest.mark.parametrize("kernel_threads, backend, probes", [(2, "cpu", 2), (1, "cpu", 0), (2, "torch", 0)])
+def test_training_probes_its_iterations_where_the_kernels_run_on_two_threads(tmp_path, monkeypatch, kernel_threads,
+                                                                             backend, probes):
+    """train.json's `train.core_sharing`: a probe before and after the iterations (`bracket` of the two) where
+    the compiled kernels run on two threads; None, with no probe, on one thread or on the torch backend."""
+    from egobench.host import RASTER_THREADS_ENV
+    from egobench.sim.plane import plane_recording
+    from egobench.train import TrainConfig, train
+
+    if kernel_threads > numba.config.NUMBA_NUM_THREADS:
+        pytest.skip("numba's pool has one thread")
+    seen = iter([{"shared_cache": True, "n": 0}, {"shared_cache": True, "n": 1}])
+    monkeypatch.setattr(cs, "probe", lambda: next(seen))
+    monkeypatch.setenv(RASTER_THREADS_ENV, str(kernel_threads))
+    rec = plane_recording(tmp_path / "rec", size=32, n_frames=9, n_points=300)
+    cfg = TrainConfig(iterations=2, max_side=32, device="cpu", backend=backend, refine_start_frac=1.0)
+    res = train(rec, "ours", cfg, tmp_path / "run", progress=False)
+    want = cs.bracket({"shared_cache": True, "n": 0}, {"shared_cache": True, "n": 1}) if probes else None
+    assert res.record["train"]["core_sharing"] == want
+    assert len(list(seen)) == 2 - probes

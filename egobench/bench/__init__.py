@@ -10,8 +10,9 @@ without motion sampling on the synthetic `egobench.sim.plane.plane_recording` (o
 resolutions; ``--resolution 2400 --points 1000000 --device cuda`` is the paper-scale case.
 ``cast``: the simulator's ray casting (`egobench.sim.world.Scene.cast`, the cost of simulating a
 frame): 128 x 128 rays x 8 temporal samples from inside the indoor scene in one call.
-Every multi-thread CPU timing is bracketed by `core_sharing.probe` (do the two threads share a cache?
-on a VM that changes within seconds and decides the two-thread speed-up).
+Every multi-thread CPU timing is bracketed by `egobench.core_sharing`'s probe (do the two threads share a
+cache? on a VM that changes within seconds and decides the two-thread speed-up); a training run brackets
+its own iterations (train.json's ``train.core_sharing``).
 """
 
 from __future__ import annotations
@@ -201,7 +202,7 @@ def bench_raster(device: str = "cpu", repeats: int = 7, backend: str = "auto", t
         result["thread_scaling"] = {"skipped": f"numba's pool has {numba.config.NUMBA_NUM_THREADS} thread(s) "
                                                f"(NUMBA_NUM_THREADS / OMP_NUM_THREADS when it loaded)"}
     elif not device.startswith("cuda") and scaling_threads:
-        from egobench.bench import core_sharing
+        from egobench import core_sharing
 
         scaling = {}
         with core_sharing.bracketing() as sharing:
@@ -283,15 +284,13 @@ def _timed_training(rec, method: str, cfg, n_threads: int, out_dir) -> dict:
     peak memory: CUDA's allocator peak or the process's max RSS so far)."""
     import resource
 
-    from egobench.bench import core_sharing
     from egobench.model.methods import get_method
     from egobench.train import train
 
     device = cfg.device
     if device.startswith("cuda"):
         torch.cuda.reset_peak_memory_stats()
-    # where two threads sit decides their speed-up
-    with core_sharing.bracketing(n_threads > 1 and not device.startswith("cuda")) as sharing, cpu_threads(n_threads):
+    with cpu_threads(n_threads):
         res = train(rec, method, cfg, out_dir, progress=False)
     if device.startswith("cuda"):
         peak, kind = torch.cuda.max_memory_allocated() / 2**20, "cuda max_memory_allocated"
@@ -303,7 +302,8 @@ def _timed_training(rec, method: str, cfg, n_threads: int, out_dir) -> dict:
             "resolution": cfg.max_side, "iterations": cfg.iterations, "iters_per_s": round(res.iters_per_s, 3),
             "raster_time_share": round(res.raster_time_share, 3), "num_gaussians": res.num_gaussians,
             "pose_samples_mean": res.record["motion_samples"]["mean"],
-            "peak_memory_mib": round(peak, 1), "peak_memory_kind": kind, "core_sharing": sharing or None}
+            "peak_memory_mib": round(peak, 1), "peak_memory_kind": kind,
+            "core_sharing": res.record["train"]["core_sharing"]}  # where two threads sat decides their speed-up
 
 
 def bench_train(device: str = "cpu", backend: str = "auto", sides: tuple[int, ...] = (64, 128),
@@ -391,7 +391,7 @@ def train_thread_speedups(rows: list[dict]) -> list[dict]:
     within each round: the median over rounds and ``per_round``; ``per_round_shared_cache`` whether that
     round's multi-thread run had its threads on one shared cache (`core_sharing.bracket`), and the
     medians of the rounds that had and had not (``by_core_sharing``)."""
-    from egobench.bench.core_sharing import split_by_sharing
+    from egobench.core_sharing import split_by_sharing
 
     out = []
     for method, side in dict.fromkeys((r["method"], r["resolution"]) for r in rows):

@@ -16,6 +16,7 @@ as raster time. Divided by the total wall time of the iterations.
 
 from __future__ import annotations
 
+import contextlib
 import sys
 import time
 from dataclasses import dataclass, field
@@ -249,16 +250,31 @@ def train(recording_dir, method: str, config: TrainConfig, out_dir, *, resume: b
     end_it = config.iterations if stop_after is None else min(config.iterations, int(stop_after))
     bar = tqdm(range(start_it, end_it), desc=f"train {method}", disable=not progress, file=sys.stderr,
                initial=start_it, total=config.iterations, mininterval=2.0)
-    for it in bar:
-        train_step(state, ctx, it)
-        if progress and it % 50 == 0:
-            bar.set_postfix(loss=f"{state.last_loss:.4f}", n=len(state.params["means"]))
-        if config.checkpoint_every > 0 and (it + 1) % config.checkpoint_every == 0 and it + 1 < end_it:
-            write_checkpoint(ckpt_path, _checkpoint_state(state, method, config, data, device))
+    with _probing_cores(backend) as sharing:
+        for it in bar:
+            train_step(state, ctx, it)
+            if progress and it % 50 == 0:
+                bar.set_postfix(loss=f"{state.last_loss:.4f}", n=len(state.params["means"]))
+            if config.checkpoint_every > 0 and (it + 1) % config.checkpoint_every == 0 and it + 1 < end_it:
+                write_checkpoint(ckpt_path, _checkpoint_state(state, method, config, data, device))
     bar.close()
     state.iteration = max(end_it, start_it)
     write_checkpoint(ckpt_path, _checkpoint_state(state, method, config, data, device))
-    return _result(state, data, config, method, Path(out_dir), backend)
+    return _result(state, data, config, method, Path(out_dir), backend, sharing or None)
+
+
+def _probing_cores(backend: str):
+    """Around the iterations: `core_sharing.bracketing` where the compiled CPU kernels run on two or more
+    threads (whether those share a cache then decides their speed); otherwise nothing is probed. Yields
+    the dict that holds the record once the block has run (empty when nothing was probed)."""
+    if backend != "cpu":
+        return contextlib.nullcontext({})
+    import numba
+
+    from egobench import core_sharing
+    from egobench.host import raster_threads
+
+    return core_sharing.bracketing(min(raster_threads(), numba.config.NUMBA_NUM_THREADS) > 1)
 
 
 def _drop_stale_records(out_dir: Path) -> None:
@@ -269,8 +285,9 @@ def _drop_stale_records(out_dir: Path) -> None:
 
 
 def _result(state: TrainState, data: TrainingData, config: TrainConfig, method: str, out_dir: Path,
-            backend: str) -> TrainResult:
-    """The run's result; train.json is written only for a finished run (the workflow's output)."""
+            backend: str, core_sharing: dict | None) -> TrainResult:
+    """The run's result; train.json is written only for a finished run (the workflow's output).
+    ``core_sharing``: `_probing_cores`' record of this process's iterations (None: not probed)."""
     from egobench.io_utils import write_json
 
     ts, its = state.timing["time_s"], state.timing["iterations_timed"]
@@ -280,7 +297,7 @@ def _result(state: TrainState, data: TrainingData, config: TrainConfig, method: 
         raster_time_share=(state.timing["render_fwd_s"] + state.timing["render_bwd_s"]) / ts if ts > 0 else 0.0,
         final_loss=state.last_loss,
     )
-    result.record = train_record(result, state, data, config, method, backend)
+    result.record = train_record(result, state, data, config, method, backend, core_sharing)
     if result.record["complete"]:
         write_json(out_dir / "train.json", result.record)
     return result

@@ -23,8 +23,10 @@ TRAIN_SCHEMA = "egobench.train/1"
 
 
 def train_record(result: "TrainResult", state: TrainState, data: TrainingData, config: TrainConfig,
-                 method: str, backend: str) -> dict:
-    """The train.json record of a run (``complete`` once every iteration has run)."""
+                 method: str, backend: str, core_sharing: dict | None) -> dict:
+    """The train.json record of a run (``complete`` once every iteration has run). ``core_sharing``: the
+    probes around this process's iterations (`egobench.core_sharing.bracket`; None where the kernels ran on
+    one thread or not on the CPU)."""
     spec, rec, cam = data.spec, data.recording, data.camera
     ns = np.asarray(data.n_samples)
     return {
@@ -41,6 +43,7 @@ def train_record(result: "TrainResult", state: TrainState, data: TrainingData, c
             "device": config.device, "backend": backend,
             "final_loss": result.final_loss if math.isfinite(result.final_loss) else None,
             "image_store": _image_store_stats(data, config),
+            "core_sharing": core_sharing,
         },
         "frames": frame_counts(rec),
         "camera": cam.to_dict(), "scene_scale": data.scene_scale,
