@@ -450,10 +450,13 @@ def test_tile_rects_and_gradient_sums_match_plain_references():
         np.testing.assert_array_equal(absgrad, abs_want)
 
 
-def test_fill_bins_matches_a_plain_counting_sort_for_any_number_of_ranges():
+def test_fill_bins_matches_a_plain_counting_sort_for_any_number_of_ranges(monkeypatch):
     """`fill_bins`' kernels against a plain-Python bucket sort (entries in perm order, each into every
     needed bin of its rectangle): the same flat_ids and bin_start whether the sorted entries are one range
-    or cut into 2, 3 or 7 (threads); an image needing no bin gets none."""
+    or cut into 2, 3 or 7, on as many threads as numba's pool has (up to 2; the dispatcher splitting too);
+    an image needing no bin gets none."""
+    import numba
+
     from egobench.render import cpu_kernels as ck
 
     rng = np.random.default_rng(11)
@@ -475,8 +478,15 @@ def test_fill_bins_matches_a_plain_counting_sort_for_any_number_of_ranges():
     want_ids = np.array([k for b in bins for k in b], np.int64)
     want_start = np.concatenate([[0], np.cumsum([len(b) for b in bins])])
     assert 0 < len(want_ids) and not any(bins[tiles_x * tiles_y:2 * tiles_x * tiles_y])
-    got = [ck._fill_bins(rect, vis, perm, N, tiles_x, bin_needed), ck.fill_bins(rect, vis, perm, N, tiles_x, bin_needed)]
-    got += [ck._fill_bins_parts(rect, vis, perm, N, tiles_x, bin_needed, parts) for parts in (2, 3, 7)]
+    monkeypatch.setattr(ck, "FILL_PART_MIN", 100)  # the dispatcher splits these 1500 entries
+    before = numba.get_num_threads()
+    numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))
+    try:
+        got = [ck._fill_bins(rect, vis, perm, N, tiles_x, bin_needed), ck.fill_bins(rect, vis, perm, N, tiles_x,
+                                                                                    bin_needed)]
+        got += [ck._fill_bins_parts(rect, vis, perm, N, tiles_x, bin_needed, parts) for parts in (2, 3, 7)]
+    finally:
+        numba.set_num_threads(before)
     for flat_ids, bin_start in got:
         np.testing.assert_array_equal(flat_ids, want_ids)
         np.testing.assert_array_equal(bin_start, want_start)

@@ -10,9 +10,10 @@ without motion sampling on the synthetic `egobench.sim.plane.plane_recording` (o
 resolutions; ``--resolution 2400 --points 1000000 --device cuda`` is the paper-scale case.
 ``cast``: the simulator's ray casting (`egobench.sim.world.Scene.cast`, the cost of simulating a
 frame): 128 x 128 rays x 8 temporal samples from inside the indoor scene in one call.
-Every multi-thread CPU timing is bracketed by `egobench.core_sharing`'s probe (do the two threads share a
-cache? on a VM that changes within seconds and decides the two-thread speed-up); a training run brackets
-its own iterations (train.json's ``train.core_sharing``).
+Where the compiled CPU kernels run on two or more threads, a timing is bracketed by `egobench.core_sharing`'s
+probe (do the two threads share a cache? on a VM that changes within seconds and decides the two-thread
+speed-up): a training run brackets its own iterations (train.json's ``train.core_sharing``), `bench raster`
+its thread scaling.
 """
 
 from __future__ import annotations

@@ -104,13 +104,13 @@ def raster_setup(means2d: Tensor, radii: Tensor, depths: Tensor, colors: Tensor,
     _, H, W = pix_view.shape
     tiles_x, tiles_y = math.ceil(W / tile_size), math.ceil(H / tile_size)
     m2 = contiguous_numpy(means2d)
+    set_threads()  # the binning splits its work by numba's thread count
     flat_ids, bin_start = ck.bin_tiles(m2, contiguous_numpy(radii), contiguous_numpy(depths), tile_size, tiles_x, tiles_y, bin_needed)
     if flat_ids.shape[0] >= 2**31 - 1:  # per-pixel indices are int32
         raise ValueError(f"render(backend='cpu'): {flat_ids.shape[0]} tile intersections exceed 2^31 - 1; "
                          "use a larger tile_size or backend='torch'")
     bins = np.nonzero(bin_needed.reshape(-1))[0].astype(np.int64)
     needed = ck.rows_needed(flat_ids, I * N)
-    set_threads()
     feats = np.empty((I * N, 4 + (3 if normals.shape[1] else 0)), dtype=m2.dtype)
     ck.feature_table(contiguous_numpy(colors), contiguous_numpy(depths), contiguous_numpy(normals), needed, feats)
     centres = (np.arange(max(W, H) + tile_size) + 0.5).astype(m2.dtype)

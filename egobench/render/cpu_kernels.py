@@ -652,7 +652,8 @@ def visible_rects(means2d, radii, depths, tile_size, tiles_x, tiles_y, bin_neede
     return rect[:nv], vis[:nv], keys[:nv]
 
 
-#: the fewest sorted intersections per kernel thread for which `fill_bins` splits the work
+#: the fewest depth-sorted visible pairs (entries of perm) per kernel thread for which `fill_bins` splits
+#: the work; its serial prefix is O(threads x bins), small beside the fill at every size measured
 FILL_PART_MIN = 4096
 
 

@@ -250,24 +250,25 @@ def train(recording_dir, method: str, config: TrainConfig, out_dir, *, resume: b
     end_it = config.iterations if stop_after is None else min(config.iterations, int(stop_after))
     bar = tqdm(range(start_it, end_it), desc=f"train {method}", disable=not progress, file=sys.stderr,
                initial=start_it, total=config.iterations, mininterval=2.0)
-    with _probing_cores(backend) as sharing:
+    with _probing_cores(backend, end_it > start_it) as sharing:  # the last probe after the final checkpoint
         for it in bar:
             train_step(state, ctx, it)
             if progress and it % 50 == 0:
                 bar.set_postfix(loss=f"{state.last_loss:.4f}", n=len(state.params["means"]))
             if config.checkpoint_every > 0 and (it + 1) % config.checkpoint_every == 0 and it + 1 < end_it:
                 write_checkpoint(ckpt_path, _checkpoint_state(state, method, config, data, device))
-    bar.close()
-    state.iteration = max(end_it, start_it)
-    write_checkpoint(ckpt_path, _checkpoint_state(state, method, config, data, device))
+        bar.close()
+        state.iteration = max(end_it, start_it)
+        write_checkpoint(ckpt_path, _checkpoint_state(state, method, config, data, device))
     return _result(state, data, config, method, Path(out_dir), backend, sharing or None)
 
 
-def _probing_cores(backend: str):
-    """Around the iterations: `core_sharing.bracketing` where the compiled CPU kernels run on two or more
-    threads (whether those share a cache then decides their speed); otherwise nothing is probed. Yields
-    the dict that holds the record once the block has run (empty when nothing was probed)."""
-    if backend != "cpu":
+def _probing_cores(backend: str, iterating: bool):
+    """Around this process's iterations (``iterating``: there are some): `core_sharing.bracketing` where the
+    compiled CPU kernels run on two or more threads (whether those share a cache then decides their speed);
+    otherwise nothing is probed. Yields the dict that holds the record once the block has run (empty when
+    nothing was probed)."""
+    if backend != "cpu" or not iterating:
         return contextlib.nullcontext({})
     import numba
 

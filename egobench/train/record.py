@@ -25,8 +25,8 @@ TRAIN_SCHEMA = "egobench.train/1"
 def train_record(result: "TrainResult", state: TrainState, data: TrainingData, config: TrainConfig,
                  method: str, backend: str, core_sharing: dict | None) -> dict:
     """The train.json record of a run (``complete`` once every iteration has run). ``core_sharing``: the
-    probes around this process's iterations (`egobench.core_sharing.bracket`; None where the kernels ran on
-    one thread or not on the CPU)."""
+    probes around this process's iterations (`egobench.core_sharing.bracket`; a resumed run: its last
+    segment's; None where the kernels ran on one thread, not on the CPU, or no iteration ran)."""
     spec, rec, cam = data.spec, data.recording, data.camera
     ns = np.asarray(data.n_samples)
     return {
