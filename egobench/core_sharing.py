@@ -67,8 +67,9 @@ def classify(own_s: float, cross_s: float) -> dict:
 
 
 def probe(repeats: int = 15, nbytes: int = PROBE_BYTES) -> dict:
-    """Measure now (a few milliseconds) -> `classify`'s record, or {"shared_cache": None, "reason": ...}
-    where numba's pool has one thread (the probe needs two)."""
+    """Measure now (a few milliseconds; a process's first call loads the two kernels from numba's cache,
+    ~0.25 s, or compiles them, ~1 s once per machine: a Zen 4 VM) -> `classify`'s record, or
+    {"shared_cache": None, "reason": ...} where numba's pool has one thread (the probe needs two)."""
     import numba
 
     if numba.config.NUMBA_NUM_THREADS < 2:
