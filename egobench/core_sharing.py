@@ -103,6 +103,16 @@ def bracketing(enabled: bool = True):
         record.update(bracket(before, probe()))
 
 
+def describe(record: dict | None) -> str:
+    """`bracket`'s record (or None: not probed) -> a few words for a one-line summary ("" when not probed)."""
+    if not record:
+        return ""
+    state = record.get("shared_cache")
+    if state is None:
+        return "; kernel threads' cache sharing changed during the run or was not measured"
+    return "; kernel threads on one shared cache" if state else "; kernel threads on separate caches (other die)"
+
+
 def split_by_sharing(values: list[float], shared: list[bool | None]) -> dict:
     """Per-round values and the bracketed state of each round's multi-thread run -> the medians of the rounds
     whose threads shared a cache and of those whose did not (None where no round was), with their counts."""

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numba
 import numpy as np
 import pytest
@@ -48,6 +50,14 @@ def test_classify_by_the_cross_to_own_ratio():
 def test_bracket_agrees_only_where_both_probes_do(a, b, want):
     rec = cs.bracket({"shared_cache": a}, {"shared_cache": b})
     assert rec["shared_cache"] is want and rec["before"] == {"shared_cache": a}
+
+
+def test_describe_names_the_state_for_the_training_summary():
+    assert cs.describe(None) == ""
+    shared = cs.bracket({"shared_cache": True}, {"shared_cache": True})
+    assert cs.describe(shared) == "; kernel threads on one shared cache"
+    assert "separate caches" in cs.describe(cs.bracket({"shared_cache": False}, {"shared_cache": False}))
+    assert "changed during the run" in cs.describe(cs.bracket({"shared_cache": True}, {"shared_cache": False}))
 
 
 def test_split_by_sharing_medians_each_state_apart():
@@ -130,3 +140,21 @@ def test_training_probes_its_iterations_where_the_kernels_run_on_two_threads(tmp
     assert len(list(seen)) == 2 - probes
     again = train(rec, "ours", cfg, tmp_path / "run", resume=True, progress=False)  # a probe now: StopIteration
     assert again.iterations == 2 and again.record["train"]["core_sharing"] is None
+
+
+def test_train_cli_says_where_the_kernel_threads_sat(tmp_path, monkeypatch, capsys, two_kernel_threads):
+    """`egobench train`'s summary line names the state its two kernel threads were probed in."""
+    import egobench.data.reader
+    from egobench.cli import main
+    from egobench.host import RASTER_THREADS_ENV
+    from egobench.sim.plane import plane_recording
+
+    monkeypatch.setattr(cs, "probe", lambda: {"shared_cache": False})
+    monkeypatch.setenv(RASTER_THREADS_ENV, "2")
+    rec = plane_recording(tmp_path / "rec", size=32, n_frames=9, n_points=300)  # not the authors' layout: handed over
+    monkeypatch.setattr(egobench.data.reader, "recording_from_args", lambda *a: rec)
+    assert main(["train", "--recording", str(tmp_path / "rec"), "--method", "ours", "--out", str(tmp_path / "run"),
+                 "--iterations", "2", "--no-progress"]) == 0
+    line = capsys.readouterr().out.strip().splitlines()[-1]
+    assert line.startswith("trained ours: 2 iterations") and "; kernel threads on separate caches" in line
+    assert json.loads((tmp_path / "run" / "train.json").read_text())["train"]["core_sharing"]["shared_cache"] is False

@@ -54,6 +54,11 @@ def run(args: argparse.Namespace) -> int:
     except TrainingDiverged as exc:
         print(f"egobench train: error: {exc}", file=sys.stderr)
         return 3
+    sharing, cores = res.record["train"]["core_sharing"], ""
+    if sharing:  # probed: numba is there
+        from egobench.core_sharing import describe
+
+        cores = describe(sharing)
     print(f"trained {args.method}: {res.iterations} iterations, {res.num_gaussians} Gaussians, "
-          f"{res.iters_per_s:.1f} it/s, raster share {res.raster_time_share:.2f} -> {res.checkpoint}")
+          f"{res.iters_per_s:.1f} it/s, raster share {res.raster_time_share:.2f}{cores} -> {res.checkpoint}")
     return 0
