@@ -59,12 +59,13 @@ def host_info() -> dict[str, object]:
     return {"cpu_model": cpu_model(), "cpu_count": os.cpu_count(), "vector_isa": vector_isa(),
             "kernel_target": kernel_target,
             "torch_cpu_capability": torch.backends.cpu.get_cpu_capability(),
-            "threads": {"torch": torch.get_num_threads(), "kernels": _kernel_threads()},
+            "threads": {"torch": torch.get_num_threads(), "kernels": kernel_threads()},
             "allocator": dict(_ALLOCATOR) if _ALLOCATOR else None, "versions": versions()}
 
 
-def _kernel_threads() -> int:
-    """The compiled kernels' thread count as `render.cpu_backend.set_threads` sets it (at most numba's pool)."""
+def kernel_threads() -> int:
+    """The compiled kernels' thread count (`raster_threads`, at most numba's pool; what
+    `render.cpu_backend.set_threads` sets)."""
     try:
         import numba
 

@@ -155,9 +155,9 @@ def bench_raster_both(device: str = "cpu", **kw) -> dict:
     ratios = [{"image": a["image"], "sigma_px_median": a["scene"]["sigma_px_median"], "ms_3dgs": a["median_ms"],
                "ms_2dgs": b["median_ms"], "ratio_2dgs_to_3dgs": round(b["median_ms"] / a["median_ms"], 3)}
               for a, b in zip(r3["cases"], r2["cases"])]
-    speedup = {m: {**{k: v for k, v in r.get("thread_scaling", {}).items() if k.startswith("speedup_")},
-                   "shared_cache": r.get("thread_scaling", {}).get("core_sharing", {}).get("shared_cache")}
-               for m, r in (("3dgs", r3), ("2dgs", r2))}
+    scaling = {"3dgs": r3.get("thread_scaling", {}), "2dgs": r2.get("thread_scaling", {})}
+    speedup = {m: {**{k: v for k, v in ts.items() if k.startswith("speedup_")},
+                   "shared_cache": ts.get("core_sharing", {}).get("shared_cache")} for m, ts in scaling.items()}
     return {"benchmark": "raster", "mode": "both", "ratio_2dgs_to_3dgs": ratios, "thread_speedup": speedup,
             "3dgs": r3, "2dgs": r2}
 

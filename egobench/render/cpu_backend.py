@@ -23,7 +23,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from egobench.camera.pinhole import Pinhole
-from egobench.host import RASTER_THREADS_ENV, raster_threads  # noqa: F401  (the kernels' thread count; re-exported)
+from egobench.host import RASTER_THREADS_ENV, kernel_threads, raster_threads  # noqa: F401  (re-exported)
 from egobench.render.types import Gaussians, RenderOutput
 
 #: gsplat 1.5.3 projection constants (as torch_backend)
@@ -62,10 +62,10 @@ def contiguous_numpy(t: Tensor) -> np.ndarray:
 
 
 def set_threads() -> None:
-    """numba's thread count: `raster_threads`, at most numba's pool size."""
+    """numba's thread count: `host.kernel_threads` (`raster_threads`, at most numba's pool size)."""
     import numba
 
-    numba.set_num_threads(max(1, min(raster_threads(), numba.config.NUMBA_NUM_THREADS)))
+    numba.set_num_threads(kernel_threads())
 
 
 def pose_grad(gv_parts: np.ndarray, dt: torch.dtype) -> Tensor:

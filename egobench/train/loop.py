@@ -270,12 +270,10 @@ def _probing_cores(backend: str, iterating: bool):
     nothing was probed)."""
     if backend != "cpu" or not iterating:
         return contextlib.nullcontext({})
-    import numba
-
     from egobench import core_sharing
-    from egobench.host import raster_threads
+    from egobench.host import kernel_threads
 
-    return core_sharing.bracketing(min(raster_threads(), numba.config.NUMBA_NUM_THREADS) > 1)
+    return core_sharing.bracketing(kernel_threads() > 1)
 
 
 def _drop_stale_records(out_dir: Path) -> None:
