@@ -492,6 +492,44 @@ def test_fill_bins_matches_a_plain_counting_sort_for_any_number_of_ranges(monkey
         np.testing.assert_array_equal(bin_start, want_start)
 
 
+
+def test_pose_sums_are_torch_sums_contiguous_on_any_number_of_threads():
+    """`pose_sums` (compiled, `ck.ordered_sum`): the bits (signed zeros included) of the poses added in order
+    from +0.0 (a numpy loop) for 1-17 poses, float32 and float64, on one and two threads, torch's sum to
+    rounding (torch adds a block's last columns in another order), returned contiguous (so autograd keeps it
+    as the parameter's gradient); `pose_grad` adds its chunks as the numpy loop it replaced did."""
+    import numba
+
+    from egobench.render import cpu_backend as cb
+
+    rng = np.random.default_rng(5)
+    before = numba.get_num_threads()
+    try:
+        for threads in sorted({1, min(2, numba.config.NUMBA_NUM_THREADS)}):
+            numba.set_num_threads(threads)
+            for dtype in (torch.float32, torch.float64):
+                for I in (1, 2, 6, 8, 13, 17):
+                    N = 700  # three chunks, the last partial
+                    block = rng.standard_normal((10, I, N)) * (rng.random((10, I, N)) < 0.3)
+                    block[6, :, :50] = -0.0  # columns of negative zeros: torch's sum gives +0.0
+                    per = torch.from_numpy(block).to(dtype).permute(1, 2, 0)  # reduce_intersections' view
+                    got = cb.pose_sums(per, 6, 9)
+                    assert got.is_contiguous() and got.shape == (N, 3) and got.dtype == dtype
+                    in_order = np.zeros((N, 3), got.numpy().dtype)
+                    for i in range(I):
+                        in_order += per[i, :, 6:9].numpy()
+                    assert np.array_equal(got.numpy().view(np.uint8), in_order.view(np.uint8)), (threads, I)
+                    torch.testing.assert_close(got, per.permute(2, 0, 1)[6:9].sum(1).T)
+            parts = rng.standard_normal((9, 3, 12))
+            want = parts[0].copy()
+            for c in range(1, 9):
+                want += parts[c]
+            gv = cb.pose_grad(parts, torch.float64)
+            assert torch.equal(gv[:, :3, :], torch.from_numpy(want.reshape(3, 3, 4)))
+            assert torch.equal(gv[:, 3, :], torch.zeros(3, 4, dtype=torch.float64))
+    finally:
+        numba.set_num_threads(before)
+
 def _captured_raster(monkeypatch, mode: str, sigma_px: float):
     """Kernel arguments of one render + backward (mode "3dgs" or "2dgs") on an `egobench bench raster`
     scene (64 px, 1500 Gaussians, float32) -> backward args; the last two are isect_grad and the

@@ -135,7 +135,7 @@ def _setup(m2, rad, dep, colors, nrm, width: int, tile_size: int, repeats: int):
 
     pix_view, bin_needed = cb.pixel_views(None, 1, width, width, tile_size)
     tiles_x = math.ceil(width / tile_size)
-    args = (torch.from_numpy(m2), torch.from_numpy(rad), torch.from_numpy(dep), colors, torch.from_numpy(nrm), pix_view,
+    args = (m2, torch.from_numpy(rad), torch.from_numpy(dep), colors, torch.from_numpy(nrm), pix_view,
             bin_needed, tile_size)
     st = cb.raster_setup(*args)
     bin_ms = _median_ms(lambda: ck.bin_tiles(m2, rad, dep, tile_size, tiles_x, tiles_x, bin_needed), repeats)

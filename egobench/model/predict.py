@@ -221,7 +221,10 @@ def render_frame(gaussians, camera: Pinhole, poses: Tensor, ppi: Tensor | None, 
 
 
 def mean_rgb(outs: list["RenderOutput"]) -> Tensor:
-    """The exposure samples' scene colour averaged -> [H, W, 3]."""
+    """The exposure samples' scene colour averaged -> [H, W, 3] (one sample: itself, the mean's value,
+    without the stack, the mean and their autograd nodes)."""
+    if len(outs) == 1:
+        return outs[0].rgb[0]
     return torch.stack([o.rgb[0] for o in outs]).mean(0)
 
 

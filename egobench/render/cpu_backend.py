@@ -71,9 +71,11 @@ def set_threads() -> None:
 def pose_grad(gv_parts: np.ndarray, dt: torch.dtype) -> Tensor:
     """Per-chunk partial dL/d viewmat[:3, :4] [chunks, I, 12] -> dL/d viewmats [I, 4, 4], summed in
     chunk order (deterministic for any thread count)."""
-    part = gv_parts[0].copy()
-    for c in range(1, gv_parts.shape[0]):
-        part += gv_parts[c]
+    from egobench.render import cpu_kernels as ck
+
+    chunks, I = gv_parts.shape[:2]
+    part = np.empty((I * 12, 1))
+    ck.ordered_sum(gv_parts.reshape(1, chunks, I * 12), part)
     gv = torch.zeros(gv_parts.shape[1], 4, 4, dtype=dt)
     gv[:, :3, :] = torch.from_numpy(part.reshape(-1, 3, 4)).to(dt)
     return gv
@@ -94,16 +96,15 @@ class RasterSetup:
     centres: np.ndarray  # pixel centres (index + 0.5), compute dtype
 
 
-def raster_setup(means2d: Tensor, radii: Tensor, depths: Tensor, colors: Tensor, normals: Tensor,
+def raster_setup(m2: np.ndarray, radii: Tensor, depths: Tensor, colors: Tensor, normals: Tensor,
                  pix_view: np.ndarray, bin_needed: np.ndarray, tile_size: int) -> RasterSetup:
-    """means2d [I,N,2] (gsplat pixels), radii [I,N,2], depths [I,N], colors [N,3], normals [I,N,3] or
+    """m2 [I,N,2] (gsplat pixels), radii [I,N,2], depths [I,N], colors [N,3], normals [I,N,3] or
     [I,0,3]; pix_view [Iout,H,W]; bin_needed [I, tiles] -> intersections and kernel constants."""
     from egobench.render import cpu_kernels as ck
 
     I, N = depths.shape
     _, H, W = pix_view.shape
     tiles_x, tiles_y = math.ceil(W / tile_size), math.ceil(H / tile_size)
-    m2 = contiguous_numpy(means2d)
     set_threads()  # the binning splits its work by numba's thread count
     flat_ids, bin_start = ck.bin_tiles(m2, contiguous_numpy(radii), contiguous_numpy(depths), tile_size, tiles_x, tiles_y, bin_needed)
     if flat_ids.shape[0] >= 2**31 - 1:  # per-pixel indices are int32
@@ -154,10 +155,15 @@ def reduce_intersections(isect: np.ndarray, flat_ids: np.ndarray, I: int, N: int
 
 
 def pose_sums(per: Tensor, c0: int, c1: int) -> Tensor:
-    """Channels [c0, c1) of `reduce_intersections`' [I, N, C] view summed over the poses -> [N, c1 - c0]:
-    one pass over the channel-first block underneath, pose by pose (a 128 px training step's colour
-    gradient, 6 x 20 000 x 3: 0.06 ms against 0.8 ms for ``per[..., c0:c1].sum(0)`` on the view)."""
-    return per.permute(2, 0, 1)[c0:c1].sum(1).T
+    """Channels [c0, c1) of `reduce_intersections`' [I, N, C] view summed over the poses -> [N, c1 - c0],
+    contiguous (autograd keeps it as the parameter's gradient instead of copying a transposed view): one
+    compiled pass over the channel-first block underneath, the poses added in order (`ck.ordered_sum`)."""
+    from egobench.render import cpu_kernels as ck
+
+    block = contiguous_numpy(per.permute(2, 0, 1)[c0:c1])  # [c1 - c0, I, N], a view of the block
+    out = np.empty((block.shape[2], c1 - c0), block.dtype)
+    ck.ordered_sum(block, out)
+    return torch.from_numpy(out)
 
 
 def pixel_views(pixel_pose_index: Tensor | None, I: int, H: int, W: int, ts: int) -> tuple[np.ndarray, np.ndarray]:
@@ -175,11 +181,11 @@ def pixel_views(pixel_pose_index: Tensor | None, I: int, H: int, W: int, ts: int
 
 
 class _Project(torch.autograd.Function):
-    """(means, quats, scales, viewmats) -> means2d [I,N,2] (gsplat pixels), conics [I,N,3],
-    depths [I,N], normals [I,N,3]; radii [I,N,2] int32 (not differentiable)."""
+    """(means, quats, scales, viewmats) -> means2d [I,N,2] (gsplat pixels minus ``pixel_offset``: 0.5 gives
+    egobench's), conics [I,N,3], depths [I,N], normals [I,N,3]; radii [I,N,2] int32 (not differentiable)."""
 
     @staticmethod
-    def forward(ctx, means, quats, scales, viewmats, opac, cam, width, height, want_normal):
+    def forward(ctx, means, quats, scales, viewmats, opac, cam, width, height, want_normal, pixel_offset=0.0):
         from egobench.render import cpu_kernels as ck
 
         I, N = viewmats.shape[0], means.shape[0]
@@ -193,6 +199,8 @@ class _Project(torch.autograd.Function):
                        EPS2D, NEAR_PLANE, FAR_PLANE, want_normal, m2, con, dep, rad, nrm)
         ctx.save_for_backward(means, quats, scales, viewmats)
         ctx.args = (cam, width, height, want_normal)
+        if pixel_offset:
+            m2 -= pixel_offset  # in the compute dtype, as torch would subtract it
         radii = torch.from_numpy(rad)
         ctx.mark_non_differentiable(radii)
         outs = [torch.from_numpy(a).to(dt) for a in (m2, con, dep, nrm)]
@@ -220,22 +228,29 @@ class _Project(torch.autograd.Function):
         dt = means.dtype
         gv = pose_grad(gv_parts, dt) if ctx.needs_input_grad[3] else None
         return (torch.from_numpy(gm).to(dt), torch.from_numpy(gq).to(dt), torch.from_numpy(gs).to(dt), gv,
-                None, None, None, None, None)
+                None, None, None, None, None, None)
+
+
+def gsplat_pixels(means2d: Tensor, pixel_offset: float) -> np.ndarray:
+    """Projected centres [I,N,2] in egobench's pixels -> a new array in gsplat's (+ ``pixel_offset``), added in
+    their dtype: the values torch's ``means2d + pixel_offset`` gives, without an autograd node."""
+    m2 = contiguous_numpy(means2d)
+    return m2 + m2.dtype.type(pixel_offset)
 
 
 class _Rasterize(torch.autograd.Function):
-    """(means2d, conics, log_opacity, colors, depths, normals) -> features [Iout,H,W,Cf]
-    (sum w (rgb, depth, normal)), transmittance [Iout,H,W]."""
+    """(means2d (egobench pixels: gsplat's minus ``pixel_offset``), conics, log_opacity, colors, depths, normals)
+    -> features [Iout,H,W,Cf] (sum w (rgb, depth, normal)), transmittance [Iout,H,W]."""
 
     @staticmethod
     def forward(ctx, means2d, conics, log_opac, colors, depths, normals, radii, pix_view, bin_needed, tile_size,
-                absgrad_target):
+                absgrad_target, pixel_offset):
         from egobench.render import cpu_kernels as ck
 
         I, N = depths.shape
         Iout, H, W = pix_view.shape
-        st = raster_setup(means2d, radii, depths, colors, normals, pix_view, bin_needed, tile_size)
-        m2 = contiguous_numpy(means2d)
+        m2 = gsplat_pixels(means2d, pixel_offset)
+        st = raster_setup(m2, radii, depths, colors, normals, pix_view, bin_needed, tile_size)
         Cf = st.feats.shape[1]
         out_feat = np.zeros((Iout, H, W, Cf), dtype=m2.dtype)
         out_T = np.zeros((Iout, H, W), dtype=m2.dtype)
@@ -268,7 +283,7 @@ class _Rasterize(torch.autograd.Function):
         per = reduce_intersections(isect, st.flat_ids, I, N, dt, ab)
         g_normals = per[..., 10:13] if ctx.has_normals else None
         return (per[..., 0:2], per[..., 2:5], per[..., 5].sum(0), pose_sums(per, 6, 9), per[..., 9],
-                g_normals, None, None, None, None, None)
+                g_normals, None, None, None, None, None, None)
 
 
 def render_cpu(gaussians: Gaussians, camera: Pinhole, viewmats: Tensor, *, pixel_pose_index: Tensor | None,
@@ -288,17 +303,17 @@ def render_cpu(gaussians: Gaussians, camera: Pinhole, viewmats: Tensor, *, pixel
     H, W = camera.height, camera.width
     I = viewmats.shape[0]
     log_opac = F.logsigmoid(gaussians.opacity_logits)
-    m2g, conics, depths, normals, radii = _Project.apply(
+    # means2d_out in egobench's pixel convention (gsplat's - 0.5), retained for densification statistics
+    means2d_out, conics, depths, normals, radii = _Project.apply(
         means, gaussians.quats, gaussians.scales, viewmats, log_opac.detach().exp(), camera_array(camera), W, H,
-        bool(want_normal))
-    means2d_out = m2g - 0.5  # egobench pixel convention, retained for densification statistics
+        bool(want_normal), 0.5)
     if means2d_out.requires_grad:
         means2d_out.retain_grad()
     ts = int(tile_size)
     pix_view, bin_needed = pixel_views(pixel_pose_index, I, H, W, ts)
     holder = [means2d_out] if absgrad and means2d_out.requires_grad else None
-    feats, trans = _Rasterize.apply(means2d_out + 0.5, conics, log_opac, gaussians.colors, depths, normals, radii,
-                                    pix_view, bin_needed, ts, holder)
+    feats, trans = _Rasterize.apply(means2d_out, conics, log_opac, gaussians.colors, depths, normals, radii,
+                                    pix_view, bin_needed, ts, holder, 0.5)
     rgb, alpha, depth = composite_output(feats, trans, background)
     normal = feats[..., 4:7] if want_normal else None
     return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, normal=normal, means2d=means2d_out,

@@ -18,17 +18,17 @@ from torch import Tensor
 
 from egobench.camera.pinhole import Pinhole
 from egobench.render.cpu_backend import (NEAR_PLANE, FAR_PLANE, contiguous_numpy, pose_grad, set_threads, camera_array,
-                                         composite_output, pixel_views, pose_sums, radius_max, raster_setup,
-                                         reduce_intersections, rows_hit_buffer, upstream_grad)
+                                         composite_output, gsplat_pixels, pixel_views, pose_sums, radius_max,
+                                         raster_setup, reduce_intersections, rows_hit_buffer, upstream_grad)
 from egobench.render.types import Gaussians, RenderOutput
 
 
 class _Project2DGS(torch.autograd.Function):
-    """(means, quats, scales, viewmats) -> means2d [I,N,2] (gsplat pixels), ray transforms [I,N,9],
-    depths [I,N], normals [I,N,3]; radii [I,N,2] int32 (not differentiable)."""
+    """(means, quats, scales, viewmats) -> means2d [I,N,2] (gsplat pixels minus ``pixel_offset``: 0.5 gives
+    egobench's), ray transforms [I,N,9], depths [I,N], normals [I,N,3]; radii [I,N,2] int32 (not differentiable)."""
 
     @staticmethod
-    def forward(ctx, means, quats, scales, viewmats, cam, width, height):
+    def forward(ctx, means, quats, scales, viewmats, cam, width, height, pixel_offset=0.0):
         from egobench.render import cpu_kernels_2dgs as k2
 
         I, N = viewmats.shape[0], means.shape[0]
@@ -41,6 +41,8 @@ class _Project2DGS(torch.autograd.Function):
                             FAR_PLANE, m2, tsl, dep, rad, nrm)
         ctx.save_for_backward(means, quats, scales, viewmats)
         ctx.cam = cam
+        if pixel_offset:
+            m2 -= pixel_offset  # in the compute dtype, as torch would subtract it
         radii = torch.from_numpy(rad)
         ctx.mark_non_differentiable(radii)
         return (*[torch.from_numpy(a) for a in (m2, tsl, dep, nrm)], radii)
@@ -63,24 +65,26 @@ class _Project2DGS(torch.autograd.Function):
         dt = means.dtype
         gv = pose_grad(gv_parts, dt) if ctx.needs_input_grad[3] else None
         return (torch.from_numpy(gm).to(dt), torch.from_numpy(gq).to(dt), torch.from_numpy(gs).to(dt), gv,
-                None, None, None)
+                None, None, None, None)
 
 
 class _Rasterize2DGS(torch.autograd.Function):
-    """(means2d, ray transforms [I,N,9], log_opacity, colors, depths, normals) -> features
-    [Iout,H,W,7] (sum w (rgb, depth, normal)), transmittance [Iout,H,W], distortion [Iout,H,W].
+    """(means2d (egobench pixels: gsplat's minus ``pixel_offset``), ray transforms [I,N,9], log_opacity,
+    colors, depths, normals) -> features [Iout,H,W,7] (sum w (rgb, depth, normal)), transmittance
+    [Iout,H,W], distortion [Iout,H,W].
     ``carrier`` [I,N,2] (or None): gsplat's gradient_2dgs leaf; it does not change the output and
     gets (dL/dM[0, 2], dL/dM[1, 2]) M[2, 2], as torch_backend.densify_carrier_2dgs would give it."""
 
     @staticmethod
     def forward(ctx, means2d, tsl, log_opac, colors, depths, normals, radii, pix_view, bin_needed, tile_size,
-                absgrad_target, carrier):
+                absgrad_target, carrier, pixel_offset):
         from egobench.render import cpu_kernels_2dgs as k2
 
         I, N = depths.shape
         Iout, H, W = pix_view.shape
-        st = raster_setup(means2d, radii, depths, colors, normals, pix_view, bin_needed, tile_size)
-        m2, tsl_np, lo = contiguous_numpy(means2d), contiguous_numpy(tsl), contiguous_numpy(log_opac)
+        m2 = gsplat_pixels(means2d, pixel_offset)
+        st = raster_setup(m2, radii, depths, colors, normals, pix_view, bin_needed, tile_size)
+        tsl_np, lo = contiguous_numpy(tsl), contiguous_numpy(log_opac)
         Cf = st.feats.shape[1]
         out_feat = np.zeros((Iout, H, W, Cf + 1), dtype=m2.dtype)  # + distortion
         out_T = np.zeros((Iout, H, W), dtype=m2.dtype)
@@ -124,7 +128,7 @@ class _Rasterize2DGS(torch.autograd.Function):
             k2.carrier_grad(per_cf[4], per_cf[7], tsl_np.reshape(I * N, 9), carrier.reshape(I * N, 2))
             g_carrier = torch.from_numpy(carrier)
         return (per[..., 0:2], per[..., 2:11], per[..., 11].sum(0), pose_sums(per, c, c + 3), per[..., c + 3],
-                per[..., c + 4:c + 7], None, None, None, None, None, g_carrier)
+                per[..., c + 4:c + 7], None, None, None, None, None, g_carrier, None)
 
 
 def render_cpu_2dgs(gaussians: Gaussians, camera: Pinhole, viewmats: Tensor, *, pixel_pose_index: Tensor | None,
@@ -133,20 +137,19 @@ def render_cpu_2dgs(gaussians: Gaussians, camera: Pinhole, viewmats: Tensor, *, 
     mode="2dgs". viewmats [I, 4, 4] world-to-camera; pixel_pose_index [H, W] or None."""
     H, W = camera.height, camera.width
     I = viewmats.shape[0]
-    m2g, tsl, depths, normals, radii = _Project2DGS.apply(gaussians.means, gaussians.quats, gaussians.scales,
-                                                          viewmats, camera_array(camera), W, H)
-    means2d_out = m2g - 0.5  # egobench pixel convention
-    if means2d_out.requires_grad:
-        means2d_out.retain_grad()
+    means2d_out, tsl, depths, normals, radii = _Project2DGS.apply(  # means2d_out: egobench's pixels
+        gaussians.means, gaussians.quats, gaussians.scales, viewmats, camera_array(camera), W, H, 0.5)
     # gsplat's gradient_2dgs carrier (torch_backend.densify_carrier_2dgs: zeros added to the ray transforms'
     # translation column), its gradient given by the rasterizer's backward rather than by torch ops on [I, N, 3, 3]
     carrier = torch.zeros((I, means2d_out.shape[1], 2), dtype=tsl.dtype, requires_grad=True) if tsl.requires_grad else None
+    if carrier is None and means2d_out.requires_grad:  # with a carrier nothing reads this gradient
+        means2d_out.retain_grad()
     ts = int(tile_size)
     pix_view, bin_needed = pixel_views(pixel_pose_index, I, H, W, ts)
     holder = [means2d_out] if absgrad and means2d_out.requires_grad else None
-    feats, trans, dist = _Rasterize2DGS.apply(means2d_out + 0.5, tsl, F.logsigmoid(gaussians.opacity_logits),
+    feats, trans, dist = _Rasterize2DGS.apply(means2d_out, tsl, F.logsigmoid(gaussians.opacity_logits),
                                               gaussians.colors, depths, normals, radii, pix_view, bin_needed, ts, holder,
-                                              carrier)
+                                              carrier, 0.5)
     rgb, alpha, depth = composite_output(feats, trans, background)
     extras = {"backend": "cpu", "tile_size": ts, "distortion": dist[..., None]}
     means2d = means2d_out

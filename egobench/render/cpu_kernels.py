@@ -1448,6 +1448,27 @@ def _first_touch_slots(flat_ids, M, n_out):
 
 
 @njit(cache=True, parallel=True)
+def ordered_sum(block, out):
+    """block [k, m, n] -> out [n, k] (C-contiguous): the sum over m, from +0.0 adding 0, 1, ..., m - 1 in
+    order in the block's dtype (torch's order along a non-innermost axis of fewer than 24 entries, signed
+    zeros included), per entry the same bits for any thread count. Chunks of n in parallel; the loops over
+    them vectorize."""
+    k, m, n = block.shape
+    for ch in prange((n + CHUNK - 1) // CHUNK):
+        n0 = ch * CHUNK
+        L = min(n, n0 + CHUNK) - n0
+        acc = np.empty(CHUNK, block.dtype)
+        for c in range(k):
+            for j in range(L):
+                acc[j] = 0.0
+            for i in range(m):
+                for j in range(L):
+                    acc[j] += block[c, i, n0 + j]
+            for j in range(L):
+                out[n0 + j, c] = acc[j]
+
+
+@njit(cache=True, parallel=True)
 def reduce_isect_grad(isect_grad, flat_ids, M, out, absgrad, parts=1):
     """Per-intersection gradients [M, C] -> per (image, Gaussian) sums written to out [C, I*N]
     (channel first, so that each parameter's gradient is one contiguous block for the projection
