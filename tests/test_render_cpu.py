@@ -492,8 +492,7 @@ def test_fill_bins_matches_a_plain_counting_sort_for_any_number_of_ranges(monkey
         np.testing.assert_array_equal(bin_start, want_start)
 
 
-
-def test_pose_sums_are_torch_sums_contiguous_on_any_number_of_threads():
+def test_pose_sums_add_the_poses_in_order_contiguous_on_any_number_of_threads():
     """`pose_sums` (compiled, `ck.ordered_sum`): the bits (signed zeros included) of the poses added in order
     from +0.0 (a numpy loop) for 1-17 poses, float32 and float64, on one and two threads, torch's sum to
     rounding (torch adds a block's last columns in another order), returned contiguous (so autograd keeps it
@@ -529,6 +528,7 @@ def test_pose_sums_are_torch_sums_contiguous_on_any_number_of_threads():
             assert torch.equal(gv[:, 3, :], torch.zeros(3, 4, dtype=torch.float64))
     finally:
         numba.set_num_threads(before)
+
 
 def _captured_raster(monkeypatch, mode: str, sigma_px: float):
     """Kernel arguments of one render + backward (mode "3dgs" or "2dgs") on an `egobench bench raster`

@@ -1451,8 +1451,8 @@ def _first_touch_slots(flat_ids, M, n_out):
 def ordered_sum(block, out):
     """block [k, m, n] -> out [n, k] (C-contiguous): the sum over m, from +0.0 adding 0, 1, ..., m - 1 in
     order in the block's dtype (torch's order along a non-innermost axis of fewer than 24 entries, signed
-    zeros included), per entry the same bits for any thread count. Chunks of n in parallel; the loops over
-    them vectorize."""
+    zeros included, except on the last columns its vector loop leaves), per entry the same bits for any
+    thread count and vector width. Chunks of n in parallel; the loops over them vectorize."""
     k, m, n = block.shape
     for ch in prange((n + CHUNK - 1) // CHUNK):
         n0 = ch * CHUNK
