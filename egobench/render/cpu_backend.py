@@ -28,6 +28,8 @@ from egobench.render.types import Gaussians, RenderOutput
 
 #: gsplat 1.5.3 projection constants (as torch_backend)
 EPS2D, NEAR_PLANE, FAR_PLANE = 0.3, 0.01, 1e10
+#: gsplat's pixel centres sit at (i + 0.5, j + 0.5), egobench's at (i, j): gsplat's = egobench's + this
+GSPLAT_PIXEL_OFFSET = 0.5
 #: default tile size of this backend (measured: docs/cpu-rasterizer.md)
 DEFAULT_TILE = 16
 
@@ -231,25 +233,25 @@ class _Project(torch.autograd.Function):
                 None, None, None, None, None, None)
 
 
-def gsplat_pixels(means2d: Tensor, pixel_offset: float) -> np.ndarray:
-    """Projected centres [I,N,2] in egobench's pixels -> a new array in gsplat's (+ ``pixel_offset``), added in
-    their dtype: the values torch's ``means2d + pixel_offset`` gives, without an autograd node."""
+def gsplat_pixels(means2d: Tensor) -> np.ndarray:
+    """Projected centres [I,N,2] in egobench's pixels -> a new array in gsplat's (+ `GSPLAT_PIXEL_OFFSET`),
+    added in their dtype: the values torch's ``means2d + 0.5`` gives, without an autograd node."""
     m2 = contiguous_numpy(means2d)
-    return m2 + m2.dtype.type(pixel_offset)
+    return m2 + m2.dtype.type(GSPLAT_PIXEL_OFFSET)
 
 
 class _Rasterize(torch.autograd.Function):
-    """(means2d (egobench pixels: gsplat's minus ``pixel_offset``), conics, log_opacity, colors, depths, normals)
-    -> features [Iout,H,W,Cf] (sum w (rgb, depth, normal)), transmittance [Iout,H,W]."""
+    """(means2d (egobench pixels), conics, log_opacity, colors, depths, normals) -> features [Iout,H,W,Cf]
+    (sum w (rgb, depth, normal)), transmittance [Iout,H,W]."""
 
     @staticmethod
     def forward(ctx, means2d, conics, log_opac, colors, depths, normals, radii, pix_view, bin_needed, tile_size,
-                absgrad_target, pixel_offset):
+                absgrad_target):
         from egobench.render import cpu_kernels as ck
 
         I, N = depths.shape
         Iout, H, W = pix_view.shape
-        m2 = gsplat_pixels(means2d, pixel_offset)
+        m2 = gsplat_pixels(means2d)
         st = raster_setup(m2, radii, depths, colors, normals, pix_view, bin_needed, tile_size)
         Cf = st.feats.shape[1]
         out_feat = np.zeros((Iout, H, W, Cf), dtype=m2.dtype)
@@ -283,7 +285,7 @@ class _Rasterize(torch.autograd.Function):
         per = reduce_intersections(isect, st.flat_ids, I, N, dt, ab)
         g_normals = per[..., 10:13] if ctx.has_normals else None
         return (per[..., 0:2], per[..., 2:5], per[..., 5].sum(0), pose_sums(per, 6, 9), per[..., 9],
-                g_normals, None, None, None, None, None, None)
+                g_normals, None, None, None, None, None)
 
 
 def render_cpu(gaussians: Gaussians, camera: Pinhole, viewmats: Tensor, *, pixel_pose_index: Tensor | None,
@@ -306,14 +308,14 @@ def render_cpu(gaussians: Gaussians, camera: Pinhole, viewmats: Tensor, *, pixel
     # means2d_out in egobench's pixel convention (gsplat's - 0.5), retained for densification statistics
     means2d_out, conics, depths, normals, radii = _Project.apply(
         means, gaussians.quats, gaussians.scales, viewmats, log_opac.detach().exp(), camera_array(camera), W, H,
-        bool(want_normal), 0.5)
+        bool(want_normal), GSPLAT_PIXEL_OFFSET)
     if means2d_out.requires_grad:
         means2d_out.retain_grad()
     ts = int(tile_size)
     pix_view, bin_needed = pixel_views(pixel_pose_index, I, H, W, ts)
     holder = [means2d_out] if absgrad and means2d_out.requires_grad else None
     feats, trans = _Rasterize.apply(means2d_out, conics, log_opac, gaussians.colors, depths, normals, radii,
-                                    pix_view, bin_needed, ts, holder, 0.5)
+                                    pix_view, bin_needed, ts, holder)
     rgb, alpha, depth = composite_output(feats, trans, background)
     normal = feats[..., 4:7] if want_normal else None
     return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, normal=normal, means2d=means2d_out,
@@ -328,7 +330,8 @@ def radius_max(radii: Tensor) -> Tensor:
 
 def camera_array(camera: Pinhole) -> np.ndarray:
     """(fx, fy, cx, cy) in gsplat's pixel convention (centres at +0.5), float64."""
-    return np.array([camera.fx, camera.fy, camera.cx + 0.5, camera.cy + 0.5], dtype=np.float64)
+    return np.array([camera.fx, camera.fy, camera.cx + GSPLAT_PIXEL_OFFSET, camera.cy + GSPLAT_PIXEL_OFFSET],
+                    dtype=np.float64)
 
 
 def composite_output(feats: Tensor, trans: Tensor, background: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:

@@ -17,9 +17,10 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from egobench.camera.pinhole import Pinhole
-from egobench.render.cpu_backend import (NEAR_PLANE, FAR_PLANE, contiguous_numpy, pose_grad, set_threads, camera_array,
-                                         composite_output, gsplat_pixels, pixel_views, pose_sums, radius_max,
-                                         raster_setup, reduce_intersections, rows_hit_buffer, upstream_grad)
+from egobench.render.cpu_backend import (GSPLAT_PIXEL_OFFSET, NEAR_PLANE, FAR_PLANE, contiguous_numpy, pose_grad,
+                                         set_threads, camera_array, composite_output, gsplat_pixels, pixel_views,
+                                         pose_sums, radius_max, raster_setup, reduce_intersections, rows_hit_buffer,
+                                         upstream_grad)
 from egobench.render.types import Gaussians, RenderOutput
 
 
@@ -69,7 +70,7 @@ class _Project2DGS(torch.autograd.Function):
 
 
 class _Rasterize2DGS(torch.autograd.Function):
-    """(means2d (egobench pixels: gsplat's minus ``pixel_offset``), ray transforms [I,N,9], log_opacity,
+    """(means2d (egobench pixels), ray transforms [I,N,9], log_opacity,
     colors, depths, normals) -> features [Iout,H,W,7] (sum w (rgb, depth, normal)), transmittance
     [Iout,H,W], distortion [Iout,H,W].
     ``carrier`` [I,N,2] (or None): gsplat's gradient_2dgs leaf; it does not change the output and
@@ -77,12 +78,12 @@ class _Rasterize2DGS(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, means2d, tsl, log_opac, colors, depths, normals, radii, pix_view, bin_needed, tile_size,
-                absgrad_target, carrier, pixel_offset):
+                absgrad_target, carrier):
         from egobench.render import cpu_kernels_2dgs as k2
 
         I, N = depths.shape
         Iout, H, W = pix_view.shape
-        m2 = gsplat_pixels(means2d, pixel_offset)
+        m2 = gsplat_pixels(means2d)
         st = raster_setup(m2, radii, depths, colors, normals, pix_view, bin_needed, tile_size)
         tsl_np, lo = contiguous_numpy(tsl), contiguous_numpy(log_opac)
         Cf = st.feats.shape[1]
@@ -128,7 +129,7 @@ class _Rasterize2DGS(torch.autograd.Function):
             k2.carrier_grad(per_cf[4], per_cf[7], tsl_np.reshape(I * N, 9), carrier.reshape(I * N, 2))
             g_carrier = torch.from_numpy(carrier)
         return (per[..., 0:2], per[..., 2:11], per[..., 11].sum(0), pose_sums(per, c, c + 3), per[..., c + 3],
-                per[..., c + 4:c + 7], None, None, None, None, None, g_carrier, None)
+                per[..., c + 4:c + 7], None, None, None, None, None, g_carrier)
 
 
 def render_cpu_2dgs(gaussians: Gaussians, camera: Pinhole, viewmats: Tensor, *, pixel_pose_index: Tensor | None,
@@ -138,7 +139,8 @@ def render_cpu_2dgs(gaussians: Gaussians, camera: Pinhole, viewmats: Tensor, *, 
     H, W = camera.height, camera.width
     I = viewmats.shape[0]
     means2d_out, tsl, depths, normals, radii = _Project2DGS.apply(  # means2d_out: egobench's pixels
-        gaussians.means, gaussians.quats, gaussians.scales, viewmats, camera_array(camera), W, H, 0.5)
+        gaussians.means, gaussians.quats, gaussians.scales, viewmats, camera_array(camera), W, H,
+        GSPLAT_PIXEL_OFFSET)
     # gsplat's gradient_2dgs carrier (torch_backend.densify_carrier_2dgs: zeros added to the ray transforms'
     # translation column), its gradient given by the rasterizer's backward rather than by torch ops on [I, N, 3, 3]
     carrier = torch.zeros((I, means2d_out.shape[1], 2), dtype=tsl.dtype, requires_grad=True) if tsl.requires_grad else None
@@ -149,7 +151,7 @@ def render_cpu_2dgs(gaussians: Gaussians, camera: Pinhole, viewmats: Tensor, *, 
     holder = [means2d_out] if absgrad and means2d_out.requires_grad else None
     feats, trans, dist = _Rasterize2DGS.apply(means2d_out, tsl, F.logsigmoid(gaussians.opacity_logits),
                                               gaussians.colors, depths, normals, radii, pix_view, bin_needed, ts, holder,
-                                              carrier, 0.5)
+                                              carrier)
     rgb, alpha, depth = composite_output(feats, trans, background)
     extras = {"backend": "cpu", "tile_size": ts, "distortion": dist[..., None]}
     means2d = means2d_out
