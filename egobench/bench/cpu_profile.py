@@ -66,7 +66,7 @@ def _stages_3dgs(g, cam, width: int, n: int, tile_size: int, repeats: int) -> tu
                                      repeats)}
     st, pix_view, setup_ms, bin_ms = _setup(m2, rad, dep, g.colors.detach(), nrm, width, tile_size, repeats)
     out["bin_tiles"], out["raster_setup(incl. bin_tiles)"] = bin_ms, setup_ms
-    tab = np.empty((I * N, ck.TAB_COLS), np.float32)
+    tab = cb.table_buffer(I * N, np.float32)
     out["table"] = _median_ms(lambda: ck.gaussian_table(m2, con, rad, lo, st.needed, tab), repeats)
     Cf = st.feats.shape[1]
     of, oT, ol = np.zeros((I, width, width, Cf), np.float32), np.zeros((I, width, width), np.float32), \
@@ -104,21 +104,20 @@ def _stages_2dgs(g, cam, width: int, n: int, tile_size: int, repeats: int) -> tu
                                      repeats)}
     st, pix_view, setup_ms, bin_ms = _setup(m2, rad, dep, g.colors.detach(), nrm, width, tile_size, repeats)
     out["bin_tiles"], out["raster_setup(incl. bin_tiles)"] = bin_ms, setup_ms
-    tab = np.empty((I * N, ck.TAB_COLS), np.float32)
+    tab = cb.table_buffer(I * N, np.float32)
     out["table"] = _median_ms(lambda: k2.surfel_table(m2, tsl, lo, st.needed, tab), repeats)
     Cf = st.feats.shape[1]
     of, oT, ol = np.zeros((I, width, width, Cf + 1), np.float32), np.zeros((I, width, width), np.float32), \
         np.zeros((I, width, width), np.int32)
     rows_hit = cb.rows_hit_buffer(st.flat_ids.shape[0], tile_size, st.cw)
-    common = (m2, tsl, lo)
     rest = (st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, tile_size, st.tiles_x, st.cw, st.kc, st.centres)
-    out["raster_fwd"] = _median_ms(lambda: k2.raster_fwd_2dgs(*common, tab, *rest, of, oT, ol, rows_hit), repeats)
+    out["raster_fwd"] = _median_ms(lambda: k2.raster_fwd_2dgs(tsl, tab, *rest, of, oT, ol, rows_hit), repeats)
     rng = np.random.default_rng(0)
     g_state = rng.standard_normal((I, width, width, Cf + 2)).astype(np.float32)
     g_state[..., Cf + 1] = of[..., k2.DEPTH_CH]  # the forward's depth, as the backend passes it
     gT = rng.standard_normal(oT.shape).astype(np.float32)
     isect = np.zeros((st.flat_ids.shape[0], 12 + Cf), np.float32)
-    out["raster_bwd"] = _median_ms(lambda: k2.raster_bwd_2dgs(*common, *rest, oT, ol, g_state, gT, isect, rows_hit),
+    out["raster_bwd"] = _median_ms(lambda: k2.raster_bwd_2dgs(tsl, tab, *rest, oT, ol, g_state, gT, isect, rows_hit),
                                    repeats)
     out["reduce_isect_grad"] = _reduce_ms(isect, st.flat_ids, I * N, repeats)
     grads = (rng.standard_normal((2, I, N)), rng.standard_normal((9, I, N)), rng.standard_normal((I, N)),

@@ -30,6 +30,8 @@ from egobench.render.types import Gaussians, RenderOutput
 EPS2D, NEAR_PLANE, FAR_PLANE = 0.3, 0.01, 1e10
 #: gsplat's pixel centres sit at (i + 0.5, j + 0.5), egobench's at (i, j): gsplat's = egobench's + this
 GSPLAT_PIXEL_OFFSET = 0.5
+#: bytes per cache line (x86-64 and most Arm cores)
+CACHE_LINE = 64
 #: default tile size of this backend (measured: docs/cpu-rasterizer.md)
 DEFAULT_TILE = 16
 
@@ -131,6 +133,19 @@ def upstream_grad(g: Tensor | None, shape: tuple[int, ...], dtype: np.dtype) -> 
     if g is None:
         return np.zeros((shape[2], shape[0], shape[1]), dtype=dtype)
     return contiguous_numpy(g.permute(2, 0, 1))
+
+
+def table_buffer(rows: int, dtype: np.dtype) -> np.ndarray:
+    """An uninitialised [rows, TAB_COLS] table (`gaussian_table`, `surfel_table`) whose rows start on
+    `CACHE_LINE` boundaries: one line per row in float32 (two in float64), so the compositing loops'
+    prefetch of a row's start brings the whole row. numpy's buffers start 16 bytes into a line (glibc),
+    which split every row over two lines."""
+    from egobench.render import cpu_kernels as ck
+
+    nbytes = rows * ck.TAB_COLS * np.dtype(dtype).itemsize
+    raw = np.empty(nbytes + CACHE_LINE, np.uint8)
+    start = -raw.ctypes.data % CACHE_LINE
+    return raw[start:start + nbytes].view(dtype).reshape(rows, ck.TAB_COLS)
 
 
 def rows_hit_buffer(n_intersections: int, tile_size: int, cw: int) -> np.ndarray:
@@ -258,7 +273,7 @@ class _Rasterize(torch.autograd.Function):
         out_T = np.zeros((Iout, H, W), dtype=m2.dtype)
         out_last = np.zeros((Iout, H, W), dtype=np.int32)
         set_threads()
-        tab = np.empty((I * N, ck.TAB_COLS), dtype=m2.dtype)
+        tab = table_buffer(I * N, m2.dtype)
         ck.gaussian_table(m2, contiguous_numpy(conics), contiguous_numpy(radii), contiguous_numpy(log_opac),
                           st.needed, tab)
         rows_hit = rows_hit_buffer(st.flat_ids.shape[0], tile_size, st.cw)

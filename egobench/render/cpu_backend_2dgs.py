@@ -20,7 +20,7 @@ from egobench.camera.pinhole import Pinhole
 from egobench.render.cpu_backend import (GSPLAT_PIXEL_OFFSET, NEAR_PLANE, FAR_PLANE, contiguous_numpy, pose_grad,
                                          set_threads, camera_array, composite_output, gsplat_pixels, pixel_views,
                                          pose_sums, radius_max, raster_setup, reduce_intersections, rows_hit_buffer,
-                                         upstream_grad)
+                                         table_buffer, upstream_grad)
 from egobench.render.types import Gaussians, RenderOutput
 
 
@@ -92,11 +92,11 @@ class _Rasterize2DGS(torch.autograd.Function):
         out_last = np.zeros((Iout, H, W), dtype=np.int32)
         rows_hit = rows_hit_buffer(st.flat_ids.shape[0], tile_size, st.cw)
         set_threads()
-        tab = np.empty((I * N, k2.ck.TAB_COLS), dtype=m2.dtype)
+        tab = table_buffer(I * N, m2.dtype)
         k2.surfel_table(m2, tsl_np, lo, st.needed, tab)
-        k2.raster_fwd_2dgs(m2, tsl_np, lo, tab, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, tile_size,
+        k2.raster_fwd_2dgs(tsl_np, tab, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, tile_size,
                            st.tiles_x, st.cw, st.kc, st.centres, out_feat, out_T, out_last, rows_hit)
-        ctx.state = (m2, tsl_np, lo, st, pix_view, tile_size, out_feat, out_T, out_last, rows_hit, absgrad_target)
+        ctx.state = (tsl_np, tab, st, pix_view, tile_size, out_feat, out_T, out_last, rows_hit, absgrad_target)
         ctx.shapes = (I, N, colors.dtype)
         feat = torch.from_numpy(out_feat)
         return feat[..., :Cf], torch.from_numpy(out_T), feat[..., Cf]  # views: no copies of the image
@@ -105,7 +105,7 @@ class _Rasterize2DGS(torch.autograd.Function):
     def backward(ctx, g_feat, g_T, g_dist):
         from egobench.render import cpu_kernels_2dgs as k2
 
-        m2, tsl_np, lo, st, pix_view, ts, out_feat, out_T, out_last, rows_hit, ab = ctx.state
+        tsl_np, tab, st, pix_view, ts, out_feat, out_T, out_last, rows_hit, ab = ctx.state
         I, N, dt = ctx.shapes
         Cf = st.feats.shape[1]
         g_state = np.zeros(out_T.shape + (Cf + 2,), out_T.dtype)  # dL/dF, 2 dL/d distortion, forward depth
@@ -117,7 +117,7 @@ class _Rasterize2DGS(torch.autograd.Function):
         gT = np.zeros(out_T.shape, out_T.dtype) if g_T is None else contiguous_numpy(g_T)
         isect = np.zeros((st.flat_ids.shape[0], 12 + Cf), st.kc.dtype)
         set_threads()
-        k2.raster_bwd_2dgs(m2, tsl_np, lo, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, ts, st.tiles_x,
+        k2.raster_bwd_2dgs(tsl_np, tab, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, ts, st.tiles_x,
                            st.cw, st.kc, st.centres, out_T, out_last, g_state, gT, isect, rows_hit)
         per = reduce_intersections(isect, st.flat_ids, I, N, dt, ab)
         c = 12  # features: colour, depth, normal

@@ -860,16 +860,15 @@ PREFETCH_AHEAD = 6
 
 
 @intrinsic
-def prefetch_row(typingctx, arr, row):
-    """Software prefetch (read, all cache levels) of the start of row `row` of a 2D C-contiguous array."""
+def prefetch_at(typingctx, arr, row, col):
+    """Software prefetch (read, all cache levels) of the line holding arr[row, col] (2D C-contiguous)."""
     def codegen(context, builder, signature, args):
         aryty = signature.args[0]
         ary = context.make_array(aryty)(context, builder, args[0])
-        idx = context.cast(builder, args[1], signature.args[1], types.intp)
+        idx = [context.cast(builder, args[k], signature.args[k], types.intp) for k in (1, 2)]
         ptr = cgutils.get_item_pointer2(context, builder, ary.data, cgutils.unpack_tuple(builder, ary.shape),
-                                        cgutils.unpack_tuple(builder, ary.strides), aryty.layout,
-                                        [idx, context.get_constant(types.intp, 0)], wraparound=False,
-                                        boundscheck=False)
+                                        cgutils.unpack_tuple(builder, ary.strides), aryty.layout, idx,
+                                        wraparound=False, boundscheck=False)
         i8p, i32 = ir.IntType(8).as_pointer(), ir.IntType(32)
         # the intrinsic's name mangles the pointer type: "p0" for opaque pointers (LLVM >= 17), "p0i8"
         # for typed ones
@@ -877,7 +876,22 @@ def prefetch_row(typingctx, arr, row):
         fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.VoidType(), [i8p, i32, i32, i32]), name)
         builder.call(fn, [builder.bitcast(ptr, i8p), i32(0), i32(3), i32(1)])
         return context.get_dummy_value()
-    return types.void(arr, row), codegen
+    return types.void(arr, row, col), codegen
+
+
+@njit(cache=True, inline="always")
+def prefetch_row(arr, row):
+    """Software prefetch of the start of row `row` of a 2D C-contiguous array."""
+    prefetch_at(arr, row, 0)
+
+
+@njit(cache=True, inline="always")
+def prefetch_whole_row(arr, row):
+    """Software prefetch of row `row` of a 2D C-contiguous array whose rows are at most 64 bytes: its first
+    and its last element (a row straddles two cache lines where it does not start at a multiple of its
+    size's power of two: half of the 36-byte ray-transform rows)."""
+    prefetch_at(arr, row, 0)
+    prefetch_at(arr, row, arr.shape[1] - 1)
 
 
 #: columns of `gaussian_table`
@@ -945,6 +959,19 @@ def gaussian_table(means2d, conics, radii, log_opac, needed, tab):
 
 
 @njit(cache=True, inline="always")
+def floor_int(x):
+    """int(floor(x)), rounded in float64 (exact for a float32 x): numba floors a float32 by calling a C
+    helper per value, a float64 with one rounding instruction."""
+    return int(math.floor(np.float64(x)))
+
+
+@njit(cache=True, inline="always")
+def ceil_int(x):
+    """int(ceil(x)), rounded in float64 (as `floor_int`)."""
+    return int(math.ceil(np.float64(x)))
+
+
+@njit(cache=True, inline="always")
 def band_values(A, B, C, r2):
     """`band_constants`' seven values for the ellipse d^T Q d <= r2, Q = [[A, B], [B, C]] (float64;
     branch-free, so loops over ellipses vectorize)."""
@@ -993,17 +1020,17 @@ def band_rows(tab, g, x0, y0, qa, qb, ra, rb):
     # rows whose centre y0 + r + 0.5 lies in [my + y_lo, my + y_hi], with a 0.25-pixel margin
     lo_r = min(max(my + y_lo - y0 - 0.75, -1.0), rb + 1.0)
     hi_r = min(max(my + y_hi - y0 - 0.25, -1.0), rb + 1.0)
-    return max(ra, int(math.ceil(lo_r))), min(rb, int(math.floor(hi_r)) + 1)
+    return max(ra, ceil_int(lo_r)), min(rb, floor_int(hi_r) + 1)
 
 
 @njit(cache=True, inline="always")
 def _footprint_tab(tab, g, x0, y0, ts, W, H):
     """Tile-local rows [ra, rb) and columns [ca, cb) the ellipse of `gaussian_table` row g can reach."""
     mx, my, ex, ey = tab[g, 0], tab[g, 1], float(tab[g, 6]), float(tab[g, 7])
-    ra = max(0, int(math.floor(my - ey)) - y0)
-    rb = min(min(ts, H - y0), int(math.ceil(my + ey)) - y0)
-    ca = max(0, int(math.floor(mx - ex)) - x0)
-    cb = min(min(ts, W - x0), int(math.ceil(mx + ex)) - x0)
+    ra = max(0, floor_int(my - ey) - y0)
+    rb = min(min(ts, H - y0), ceil_int(my + ey) - y0)
+    ca = max(0, floor_int(mx - ex) - x0)
+    cb = min(min(ts, W - x0), ceil_int(mx + ex) - x0)
     return ra, rb, ca, cb
 
 

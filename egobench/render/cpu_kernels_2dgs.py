@@ -257,7 +257,7 @@ def _cross_coefs(tsl, gi, n, ox, oy, cc):
 @njit(cache=True, inline="always")
 def _axis_range(lo_c, hi_c, tile_lo, n_px, ts):
     """Pixel interval [lo_c, hi_c] -> tile-local [a, b)."""
-    return max(0, int(math.floor(lo_c)) - tile_lo), min(min(ts, n_px - tile_lo), int(math.ceil(hi_c)) - tile_lo)
+    return max(0, ck.floor_int(lo_c) - tile_lo), min(min(ts, n_px - tile_lo), ck.ceil_int(hi_c) - tile_lo)
 
 
 #: the image ellipse in `surfel_table` is enlarged by this factor (its area) for the band rows: a
@@ -286,8 +286,8 @@ def _image_ellipse(U0, U1, U2, V0, V1, V2, W0, W1, W2, r2):
 @njit(cache=True, inline="always")
 def _gather_needed(means2d, tsl, log_opac, needed, i, n0, n1, rows, src):
     """The needed table rows g = i N + n, n in [n0, n1) -> their count L; rows [L] the row numbers and
-    src [12 CHUNK] (float64) their inputs: rows 0-8 the ray transform, 9-10 the projected centre,
-    11 the exponent bound e = SIGMA_ROW + log o."""
+    src [13 CHUNK] (float64) their inputs: rows 0-8 the ray transform, 9-10 the projected centre,
+    11 the exponent bound e = SIGMA_ROW + log o, 12 the log opacity log o."""
     N = log_opac.shape[0]
     L = 0
     for n in range(n0, n1):
@@ -299,6 +299,7 @@ def _gather_needed(means2d, tsl, log_opac, needed, i, n0, n1, rows, src):
             src[9 * CHUNK + L] = float(means2d[i, n, 0])
             src[10 * CHUNK + L] = float(means2d[i, n, 1])
             src[11 * CHUNK + L] = SIGMA_ROW + float(log_opac[n])
+            src[12 * CHUNK + L] = log_opac[n]
             L += 1
     return L
 
@@ -323,7 +324,7 @@ def _surfel_rows(src, L, out):
         # Q = adj S, r2 = det S: the ellipse without dividing by det S (tiny for surfels seen edge-on)
         b = ck.band_values(syy, -sxy, sxx, (sxx * syy - sxy * sxy) * BAND_ENLARGE if ok else 0.0)
         out[R_[8] + j], out[R_[9] + j], out[R_[10] + j], out[R_[11] + j] = b[0], b[1], b[2], b[3]
-        out[R_[12] + j], out[R_[13] + j], out[R_[14] + j], out[R_[15] + j] = b[4], b[5], b[6], 0.0
+        out[R_[12] + j], out[R_[13] + j], out[R_[14] + j], out[R_[15] + j] = b[4], b[5], b[6], src[R_[12] + j]
 
 
 @njit(cache=True, parallel=True)
@@ -336,12 +337,13 @@ def surfel_table(means2d, tsl, log_opac, needed, tab):
     centre; 2, 4 the projected centre (x, y); 5 the filter disc's radius + 1 (-1: no pixel is
     reached); 6-7 the ellipse's half-extents + 1 (-1: the disc crosses the camera plane, every pixel
     of a tile); 3, 8-14 the ellipse's `ck.band_constants` (B of Q = adj S, r2 = det S), as
-    `ck.band_rows` reads them. Per chunk of surfels and pose: the needed rows gathered, computed in a
-    vectorized loop, written back."""
+    `ck.band_rows` reads them; 15 the log opacity (the compositing loops read the centre and it from this
+    row, one cache line, instead of two more random rows). Per chunk of surfels and pose: the needed rows
+    gathered, computed in a vectorized loop, written back."""
     I, N = means2d.shape[0], log_opac.shape[0]
     for ch in prange((N + CHUNK - 1) // CHUNK):
         rows = np.empty(CHUNK, np.int64)
-        src = np.empty(12 * CHUNK)
+        src = np.empty(13 * CHUNK)
         out = np.empty(ck.TAB_COLS * CHUNK)
         for i in range(I):
             L = _gather_needed(means2d, tsl, log_opac, needed, i, ch * CHUNK, min(N, (ch + 1) * CHUNK), rows, src)
@@ -376,8 +378,8 @@ def _surfel_band_rows(tab, g, x0, y0, qa, qb, ra, rb):
     mx, my, rf = float(tab[g, 2]), float(tab[g, 4]), float(tab[g, 5])
     if x0 + qa + 0.5 - mx > rf or mx - (x0 + qb - 0.5) > rf:
         return era, erb
-    dra = max(ra, int(math.floor(my - rf)) - y0)
-    drb = min(rb, int(math.ceil(my + rf)) - y0)
+    dra = max(ra, ck.floor_int(my - rf) - y0)
+    drb = min(rb, ck.ceil_int(my + rf) - y0)
     if dra >= drb:
         return era, erb
     if era >= erb:
@@ -417,35 +419,36 @@ def _surfel_exponent(lx, ly, dx, dy, cc, lo, kc):
 
 
 @njit(cache=True)  # not inlined: numba's parfor analysis rejects its nested tuple there
-def _surfel(means2d, tsl, log_opac, g, N, ox, oy, cc):
-    """Entry g = image * N + surfel -> (image gi, surfel n, centre mx, my, log opacity, the 9 cross
-    coefficients as a tuple (compute dtype), Up, Vp (for the backward))."""
+def _surfel(tab, tsl, g, N, ox, oy, cc):
+    """Entry g = image * N + surfel -> (image gi, surfel n, centre mx, my and log opacity (`surfel_table`
+    row g), the 9 cross coefficients as a tuple (compute dtype), Up, Vp (for the backward))."""
     gi, n = g // N, g % N
     up_vp = _cross_coefs(tsl, gi, n, ox, oy, cc)
     c9 = (cc[0], cc[1], cc[2], cc[3], cc[4], cc[5], cc[6], cc[7], cc[8])
-    return gi, n, means2d[gi, n, 0], means2d[gi, n, 1], log_opac[n], c9, up_vp
+    return gi, n, tab[g, 2], tab[g, 4], tab[g, 15], c9, up_vp
 
 
 @njit(cache=True, inline="always")
-def _row_views(means2d, tsl):
-    """means2d [I, N, 2], tsl [I, N, 9] -> their rows as [I*N, 2], [I*N, 9] views (row image * N + surfel)."""
+def _tsl_rows(tsl):
+    """tsl [I, N, 9] -> its rows as an [I*N, 9] view (row image * N + surfel)."""
     I, N = tsl.shape[0], tsl.shape[1]
-    return means2d.reshape((I * N, 2)), tsl.reshape((I * N, 9))
+    return tsl.reshape((I * N, 9))
 
 
 @njit(cache=True, inline="always")
-def _prefetch_surfel(m2_rows, tsl_rows, feats, g):
-    """Software prefetch of what an intersection with row g reads besides the table: its centre, ray
-    transform and features. Rows are random across [I*N, ·] arrays (4.3 MB of ray transforms for 6
-    poses x 20 000 surfels, beyond L2); in a 128 px training step the forward measured 7.2 -> 6.4 ms
-    and the backward 8.2 -> 6.7 ms with it."""
-    ck.prefetch_row(m2_rows, g)
-    ck.prefetch_row(tsl_rows, g)
-    ck.prefetch_row(feats, g)
+def _prefetch_surfel(tab, tsl_rows, feats, g):
+    """Software prefetch of what an intersection with row g reads: its table row (one line:
+    `cpu_backend.table_buffer`), ray transform and features (both ends: a row may straddle two lines).
+    Rows are random across [I*N, ·] arrays (4.3 MB of ray transforms for 6 poses x 20 000 surfels, beyond
+    L2); in a 128 px training step the forward measured 7.2 -> 6.4 ms and the backward 8.2 -> 6.7 ms with
+    prefetching (stop 44), and the forward ~10 % less again with whole rows and the table aligned (stop 61)."""
+    ck.prefetch_row(tab, g)
+    ck.prefetch_whole_row(tsl_rows, g)
+    ck.prefetch_whole_row(feats, g)
 
 
 @njit(cache=True, parallel=True, fastmath=FASTMATH)
-def raster_fwd_2dgs(means2d, tsl, log_opac, tab, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles_x,
+def raster_fwd_2dgs(tsl, tab, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles_x,
                     cw, kc, centres, out_feat, out_T, out_last, rows_hit):
     """`cpu_kernels.raster_fwd` for surfels: tsl [I, N, 9] ray transforms, tab [I*N, ck.TAB_COLS]
     `surfel_table` (the rows each column group visits), feats [I*N, Cf] with the depth in channel
@@ -455,14 +458,14 @@ def raster_fwd_2dgs(means2d, tsl, log_opac, tab, feats, flat_ids, bin_start, bin
     rows [first, last + 1) holding a pixel it was composited into (w > 0), or an empty range; the
     backward visits only those."""
     Iout, H, W = pix_view.shape
-    N = log_opac.shape[0]
+    N = tsl.shape[1]
     Cf = feats.shape[1]
     n_tiles = tiles_x * ((H + tile_size - 1) // tile_size)
     ts = tile_size
     one, zero = kc[1], kc[3]
     no_row, ts32 = np.int32(-1), np.int32(ts)
     rowt = state_rows(ts, cw)  # the same for every tile
-    m2_rows, tsl_rows = _row_views(means2d, tsl)
+    tsl_rows = _tsl_rows(tsl)
     for jb in prange(bins.shape[0]):
         b = bins[jb]
         i, o, x0, y0, x1, y1 = bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout)
@@ -475,13 +478,12 @@ def raster_fwd_2dgs(means2d, tsl, log_opac, tab, feats, flat_ids, bin_start, bin
                 break
             # flat_ids[k] is read where it is used: held in a local, the forward measured 12.5 -> 15.3 ms (σ 2.5)
             gp = flat_ids[min(k + ck.PREFETCH_AHEAD, bin_start[b + 1] - 1)]
-            ck.prefetch_row(tab, gp)
-            _prefetch_surfel(m2_rows, tsl_rows, feats, gp)
+            _prefetch_surfel(tab, tsl_rows, feats, gp)
             ra, rb, ca, cb = _footprint_surfel(tab, flat_ids[k], x0, y0, ts, W, H)
             ra, rb = trim_rows_active(ra, rb, row_active)
             if ra >= rb or ca >= cb:
                 continue
-            gi, n, mx, my, lo, c9, _ = _surfel(means2d, tsl, log_opac, flat_ids[k], N, ox, oy, cc)
+            gi, n, mx, my, lo, c9, _ = _surfel(tab, tsl, flat_ids[k], N, ox, oy, cc)
             zk = feats[flat_ids[k], DEPTH_CH]
             k1 = np.int32(k + 1)
             for q in range(ca // cw, (cb - 1) // cw + 1):
@@ -534,20 +536,20 @@ def _write_surfel_grad(isect_grad, k, ac, up_vp, tsl, gi, n, ox, oy, gmx, gmy, g
 
 
 @njit(cache=True, parallel=True, fastmath=FASTMATH)
-def raster_bwd_2dgs(means2d, tsl, log_opac, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles_x,
+def raster_bwd_2dgs(tsl, tab, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles_x,
                     cw, kc, centres, out_T, out_last, g_state, g_T, isect_grad, rows_hit):
-    """Back-to-front backward of `raster_fwd_2dgs`. g_state [Iout, H, W, Cf + 2]: dL/dF (Cf channels),
-    2 dL/d distortion, the forward's accumulated depth. isect_grad [M, 12 + Cf] per intersection:
+    """Back-to-front backward of `raster_fwd_2dgs` (tab: the forward's table). g_state [Iout, H, W, Cf + 2]:
+    dL/dF (Cf channels), 2 dL/d distortion, the forward's accumulated depth. isect_grad [M, 12 + Cf] per intersection:
     dL/d centre x, y; ray transform (9, row-major); log opacity; features (zeros on entry). rows_hit: the
     forward's; the pixels outside those rows were not composited into, so their terms are zero, and an
     intersection without any row is skipped (41 % of them in a 128 px `ours_2dgs` step)."""
     Iout, H, W = pix_view.shape
-    N = log_opac.shape[0]
+    N = tsl.shape[1]
     Cf = feats.shape[1]
     n_tiles = tiles_x * ((H + tile_size - 1) // tile_size)
     ts = tile_size
     half, one, zero = kc[0], kc[1], kc[3]
-    m2_rows, tsl_rows = _row_views(means2d, tsl)
+    tsl_rows = _tsl_rows(tsl)
     for jb in prange(bins.shape[0]):
         b = bins[jb]
         i, o, x0, y0, x1, y1 = bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout)
@@ -561,10 +563,10 @@ def raster_bwd_2dgs(means2d, tsl, log_opac, feats, flat_ids, bin_start, bins, pi
         ac = np.empty(9, kc.dtype)
         for k in range(k_end - 1, bin_start[b] - 1, -1):
             g = flat_ids[k]
-            _prefetch_surfel(m2_rows, tsl_rows, feats, flat_ids[max(k - ck.PREFETCH_AHEAD, bin_start[b])])
+            _prefetch_surfel(tab, tsl_rows, feats, flat_ids[max(k - ck.PREFETCH_AHEAD, bin_start[b])])
             if not ck.composited_any(rows_hit, k):  # every term zero: its isect_grad row stays zeros
                 continue
-            gi, n, mx, my, lo, c9, up_vp = _surfel(means2d, tsl, log_opac, g, N, ox, oy, cc)
+            gi, n, mx, my, lo, c9, up_vp = _surfel(tab, tsl, g, N, ox, oy, cc)
             zk = feats[g, DEPTH_CH]
             k32 = np.int32(k)
             a0 = a1 = a2 = a3 = a4 = a5 = a6 = a7 = a8 = gmx = gmy = glo = gz = zero
