@@ -118,7 +118,9 @@ def _project_chunk_2dgs(v, g_in, g_rot, L, cam, near, far, width, height, out):
 @njit(cache=True, inline="always")
 def _scatter_chunk_2dgs(out, q0, L, means2d, depths, radii, tsl):
     """`_project_chunk_2dgs`'s rows -> flat outputs at entries [q0, q0 + L) (entry = pose * N + surfel):
-    means2d [2 per entry], depths, radii [2] int32, tsl [9]."""
+    means2d [2 per entry], depths, radii [2] int32, tsl [9]. The ray transforms are copied in a scalar loop
+    (`ck.scalar_loop`): vectorized, it was 9 scatter instructions per 8 entries, ~45 % of this kernel on
+    AMD Zen 4."""
     R_ = ck.ROW
     u1, u2, u9 = np.uint64(1), np.uint64(2), np.uint64(9)
     for jj in range(L):
@@ -126,6 +128,10 @@ def _scatter_chunk_2dgs(out, q0, L, means2d, depths, radii, tsl):
         q = q0 + j
         means2d[q * u2], means2d[q * u2 + u1], depths[q] = out[j], out[R_[1] + j], out[R_[2] + j]
         radii[q * u2], radii[q * u2 + u1] = np.int32(out[R_[3] + j]), np.int32(out[R_[4] + j])
+    for jj in range(L):
+        j = np.uint64(jj)
+        q = q0 + j
+        ck.scalar_loop()
         for c in range(9):
             tsl[q * u9 + np.uint64(c)] = out[R_[5 + c] + j]
 
