@@ -857,6 +857,8 @@ def _tile_centres(centres, x0, y0, ts, cw, cxt, cyt):
 #: intersections ahead whose table and feature rows the compositing loops prefetch (the rows are
 #: read in depth order, scattered over the table: without it a cache miss starts every intersection)
 PREFETCH_AHEAD = 6
+#: rows ahead that the table kernels prefetch (`needed_rows`)
+GATHER_AHEAD = 8
 
 
 @intrinsic
@@ -939,6 +941,18 @@ def feature_table(colors, depths, normals, needed, out):
                     out[g, 4], out[g, 5], out[g, 6] = normals[i, n, 0], normals[i, n, 1], normals[i, n, 2]
 
 
+@njit(cache=True, inline="always")
+def needed_rows(needed, g0, g1, rows):
+    """The rows g in [g0, g1) with needed[g] -> their count L, rows[:L] (branch-free; rows holds g1 - g0).
+    The table kernels then read each needed row's inputs with a prefetch `GATHER_AHEAD` rows ahead: ~11 %
+    of the rows are needed in a 128 px step, too sparse for the hardware prefetchers."""
+    L = 0
+    for g in range(g0, g1):
+        rows[L] = g
+        L += 1 if needed[g] else 0
+    return L
+
+
 @njit(cache=True, parallel=True)
 def gaussian_table(means2d, conics, radii, log_opac, needed, tab):
     """Per (image, Gaussian) constants of the compositing loops, computed once instead of once per
@@ -949,12 +963,18 @@ def gaussian_table(means2d, conics, radii, log_opac, needed, tab):
     det, 1/C, x half-extent xe, x offset of the topmost point dxt, its y offset dyt)."""
     I, N = means2d.shape[0], log_opac.shape[0]
     n_chunks = (N + CHUNK - 1) // CHUNK
+    m2_rows, con_rows, rad_rows = means2d.reshape((I * N, 2)), conics.reshape((I * N, 3)), radii.reshape((I * N, 2))
     for ch in prange(n_chunks):
+        rows = np.empty(CHUNK, np.int64)
         for i in range(I):
-            for n in range(ch * CHUNK, min(N, (ch + 1) * CHUNK)):
-                g = i * N + n
-                if not needed[g]:
-                    continue
+            L = needed_rows(needed, i * N + ch * CHUNK, i * N + min(N, (ch + 1) * CHUNK), rows)
+            for j in range(L):
+                ahead = rows[min(j + GATHER_AHEAD, L - 1)]
+                prefetch_row(m2_rows, ahead)
+                prefetch_whole_row(con_rows, ahead)
+                prefetch_row(rad_rows, ahead)
+                g = rows[j]
+                n = g - i * N
                 A, B, C, lo = conics[i, n, 0], conics[i, n, 1], conics[i, n, 2], log_opac[n]
                 tab[g, 0] = means2d[i, n, 0]
                 tab[g, 1] = means2d[i, n, 1]

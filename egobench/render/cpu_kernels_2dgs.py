@@ -293,20 +293,23 @@ def _image_ellipse(U0, U1, U2, V0, V1, V2, W0, W1, W2, r2):
 def _gather_needed(means2d, tsl, log_opac, needed, i, n0, n1, rows, src):
     """The needed table rows g = i N + n, n in [n0, n1) -> their count L; rows [L] the row numbers and
     src [13 CHUNK] (float64) their inputs: rows 0-8 the ray transform, 9-10 the projected centre,
-    11 the exponent bound e = SIGMA_ROW + log o, 12 the log opacity log o."""
-    N = log_opac.shape[0]
-    L = 0
-    for n in range(n0, n1):
-        g = i * N + n
-        if needed[g]:
-            rows[L] = g
-            for c in range(9):
-                src[c * CHUNK + L] = float(tsl[i, n, c])
-            src[9 * CHUNK + L] = float(means2d[i, n, 0])
-            src[10 * CHUNK + L] = float(means2d[i, n, 1])
-            src[11 * CHUNK + L] = SIGMA_ROW + float(log_opac[n])
-            src[12 * CHUNK + L] = log_opac[n]
-            L += 1
+    11 the exponent bound e = SIGMA_ROW + log o, 12 the log opacity log o. The ray-transform and centre
+    rows are prefetched `ck.GATHER_AHEAD` rows ahead (`ck.needed_rows`): without it, the first load of
+    each row missed cache, half of `surfel_table`'s time in a 128 px training step."""
+    I, N = tsl.shape[0], log_opac.shape[0]
+    L = ck.needed_rows(needed, i * N + n0, i * N + n1, rows)
+    tsl_rows, m2_rows = tsl.reshape((I * N, 9)), means2d.reshape((I * N, 2))
+    for j in range(L):
+        ahead = rows[min(j + ck.GATHER_AHEAD, L - 1)]
+        ck.prefetch_whole_row(tsl_rows, ahead)
+        ck.prefetch_row(m2_rows, ahead)
+        n = rows[j] - i * N
+        for c in range(9):
+            src[c * CHUNK + j] = float(tsl[i, n, c])
+        src[9 * CHUNK + j] = float(means2d[i, n, 0])
+        src[10 * CHUNK + j] = float(means2d[i, n, 1])
+        src[11 * CHUNK + j] = SIGMA_ROW + float(log_opac[n])
+        src[12 * CHUNK + j] = log_opac[n]
     return L
 
 
