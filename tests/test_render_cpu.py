@@ -567,6 +567,49 @@ def test_rows_needed_marks_exactly_the_binned_rows():
     assert not cpu_kernels.rows_needed(flat[:0], 5).any()
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_floor_and_ceil_in_float64_are_the_float32_values_floor_and_ceil(dtype):
+    """`floor_int` / `ceil_int` (rounded in float64, no C helper call for a float32): the integers
+    math.floor / math.ceil give, at integers, halves, negatives, signed zeros and values near 2^23."""
+    from egobench.render import cpu_kernels
+
+    rng = np.random.default_rng(3)
+    vals = np.concatenate([[0.0, -0.0, 1.0, -1.0, 0.5, -0.5, 2.0**23 - 0.5, -(2.0**23) + 0.5, 1e-30, -1e-30],
+                           rng.uniform(-300, 300, 200), np.round(rng.uniform(-50, 50, 20))]).astype(dtype)
+    for v in vals:
+        assert cpu_kernels.floor_int(v) == math.floor(float(v)), v
+        assert cpu_kernels.ceil_int(v) == math.ceil(float(v)), v
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_table_buffer_rows_start_on_cache_lines(dtype):
+    """`table_buffer`: [rows, TAB_COLS] of the dtype, C-contiguous and writeable, its first byte on a
+    64-byte boundary (so every float32 row is one cache line) for any row count, rows not overlapping."""
+    from egobench.render import cpu_backend, cpu_kernels
+
+    held = [np.empty(k, np.uint8) for k in (1, 17, 33)]  # shift the allocator's next address
+    for rows in (1, 3, 1000, 120_000):
+        tab = cpu_backend.table_buffer(rows, dtype)
+        assert tab.shape == (rows, cpu_kernels.TAB_COLS) and tab.dtype == dtype
+        assert tab.flags.c_contiguous and tab.flags.writeable
+        assert tab.ctypes.data % cpu_backend.CACHE_LINE == 0
+        tab[:] = np.arange(rows, dtype=dtype)[:, None]
+        assert (tab[-1] == rows - 1).all() and (tab[0] == 0).all()
+    del held
+
+
+def test_needed_rows_lists_the_needed_rows_of_a_range_in_order():
+    """`needed_rows`: the rows g in [g0, g1) with needed[g], ascending, for empty, sparse and full ranges."""
+    from egobench.render import cpu_kernels
+
+    need = np.random.default_rng(5).random(700) < 0.11
+    need[600:] = True
+    rows = np.empty(700, np.int64)
+    for g0, g1 in ((0, 700), (13, 269), (600, 700), (5, 5), (300, 301)):
+        L = cpu_kernels.needed_rows(need, g0, g1, rows)
+        np.testing.assert_array_equal(rows[:L], g0 + np.nonzero(need[g0:g1])[0])
+
+
 @pytest.mark.parametrize("mode", ["3dgs", "2dgs"])
 def test_tables_fill_only_the_rows_needed(mode):
     """The Gaussian / surfel table fills the rows `rows_needed` marks, each exactly as a full table,
