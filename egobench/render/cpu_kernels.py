@@ -901,8 +901,8 @@ def prefetch_row(arr, row):
 @njit(cache=True, inline="always")
 def prefetch_whole_row(arr, row):
     """Software prefetch of row `row` of a 2D C-contiguous array whose rows are at most 64 bytes: its first
-    and its last element (a row straddles two cache lines where it does not start at a multiple of its
-    size's power of two: half of the 36-byte ray-transform rows)."""
+    and its last element, since such a row may straddle two cache lines (half of the 36-byte
+    ray-transform rows do)."""
     prefetch_at(arr, row, 0)
     prefetch_at(arr, row, arr.shape[1] - 1)
 
