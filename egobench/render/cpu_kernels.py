@@ -953,6 +953,13 @@ def needed_rows(needed, g0, g1, rows):
     return L
 
 
+@njit(cache=True, inline="always")
+def row_ahead(rows, j, L):
+    """The row `GATHER_AHEAD` entries after entry j of `needed_rows`' rows[:L] (the last one near the end):
+    the row whose inputs the table kernels prefetch while they read entry j's."""
+    return rows[min(j + GATHER_AHEAD, L - 1)]
+
+
 @njit(cache=True, parallel=True)
 def gaussian_table(means2d, conics, radii, log_opac, needed, tab):
     """Per (image, Gaussian) constants of the compositing loops, computed once instead of once per
@@ -969,7 +976,7 @@ def gaussian_table(means2d, conics, radii, log_opac, needed, tab):
         for i in range(I):
             L = needed_rows(needed, i * N + ch * CHUNK, i * N + min(N, (ch + 1) * CHUNK), rows)
             for j in range(L):
-                ahead = rows[min(j + GATHER_AHEAD, L - 1)]
+                ahead = row_ahead(rows, j, L)
                 prefetch_row(m2_rows, ahead)
                 prefetch_whole_row(con_rows, ahead)
                 prefetch_row(rad_rows, ahead)

@@ -290,17 +290,17 @@ def _image_ellipse(U0, U1, U2, V0, V1, V2, W0, W1, W2, r2):
 
 
 @njit(cache=True, inline="always")
-def _gather_needed(means2d, tsl, log_opac, needed, i, n0, n1, rows, src):
+def _gather_needed(means2d, tsl, log_opac, needed, i, n0, n1, rows, src, m2_rows, tsl_rows):
     """The needed table rows g = i N + n, n in [n0, n1) -> their count L; rows [L] the row numbers and
     src [13 CHUNK] (float64) their inputs: rows 0-8 the ray transform, 9-10 the projected centre,
     11 the exponent bound e = SIGMA_ROW + log o, 12 the log opacity log o. The ray-transform and centre
     rows are prefetched `ck.GATHER_AHEAD` rows ahead (`ck.needed_rows`): without it, the first load of
-    each row missed cache, half of `surfel_table`'s time in a 128 px training step."""
-    I, N = tsl.shape[0], log_opac.shape[0]
+    each row missed cache, half of `surfel_table`'s time in a 128 px training step. m2_rows, tsl_rows:
+    means2d and tsl as [I*N, ·] row views."""
+    N = log_opac.shape[0]
     L = ck.needed_rows(needed, i * N + n0, i * N + n1, rows)
-    tsl_rows, m2_rows = tsl.reshape((I * N, 9)), means2d.reshape((I * N, 2))
     for j in range(L):
-        ahead = rows[min(j + ck.GATHER_AHEAD, L - 1)]
+        ahead = ck.row_ahead(rows, j, L)
         ck.prefetch_whole_row(tsl_rows, ahead)
         ck.prefetch_row(m2_rows, ahead)
         n = rows[j] - i * N
@@ -350,12 +350,14 @@ def surfel_table(means2d, tsl, log_opac, needed, tab):
     row, one cache line, instead of two more random rows). Per chunk of surfels and pose: the needed rows
     gathered, computed in a vectorized loop, written back."""
     I, N = means2d.shape[0], log_opac.shape[0]
+    m2_rows, tsl_rows = means2d.reshape((I * N, 2)), _tsl_rows(tsl)
     for ch in prange((N + CHUNK - 1) // CHUNK):
         rows = np.empty(CHUNK, np.int64)
         src = np.empty(13 * CHUNK)
         out = np.empty(ck.TAB_COLS * CHUNK)
         for i in range(I):
-            L = _gather_needed(means2d, tsl, log_opac, needed, i, ch * CHUNK, min(N, (ch + 1) * CHUNK), rows, src)
+            L = _gather_needed(means2d, tsl, log_opac, needed, i, ch * CHUNK, min(N, (ch + 1) * CHUNK), rows, src,
+                               m2_rows, tsl_rows)
             _surfel_rows(src, L, out)
             for j in range(L):
                 for c in range(ck.TAB_COLS):
