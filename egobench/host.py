@@ -4,8 +4,9 @@ CPU kernels target, and the package versions.
 A CPU run is bit-reproducible on one machine with one set of package versions. Across machines it
 may not be (issue 31: up to 0.77 dB per run between an AVX-512 Zen 5 box and an AVX2 Zen 3 box).
 What could differ: the compiled rasterizer is built for the host CPU (numba, LLVM's name for it,
-e.g. ``znver5``), torch, MKL and oneDNN dispatch on the host's vector width, glibc's libm picks
-variants by CPU features, and pip resolves the package ranges to whatever is newest at install time.
+e.g. ``znver5``), torch, MKL and oneDNN dispatch on the host's vector width, and so does numpy (some of
+its transcendental functions give other bits under AVX-512 than under AVX2), glibc's libm picks variants
+by CPU features, and pip resolves the package ranges to whatever is newest at install time.
 Every run record carries `host_info()`; docs/reproducibility.md has what was measured.
 """
 
@@ -45,8 +46,35 @@ def cpu_model() -> str:
     return platform.processor() or platform.machine() or "unknown"
 
 
+def _numpy_cpu_tables() -> tuple[list[str], dict[str, bool]]:
+    """numpy's compiled dispatch targets and its runtime CPU feature table (private, moved in numpy 2)."""
+    try:
+        from numpy._core import _multiarray_umath as mu
+    except ImportError:  # numpy < 2
+        from numpy.core import _multiarray_umath as mu
+    return list(mu.__cpu_dispatch__), dict(mu.__cpu_features__)
+
+
+def numpy_cpu_dispatch() -> list[str]:
+    """numpy's vector code paths enabled in this process (e.g. ``['X86_V3', 'X86_V4', 'AVX512_ICL']`` on an
+    AVX-512 machine, ``['X86_V3']`` on an AVX2 one or with ``NPY_DISABLE_CPU_FEATURES``). numpy chooses them
+    at import, whatever numba, torch or MKL were told, and its float64 exp, log and power and float32 power
+    give other bits under each (docs/reproducibility.md, stop 62)."""
+    targets, enabled = _numpy_cpu_tables()
+    return [t for t in targets if enabled.get(t)]
+
+
+def numpy_avx512_targets() -> list[str]:
+    """numpy's dispatch targets that need AVX-512 (``X86_V4`` and the ``AVX512*`` ones; their names
+    changed in numpy 2.3): what ``NPY_DISABLE_CPU_FEATURES`` must name to make numpy run as on an
+    AVX2-only machine."""
+    targets, _ = _numpy_cpu_tables()
+    return [t for t in targets if t == "X86_V4" or t.startswith("AVX512")]
+
+
 def host_info() -> dict[str, object]:
-    """CPU model, cores, the compiled kernels' LLVM target, torch's CPU capability, package versions."""
+    """CPU model, cores, the compiled kernels' LLVM target, torch's CPU capability, numpy's vector code
+    paths, package versions."""
     import torch
 
     try:
@@ -59,6 +87,7 @@ def host_info() -> dict[str, object]:
     return {"cpu_model": cpu_model(), "cpu_count": os.cpu_count(), "vector_isa": vector_isa(),
             "kernel_target": kernel_target,
             "torch_cpu_capability": torch.backends.cpu.get_cpu_capability(),
+            "numpy_cpu_dispatch": numpy_cpu_dispatch(),
             "threads": {"torch": torch.get_num_threads(), "kernels": kernel_threads()},
             "allocator": dict(_ALLOCATOR) if _ALLOCATOR else None, "versions": versions()}
 

@@ -7,29 +7,35 @@ a fresh process per setting, each with its own numba cache:
 
 - ``host``: nothing pinned (this machine's CPU: numba's LLVM host target, torch's widest kernels);
 - ``avx2``: an AVX2-only x86-64 machine emulated on this one (numba compiled for ``znver3``, torch's
-  AVX2 kernels, MKL and oneDNN capped at AVX2, glibc's AVX-512 variants off);
+  AVX2 kernels, MKL and oneDNN capped at AVX2, glibc's AVX-512 variants off, numpy's AVX-512 code paths
+  off: before stop 62 numpy's were left on);
 - ``portable``: PORTABLE (numba ``generic``, torch ``default``, MKL CBWR, oneDNN SSE4.1);
 - ``portable_avx2``: the portable settings on the emulated AVX2 machine.
 
 Writes ``cross_isa.json``: per setting the host info, iterations/s (wall time of the training
 iterations, one thread), held-out PSNR, and per pair the largest parameter difference and the PSNR
-difference. Exploratory: one seed, one scene.
+difference. ``--simulate-each``: the recording is also simulated again under every setting, and each is
+compared file by file with the host's (``recordings``). Exploratory: one seed, one scene.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import subprocess
 import sys
 from pathlib import Path
 
+from egobench.host import numpy_avx512_targets
+
 #: numba's generic x86-64 target, torch's non-vectorised kernels, MKL's reproducible mode, oneDNN at SSE4.1
 PORTABLE = {"NUMBA_CPU_NAME": "generic", "ATEN_CPU_CAPABILITY": "default", "MKL_CBWR": "COMPATIBLE",
             "ONEDNN_MAX_CPU_ISA": "SSE41"}
 AVX2 = {"NUMBA_CPU_NAME": "znver3", "ATEN_CPU_CAPABILITY": "avx2", "MKL_ENABLE_INSTRUCTIONS": "AVX2",
-        "ONEDNN_MAX_CPU_ISA": "AVX2", "GLIBC_TUNABLES": "glibc.cpu.hwcaps=-AVX512F,-AVX512VL,-AVX512BW,-AVX512DQ,-AVX512CD"}
+        "ONEDNN_MAX_CPU_ISA": "AVX2", "GLIBC_TUNABLES": "glibc.cpu.hwcaps=-AVX512F,-AVX512VL,-AVX512BW,-AVX512DQ,-AVX512CD",
+        **({"NPY_DISABLE_CPU_FEATURES": " ".join(numpy_avx512_targets())} if numpy_avx512_targets() else {})}
 
 CHILD = r"""
 import json, sys, numpy as np, torch
@@ -50,16 +56,54 @@ print(json.dumps({"host": host_info(), "iters_per_s": res.iters_per_s, "psnr": e
 """
 
 
-def run_setting(name: str, env_extra: dict, rec: Path, out: Path, iterations: int) -> dict:
+SIM_CHILD = r"""
+import sys
+from egobench.sim.capture import simulate_recording
+from egobench.sim.config import SimConfig
+simulate_recording(SimConfig.from_overrides("outdoor", 0, {"rectified_size": int(sys.argv[2]), "n_frames": 32}),
+                   sys.argv[1], progress=False)
+"""
+
+
+def _child(name: str, env_extra: dict, out: Path, code: str, *argv: str) -> str:
+    """Runs ``code`` in a fresh Python under setting ``name`` (one thread, its own numba cache) -> its stdout."""
     env = {k: v for k, v in os.environ.items() if k not in {**AVX2, **PORTABLE}}
     env.update(env_extra, OMP_NUM_THREADS="1", NUMBA_NUM_THREADS="1",
                NUMBA_CACHE_DIR=str(out / "numba_cache" / name))
-    run_dir = out / "runs" / name
-    proc = subprocess.run([sys.executable, "-c", CHILD, str(rec), str(run_dir), str(iterations)], env=env,
-                          capture_output=True, text=True)
+    proc = subprocess.run([sys.executable, "-c", code, *argv], env=env, capture_output=True, text=True)
     if proc.returncode != 0:
         raise RuntimeError(f"setting {name}: {proc.stderr[-3000:]}")
-    return json.loads(proc.stdout.strip().splitlines()[-1])
+    return proc.stdout
+
+
+def run_setting(name: str, env_extra: dict, rec: Path, out: Path, iterations: int) -> dict:
+    stdout = _child(name, env_extra, out, CHILD, str(rec), str(out / "runs" / name), str(iterations))
+    return json.loads(stdout.strip().splitlines()[-1])
+
+
+def file_digests(root: Path) -> dict[str, str]:
+    """Every file under root -> its SHA-256 (keys: paths relative to root)."""
+    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def compare_recordings(a: Path, b: Path) -> dict:
+    """Two recording folders file by file -> identical?, the file count, and the differing files."""
+    da, db = file_digests(a), file_digests(b)
+    differing = sorted(k for k in da.keys() | db.keys() if da.get(k) != db.get(k))
+    return {"identical": not differing, "files": len(da.keys() | db.keys()), "n_differing": len(differing),
+            "differing": differing[:20]}
+
+
+def simulate_each(settings: dict, out: Path, size: int) -> dict:
+    """The recording simulated under every setting, each compared with the host's and with the one the
+    parent process simulated (a control: the same settings must give the same bytes)."""
+    for name, env in settings.items():
+        _child(name, env, out, SIM_CHILD, str(out / "recordings" / name), str(size))
+    res = {"host (child) vs parent": compare_recordings(out / "recordings" / "host", out / "recording")}
+    res.update({f"{name} vs host": compare_recordings(out / "recordings" / name, out / "recordings" / "host")
+                for name in settings if name != "host"})
+    return res
 
 
 def compare(out: Path, a: str, b: str) -> dict:
@@ -80,6 +124,8 @@ def main() -> int:
     ap.add_argument("--out", required=True)
     ap.add_argument("--iterations", type=int, default=300)
     ap.add_argument("--size", type=int, default=64)
+    ap.add_argument("--simulate-each", action="store_true",
+                    help="also simulate the recording under every setting and compare the files with the host's")
     args = ap.parse_args()
     out = Path(args.out)
     rec = out / "recording"
@@ -94,8 +140,12 @@ def main() -> int:
              for a, b in (("host", "avx2"), ("portable", "portable_avx2"), ("host", "portable"))}
     for k, v in pairs.items():
         print(k, v)
-    (out / "cross_isa.json").write_text(json.dumps({"settings": results, "pairs": pairs,
-                                                    "iterations": args.iterations, "size_px": args.size}, indent=1))
+    record = {"settings": results, "pairs": pairs, "iterations": args.iterations, "size_px": args.size}
+    if args.simulate_each:
+        record["recordings"] = simulate_each(settings, out, args.size)
+        for k, v in record["recordings"].items():
+            print(k, v)
+    (out / "cross_isa.json").write_text(json.dumps(record, indent=1))
     return 0
 
 

@@ -226,3 +226,50 @@ def test_kernels_compile_whichever_module_loads_numba_first():
     out = {name: subprocess.run([sys.executable, "-c", pre + compile_one], env=env, capture_output=True, text=True,
                                 check=True).stdout.split() for name, pre in orders.items()}
     assert out["numba first"][0] == "2" and out["2dgs first"] == ["2", "1"]
+
+
+def test_numpy_vector_paths_are_recorded_and_the_avx2_emulation_turns_numpys_avx512_off():
+    """numpy dispatches its own vector code by the CPU (its float64 exp/log/power give other bits under
+    AVX-512): the record names the paths enabled, and NPY_DISABLE_CPU_FEATURES with
+    `numpy_avx512_targets` (what scripts/cross_isa_check.py's AVX2 setting sets) leaves exactly the others."""
+    import json
+    import os
+    import runpy
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from egobench.host import _numpy_cpu_tables, host_info, numpy_avx512_targets, numpy_cpu_dispatch
+
+    compiled, _ = _numpy_cpu_tables()
+    assert host_info()["numpy_cpu_dispatch"] == numpy_cpu_dispatch()
+    assert set(numpy_avx512_targets()) <= set(compiled)
+    code = "import json; from egobench.host import numpy_cpu_dispatch as d; print(json.dumps(d()))"
+    env = {k: v for k, v in os.environ.items() if k != "NPY_DISABLE_CPU_FEATURES"}
+    run = lambda extra: json.loads(subprocess.run([sys.executable, "-c", code], env={**env, **extra},  # noqa: E731
+                                                  capture_output=True, text=True, check=True).stdout)
+    enabled = run({})
+    assert set(enabled) <= set(compiled)
+    avx2 = runpy.run_path(str(Path(__file__).parents[1] / "scripts" / "cross_isa_check.py"), run_name="x")["AVX2"]
+    off = run({"NPY_DISABLE_CPU_FEATURES": avx2["NPY_DISABLE_CPU_FEATURES"]}) if numpy_avx512_targets() else enabled
+    assert off == [t for t in enabled if t not in numpy_avx512_targets()]
+
+
+def test_recordings_are_compared_file_by_file(tmp_path):
+    """cross_isa_check's recording comparison: equal trees are identical; one changed byte and one extra
+    file are both named."""
+    import runpy
+    from pathlib import Path
+
+    compare = runpy.run_path(str(Path(__file__).parents[1] / "scripts" / "cross_isa_check.py"),
+                             run_name="x")["compare_recordings"]
+    for name in ("a", "b"):
+        (tmp_path / name / "sub").mkdir(parents=True)
+        (tmp_path / name / "sub" / "x.bin").write_bytes(b"\x00\x01")
+        (tmp_path / name / "y.json").write_text("{}")
+    assert compare(tmp_path / "a", tmp_path / "b") == {"identical": True, "files": 2, "n_differing": 0,
+                                                      "differing": []}
+    (tmp_path / "b" / "sub" / "x.bin").write_bytes(b"\x00\x02")
+    (tmp_path / "b" / "z.txt").write_text("new")
+    assert compare(tmp_path / "a", tmp_path / "b") == {"identical": False, "files": 3, "n_differing": 2,
+                                                      "differing": ["sub/x.bin", "z.txt"]}
