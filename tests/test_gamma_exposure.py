@@ -85,6 +85,43 @@ def test_bits_do_not_depend_on_the_thread_count():
     assert torch.equal(outs[0][0], outs[1][0]) and torch.equal(outs[0][1], outs[1][1])
 
 
+_POWER_LAW_SCRIPT = """
+import sys, torch
+from egobench.model.gamma_exposure import gamma_expose
+g = torch.Generator().manual_seed(7)
+x = (0.05 + 0.9 * torch.rand(32, 32, 3, generator=g)).to(torch.float32)  # on the power law after any scale below
+s = (0.5 + torch.rand(32, 32, 1, generator=g)).to(torch.float32)
+y = gamma_expose(x, s, 2.2, 1e-5, decode=True, clamp=False)
+sys.stdout.write(y.numpy().tobytes().hex())
+"""
+
+
+def test_the_exposures_power_is_glibcs_rounded_and_the_same_with_numpys_avx512_paths_off():
+    """On the power law the output is x * r, r = s ** (1 / gamma) in float64 (Python's math.pow: glibc, as the
+    kernel) rounded to float32; and the bits do not move when numpy's AVX-512 code is off (what an AVX2-only
+    machine runs): numpy's own power gave other bits there (docs/reproducibility.md, stop 62)."""
+    import math
+    import os
+    import subprocess
+    import sys
+
+    import numpy as np
+
+    from egobench.host import numpy_avx512_targets
+
+    run = lambda extra: subprocess.run([sys.executable, "-c", _POWER_LAW_SCRIPT], capture_output=True, text=True,  # noqa: E731
+                                       check=True, env={**os.environ, **extra}).stdout
+    host = run({})
+    g = torch.Generator().manual_seed(7)
+    x = (0.05 + 0.9 * torch.rand(32, 32, 3, generator=g)).to(torch.float32).numpy()
+    s = (0.5 + torch.rand(32, 32, 1, generator=g)).to(torch.float32).numpy()
+    r = np.vectorize(lambda v: np.float32(math.pow(float(v), 1 / 2.2)))(s).astype(np.float32)
+    expected = (x.astype(np.float64) * r.astype(np.float64)).astype(np.float32)
+    assert host == expected.tobytes().hex()
+    if numpy_avx512_targets():
+        assert run({"NPY_DISABLE_CPU_FEATURES": " ".join(numpy_avx512_targets())}) == host
+
+
 def test_predict_takes_the_compiled_pass_for_one_cpu_image_and_torch_otherwise():
     fm = FormationModel(FormationConfig.paper_trainer())
     x, s = _scene(torch.float32, seed=5)

@@ -32,11 +32,14 @@ def _encode(z, gamma, x0, slope):
 
 @njit(cache=True, parallel=True)
 def _expose_fwd(x, s, r, decode, clamp, gamma, y0, x0, out, dx, ds):
-    """x [P, 3], s [P] (scale >= 0), r [P] = s ** (1 / gamma) -> out [P, 3] and the partials dx, ds [P, 3]
-    of each output by its own x and by the pixel's s (zero where the clamp cuts). The toe: linear values
-    below x0, display values below y0 = x0 ** (1 / gamma), on the line of slope y0 / x0."""
+    """x [P, 3], s [P] (scale >= 0) -> r [P] = s ** (1 / gamma) (float64 power rounded to r's dtype), out [P, 3]
+    and the partials dx, ds [P, 3] of each output by its own x and by the pixel's s (zero where the clamp
+    cuts). The toe: linear values below x0, display values below y0 = x0 ** (1 / gamma), on the line of slope
+    y0 / x0. r is computed here, by glibc's pow, and not by numpy: numpy's power takes other code, and gives
+    other bits, on AVX-512 and AVX2 machines (docs/reproducibility.md, stop 62)."""
     slope = y0 / x0
     for p in prange(x.shape[0]):
+        r[p] = np.float64(s[p]) ** (1.0 / gamma)
         sp, rp = np.float64(s[p]), np.float64(r[p])
         for c in range(3):
             xv = np.float64(x[p, c])
@@ -74,7 +77,7 @@ class _GammaExposeCPU(torch.autograd.Function):
         H, W, _ = x.shape
         x_np = x.detach().contiguous().view(H * W, 3).numpy()
         s_np = s.detach().expand(H, W, 1).contiguous().view(H * W).numpy()
-        r_np = np.power(s_np, 1.0 / gamma).astype(s_np.dtype)
+        r_np = np.empty_like(s_np)
         y0 = toe_linear ** (1.0 / gamma)
         out, dx, ds = (np.empty_like(x_np) for _ in range(3))
         set_threads()
