@@ -8,7 +8,7 @@ a fresh process per setting, each with its own numba cache:
 - ``host``: nothing pinned (this machine's CPU: numba's LLVM host target, torch's widest kernels);
 - ``avx2``: an AVX2-only x86-64 machine emulated on this one (numba compiled for ``znver3``, torch's
   AVX2 kernels, MKL and oneDNN capped at AVX2, glibc's AVX-512 variants off, numpy's AVX-512 code paths
-  off: before stop 62 numpy's were left on);
+  off and its OpenBLAS on its AVX2 (Haswell) kernels: before stop 62 numpy's were left on);
 - ``portable``: PORTABLE (numba ``generic``, torch ``default``, MKL CBWR, oneDNN SSE4.1);
 - ``portable_avx2``: the portable settings on the emulated AVX2 machine.
 
@@ -35,6 +35,7 @@ PORTABLE = {"NUMBA_CPU_NAME": "generic", "ATEN_CPU_CAPABILITY": "default", "MKL_
             "ONEDNN_MAX_CPU_ISA": "SSE41"}
 AVX2 = {"NUMBA_CPU_NAME": "znver3", "ATEN_CPU_CAPABILITY": "avx2", "MKL_ENABLE_INSTRUCTIONS": "AVX2",
         "ONEDNN_MAX_CPU_ISA": "AVX2", "GLIBC_TUNABLES": "glibc.cpu.hwcaps=-AVX512F,-AVX512VL,-AVX512BW,-AVX512DQ,-AVX512CD",
+        "OPENBLAS_CORETYPE": "Haswell",
         **({"NPY_DISABLE_CPU_FEATURES": " ".join(numpy_avx512_targets())} if numpy_avx512_targets() else {})}
 
 CHILD = r"""

@@ -20,6 +20,8 @@ from typing import Any, Callable, ClassVar, Literal
 
 import numpy as np
 
+from egobench import portable_math as pm
+
 #: How a hidden value is drawn from ``plausible_range`` (lo, hi):
 #: "uniform": U(lo, hi); "signed": +-U(lo, hi), sign a fair coin (an error of either sign);
 #: "log_uniform": exp(U(log lo, log hi)) (a multiplicative factor).
@@ -67,7 +69,7 @@ class Effect:
         if self.sampling == "uniform":
             values = rng.uniform(lo, hi, size=self.size)
         elif self.sampling == "log_uniform":
-            values = np.exp(rng.uniform(math.log(lo), math.log(hi), size=self.size))
+            values = pm.exp(rng.uniform(math.log(lo), math.log(hi), size=self.size))
         else:  # signed
             magnitude = rng.uniform(lo, hi, size=self.size)
             values = np.where(rng.random(size=self.size) < 0.5, -magnitude, magnitude)

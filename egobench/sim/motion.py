@@ -40,6 +40,8 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 import torch
 
+from egobench import portable_math as pm
+
 if TYPE_CHECKING:  # pragma: no cover
     from egobench.geometry import Trajectory
     from egobench.sim.world import Scene, WalkRegion
@@ -127,7 +129,7 @@ def band_limited_noise(rng: np.random.Generator, n: int, rate_hz: float, sigma_h
     white = rng.standard_normal(n)
     spec = np.fft.rfft(white)
     f = np.fft.rfftfreq(n, d=1.0 / rate_hz)
-    spec *= np.exp(-0.5 * (f / sigma_hz) ** 2)
+    spec *= pm.exp(-0.5 * (f / sigma_hz) ** 2)
     spec[0] = 0.0
     x = np.fft.irfft(spec, n)
     std = float(x.std())
@@ -192,12 +194,12 @@ def _waypoints(region: "WalkRegion", rng: np.random.Generator, length_m: float) 
         cand = region.sample_xy(rng, 24)
         vec = cand - pts[-1]
         dist = np.linalg.norm(vec, axis=1)
-        turn = np.abs(np.angle(np.exp(1j * (np.arctan2(vec[:, 1], vec[:, 0]) - heading))))
+        turn = np.abs(_wrap(pm.arctan2(vec[:, 1], vec[:, 0]) - heading))
         score = -np.abs(dist - min(2.5, diag)) - 3.0 * turn
         j = int(np.argmax(score))
         if dist[j] < 1e-3:
             continue
-        heading = float(np.arctan2(vec[j, 1], vec[j, 0]))
+        heading = math.atan2(float(vec[j, 1]), float(vec[j, 0]))
         total += float(dist[j])
         pts.append(cand[j])
     return np.asarray(pts)
@@ -228,7 +230,7 @@ _DEG = np.pi / 180.0  # radians per degree
 def _gaussian_smooth(x: np.ndarray, window_s: float, rate: float) -> np.ndarray:
     """x [M] convolved with a Gaussian kernel spanning +-2 sigma over window_s seconds (edges padded)."""
     k = int(window_s * rate) | 1
-    kern = np.exp(-0.5 * (np.linspace(-2, 2, k)) ** 2)
+    kern = pm.exp(-0.5 * (np.linspace(-2, 2, k)) ** 2)
     kern /= kern.sum()
     return np.convolve(np.pad(x, k // 2, mode="edge"), kern, mode="valid")
 
@@ -270,7 +272,7 @@ def _bend_slowed_arc_length(config: HeadMotionConfig, poly: np.ndarray,
     """
     seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
     arc = np.concatenate([[0.0], np.cumsum(seg)])
-    tang = np.arctan2(np.diff(poly[:, 1]), np.diff(poly[:, 0]))
+    tang = pm.arctan2(np.diff(poly[:, 1]), np.diff(poly[:, 0]))
     kappa = np.abs(_wrap(np.diff(tang))) / np.maximum(0.5 * (seg[1:] + seg[:-1]), 1e-9)
     kappa = np.concatenate([[kappa[0]], kappa, [kappa[-1]]])  # per polyline vertex
     ks = max(1, int(0.3 / max(float(np.median(seg)), 1e-6)))  # smooth curvature over ~0.3 m
@@ -343,8 +345,8 @@ def _gaze_angles(config: HeadMotionConfig, region: "WalkRegion", targets: np.nda
     """Gaze (yaw [M], pitch [M]) in radians: the heading pitched by gaze_pitch_deg, blended with
     weight w [M] towards look target target_of_t [M] seen from the eye positions pos [M, 3]."""
     to_t = targets[target_of_t] - pos if len(targets) else np.zeros_like(pos)
-    yaw_t = np.arctan2(to_t[:, 1], to_t[:, 0])
-    pitch_t = np.arctan2(to_t[:, 2], np.hypot(to_t[:, 0], to_t[:, 1]))
+    yaw_t = pm.arctan2(to_t[:, 1], to_t[:, 0])
+    pitch_t = pm.arctan2(to_t[:, 2], np.hypot(to_t[:, 0], to_t[:, 1]))
     off = _wrap(yaw_t - heading)
     # targets behind the walker are not looked at (fades out between 100 and 150 deg), which
     # also hides the +-180 deg wrap of `off`; the head turns at most 80 deg from the path

@@ -57,6 +57,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from egobench import portable_math as pm
 from egobench.sim.textures import Texture, evaluate_texture
 
 SceneKind = Literal["outdoor", "indoor", "object", "quest3"]
@@ -792,7 +793,7 @@ class Scene:
         pts = np.concatenate(pts_all); nrm = np.concatenate(nrm_all); g = np.concatenate(w_all)
         w = g + gradient_floor * max(float(np.median(g)), 1e-3)
         # weighted sampling without replacement (Efraimidis-Spirakis keys)
-        keys = np.log(rng.uniform(size=len(w)).clip(1e-300)) / w
+        keys = pm.log(rng.uniform(size=len(w)).clip(1e-300)) / w
         chosen = np.argsort(-keys)[:n]
         return torch.as_tensor(pts[chosen]), torch.as_tensor(nrm[chosen])
 

@@ -8,6 +8,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from egobench import portable_math as pm
 from egobench.data.mps import SemiDensePoints
 from egobench.sim.devices import SEMIDENSE_NOISE
 
@@ -38,7 +39,7 @@ def make_semidense_points(scene, positions_world: Tensor, n: int, seed: int) -> 
     d = np.linalg.norm(vec, axis=1).clip(1e-3)
     ray = vec / d[:, None]
     noise = SEMIDENSE_NOISE
-    inv_std = np.exp(rng.normal(noise.log_inv_dist_std_mean, noise.log_inv_dist_std_std, size=d.shape))
+    inv_std = pm.exp(rng.normal(noise.log_inv_dist_std_mean, noise.log_inv_dist_std_std, size=d.shape))
     inv_d = 1.0 / d + rng.normal(size=d.shape) * inv_std
     inv_d = np.maximum(inv_d, 1.0 / (10.0 * d))  # never behind the observer nor at infinity
     d_noisy = 1.0 / inv_d
