@@ -29,3 +29,18 @@ def test_each_value_is_pythons_math_and_the_shape_broadcasts():
 def test_log_of_a_non_positive_value_is_refused():
     with pytest.raises(ValueError, match="math domain error"):
         pm.log([1.0, 0.0])
+
+
+def test_convolve_valid_is_numpys_valid_convolution_summed_in_a_fixed_order():
+    rng = np.random.default_rng(5)
+    x, k = rng.normal(size=301), rng.normal(size=17)
+    out = pm.convolve_valid(x, k)
+    np.testing.assert_allclose(out, np.convolve(x, k, mode="valid"), rtol=0, atol=1e-13)
+    # taps added one after another: exactly this loop, whatever the machine
+    ref = np.zeros(285)
+    for m in range(17):
+        ref += k[16 - m] * x[m:m + 285]
+    assert np.array_equal(out, ref)
+    assert np.array_equal(pm.convolve_valid([1.0, 2.0, 3.0], [1.0]), [1.0, 2.0, 3.0])
+    with pytest.raises(ValueError, match="1 <= K <= N"):
+        pm.convolve_valid(np.ones(3), np.ones(4))

@@ -162,9 +162,9 @@ def _catmull_rom(points: np.ndarray, samples_per_segment: int = 200) -> np.ndarr
     for i in range(1, len(P) - 2):
         p0, p1, p2, p3 = P[i - 1], P[i], P[i + 1], P[i + 2]
         t0 = 0.0
-        t1 = t0 + max(np.linalg.norm(p1 - p0), 1e-6) ** 0.5
-        t2 = t1 + max(np.linalg.norm(p2 - p1), 1e-6) ** 0.5
-        t3 = t2 + max(np.linalg.norm(p3 - p2), 1e-6) ** 0.5
+        t1 = t0 + max(math.hypot(*(p1 - p0)), 1e-6) ** 0.5
+        t2 = t1 + max(math.hypot(*(p2 - p1)), 1e-6) ** 0.5
+        t3 = t2 + max(math.hypot(*(p3 - p2)), 1e-6) ** 0.5
         t = t1 + u * (t2 - t1)
         a1 = (t1 - t) / (t1 - t0) * p0 + (t - t0) / (t1 - t0) * p1
         a2 = (t2 - t) / (t2 - t1) * p1 + (t - t1) / (t2 - t1) * p2
@@ -232,7 +232,7 @@ def _gaussian_smooth(x: np.ndarray, window_s: float, rate: float) -> np.ndarray:
     k = int(window_s * rate) | 1
     kern = pm.exp(-0.5 * (np.linspace(-2, 2, k)) ** 2)
     kern /= kern.sum()
-    return np.convolve(np.pad(x, k // 2, mode="edge"), kern, mode="valid")
+    return pm.convolve_valid(np.pad(x, k // 2, mode="edge"), kern)
 
 
 def _standing_path(config: HeadMotionConfig, region: "WalkRegion", targets: np.ndarray, rng: np.random.Generator,
@@ -276,7 +276,7 @@ def _bend_slowed_arc_length(config: HeadMotionConfig, poly: np.ndarray,
     kappa = np.abs(_wrap(np.diff(tang))) / np.maximum(0.5 * (seg[1:] + seg[:-1]), 1e-9)
     kappa = np.concatenate([[kappa[0]], kappa, [kappa[-1]]])  # per polyline vertex
     ks = max(1, int(0.3 / max(float(np.median(seg)), 1e-6)))  # smooth curvature over ~0.3 m
-    kappa = np.convolve(np.pad(kappa, ks, mode="edge"), np.ones(2 * ks + 1) / (2 * ks + 1), mode="valid")
+    kappa = pm.convolve_valid(np.pad(kappa, ks, mode="edge"), np.ones(2 * ks + 1) / (2 * ks + 1))
     g = np.clip(config.max_turn_rate_deg_s * _DEG / (config.walk_speed_m_s * np.maximum(kappa, 1e-9)), 0.1, 1.0)
     A = np.concatenate([[0.0], np.cumsum(seg / (0.5 * (g[1:] + g[:-1])))])
     return np.interp(effort, A, arc), arc, tang
