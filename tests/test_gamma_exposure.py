@@ -109,8 +109,10 @@ def test_the_exposures_power_is_glibcs_rounded_and_the_same_with_numpys_avx512_p
 
     from egobench.host import numpy_avx512_targets
 
-    run = lambda extra: subprocess.run([sys.executable, "-c", _POWER_LAW_SCRIPT], capture_output=True, text=True,  # noqa: E731
-                                       check=True, env={**os.environ, **extra}).stdout
+    def run(extra: dict) -> str:
+        return subprocess.run([sys.executable, "-c", _POWER_LAW_SCRIPT], capture_output=True, text=True, check=True,
+                              env={**os.environ, **extra}).stdout
+
     host = run({})
     g = torch.Generator().manual_seed(7)
     x = (0.05 + 0.9 * torch.rand(32, 32, 3, generator=g)).to(torch.float32).numpy()
