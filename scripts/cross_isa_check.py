@@ -61,7 +61,8 @@ SIM_CHILD = r"""
 import sys
 from egobench.sim.capture import simulate_recording
 from egobench.sim.config import SimConfig
-simulate_recording(SimConfig.from_overrides("outdoor", 0, {"rectified_size": int(sys.argv[2]), "n_frames": 32}),
+n_frames = int(sys.argv[3]) if len(sys.argv) > 3 else 32
+simulate_recording(SimConfig.from_overrides("outdoor", 0, {"rectified_size": int(sys.argv[2]), "n_frames": n_frames}),
                    sys.argv[1], progress=False)
 """
 
