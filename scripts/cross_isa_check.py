@@ -33,10 +33,12 @@ from egobench.host import numpy_avx512_targets
 #: numba's generic x86-64 target, torch's non-vectorised kernels, MKL's reproducible mode, oneDNN at SSE4.1
 PORTABLE = {"NUMBA_CPU_NAME": "generic", "ATEN_CPU_CAPABILITY": "default", "MKL_CBWR": "COMPATIBLE",
             "ONEDNN_MAX_CPU_ISA": "SSE41"}
+#: numpy's AVX-512 code paths (names of this numpy), switched off in the AVX2 setting
+NUMPY_AVX512 = numpy_avx512_targets()
 AVX2 = {"NUMBA_CPU_NAME": "znver3", "ATEN_CPU_CAPABILITY": "avx2", "MKL_ENABLE_INSTRUCTIONS": "AVX2",
         "ONEDNN_MAX_CPU_ISA": "AVX2", "GLIBC_TUNABLES": "glibc.cpu.hwcaps=-AVX512F,-AVX512VL,-AVX512BW,-AVX512DQ,-AVX512CD",
         "OPENBLAS_CORETYPE": "Haswell",
-        **({"NPY_DISABLE_CPU_FEATURES": " ".join(numpy_avx512_targets())} if numpy_avx512_targets() else {})}
+        **({"NPY_DISABLE_CPU_FEATURES": " ".join(NUMPY_AVX512)} if NUMPY_AVX512 else {})}
 
 CHILD = r"""
 import json, sys, numpy as np, torch
@@ -57,13 +59,19 @@ print(json.dumps({"host": host_info(), "iters_per_s": res.iters_per_s, "psnr": e
 """
 
 
-SIM_CHILD = r"""
-import sys
-from egobench.sim.capture import simulate_recording
-from egobench.sim.config import SimConfig
-n_frames = int(sys.argv[3]) if len(sys.argv) > 3 else 32
-simulate_recording(SimConfig.from_overrides("outdoor", 0, {"rectified_size": int(sys.argv[2]), "n_frames": n_frames}),
-                   sys.argv[1], progress=False)
+def simulate(rec: str | Path, size: int, n_frames: int = 32) -> None:
+    """The recording every setting trains on: outdoor, seed 0, ``size`` px, ``n_frames`` frames."""
+    from egobench.sim.capture import simulate_recording
+    from egobench.sim.config import SimConfig
+
+    simulate_recording(SimConfig.from_overrides("outdoor", 0, {"rectified_size": size, "n_frames": n_frames}),
+                       rec, progress=False)
+
+
+#: `simulate` in a child: argv rec, size, n_frames
+SIM_CHILD = f"""
+import runpy, sys
+runpy.run_path({str(Path(__file__).resolve())!r}, run_name="child")["simulate"](sys.argv[1], *map(int, sys.argv[2:]))
 """
 
 
@@ -119,9 +127,6 @@ def compare(out: Path, a: str, b: str) -> dict:
 
 
 def main() -> int:
-    from egobench.sim.capture import simulate_recording
-    from egobench.sim.config import SimConfig
-
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", required=True)
     ap.add_argument("--iterations", type=int, default=300)
@@ -132,8 +137,7 @@ def main() -> int:
     out = Path(args.out)
     rec = out / "recording"
     if not rec.exists():
-        simulate_recording(SimConfig.from_overrides("outdoor", 0, {"rectified_size": args.size, "n_frames": 32}),
-                           rec, progress=False)
+        simulate(rec, args.size)
     settings = {"host": {}, "avx2": AVX2, "portable": dict(PORTABLE), "portable_avx2": {**AVX2, **PORTABLE}}
     results = {name: run_setting(name, env, rec, out, args.iterations) for name, env in settings.items()}
     for name, r in results.items():
