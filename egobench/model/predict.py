@@ -19,6 +19,7 @@ from torch import Tensor
 from egobench.camera.pinhole import Pinhole
 from egobench.data.recording import Frame, Recording
 from egobench.model.methods import MethodSpec
+from egobench.render.types import first_image
 
 if TYPE_CHECKING:  # pragma: no cover
     from egobench.render.types import Gaussians, RenderOutput
@@ -224,8 +225,8 @@ def mean_rgb(outs: list["RenderOutput"]) -> Tensor:
     """The exposure samples' scene colour averaged -> [H, W, 3] (one sample: itself, the mean's value,
     without the stack, the mean and their autograd nodes)."""
     if len(outs) == 1:
-        return outs[0].rgb[0]
-    return torch.stack([o.rgb[0] for o in outs]).mean(0)
+        return first_image(outs[0].rgb)
+    return torch.stack([first_image(o.rgb) for o in outs]).mean(0)
 
 
 @dataclass

@@ -185,16 +185,18 @@ def pose_sums(per: Tensor, c0: int, c1: int) -> Tensor:
 
 def pixel_views(pixel_pose_index: Tensor | None, I: int, H: int, W: int, ts: int) -> tuple[np.ndarray, np.ndarray]:
     """-> (pix_view [Iout, H, W] int64: the image (pose) each output pixel is composited under,
-    bin_needed [I, tiles] bool: the (image, tile) bins some output pixel reads)."""
+    bin_needed [I, tiles] bool: the (image, tile) bins some output pixel reads); pixel_pose_index [H, W] holds
+    0..I-1 (checked by `render`)."""
     tiles_x, tiles_y = math.ceil(W / ts), math.ceil(H / ts)
     if pixel_pose_index is None:
         pix_view = np.ascontiguousarray(np.broadcast_to(np.arange(I, dtype=np.int64)[:, None, None], (I, H, W)))
         return pix_view, np.ones((I, tiles_y * tiles_x), dtype=np.bool_)
-    ppi = pixel_pose_index.detach().cpu().long().numpy()
-    tile_of = (np.arange(H)[:, None] // ts) * tiles_x + (np.arange(W)[None, :] // ts)
+    from egobench.render import cpu_kernels as ck
+
+    ppi = np.ascontiguousarray(pixel_pose_index.detach().cpu().long().numpy())
     bin_needed = np.zeros((I, tiles_y * tiles_x), dtype=np.bool_)
-    bin_needed[ppi.reshape(-1), np.broadcast_to(tile_of, (H, W)).reshape(-1)] = True
-    return np.ascontiguousarray(ppi[None]), bin_needed
+    ck.needed_bins(ppi, ts, tiles_x, bin_needed)
+    return ppi[None], bin_needed
 
 
 class _Project(torch.autograd.Function):
@@ -256,8 +258,8 @@ def gsplat_pixels(means2d: Tensor) -> np.ndarray:
 
 
 class _Rasterize(torch.autograd.Function):
-    """(means2d (egobench pixels), conics, log_opacity, colors, depths, normals) -> features [Iout,H,W,Cf]
-    (sum w (rgb, depth, normal)), transmittance [Iout,H,W]."""
+    """(means2d (egobench pixels), conics, log_opacity, colors, depths, normals) -> sums of w rgb [Iout,H,W,3],
+    w depth [Iout,H,W,1] and w normal [Iout,H,W,3 or 0] (`feature_outputs`), transmittance [Iout,H,W]."""
 
     @staticmethod
     def forward(ctx, means2d, conics, log_opac, colors, depths, normals, radii, pix_view, bin_needed, tile_size,
@@ -282,16 +284,18 @@ class _Rasterize(torch.autograd.Function):
         ctx.state = (tab, st, pix_view, tile_size, out_T, out_last, rows_hit, absgrad_target)
         ctx.has_normals = bool(normals.shape[1])
         ctx.shapes = (I, N, colors.dtype)
-        return torch.from_numpy(out_feat), torch.from_numpy(out_T)
+        ctx.set_materialize_grads(False)  # unused outputs: zeros written here, not allocated by autograd
+        return (*feature_outputs(out_feat), torch.from_numpy(out_T))
 
     @staticmethod
-    def backward(ctx, g_feat, g_T):
+    def backward(ctx, g_rgb, g_depth, g_normal, g_T):
         from egobench.render import cpu_kernels as ck
 
         tab, st, pix_view, ts, out_T, out_last, rows_hit, ab = ctx.state
         I, N, dt = ctx.shapes
         Cf = st.feats.shape[1]
-        gF = np.zeros(out_T.shape + (Cf,), out_T.dtype) if g_feat is None else contiguous_numpy(g_feat)
+        gF = np.empty(out_T.shape + (Cf,), out_T.dtype)
+        fill_channel_grads(gF, g_rgb, g_depth, g_normal)
         gT = np.zeros(out_T.shape, out_T.dtype) if g_T is None else contiguous_numpy(g_T)
         isect = np.zeros((st.flat_ids.shape[0], 6 + Cf), st.kc.dtype)
         set_threads()
@@ -329,10 +333,10 @@ def render_cpu(gaussians: Gaussians, camera: Pinhole, viewmats: Tensor, *, pixel
     ts = int(tile_size)
     pix_view, bin_needed = pixel_views(pixel_pose_index, I, H, W, ts)
     holder = [means2d_out] if absgrad and means2d_out.requires_grad else None
-    feats, trans = _Rasterize.apply(means2d_out, conics, log_opac, gaussians.colors, depths, normals, radii,
-                                    pix_view, bin_needed, ts, holder)
-    rgb, alpha, depth = composite_output(feats, trans, background)
-    normal = feats[..., 4:7] if want_normal else None
+    rgb_sum, depth_sum, normal, trans = _Rasterize.apply(means2d_out, conics, log_opac, gaussians.colors, depths,
+                                                         normals, radii, pix_view, bin_needed, ts, holder)
+    rgb, alpha, depth = composite_output(rgb_sum, depth_sum, trans, background)
+    normal = normal if want_normal else None
     return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, normal=normal, means2d=means2d_out,
                         radii=radius_max(radii), extras={"backend": "cpu", "tile_size": ts})
 
@@ -349,12 +353,30 @@ def camera_array(camera: Pinhole) -> np.ndarray:
                     dtype=np.float64)
 
 
-def composite_output(feats: Tensor, trans: Tensor, background: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
-    """features [Iout,H,W,Cf] (sum w (rgb, depth, ...)), transmittance [Iout,H,W] -> (rgb with the
+def feature_outputs(out_feat: np.ndarray) -> tuple[Tensor, Tensor, Tensor]:
+    """The rasterizer's feature buffer [Iout,H,W,Cf] (sum w (rgb, depth, normal)) -> its rgb [..., 3], depth
+    [..., 1] and normal [..., Cf - 4] channels: separate outputs (views, no copies), so that autograd hands
+    back one gradient per channel group instead of adding zero-padded full-width ones."""
+    feat = torch.from_numpy(out_feat)
+    return feat[..., 0:3], feat[..., 3:4], feat[..., 4:]
+
+
+def fill_channel_grads(out: np.ndarray, g_rgb: Tensor | None, g_depth: Tensor | None,
+                       g_normal: Tensor | None) -> None:
+    """Write the gradients of `feature_outputs`' three outputs into ``out`` [Iout,H,W,Cf] (first Cf channels;
+    zeros where a gradient is None)."""
+    for c0, c1, g in ((0, 3, g_rgb), (3, 4, g_depth), (4, 7, g_normal)):
+        if c1 <= out.shape[-1]:
+            out[..., c0:c1] = 0 if g is None else contiguous_numpy(g)
+
+
+def composite_output(rgb_sum: Tensor, depth_sum: Tensor, trans: Tensor,
+                     background: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+    """sums of w rgb [Iout,H,W,3] and w depth [Iout,H,W,1], transmittance [Iout,H,W] -> (rgb with the
     background, alpha [..., 1], depth normalised by alpha [..., 1]), as the torch path of `render`."""
     trans = trans[..., None]
     alpha = 1.0 - trans
-    rgb = feats[..., :3]
+    rgb = rgb_sum
     if background is not None and bool(background.any()):  # a black background adds nothing (the default)
         rgb = rgb + trans * background
-    return rgb, alpha, feats[..., 3:4] / alpha.clamp(min=1e-10)
+    return rgb, alpha, depth_sum / alpha.clamp(min=1e-10)

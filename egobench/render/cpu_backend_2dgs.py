@@ -18,7 +18,8 @@ from torch import Tensor
 
 from egobench.camera.pinhole import Pinhole
 from egobench.render.cpu_backend import (GSPLAT_PIXEL_OFFSET, NEAR_PLANE, FAR_PLANE, contiguous_numpy, pose_grad,
-                                         set_threads, camera_array, composite_output, gsplat_pixels, pixel_views,
+                                         set_threads, camera_array, composite_output, feature_outputs,
+                                         fill_channel_grads, gsplat_pixels, pixel_views,
                                          pose_sums, radius_max, raster_setup, reduce_intersections, rows_hit_buffer,
                                          table_buffer, upstream_grad)
 from egobench.render.types import Gaussians, RenderOutput
@@ -71,8 +72,8 @@ class _Project2DGS(torch.autograd.Function):
 
 class _Rasterize2DGS(torch.autograd.Function):
     """(means2d (egobench pixels), ray transforms [I,N,9], log_opacity,
-    colors, depths, normals) -> features [Iout,H,W,7] (sum w (rgb, depth, normal)), transmittance
-    [Iout,H,W], distortion [Iout,H,W].
+    colors, depths, normals) -> sums of w rgb [Iout,H,W,3], w depth [Iout,H,W,1] and w normal [Iout,H,W,3]
+    (`feature_outputs`), transmittance [Iout,H,W], distortion [Iout,H,W].
     ``carrier`` [I,N,2] (or None): gsplat's gradient_2dgs leaf; it does not change the output and
     gets (dL/dM[0, 2], dL/dM[1, 2]) M[2, 2], as torch_backend.densify_carrier_2dgs would give it."""
 
@@ -98,21 +99,20 @@ class _Rasterize2DGS(torch.autograd.Function):
                            st.tiles_x, st.cw, st.kc, st.centres, out_feat, out_T, out_last, rows_hit)
         ctx.state = (tsl_np, tab, st, pix_view, tile_size, out_feat, out_T, out_last, rows_hit, absgrad_target)
         ctx.shapes = (I, N, colors.dtype)
+        ctx.set_materialize_grads(False)  # unused outputs: zeros written here, not allocated by autograd
         feat = torch.from_numpy(out_feat)
-        return feat[..., :Cf], torch.from_numpy(out_T), feat[..., Cf]  # views: no copies of the image
+        return (*feature_outputs(out_feat[..., :Cf]), torch.from_numpy(out_T), feat[..., Cf])  # views, no copies
 
     @staticmethod
-    def backward(ctx, g_feat, g_T, g_dist):
+    def backward(ctx, g_rgb, g_depth, g_normal, g_T, g_dist):
         from egobench.render import cpu_kernels_2dgs as k2
 
         tsl_np, tab, st, pix_view, ts, out_feat, out_T, out_last, rows_hit, ab = ctx.state
         I, N, dt = ctx.shapes
         Cf = st.feats.shape[1]
-        g_state = np.zeros(out_T.shape + (Cf + 2,), out_T.dtype)  # dL/dF, 2 dL/d distortion, forward depth
-        if g_feat is not None:
-            g_state[..., :Cf] = contiguous_numpy(g_feat)
-        if g_dist is not None:
-            g_state[..., Cf] = 2.0 * contiguous_numpy(g_dist)
+        g_state = np.empty(out_T.shape + (Cf + 2,), out_T.dtype)  # dL/dF, 2 dL/d distortion, forward depth
+        fill_channel_grads(g_state, g_rgb, g_depth, g_normal)
+        g_state[..., Cf] = 0 if g_dist is None else 2.0 * contiguous_numpy(g_dist)
         g_state[..., Cf + 1] = out_feat[..., k2.DEPTH_CH]
         gT = np.zeros(out_T.shape, out_T.dtype) if g_T is None else contiguous_numpy(g_T)
         isect = np.zeros((st.flat_ids.shape[0], 12 + Cf), st.kc.dtype)
@@ -149,14 +149,14 @@ def render_cpu_2dgs(gaussians: Gaussians, camera: Pinhole, viewmats: Tensor, *, 
     ts = int(tile_size)
     pix_view, bin_needed = pixel_views(pixel_pose_index, I, H, W, ts)
     holder = [means2d_out] if absgrad and means2d_out.requires_grad else None
-    feats, trans, dist = _Rasterize2DGS.apply(means2d_out, tsl, F.logsigmoid(gaussians.opacity_logits),
-                                              gaussians.colors, depths, normals, radii, pix_view, bin_needed, ts, holder,
-                                              carrier)
-    rgb, alpha, depth = composite_output(feats, trans, background)
+    rgb_sum, depth_sum, normal, trans, dist = _Rasterize2DGS.apply(
+        means2d_out, tsl, F.logsigmoid(gaussians.opacity_logits), gaussians.colors, depths, normals, radii, pix_view,
+        bin_needed, ts, holder, carrier)
+    rgb, alpha, depth = composite_output(rgb_sum, depth_sum, trans, background)
     extras = {"backend": "cpu", "tile_size": ts, "distortion": dist[..., None]}
     means2d = means2d_out
     if carrier is not None:  # as the torch and gsplat backends: means2d carries gsplat's gradient_2dgs
         extras["means2d_values"] = means2d_out
         means2d = carrier
-    return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, normal=feats[..., 4:7], means2d=means2d,
+    return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, normal=normal, means2d=means2d,
                         radii=radius_max(radii), extras=extras)

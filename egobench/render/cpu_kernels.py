@@ -527,6 +527,22 @@ def project_bwd(means, quats, scales, viewmats, cam, width, height, eps2d, near,
             quat_grad(gR, qw, qx, qy, qz, qinv, g_quats, n)
 
 
+@njit(cache=True)
+def needed_bins(pixel_pose, tile_size, tiles_x, bin_needed):
+    """bin_needed [I, tiles] bool |= the (pose, tile) bins that some pixel of pixel_pose [H, W] (pose index
+    per pixel, 0..I-1) lies in. A pass over the pixels, a store only where the pose changes along a tile's row."""
+    H, W = pixel_pose.shape
+    for y in range(H):
+        row = (y // tile_size) * tiles_x
+        for tx in range(tiles_x):
+            last = -1
+            for x in range(tx * tile_size, min(W, (tx + 1) * tile_size)):
+                p = pixel_pose[y, x]
+                if p != last:
+                    bin_needed[p, row + tx] = True
+                    last = p
+
+
 def bin_tiles(means2d, radii, depths, tile_size, tiles_x, tiles_y, bin_needed):
     """Intersections sorted by (bin, depth, Gaussian index): means2d [I,N,2], radii [I,N,2],
     depths [I,N], bin_needed [I, tiles] bool -> (flat_ids [M] int64 (image * N + Gaussian),

@@ -60,3 +60,9 @@ class RenderOutput:
     means2d: Tensor | None = None  # [B, N, 2] projected means, retaining grad for densification statistics; 2DGS: gsplat's gradient_2dgs carrier (zeros; values in extras["means2d_values"])
     radii: Tensor | None = None  # [B, N] screen-space radius in pixels, 0 where culled
     extras: dict | None = None  # backend-specific (2DGS distortion map, timings)
+
+
+def first_image(x: Tensor) -> Tensor:
+    """``x[0]`` of a [B, ...] render output; for B = 1 a view whose backward is a view too (``x[0]``'s backward
+    writes the gradient into a new zero tensor of x's shape: a pass over the image per use)."""
+    return x.squeeze(0) if x.shape[0] == 1 else x[0]

@@ -72,7 +72,7 @@ class StepContext:
     config: TrainConfig
     settings: RenderSettings
     formation: object  # the method's `FormationModel`
-    mask3: Tensor  # [H, W, 1] float valid pixels
+    mask3: Tensor  # [H, W, 3] float valid pixels, one per channel (the photometric loss reads it without a copy)
     n_mask: float  # valid pixels x 3
     vignette: Tensor  # [H, W]
     k: Tensor  # [F] exposure*gain normaliser of the training frames
@@ -83,8 +83,9 @@ class StepContext:
 
 def step_context(data: TrainingData, config: TrainConfig, device: torch.device) -> StepContext:
     """Move the maps to the device; a valid mask that is empty at the training resolution is a named error."""
-    mask3 = data.maps.mask.to(device)[..., None].float()
-    n_mask = float(mask3.sum()) * 3
+    mask = data.maps.mask.to(device)[..., None].float()
+    n_mask = float(mask.sum()) * 3
+    mask3 = mask.expand(-1, -1, 3).contiguous()
     if n_mask == 0:
         raise ValueError(f"recording {data.recording.root}: the valid-pixel mask is empty at the training resolution")
     return StepContext(data=data, config=config, settings=RenderSettings.of(config, device),

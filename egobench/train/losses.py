@@ -6,6 +6,7 @@ from __future__ import annotations
 from torch import Tensor
 
 from egobench.camera.pinhole import Pinhole
+from egobench.render.types import first_image
 from egobench.train.config import TrainConfig
 from egobench.train.normal_consistency import normal_consistency
 
@@ -16,7 +17,8 @@ def twodgs_regularisers(outs: list, cam: Pinhole, config: TrainConfig, it: int, 
     o = outs[0]
     total = o.rgb.new_zeros(())
     if config.normal_lambda > 0 and it >= config.normal_start_iter and o.normal is not None:
-        nc = normal_consistency(o.depth[0, ..., 0], o.normal[0], o.alpha[0, ..., 0], mask3[..., 0], cam)
+        nc = normal_consistency(first_image(o.depth).squeeze(-1), first_image(o.normal),
+                                first_image(o.alpha).squeeze(-1), mask3[..., 0], cam)
         total = total + config.normal_lambda * nc
     if config.dist_lambda > 0 and it >= config.dist_start_iter and o.extras and "distortion" in o.extras:
         total = total + config.dist_lambda * o.extras["distortion"].mean()
