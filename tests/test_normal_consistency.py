@@ -139,3 +139,25 @@ def test_compiled_kernels_are_the_row_major_scatter_bit_for_bit_on_any_thread_co
             assert np.array_equal(got_normal.view(np.uint64), g_normal.view(np.uint64))
     finally:
         numba.set_num_threads(saved)
+
+
+def test_kernel_inputs_are_the_torch_ops_bits_for_float32_views():
+    """`_nc_inputs` (back-projected points, float64 normals and weights in one compiled pass) gives the bits
+    of the torch ops it replaced, for float32 inputs read through strided views as training passes them
+    (the normal a channel slice of the feature image, the mask a channel of the per-channel mask)."""
+    from egobench.train.normal_consistency import _nc_inputs, _rays
+
+    depth, normal, alpha, mask, cam = _inputs(torch.float32, H=13, W=17, seed=5)
+    feats = torch.randn(13, 17, 7)
+    feats[..., 4:7] = normal.detach()
+    normal_view, mask_view = feats[..., 4:7], mask[..., None].expand(-1, -1, 3).contiguous()[..., 0]
+    rays = _rays(cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height)
+    count = mask_view.sum().clamp_min(1)
+    want_P = rays * depth.detach()[..., None].to(torch.float64)
+    want_w = alpha.to(torch.float64) * mask_view.to(torch.float64) / count.to(torch.float64)
+    P, N, wts = np.empty((13, 17, 3)), np.empty((13, 17, 3)), np.empty((13, 17))
+    _nc_inputs(depth.detach().numpy(), normal_view.contiguous().numpy(), rays.numpy(), alpha.numpy(),
+               mask_view.contiguous().numpy(), float(count), P, N, wts)
+    assert np.array_equal(P, want_P.numpy()) and np.array_equal(wts, want_w.numpy())
+    assert np.array_equal(N, normal_view.to(torch.float64).numpy())
+    assert float(want_w.sum()) > 0.1  # the mean alpha over a non-empty mask: the weights are not all zero

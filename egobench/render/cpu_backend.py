@@ -294,8 +294,7 @@ class _Rasterize(torch.autograd.Function):
         tab, st, pix_view, ts, out_T, out_last, rows_hit, ab = ctx.state
         I, N, dt = ctx.shapes
         Cf = st.feats.shape[1]
-        gF = np.empty(out_T.shape + (Cf,), out_T.dtype)
-        fill_channel_grads(gF, g_rgb, g_depth, g_normal)
+        gF = pixel_grads(Cf, out_T, g_rgb, g_depth, g_normal)
         gT = np.zeros(out_T.shape, out_T.dtype) if g_T is None else contiguous_numpy(g_T)
         isect = np.zeros((st.flat_ids.shape[0], 6 + Cf), st.kc.dtype)
         set_threads()
@@ -361,13 +360,23 @@ def feature_outputs(out_feat: np.ndarray) -> tuple[Tensor, Tensor, Tensor]:
     return feat[..., 0:3], feat[..., 3:4], feat[..., 4:]
 
 
-def fill_channel_grads(out: np.ndarray, g_rgb: Tensor | None, g_depth: Tensor | None,
-                       g_normal: Tensor | None) -> None:
-    """Write the gradients of `feature_outputs`' three outputs into ``out`` [Iout,H,W,Cf] (first Cf channels;
-    zeros where a gradient is None)."""
-    for c0, c1, g in ((0, 3, g_rgb), (3, 4, g_depth), (4, 7, g_normal)):
-        if c1 <= out.shape[-1]:
-            out[..., c0:c1] = 0 if g is None else contiguous_numpy(g)
+def pixel_grads(n_channels: int, out_T: np.ndarray, g_rgb: Tensor | None, g_depth: Tensor | None,
+                g_normal: Tensor | None, g_dist: Tensor | None = None, out_feat: np.ndarray | None = None) -> np.ndarray:
+    """The gradients of `feature_outputs`' outputs (None: zeros) -> the raster backward's per-pixel input
+    [Iout,H,W,n_channels] (`cpu_kernels.pack_pixel_grads`; 2DGS adds 2 dL/d distortion and ``out_feat``'s
+    depth)."""
+    from egobench.render import cpu_kernels as ck
+
+    P, dt = out_T.size, out_T.dtype
+
+    def rows(g: Tensor | None, *row: int) -> np.ndarray:  # [P, *row]; no rows for None
+        return np.empty((0, *row), dt) if g is None else contiguous_numpy(g).reshape(P, *row)
+
+    out = np.empty(out_T.shape + (n_channels,), dt)
+    fwd = np.empty((0, 8), dt) if out_feat is None else out_feat.reshape(P, -1)
+    ck.pack_pixel_grads(out.reshape(P, n_channels), rows(g_rgb, 3), rows(g_depth, 1),
+                        rows(g_normal if n_channels >= 7 else None, 3), rows(g_dist), fwd)
+    return out
 
 
 def composite_output(rgb_sum: Tensor, depth_sum: Tensor, trans: Tensor,

@@ -19,7 +19,7 @@ from torch import Tensor
 from egobench.camera.pinhole import Pinhole
 from egobench.render.cpu_backend import (GSPLAT_PIXEL_OFFSET, NEAR_PLANE, FAR_PLANE, contiguous_numpy, pose_grad,
                                          set_threads, camera_array, composite_output, feature_outputs,
-                                         fill_channel_grads, gsplat_pixels, pixel_views,
+                                         gsplat_pixels, pixel_grads, pixel_views,
                                          pose_sums, radius_max, raster_setup, reduce_intersections, rows_hit_buffer,
                                          table_buffer, upstream_grad)
 from egobench.render.types import Gaussians, RenderOutput
@@ -110,10 +110,7 @@ class _Rasterize2DGS(torch.autograd.Function):
         tsl_np, tab, st, pix_view, ts, out_feat, out_T, out_last, rows_hit, ab = ctx.state
         I, N, dt = ctx.shapes
         Cf = st.feats.shape[1]
-        g_state = np.empty(out_T.shape + (Cf + 2,), out_T.dtype)  # dL/dF, 2 dL/d distortion, forward depth
-        fill_channel_grads(g_state, g_rgb, g_depth, g_normal)
-        g_state[..., Cf] = 0 if g_dist is None else 2.0 * contiguous_numpy(g_dist)
-        g_state[..., Cf + 1] = out_feat[..., k2.DEPTH_CH]
+        g_state = pixel_grads(Cf + 2, out_T, g_rgb, g_depth, g_normal, g_dist, out_feat)  # + 2 dL/d dist, depth
         gT = np.zeros(out_T.shape, out_T.dtype) if g_T is None else contiguous_numpy(g_T)
         isect = np.zeros((st.flat_ids.shape[0], 12 + Cf), st.kc.dtype)
         set_threads()

@@ -1550,6 +1550,25 @@ def ordered_sum(block, out):
 
 
 @njit(cache=True, parallel=True)
+def pack_pixel_grads(out, g_rgb, g_depth, g_normal, g_dist, fwd_feat):
+    """The raster backward's per-pixel input out [P, C] (C = 4 or 7; 9 for 2DGS) from the gradients of the
+    forward's outputs, in one pass: channels 0-2 g_rgb [P, 3], 3 g_depth [P, 1], 4-6 g_normal [P, 3]; for
+    C = 9 also 7 = 2 g_dist [P] (dL/d distortion) and 8 = the forward's depth fwd_feat[:, 3]. An input
+    with no rows stands for zeros (an output no loss read)."""
+    P, C = out.shape
+    for p in prange(P):
+        for c in range(3):
+            out[p, c] = g_rgb[p, c] if g_rgb.shape[0] else 0.0
+        out[p, 3] = g_depth[p, 0] if g_depth.shape[0] else 0.0
+        if C >= 7:
+            for c in range(3):
+                out[p, 4 + c] = g_normal[p, c] if g_normal.shape[0] else 0.0
+        if C == 9:
+            out[p, 7] = g_dist[p] + g_dist[p] if g_dist.shape[0] else 0.0
+            out[p, 8] = fwd_feat[p, 3]
+
+
+@njit(cache=True, parallel=True)
 def reduce_isect_grad(isect_grad, flat_ids, M, out, absgrad, parts=1):
     """Per-intersection gradients [M, C] -> per (image, Gaussian) sums written to out [C, I*N]
     (channel first, so that each parameter's gradient is one contiguous block for the projection

@@ -16,6 +16,7 @@ from numba import njit, prange
 from torch import Tensor
 
 from egobench.camera.pinhole import Pinhole
+from egobench.render.cpu_backend import contiguous_numpy
 
 #: F.normalize's eps: x / max(|x|, NORM_EPS)
 NORM_EPS = 1e-12
@@ -70,10 +71,25 @@ def _unit_grad(gx, gy, gz, x, y, z, s):
 
 
 @njit(cache=True, parallel=True)
+def _nc_inputs(depth, normal, rays, alpha, mask, mask_count, P, N, wts):
+    """depth, alpha, mask [H, W], normal [H, W, 3] (any float dtype), rays [H, W, 3] float64 -> P = rays depth
+    [H, W, 3], N = normal [H, W, 3] and wts = alpha mask / mask_count [H, W] in float64 (the torch ops'
+    operations, in one pass)."""
+    H, W = wts.shape
+    for v in prange(H):
+        for u in range(W):
+            d = float(depth[v, u])
+            for c in range(3):
+                P[v, u, c] = rays[v, u, c] * d
+                N[v, u, c] = normal[v, u, c]
+            wts[v, u] = float(alpha[v, u]) * float(mask[v, u]) / mask_count
+
+
+@njit(cache=True, parallel=True)
 def _nc_forward(P, N, wts):
     """P [H, W, 3] back-projected points, N [H, W, 3] rendered normals, wts [H, W] alpha mask / count
-    (float64) -> sum_p wts (1 - unit(N) . unit(depth normal)) (depth normal 0 on the border). The
-    terms in parallel over rows, their sum in pixel order (the same bits for any thread count)."""
+    (float64) -> sum_p wts (1 - unit(N) . unit(depth normal)) (depth normal 0 on the border).
+    The terms in parallel over rows, their sum in pixel order (the same bits for any thread count)."""
     H, W = wts.shape
     terms = np.empty((H, W))
     for v in prange(H):
@@ -154,21 +170,24 @@ def _rays(fx: float, fy: float, cx: float, cy: float, width: int, height: int) -
 
 
 class _NormalConsistencyCPU(torch.autograd.Function):
-    """`normal_consistency_torch` with compiled kernels (float64 inside): (depth, normal, wts, rays)."""
+    """`normal_consistency_torch` with compiled kernels (float64 inside): (depth, normal, alpha, mask, rays,
+    mask count); gradients of depth and normal in their own dtypes."""
 
     @staticmethod
-    def forward(ctx, depth, normal, wts, rays):
-        P = rays * depth[..., None].to(torch.float64)
-        arrs = tuple(t.detach().to(torch.float64).contiguous().numpy() for t in (P, normal, wts, rays))
-        ctx.arrs, ctx.dtypes = arrs, (depth.dtype, normal.dtype)
-        return torch.tensor(_nc_forward(arrs[0], arrs[1], arrs[2]), dtype=depth.dtype)
+    def forward(ctx, depth, normal, alpha, mask, rays, mask_count):
+        H, W = depth.shape
+        P, N, wts = np.empty((H, W, 3)), np.empty((H, W, 3)), np.empty((H, W))
+        d, n, rays_np = contiguous_numpy(depth), contiguous_numpy(normal), contiguous_numpy(rays)
+        _nc_inputs(d, n, rays_np, contiguous_numpy(alpha), contiguous_numpy(mask), mask_count, P, N, wts)
+        ctx.arrs, ctx.dtypes = (P, N, wts, rays_np), (d.dtype, n.dtype)
+        return torch.tensor(_nc_forward(P, N, wts), dtype=depth.dtype)
 
     @staticmethod
     def backward(ctx, g):
         P, N, wts, rays = ctx.arrs
-        g_depth, g_normal = np.empty(wts.shape), np.empty(N.shape)
-        _nc_backward(P, rays, N, wts, float(g), g_depth, g_normal)
-        return torch.from_numpy(g_depth).to(ctx.dtypes[0]), torch.from_numpy(g_normal).to(ctx.dtypes[1]), None, None
+        g_depth, g_normal = np.empty(wts.shape, ctx.dtypes[0]), np.empty(N.shape, ctx.dtypes[1])
+        _nc_backward(P, rays, N, wts, float(g), g_depth, g_normal)  # float64 sums, stored rounded to the dtypes
+        return torch.from_numpy(g_depth), torch.from_numpy(g_normal), None, None, None, None
 
 
 def normal_consistency(depth: Tensor, normal: Tensor, alpha: Tensor, mask: Tensor, camera: Pinhole) -> Tensor:
@@ -176,5 +195,5 @@ def normal_consistency(depth: Tensor, normal: Tensor, alpha: Tensor, mask: Tenso
     if depth.device.type != "cpu":
         return normal_consistency_torch(depth, normal, alpha, mask, camera)
     rays = _rays(camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height)
-    wts = alpha.detach().to(torch.float64) * mask.to(torch.float64) / mask.sum().clamp_min(1).to(torch.float64)
-    return _NormalConsistencyCPU.apply(depth, normal, wts, rays)
+    mask_count = float(mask.sum().clamp_min(1))  # the torch oracle's divisor, in its dtype
+    return _NormalConsistencyCPU.apply(depth, normal, alpha.detach(), mask, rays, mask_count)
