@@ -151,13 +151,14 @@ def test_kernel_inputs_are_the_torch_ops_bits_for_float32_views():
     feats = torch.randn(13, 17, 7)
     feats[..., 4:7] = normal.detach()
     normal_view, mask_view = feats[..., 4:7], mask[..., None].expand(-1, -1, 3).contiguous()[..., 0]
+    assert not normal_view.is_contiguous() and not mask_view.is_contiguous()  # read strided, as in training
     rays = _rays(cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height)
     count = mask_view.sum().clamp_min(1)
     want_P = rays * depth.detach()[..., None].to(torch.float64)
     want_w = alpha.to(torch.float64) * mask_view.to(torch.float64) / count.to(torch.float64)
     P, N, wts = np.empty((13, 17, 3)), np.empty((13, 17, 3)), np.empty((13, 17))
-    _nc_inputs(depth.detach().numpy(), normal_view.contiguous().numpy(), rays.numpy(), alpha.numpy(),
-               mask_view.contiguous().numpy(), float(count), P, N, wts)
+    _nc_inputs(depth.detach().numpy(), normal_view.numpy(), rays.numpy(), alpha.numpy(), mask_view.numpy(),
+               float(count), P, N, wts)
     assert np.array_equal(P, want_P.numpy()) and np.array_equal(wts, want_w.numpy())
     assert np.array_equal(N, normal_view.to(torch.float64).numpy())
     assert float(want_w.sum()) > 0.1  # the mean alpha over a non-empty mask: the weights are not all zero

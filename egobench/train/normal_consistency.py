@@ -177,8 +177,9 @@ class _NormalConsistencyCPU(torch.autograd.Function):
     def forward(ctx, depth, normal, alpha, mask, rays, mask_count):
         H, W = depth.shape
         P, N, wts = np.empty((H, W, 3)), np.empty((H, W, 3)), np.empty((H, W))
-        d, n, rays_np = contiguous_numpy(depth), contiguous_numpy(normal), contiguous_numpy(rays)
-        _nc_inputs(d, n, rays_np, contiguous_numpy(alpha), contiguous_numpy(mask), mask_count, P, N, wts)
+        d, n, rays_np = contiguous_numpy(depth), normal.detach().numpy(), contiguous_numpy(rays)
+        # the normal and the mask as they come (training: channel views), strided: no copies
+        _nc_inputs(d, n, rays_np, contiguous_numpy(alpha), mask.detach().numpy(), mask_count, P, N, wts)
         ctx.arrs, ctx.dtypes = (P, N, wts, rays_np), (d.dtype, n.dtype)
         return torch.tensor(_nc_forward(P, N, wts), dtype=depth.dtype)
 
