@@ -814,3 +814,23 @@ def test_per_bin_bodies_compile_with_a_parfor_bodys_flags():
     for kernel in (ck._fwd_bin, ck._bwd_bin):
         assert kernel._compiler.pipeline_class is ck.NoAliasCompiler
         assert kernel.targetoptions["error_model"] == "numpy"
+
+
+def test_needed_bins_are_the_bins_of_the_pixels():
+    """`cpu_kernels.needed_bins` (a store only where the pose changes along a tile's row) marks exactly the
+    (pose, tile) bins some pixel lies in: against numpy fancy indexing, for per-row poses (a rolling
+    shutter), random per-pixel poses, and an image whose sides are not multiples of the tile size."""
+    from egobench.render import cpu_kernels
+
+    rng = np.random.default_rng(3)
+    H, W, ts, I = 37, 45, 16, 5
+    tiles_x, tiles_y = math.ceil(W / ts), math.ceil(H / ts)
+    tile_of = (np.arange(H)[:, None] // ts) * tiles_x + (np.arange(W)[None, :] // ts)
+    rows = np.repeat((np.arange(H) * I // H)[:, None], W, axis=1)
+    for ppi in (rows, rng.integers(0, I, (H, W)), np.zeros((H, W), np.int64)):
+        want = np.zeros((I, tiles_y * tiles_x), bool)
+        want[ppi.reshape(-1), tile_of.reshape(-1)] = True
+        got = np.zeros_like(want)
+        cpu_kernels.needed_bins(np.ascontiguousarray(ppi, dtype=np.int64), ts, tiles_x, got)
+        assert np.array_equal(got, want)
+    assert want.sum() == tiles_x * tiles_y  # the last case: pose 0 everywhere, every tile

@@ -267,3 +267,23 @@ def test_one_pass_feature_dot_is_the_per_channel_loops():
                 seq = seq + gF[c, pa:pb] * feats[g, c]
             np.testing.assert_array_equal(one[pa:pb], seq)
             assert (one[:pa] == 7.0).all() and (one[pb:] == 7.0).all()
+
+
+def test_2dgs_outputs_no_loss_reads_get_zero_gradients():
+    """With a loss on the colour only, autograd hands the rasterizer no gradient for depth, normal,
+    transmittance and distortion (it does not materialise zeros); the backward must treat them as zeros:
+    the gradients equal those of the same loss plus zero-weighted terms on every other output map."""
+    g, T = surfel_scene(3), pose(0.03, -0.02)[None]
+    w = torch.randn((1, CAM.height, CAM.width, 3), generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    grads = []
+    for extra in (False, True):
+        inputs = {k: v.clone().requires_grad_(True) for k, v in g.tensors().items()}
+        out = render(Gaussians(**inputs), CAM, T, backend="cpu", mode="2dgs")
+        loss = (out.rgb * w).sum()
+        if extra:
+            loss = loss + 0.0 * sum(m.sum() for m in (out.alpha, out.depth, out.normal, out.extras["distortion"]))
+        loss.backward()
+        grads.append({k: v.grad for k, v in inputs.items()})
+    for k in grads[0]:
+        assert torch.equal(grads[0][k], grads[1][k]), k
+    assert float(grads[0]["means"].abs().sum()) > 0

@@ -101,7 +101,7 @@ class _Rasterize2DGS(torch.autograd.Function):
         ctx.shapes = (I, N, colors.dtype)
         ctx.set_materialize_grads(False)  # unused outputs: zeros written here, not allocated by autograd
         feat = torch.from_numpy(out_feat)
-        return (*feature_outputs(out_feat[..., :Cf]), torch.from_numpy(out_T), feat[..., Cf])  # views, no copies
+        return (*feature_outputs(out_feat[..., :Cf]), torch.from_numpy(out_T), feat[..., Cf])
 
     @staticmethod
     def backward(ctx, g_rgb, g_depth, g_normal, g_T, g_dist):

@@ -88,8 +88,8 @@ def _nc_inputs(depth, normal, rays, alpha, mask, mask_count, P, N, wts):
 @njit(cache=True, parallel=True)
 def _nc_forward(P, N, wts):
     """P [H, W, 3] back-projected points, N [H, W, 3] rendered normals, wts [H, W] alpha mask / count
-    (float64) -> sum_p wts (1 - unit(N) . unit(depth normal)) (depth normal 0 on the border).
-    The terms in parallel over rows, their sum in pixel order (the same bits for any thread count)."""
+    (float64) -> sum_p wts (1 - unit(N) . unit(depth normal)) (depth normal 0 on the border). The
+    terms in parallel over rows, their sum in pixel order (the same bits for any thread count)."""
     H, W = wts.shape
     terms = np.empty((H, W))
     for v in prange(H):
