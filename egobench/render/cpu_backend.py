@@ -362,7 +362,8 @@ def feature_outputs(out_feat: np.ndarray) -> tuple[Tensor, Tensor, Tensor]:
 
 
 def pixel_grads(n_channels: int, out_T: np.ndarray, g_rgb: Tensor | None, g_depth: Tensor | None,
-                g_normal: Tensor | None, g_dist: Tensor | None = None, out_feat: np.ndarray | None = None) -> np.ndarray:
+                g_normal: Tensor | None, g_dist: Tensor | None = None,
+                out_feat: np.ndarray | None = None) -> np.ndarray:
     """The gradients of `feature_outputs`' outputs (None: zeros) -> the raster backward's per-pixel input
     [Iout,H,W,n_channels] (`cpu_kernels.pack_pixel_grads`; 2DGS adds 2 dL/d distortion and ``out_feat``'s
     depth)."""
