@@ -78,11 +78,11 @@ def _nc_inputs(depth, normal, rays, alpha, mask, mask_count, P, N, wts):
     H, W = wts.shape
     for v in prange(H):
         for u in range(W):
-            d = float(depth[v, u])
+            d = np.float64(depth[v, u])  # numba's float() keeps a float32 a float32
             for c in range(3):
                 P[v, u, c] = rays[v, u, c] * d
                 N[v, u, c] = normal[v, u, c]
-            wts[v, u] = float(alpha[v, u]) * float(mask[v, u]) / mask_count
+            wts[v, u] = np.float64(alpha[v, u]) * np.float64(mask[v, u]) / mask_count
 
 
 @njit(cache=True, parallel=True)
