@@ -834,3 +834,34 @@ def test_needed_bins_are_the_bins_of_the_pixels():
         cpu_kernels.needed_bins(np.ascontiguousarray(ppi, dtype=np.int64), ts, tiles_x, got)
         assert np.array_equal(got, want)
     assert want.sum() == tiles_x * tiles_y  # the last case: pose 0 everywhere, every tile
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_alpha_and_depth_are_the_torch_ops_bit_for_bit(dtype):
+    """`cpu_backend.composite_output`'s compiled alpha and depth (rsub, clamp, div and their backwards in one
+    pass each) give the bits of the torch ops they replace: values and gradients, with pixels where the
+    clamp holds (T = 1, alpha below 1e-10), with and without a loss on alpha, and with a background."""
+    from egobench.render import cpu_backend
+
+    g = torch.Generator().manual_seed(7)
+    trans = torch.rand(1, 9, 11, generator=g, dtype=dtype)
+    trans[0, :2] = 1.0  # alpha 0: the clamp's branch
+    depth_sum = torch.rand(1, 9, 11, 1, generator=g, dtype=dtype) * (1.0 - trans[..., None]) * 4.0
+    w_alpha, w_depth = (torch.randn(1, 9, 11, 1, generator=g, dtype=dtype) for _ in range(2))
+    bg = torch.tensor([0.2, 0.3, 0.4], dtype=dtype)
+    for on_alpha in (False, True):
+        got, want = [], []
+        for compiled, out in ((True, got), (False, want)):
+            d, t = depth_sum.clone().requires_grad_(), trans.clone().requires_grad_()
+            if compiled:
+                rgb, alpha, depth = cpu_backend.composite_output(torch.zeros(1, 9, 11, 3, dtype=dtype), d, t, bg)
+            else:
+                alpha = 1.0 - t[..., None]
+                depth, rgb = d / alpha.clamp(min=1e-10), t[..., None] * bg
+            loss = (depth * w_depth).sum() + rgb.sum() + ((alpha * w_alpha).sum() if on_alpha else 0.0)
+            loss.backward()
+            out += [alpha.detach(), depth.detach(), d.grad, t.grad]
+        for a, b in zip(got, want):  # bit patterns (signed zeros too)
+            assert a.dtype == b.dtype == dtype and a.shape == b.shape
+            assert np.array_equal(a.contiguous().numpy().view(np.uint8), b.contiguous().numpy().view(np.uint8))
+        assert float(want[3][0, :2].abs().sum()) > 0  # the clamped pixels still pass the alpha/background terms

@@ -381,13 +381,49 @@ def pixel_grads(n_channels: int, out_T: np.ndarray, g_rgb: Tensor | None, g_dept
     return out
 
 
+#: the smallest alpha that normalises a depth (the torch path's ``alpha.clamp(min=1e-10)``)
+ALPHA_MIN = 1e-10
+
+
+class _AlphaDepth(torch.autograd.Function):
+    """(sum w depth [..., 1], transmittance [...]) -> alpha = 1 - T and depth = sum w depth / clamp(alpha,
+    ALPHA_MIN), both [..., 1]: the torch path's rsub, clamp and div and their backwards, one compiled pass
+    each (`cpu_kernels.alpha_depth`, the same bits)."""
+
+    @staticmethod
+    def forward(ctx, depth_sum, trans):
+        from egobench.render import cpu_kernels as ck
+
+        d, t = contiguous_numpy(depth_sum).reshape(-1), contiguous_numpy(trans).reshape(-1)
+        alpha, depth = np.empty_like(t), np.empty_like(t)
+        ck.alpha_depth(d, t, t.dtype.type(1.0), t.dtype.type(ALPHA_MIN), alpha, depth)
+        alpha_t = torch.from_numpy(alpha).view(depth_sum.shape)
+        ctx.save_for_backward(alpha_t)  # autograd's version check: an alpha changed in place is an error
+        ctx.sums, ctx.shapes = d, (depth_sum.shape, trans.shape)
+        ctx.set_materialize_grads(False)
+        return alpha_t, torch.from_numpy(depth).view(depth_sum.shape)
+
+    @staticmethod
+    def backward(ctx, g_alpha, g_depth):
+        from egobench.render import cpu_kernels as ck
+
+        (alpha_t,), d, (sum_shape, trans_shape) = ctx.saved_tensors, ctx.sums, ctx.shapes
+        if g_depth is None:  # only the alpha's own gradient: rsub's negation
+            return None, None if g_alpha is None else (-g_alpha).reshape(trans_shape)
+        alpha = alpha_t.numpy().reshape(-1)
+        ga = np.empty((0,), alpha.dtype) if g_alpha is None else contiguous_numpy(g_alpha).reshape(-1)
+        g_sum, g_trans = np.empty_like(alpha), np.empty_like(alpha)
+        ck.alpha_depth_grad(d, alpha, ga, contiguous_numpy(g_depth).reshape(-1), alpha.dtype.type(ALPHA_MIN),
+                            g_sum, g_trans)
+        return torch.from_numpy(g_sum).view(sum_shape), torch.from_numpy(g_trans).view(trans_shape)
+
+
 def composite_output(rgb_sum: Tensor, depth_sum: Tensor, trans: Tensor,
                      background: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
     """sums of w rgb [Iout,H,W,3] and w depth [Iout,H,W,1], transmittance [Iout,H,W] -> (rgb with the
     background, alpha [..., 1], depth normalised by alpha [..., 1]), as the torch path of `render`."""
-    trans = trans[..., None]
-    alpha = 1.0 - trans
+    alpha, depth = _AlphaDepth.apply(depth_sum, trans)
     rgb = rgb_sum
     if background is not None and bool(background.any()):  # a black background adds nothing (the default)
-        rgb = rgb + trans * background
-    return rgb, alpha, depth_sum / alpha.clamp(min=1e-10)
+        rgb = rgb + trans[..., None] * background
+    return rgb, alpha, depth

@@ -1550,6 +1550,32 @@ def ordered_sum(block, out):
 
 
 @njit(cache=True, parallel=True)
+def alpha_depth(depth_sum, trans, one, lo, alpha, depth):
+    """Per pixel [P]: alpha = one - trans, depth = depth_sum / clamp(alpha, min=lo), in the arrays' dtype
+    (``one``, ``lo`` of that dtype): torch's rsub, clamp (NaN passes through) and div, the same bits."""
+    for p in prange(trans.shape[0]):
+        a = one - trans[p]
+        alpha[p] = a
+        depth[p] = depth_sum[p] / (lo if a < lo else a)
+
+
+@njit(cache=True, parallel=True)
+def alpha_depth_grad(depth_sum, alpha, g_alpha, g_depth, lo, g_sum, g_trans):
+    """Backward of `alpha_depth` as torch's autograd takes it, the same bits: div's dL/d sum = g / den and
+    dL/d den = -g ((sum / den) / den), clamp's where(alpha >= lo, ., 0), the alpha's own gradient added,
+    rsub's negation. g_depth [P], g_alpha [P] (no rows: no gradient) -> g_sum, g_trans [P]."""
+    zero = lo - lo
+    with_alpha = g_alpha.shape[0] > 0
+    for p in prange(alpha.shape[0]):
+        a = alpha[p]
+        den = lo if a < lo else a
+        g = g_depth[p]
+        g_sum[p] = g / den
+        ga = -g * ((depth_sum[p] / den) / den) if a >= lo else zero
+        g_trans[p] = -(g_alpha[p] + ga) if with_alpha else -ga
+
+
+@njit(cache=True, parallel=True)
 def pack_pixel_grads(out, g_rgb, g_depth, g_normal, g_dist, fwd_feat):
     """The raster backward's per-pixel input out [P, C] (C = 4 or 7; 9 for 2DGS) from the gradients of the
     forward's outputs, in one pass: channels 0-2 g_rgb [P, 3], 3 g_depth [P, 1], 4-6 g_normal [P, 3]; for
