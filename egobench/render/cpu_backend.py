@@ -375,7 +375,7 @@ def pixel_grads(n_channels: int, out_T: np.ndarray, g_rgb: Tensor | None, g_dept
         return np.empty((0, *row), dt) if g is None else contiguous_numpy(g).reshape(P, *row)
 
     out = np.empty(out_T.shape + (n_channels,), dt)
-    fwd = np.empty((0, 8), dt) if out_feat is None else out_feat.reshape(P, -1)
+    fwd = np.empty((0, 0), dt) if out_feat is None else out_feat.reshape(P, -1)
     ck.pack_pixel_grads(out.reshape(P, n_channels), rows(g_rgb, 3), rows(g_depth, 1),
                         rows(g_normal if n_channels >= 7 else None, 3), rows(g_dist), fwd)
     return out

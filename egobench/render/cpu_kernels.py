@@ -938,6 +938,10 @@ def rows_needed(flat_ids, n_rows):
     return needed
 
 
+#: the feature rows' layout (`feature_table`): colour 0-2, depth 3, normal 4-6
+DEPTH_CH = 3
+
+
 @njit(cache=True, parallel=True)
 def feature_table(colors, depths, normals, needed, out):
     """The compositing's per (image, Gaussian) features, only in the rows some intersection reads:
@@ -1579,7 +1583,7 @@ def alpha_depth_grad(depth_sum, alpha, g_alpha, g_depth, lo, g_sum, g_trans):
 def pack_pixel_grads(out, g_rgb, g_depth, g_normal, g_dist, fwd_feat):
     """The raster backward's per-pixel input out [P, C] (C = 4 or 7; 9 for 2DGS) from the gradients of the
     forward's outputs, in one pass: channels 0-2 g_rgb [P, 3], 3 g_depth [P, 1], 4-6 g_normal [P, 3]; for
-    C = 9 also 7 = 2 g_dist [P] (dL/d distortion) and 8 = the forward's depth fwd_feat[:, 3]. An input
+    C = 9 also 7 = 2 g_dist [P] (dL/d distortion) and 8 = the forward's depth fwd_feat[:, DEPTH_CH]. An input
     with no rows stands for zeros (an output no loss read)."""
     P, C = out.shape
     for p in prange(P):
@@ -1591,7 +1595,7 @@ def pack_pixel_grads(out, g_rgb, g_depth, g_normal, g_dist, fwd_feat):
                 out[p, 4 + c] = g_normal[p, c] if g_normal.shape[0] else 0.0
         if C == 9:
             out[p, 7] = g_dist[p] + g_dist[p] if g_dist.shape[0] else 0.0
-            out[p, 8] = fwd_feat[p, 3]
+            out[p, 8] = fwd_feat[p, DEPTH_CH]
 
 
 @njit(cache=True, parallel=True)

@@ -46,7 +46,7 @@ def _follow_helper_edits() -> None:
 _follow_helper_edits()
 
 FILTER_2D = 2.0  # 2D low-pass filter: exponent FILTER_2D |pixel - centre|^2 / 2 (gsplat's FILTER_INV_SQUARE)
-DEPTH_CH = 3  # feature channel holding the depth (colour 0-2, depth 3, normal 4-6)
+DEPTH_CH = ck.DEPTH_CH  # feature channel holding the depth (`cpu_kernels.feature_table`'s layout)
 
 __all__ = ["project_fwd_2dgs", "project_bwd_2dgs", "raster_fwd_2dgs", "raster_bwd_2dgs", "CHUNK"]
 
