@@ -154,3 +154,57 @@ def test_hooks_run_and_the_lr_scheduler_sees_the_step():
         warnings.simplefilter("error")
         sched.step()
     assert opt_b.param_groups[0]["lr"] == 0.05
+
+
+def test_eager_adam_is_torchs_adam_with_the_same_state_dicts():
+    """`make_adam`'s optimiser (EagerAdam) steps through the compiled path as torch's Adam does, bit for
+    bit, and its state dicts are torch's: each loads the other's and they continue alike."""
+    from egobench.model.optim import EagerAdam, make_adam
+
+    p0 = torch.randn(3000)
+    grads = _grads(p0.shape, torch.float32, 6, seed=6)
+    a, opt_a = _adam(p0)
+    b = torch.nn.Parameter(p0.clone())
+    opt_b = make_adam(b, 1e-3)
+    assert type(opt_b) is EagerAdam
+    for g in grads[:3]:
+        a.grad, b.grad = g.clone(), g.clone()
+        adam_step([opt_a, opt_b])
+    sd_a, sd_b = opt_a.state_dict(), opt_b.state_dict()
+    assert sd_a["param_groups"] == sd_b["param_groups"] and sd_a["state"].keys() == sd_b["state"].keys()
+    for key in ("step", "exp_avg", "exp_avg_sq"):
+        assert torch.equal(sd_a["state"][0][key], sd_b["state"][0][key])
+    opt_a.load_state_dict(copy.deepcopy(sd_b))  # each from the other's dict, as through a checkpoint
+    opt_b.load_state_dict(copy.deepcopy(sd_a))
+    for g in grads[3:]:
+        a.grad, b.grad = g.clone(), g.clone()
+        adam_step([opt_a, opt_b])
+    assert torch.equal(a.detach(), b.detach())
+    assert torch.equal(opt_a.state[a]["exp_avg_sq"], opt_b.state[b]["exp_avg_sq"])
+
+
+def test_the_trainers_bookkeeping_imports_neither_dynamo_nor_sympy():
+    """Optimisers, the lr schedule, their state dicts, poses and the exposure's per-image scale in a fresh
+    process: none imports torch._dynamo or sympy (torch.optim's dynamo guard and torch.broadcast_shapes
+    do, 1-2 s of every training and evaluation process)."""
+    import subprocess
+    import sys
+
+    code = """
+import sys, torch
+from egobench.geometry.se3 import make_pose
+from egobench.model.formation import FormationConfig, FormationModel
+from egobench.model.optim import make_adam
+p = torch.nn.Parameter(torch.zeros(4))
+opt = make_adam(p, 0.1)
+sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=0.9)
+opt.load_state_dict(opt.state_dict())
+sched.load_state_dict(sched.state_dict())
+make_pose(torch.eye(3).expand(5, 3, 3), torch.zeros(3))
+x = torch.full((2, 4, 6, 3), 0.5, dtype=torch.float64)
+FormationModel(FormationConfig.paper_trainer()).predict(x, scale_k=torch.ones(2, dtype=torch.float64),
+                                                        vignette=torch.ones(4, 6, dtype=torch.float64))
+print(sorted(m for m in ("torch._dynamo", "sympy", "torch.fx.experimental.symbolic_shapes") if m in sys.modules))
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]", out.stdout + out.stderr

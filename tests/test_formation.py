@@ -195,6 +195,9 @@ def test_noise_deterministic_and_validated():
         PoissonGaussianNoise(100.0, -1.0)
     with pytest.raises(ValueError, match="gain"):
         noise.sample(x, 0.0)
+    with pytest.raises(ValueError, match=r"gain: shape \[5\] does not broadcast to signal \[8, 8, 3\]"):
+        noise.sample(x, torch.full((5,), 2.0))
+    assert torch.equal(noise.electrons_per_unit(torch.full((8, 1, 1), 2.0), x), torch.full((8, 1, 1), 250.0))
     s = noise.scaled(2.0)
     assert torch.allclose(s.variance(x, 3.0), 4 * noise.variance(x, 3.0))
 

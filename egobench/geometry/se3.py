@@ -10,7 +10,7 @@ it is stable up to a rotation of pi.
 
 from __future__ import annotations
 
-
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -207,7 +207,7 @@ def make_pose(R: Tensor, t: Tensor) -> Tensor:
     """R [..., 3, 3], t [..., 3] -> T [..., 4, 4] (broadcast over the batch dims)."""
     _check_rotmat(R, "make_pose(R)")
     _check_last(t, 3, "make_pose(t)", "[..., 3]")
-    batch = torch.broadcast_shapes(R.shape[:-2], t.shape[:-1])
+    batch = np.broadcast_shapes(R.shape[:-2], t.shape[:-1])  # (torch's first call imports sympy: 0.4 s)
     top = torch.cat([R.expand(*batch, 3, 3), t.expand(*batch, 3)[..., None]], -1)
     bottom = torch.zeros(*batch, 1, 4, dtype=R.dtype, device=R.device)
     bottom[..., 0, 3] = 1.0

@@ -19,7 +19,7 @@ import torch
 from numba import njit, prange
 from torch import Tensor
 
-from egobench.model.optim import _fma
+from egobench.model.optim import EagerAdam, _fma
 from egobench.render.cpu_backend import contiguous_numpy, set_threads
 
 
@@ -50,7 +50,9 @@ def adam_update_torch(param: Tensor, grad: Tensor, exp_avg: Tensor, exp_avg_sq: 
 def _compiled(opt: torch.optim.Optimizer) -> bool:
     """Can `_adam_update` step this optimiser (plain Adam of CPU float32/float64 tensors, every
     parameter with a dense gradient of its dtype, a plain-float learning rate, no step hooks)?"""
-    if type(opt) is not torch.optim.Adam or opt._optimizer_step_pre_hooks or opt._optimizer_step_post_hooks:
+    if type(opt) not in (torch.optim.Adam, EagerAdam):
+        return False
+    if opt._optimizer_step_pre_hooks or opt._optimizer_step_post_hooks:
         return False  # (hooks: torch's step runs them)
     for group in opt.param_groups:
         if (group["amsgrad"] or group["maximize"] or group["weight_decay"] or group.get("capturable")

@@ -25,6 +25,7 @@ import math
 from dataclasses import dataclass, replace
 from typing import Literal, Protocol, Sequence, runtime_checkable
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -181,8 +182,8 @@ def _per_image(value: float | Tensor, image: Tensor, name: str, *, positive: boo
     leading = tuple(image.shape[:-3])
     if t.dim() > 0:
         try:
-            ok = torch.broadcast_shapes(tuple(t.shape), leading) == leading
-        except RuntimeError:
+            ok = np.broadcast_shapes(tuple(t.shape), leading) == leading  # (not torch's: it imports sympy)
+        except ValueError:
             ok = False
         if not ok:
             raise ValueError(
@@ -361,8 +362,8 @@ class PoissonGaussianNoise:
         _check_values(gain, "gain", positive=True)
         g = _as_tensor(gain, signal)
         try:
-            torch.broadcast_shapes(tuple(g.shape), tuple(signal.shape))
-        except RuntimeError as exc:
+            np.broadcast_shapes(tuple(g.shape), tuple(signal.shape))
+        except ValueError as exc:
             raise ValueError(f"gain: shape {list(g.shape)} does not broadcast to signal {list(signal.shape)}") from exc
         return g
 
