@@ -356,9 +356,13 @@ def feature_outputs(out_feat: np.ndarray) -> tuple[Tensor, Tensor, Tensor]:
     """The rasterizer's feature buffer [Iout,H,W,Cf] (sum w (rgb, depth, normal)) -> its rgb [..., 3], depth
     [..., 1] and normal [..., Cf - 4] channels: separate outputs, so that autograd hands back one gradient per
     channel group instead of adding zero-padded full-width ones. Depth and normal are views; rgb is copied
-    out once, contiguous, for its readers (the exposure, the divergence check) that would each copy it."""
+    out once, contiguous, for its readers (the exposure, the divergence check) that would each copy it.
+    The layout is `cpu_kernels.feature_table`'s: colour before the depth channel, the normal after it."""
+    from egobench.render.cpu_kernels import DEPTH_CH
+
     feat = torch.from_numpy(out_feat)
-    return torch.from_numpy(np.ascontiguousarray(out_feat[..., 0:3])), feat[..., 3:4], feat[..., 4:]
+    rgb = torch.from_numpy(np.ascontiguousarray(out_feat[..., :DEPTH_CH]))
+    return rgb, feat[..., DEPTH_CH:DEPTH_CH + 1], feat[..., DEPTH_CH + 1:]
 
 
 def pixel_grads(n_channels: int, out_T: np.ndarray, g_rgb: Tensor | None, g_depth: Tensor | None,
