@@ -4,12 +4,16 @@ numba cached (docs/cpu-rasterizer.md, "Where the kernels compile").
 Why: numba compiles a parallel kernel's loop body first as a library of its own and keeps it in the
 compiling process; the kernel that numba caches holds another copy, optimized again. LLVM's linker
 binds the first, so the process that compiles a kernel runs other machine code than every process that
-loads it: other bits under fast-math contraction (stop 55). So the first process that renders a (dtype, mode) with the compiled backend runs
-``python -m egobench.render.kernel_build`` under a file lock, which compiles into numba's cache and
-leaves a marker there (`marker_path`); then it, and every later process, loads. A kernel that still
-misses the cache compiles in the process, as numba does by default.
+loads it: other bits under fast-math contraction (stop 55). So the first process that renders a (dtype,
+mode) with the compiled backend runs ``python -m egobench.render.kernel_build`` under a file lock, which
+compiles into numba's cache and leaves a marker there (`marker_path`); then it, and every later process,
+loads. A kernel that still misses the cache compiles in the process, as numba does by default.
 
-``EGOBENCH_KERNEL_BUILD=in-process`` compiles where rendered instead (the child itself uses it).
+``EGOBENCH_KERNEL_BUILD=in-process`` compiles where rendered instead (the child itself uses it). With
+``NUMBA_OPT=max`` in the environment numba runs its first, cheap pass at -O3 with loop vectorization too,
+so the loop body's own library is optimized twice as the cached copy is: a process that compiles then runs
+the cached bits at the cached speed (measured, stop 65; the compile takes about twice as long). That is the
+way to compile in-process where no child can run.
 """
 
 from __future__ import annotations
@@ -127,7 +131,9 @@ def _build_in_child(dtype_name: str, mode: str) -> str:
     start = time.perf_counter()
     done = subprocess.run(_child_command(dtype_name, mode), env=env, capture_output=True, text=True)
     if done.returncode != 0:
-        print(f"egobench: the kernel build in a child failed (exit {done.returncode}); compiling in this process. "
+        print(f"egobench: the kernel build in a child failed (exit {done.returncode}); compiling in this process, "
+              "whose kernels then differ from the cached ones in the last bits and run the 3DGS compositing ~4x "
+              "slower (start it with NUMBA_OPT=max for the cached code, docs/cpu-rasterizer.md). "
               f"Its error output:\n{done.stderr[-2000:]}", file=sys.stderr, flush=True)
         return "failed"
     print(f"egobench: kernels built in {time.perf_counter() - start:.0f} s", file=sys.stderr, flush=True)
