@@ -1,7 +1,5 @@
 """`egobench.bench.step_profile`: the split of a training step into compiled kernels and the glue between them."""
 
-import dataclasses
-
 import pytest
 import torch
 
@@ -56,15 +54,11 @@ def test_the_clock_times_each_kernel_call_and_puts_every_kernel_back():
 
 
 def test_a_profiled_run_splits_its_steps_and_trains_the_same_bits(tmp_path):
-    from egobench.bench import _timed_training
-    from egobench.sim.plane import plane_recording
-    from egobench.train import TrainConfig, train
+    from egobench.bench import _timed_training, train_config, train_scene, warm_up
 
-    rec = plane_recording(tmp_path / "rec", size=24, n_frames=9, angular_speed_rad_s=6.0, frame_interval_s=0.01,
-                          n_points=300)
-    cfg = TrainConfig(iterations=6, max_side=24, device="cpu", backend="auto", motion_warmup_frac=0.0,
-                      refine_start_frac=1.0)
-    train(rec, "ours", dataclasses.replace(cfg, iterations=2), tmp_path / "warm", progress=False)
+    rec = train_scene(tmp_path / "rec", 24, 300)
+    cfg = train_config(24, 6)
+    warm_up(rec, "ours", cfg, 1, tmp_path / "warm")
     _timed_training(rec, "ours", cfg, 1, tmp_path / "plain")
     events = []
     with sp.kernel_clock(events):

@@ -280,6 +280,34 @@ def cpu_threads(n: int, torch_n: int | None = None):
 WARMUP_ITERATIONS = 3
 
 
+def train_scene(folder, side: int, n_points: int):
+    """The training benchmark's recording: `egobench.sim.plane.plane_recording` (17 frames, a textured plane,
+    ``n_points`` semi-dense points) at ``side`` px, written to ``folder``."""
+    from egobench.sim.plane import plane_recording
+
+    return plane_recording(folder, size=side, n_frames=17, angular_speed_rad_s=6.0, frame_interval_s=0.01,
+                           n_points=n_points)
+
+
+def train_config(side: int, iterations: int, device: str = "cpu", backend: str = "auto"):
+    """The training benchmark's `TrainConfig`: no motion warm-up and no densification (the Gaussian count stays)."""
+    from egobench.train import TrainConfig
+
+    return TrainConfig(iterations=iterations, max_side=side, device=device, backend=backend,
+                       motion_warmup_frac=0.0, refine_start_frac=1.0)
+
+
+def warm_up(rec, method: str, cfg, n_threads: int, out_dir) -> None:
+    """`WARMUP_ITERATIONS` untimed iterations of ``method`` (threads: `cpu_threads`): its kernels compiled or
+    loaded, first-touch allocations made, before any timing."""
+    import dataclasses
+
+    from egobench.train import train
+
+    with cpu_threads(n_threads):
+        train(rec, method, dataclasses.replace(cfg, iterations=WARMUP_ITERATIONS), out_dir, progress=False)
+
+
 def _timed_training(rec, method: str, cfg, n_threads: int, out_dir) -> dict:
     """One timed training run (threads: `cpu_threads`) -> its benchmark row (it/s, the rasterizer's share,
     peak memory: CUDA's allocator peak or the process's max RSS so far)."""
@@ -323,13 +351,10 @@ def bench_train(device: str = "cpu", backend: str = "auto", sides: tuple[int, ..
     case that many times, the order of the cases reversed every other round (drift weighs on both
     ends alike); ratios and speed-ups are then taken within each round and given as the median over
     rounds with the per-round values (a noisy machine: compare like with like, in the same round)."""
-    import dataclasses
     import tempfile
     from pathlib import Path
 
     from egobench.model.methods import get_method
-    from egobench.sim.plane import plane_recording
-    from egobench.train import TrainConfig, train
 
     for method in methods:
         get_method(method)  # an unknown name fails before any work
@@ -337,14 +362,10 @@ def bench_train(device: str = "cpu", backend: str = "auto", sides: tuple[int, ..
     results = []
     with tempfile.TemporaryDirectory() as tmp:
         for side in sides:
-            rec = recording or plane_recording(Path(tmp) / f"rec{side}", size=side, n_frames=17, angular_speed_rad_s=6.0,
-                                             frame_interval_s=0.01, n_points=n_points)
-            cfg = TrainConfig(iterations=iterations, max_side=side, device=device, backend=backend,
-                              motion_warmup_frac=0.0, refine_start_frac=1.0)
+            rec = recording or train_scene(Path(tmp) / f"rec{side}", side, n_points)
+            cfg = train_config(side, iterations, device, backend)
             for method in dict.fromkeys(methods):  # compile or load the method's kernels before any timing
-                with cpu_threads((threads or (0,))[0]):
-                    train(rec, method, dataclasses.replace(cfg, iterations=WARMUP_ITERATIONS),
-                          Path(tmp) / f"warmup_{method}{side}", progress=False)
+                warm_up(rec, method, cfg, (threads or (0,))[0], Path(tmp) / f"warmup_{method}{side}")
             cases = [(m, t) for m in methods for t in (threads or (0,))]
             for rnd, (method, n_threads) in [(r, c) for r in range(rounds) for c in (cases[::-1] if r % 2 else cases)]:
                 out_dir = Path(tmp) / f"{method}{side}t{n_threads}r{rnd}"

@@ -112,26 +112,20 @@ def step_breakdown(events: list, skip: int = 0, top: int = 12) -> dict:
 
 def profile_training(method: str = "ours", side: int = 128, n_points: int = 20000, iterations: int = 150,
                      threads: tuple[int, ...] = (1, 2)) -> dict:
-    """`step_breakdown` of one timed training run per thread count (after `bench.WARMUP_ITERATIONS` untimed
-    ones), on `egobench bench train`'s scene; the first tenth of the steps is left out (allocations)."""
-    import dataclasses
+    """`step_breakdown` of one timed training run per thread count (after `bench.warm_up`), on `egobench bench
+    train`'s scene and settings (`bench.train_scene`, `bench.train_config`); the first tenth of the steps is left
+    out (allocations)."""
     import tempfile
     from pathlib import Path
 
-    from egobench.bench import WARMUP_ITERATIONS, _timed_training, cpu_threads
-    from egobench.sim.plane import plane_recording
-    from egobench.train import TrainConfig, train
+    from egobench.bench import _timed_training, train_config, train_scene, warm_up
 
     out = {}
     with tempfile.TemporaryDirectory() as tmp:
-        rec = plane_recording(Path(tmp) / "rec", size=side, n_frames=17, angular_speed_rad_s=6.0,
-                              frame_interval_s=0.01, n_points=n_points)
-        cfg = TrainConfig(iterations=iterations, max_side=side, device="cpu", backend="auto",
-                          motion_warmup_frac=0.0, refine_start_frac=1.0)
+        rec = train_scene(Path(tmp) / "rec", side, n_points)
+        cfg = train_config(side, iterations)
         for n in threads:
-            with cpu_threads(n):
-                train(rec, method, dataclasses.replace(cfg, iterations=WARMUP_ITERATIONS), Path(tmp) / f"w{n}",
-                      progress=False)
+            warm_up(rec, method, cfg, n, Path(tmp) / f"w{n}")
             events: list = []
             with kernel_clock(events):
                 row = _timed_training(rec, method, cfg, n, Path(tmp) / f"t{n}")
