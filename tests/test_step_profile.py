@@ -81,5 +81,7 @@ def test_the_command_prints_a_split_per_thread_count_with_the_host(capsys):
         "step_profile", "ours", 24, ["1"])
     row = rec["by_threads"]["1"]
     assert row["steps"] == 9  # the first tenth (one step) left out
-    assert row["between_kernels_ms"] == pytest.approx(row["step_ms"] - row["kernels_ms"], abs=0.5)
+    # medians of per-step quantities: kernel time <= step time in every step, so these orders hold on any
+    # host and load (median(t - k) is not median(t) - median(k))
+    assert 0 <= row["between_kernels_ms"] <= row["step_ms"] and 0 < row["kernels_ms"] <= row["step_ms"]
     assert {"cpu_model", "vector_isa", "kernel_target"} <= set(rec["host"])

@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from egobench.io_utils import atomic_path
+from egobench.io_utils import atomic_path, holding_run_folder
 
 SH_C0 = 0.28209479177387814
 
@@ -108,6 +108,7 @@ def read_ply(path: str | Path):
     return g, mode
 
 
+@holding_run_folder("export", "run_dir", exclusive=False)
 def export_run(run_dir: str | Path, out: str | Path) -> dict:
     """Export a trained run's Gaussians to ``out`` (INRIA PLY); returns what was written."""
     from egobench.train.checkpoint import load_trained_run

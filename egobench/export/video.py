@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from egobench.data.reader import add_input_arguments
-from egobench.io_utils import atomic_path
+from egobench.io_utils import atomic_path, check_written, holding_run_folder
 
 #: Panels are enlarged (nearest neighbour) to at least this height, with a label bar above.
 MIN_PANEL_PX, LABEL_PX = 256, 20
@@ -81,6 +81,7 @@ def _labelled(img: np.ndarray, label: str, scale: int) -> np.ndarray:
     return np.concatenate([bar, big], axis=0)
 
 
+@holding_run_folder("render", "run_dir", exclusive=False)
 def render_video(run_dir, recording_dir, out: str | Path, *, compare=None, captured: bool = False, every: int = 1,
                  max_frames: int | None = None, fps: float = 10.0, device: str | None = None,
                  progress: bool = True) -> dict:
@@ -116,6 +117,7 @@ def render_video(run_dir, recording_dir, out: str | Path, *, compare=None, captu
                     raise ValueError(f"{out}: OpenCV cannot open an MPEG-4 (mp4v) writer here")
             writer.write(cv2.cvtColor(row, cv2.COLOR_RGB2BGR))
         writer.release()
+        check_written(out, tmp, what="video")  # OpenCV's writer reports no error: a full disk truncates silently
     return {"path": str(out), "frames": len(frames), "width": size[0], "height": size[1], "fps": fps,
             "panels": [p.label for p in panels]}
 

@@ -35,6 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from egobench import portable_math as pm
 from egobench.data.mps import CalibrationRecord, CameraCalibration
 from egobench.sim.config import SimConfig
 from egobench.sim.devices import ARIA_SLAM, DeviceProfile, get_device
@@ -52,7 +53,7 @@ class CalibrationSet:
 
 def _random_unit(rng: np.random.Generator, n: int) -> np.ndarray:
     v = rng.normal(size=n)
-    return v / np.linalg.norm(v)
+    return v / pm.norm(v)
 
 
 def _rotation(axis: np.ndarray, angle_rad: float) -> np.ndarray:
@@ -75,7 +76,7 @@ def perturb(cal: CameraCalibration, rng: np.random.Generator, *, rotation_deg: f
     pp_dir = _random_unit(rng, 2)
     to_sign = 1.0 if rng.random() < 0.5 else -1.0
     T = cal.T_device_camera.copy()
-    T[:3, :3] = T[:3, :3] @ R_err
+    T[:3, :3] = pm.matmul(T[:3, :3], R_err)
     T[:3, 3] = T[:3, 3] + t_dir * translation_mm * 1e-3
     p = np.asarray(cal.params, dtype=np.float64).copy()
     p[0] *= 1.0 + f_sign * focal_frac

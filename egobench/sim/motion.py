@@ -151,7 +151,7 @@ def rotation_from_yaw_pitch_roll(yaw: np.ndarray, pitch: np.ndarray, roll: np.nd
     # pitch up = rotation about the look frame's x (right) axis by +pitch (its +z tilts towards -y = up)
     Rx = np.zeros((M, 3, 3)); Rx[:, 0, 0] = 1; Rx[:, 1, 1] = cp; Rx[:, 1, 2] = -sp; Rx[:, 2, 1] = sp; Rx[:, 2, 2] = cp
     Rr = np.zeros((M, 3, 3)); Rr[:, 0, 0] = cr; Rr[:, 0, 1] = -sr; Rr[:, 1, 0] = sr; Rr[:, 1, 1] = cr; Rr[:, 2, 2] = 1
-    return Rz @ R0 @ Rx @ Rr
+    return pm.matmul(pm.matmul(pm.matmul(Rz, R0), Rx), Rr)
 
 
 def _catmull_rom(points: np.ndarray, samples_per_segment: int = 200) -> np.ndarray:

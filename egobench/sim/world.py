@@ -83,7 +83,7 @@ def luminance(rgb: Tensor) -> Tensor:
 
 def _unit(v: Sequence[float], name: str) -> np.ndarray:
     a = np.asarray(v, dtype=np.float64)
-    n = float(np.linalg.norm(a))
+    n = pm.norm(a)
     if a.shape != (3,) or not math.isfinite(n) or n < 1e-12:
         raise ValueError(f"{name}: expected a non-zero finite 3-vector, got {v}")
     return a / n
@@ -99,7 +99,7 @@ def _frame_from_axis(axis: np.ndarray) -> np.ndarray:
     """A rotation whose third column is ``axis`` (unit)."""
     helper = np.array([1.0, 0.0, 0.0]) if abs(axis[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     x = np.cross(helper, axis)
-    x /= np.linalg.norm(x)
+    x /= pm.norm(x)
     y = np.cross(axis, x)
     return np.stack([x, y, axis], axis=1)
 
@@ -225,8 +225,7 @@ Light = Union[Sun, SkyDome, AmbientLight, PointLight]
 
 def _rgb_unit_luminance(rgb: RGB) -> np.ndarray:
     a = np.asarray(rgb, dtype=np.float64)
-    y = float(a @ np.asarray(LUMINANCE_WEIGHTS))
-    if a.shape != (3,) or not y > 0:
+    if a.shape != (3,) or not (y := pm.dot(a, LUMINANCE_WEIGHTS)) > 0:
         raise ValueError(f"light colour: expected an RGB triple with positive luminance, got {rgb}")
     return a / y
 
@@ -422,7 +421,7 @@ class Scene:
             boxes = [self.primitives[i] for i in box_ids]
             pk["box_all"] = dict(C=T([b.center for b in boxes]), R=T([b.rotation for b in boxes]),
                                  H=T([b.half_size_m for b in boxes]))
-        box_r = np.array([np.linalg.norm(self.primitives[i].half_size_m) for i in box_ids])
+        box_r = np.array([pm.norm(self.primitives[i].half_size_m) for i in box_ids])
         big = box_r > BIG_BOX_RADIUS_M
         parts = (("box_big", 1, box_ids[big]), ("box", 1, box_ids[~big]), ("cylinder", 3, ids[3]))
         for tname, t, sel_ids in parts:

@@ -28,6 +28,7 @@ from torch import Tensor
 
 from egobench.data.reader import say_dropped
 from egobench.data.recording import Recording
+from egobench.io_utils import holding_run_folder, write_json
 from egobench.model.methods import MethodSpec, get_method
 from egobench.model.optim import GAUSSIAN_PARAMS
 from egobench.model.predict import (
@@ -222,6 +223,7 @@ def _warn_backend(device: torch.device, config: TrainConfig) -> str:
     return backend
 
 
+@holding_run_folder("train", "out_dir", exclusive=True)
 def train(recording_dir, method: str, config: TrainConfig, out_dir, *, resume: bool | Literal["auto"] = False,
           stop_after: int | None = None, progress: bool = True) -> TrainResult:
     """Train ``method`` on a recording (a folder, or a loaded `Recording` of the method's calibration).
@@ -288,8 +290,6 @@ def _result(state: TrainState, data: TrainingData, config: TrainConfig, method: 
             backend: str, core_sharing: dict | None) -> TrainResult:
     """The run's result; train.json is written only for a finished run (the workflow's output).
     ``core_sharing``: `_probing_cores`' record of this process's iterations (None: not probed)."""
-    from egobench.io_utils import write_json
-
     ts, its = state.timing["time_s"], state.timing["iterations_timed"]
     result = TrainResult(
         run_dir=out_dir, checkpoint=out_dir / "checkpoint.pt", iterations=state.iteration,
