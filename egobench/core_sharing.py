@@ -1,9 +1,9 @@
 """Do two kernel threads share a last-level cache right now? A probe for two-thread timings.
 
 On a VM the two vCPUs may sit on one die of the host (one L3) or on two, and the hypervisor moves them:
-on stop 58's Zen 4 VM the core-to-core latency switched between ~30-45 ns and ~170 ns within seconds,
+on a Zen 4 VM (2026-11-29) the core-to-core latency switched between ~30-45 ns and ~170 ns within seconds,
 and `ours` at 128 px trained at 85-90 it/s on two threads in the first state and 67-69 it/s in the
-second (docs/cpu-rasterizer.md, stop 58). A two-thread number means little without the state it ran in.
+second (results/speed/README.md, 2026-11-29). A two-thread number means little without the state it ran in.
 
 The probe: each of two threads writes a buffer of its own (larger than a core's L2), then each reads
 either its own buffer or the other thread's. Where the cores share the L3 both reads run at L3 speed

@@ -1,4 +1,4 @@
-"""Held-out evaluation of a trained run (PAPER-NOTES §6): writes the run record ``eval.json``.
+"""Held-out evaluation of a trained run (docs/paper-notes.md §5): writes the run record ``eval.json``.
 
 Every 8th frame is held out. Each is rendered with its own exposure*gain normaliser k and, for
 methods that model rolling shutter, with adaptive motion sampling (always on at evaluation,

@@ -59,7 +59,7 @@ def numpy_cpu_dispatch() -> list[str]:
     """numpy's vector code paths enabled in this process (e.g. ``['X86_V3', 'X86_V4', 'AVX512_ICL']`` on an
     AVX-512 machine, ``['X86_V3']`` on an AVX2 one or with ``NPY_DISABLE_CPU_FEATURES``). numpy chooses them
     at import, whatever numba, torch or MKL were told, and its float64 exp, log and power and float32 power
-    give other bits under each (docs/reproducibility.md, stop 62)."""
+    give other bits under each (results/cross_isa/README.md, 2026-11-29)."""
     targets, enabled = _numpy_cpu_tables()
     return [t for t in targets if enabled.get(t)]
 
@@ -126,7 +126,7 @@ def raster_threads() -> int:
     """Threads of the compiled kernels (`render.cpu_backend.set_threads`): EGOBENCH_RASTER_THREADS
     when set, else torch's count (OMP_NUM_THREADS / torch.set_num_threads). Setting it to 2 with
     torch at 1 thread parallelises the kernels only (what `bench raster` scales; in training torch's
-    threads pay, docs/cpu-rasterizer.md, "Torch's threads in training")."""
+    threads pay, results/speed/README.md, "Torch's threads in training")."""
     import torch
 
     value = os.environ.get(RASTER_THREADS_ENV, "")
@@ -154,7 +154,7 @@ def usable_cores() -> int:
 def default_threads(environ=None) -> dict[str, int] | None:
     """A CPU training run's threads when nobody chose them: torch's glue and the compiled kernels
     both on every usable core (sets EGOBENCH_RASTER_THREADS in ``environ``, default os.environ, and
-    torch's count). Measured in training (docs/cpu-rasterizer.md, "Torch's threads in training"):
+    torch's count). Measured in training (results/speed/README.md, "Torch's threads in training"):
     torch on two threads beside the kernels is never slower than on one and gains most at larger
     images, where the glue (losses, SSIM, Adam) works on image-sized tensors; the results are bitwise
     the same. -> {"torch": n, "kernels": n}, or None where THREAD_ENV holds a choice (left as it is)."""
@@ -184,7 +184,7 @@ def keep_freed_memory(environ=None, whole_images: bool = False) -> dict[str, int
     """Linux/glibc: keep a training step's freed buffers for the next step instead of returning them
     to the OS. A CPU step allocates its tile state, Gaussian table and image-sized tensors anew;
     with glibc's defaults many of those are mapped and unmapped every step (~2000 page faults a
-    step at 128 px), 10-13 % of the step's time (docs/cpu-rasterizer.md, "Page faults").
+    step at 128 px), 10-13 % of the step's time (results/speed/README.md, "Page faults").
     ``whole_images``: also blocks above 32 MB come from the heap (M_MMAP_MAX 0), for the diagnosis's
     [F, H, W, 3] stacks: at 1200 px its page faults were 46 % of its time (docs/diagnosis.md, "Cost at
     the paper's resolution"); the price is a larger peak RSS. Leaves malloc alone where GLIBC_TUNABLES

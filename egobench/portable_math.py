@@ -2,14 +2,15 @@
 
 numpy picks its own vector code at import (AVX2 or AVX-512, its "dispatch targets"), and its float64
 ``exp``, ``log``, ``arctan2`` (and ``tan``, ``arccos``, ``power``, ...) give other bits under each; float64
-``sin``, ``cos``, ``hypot`` and ``sqrt`` do not (docs/reproducibility.md, stop 62). These take Python's
+``sin``, ``cos``, ``hypot`` and ``sqrt`` do not (results/cross_isa/README.md, 2026-11-29). These take Python's
 ``math``, that is glibc's libm, element by element: the same code on every x86-64 machine with FMA. The
 simulator calls them where its outputs (poses, points) are written at full precision. About 50 ns an
 element: for arrays of up to ~10^5 values, not for images. numpy's ``convolve`` sums through its BLAS
 (OpenBLAS, whose kernels differ between AVX2 and AVX-512 machines and between CPU models); `convolve_valid`
 adds shifted copies. Likewise numpy's ``@``, ``dot`` and ``linalg.norm`` of one vector call OpenBLAS's
 ``dgemm``/``ddot``, whose kernels (chosen by CPU model: ``Haswell``, ``SkylakeX``, ``SapphireRapids``, ...) sum in
-other orders; `matmul`, `dot` and `norm` are fixed-order sums of exact elementwise products.
+other orders, and torch's ``@`` calls MKL, which picks its kernels by CPU vendor; `matmul`, `vecdot`, `dot` and
+`norm` add in a fixed order with elementwise operations (numpy or torch).
 """
 
 from __future__ import annotations
@@ -70,13 +71,33 @@ def dot(a, b) -> float:
     return math.fsum((a * b).tolist())
 
 
-def matmul(a, b) -> np.ndarray:
-    """``a @ b`` for float64 (batched) matrices [..., M, K] @ [..., K, N] -> [..., M, N], the K products added
-    in index order (exact elementwise operations; numpy's ``@`` calls OpenBLAS's ``dgemm``)."""
-    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+def _operand(x):
+    """A numpy array or torch tensor as it is; anything else (lists, scalars) as a float64 array."""
+    return x if hasattr(x, "shape") and hasattr(x, "ndim") else np.asarray(x, dtype=np.float64)
+
+
+def matmul(a, b):
+    """``a @ b`` for (batched) matrices [..., M, K] @ [..., K, N] -> [..., M, N], numpy arrays or torch tensors
+    (autograd included): the K products added in index order with elementwise operations, each rounded once
+    (IEEE), so the bits are the same on every CPU. numpy's ``@`` calls OpenBLAS and torch's calls MKL, both of
+    which pick kernels by CPU model or vendor."""
+    a, b = _operand(a), _operand(b)
     if a.ndim < 2 or b.ndim < 2 or a.shape[-1] != b.shape[-2]:
-        raise ValueError(f"matmul: expected [..., M, K] and [..., K, N] matrices, got {a.shape} and {b.shape}")
+        raise ValueError(f"matmul: expected [..., M, K] and [..., K, N] matrices, got {tuple(a.shape)} and "
+                         f"{tuple(b.shape)}")
     out = a[..., :, 0:1] * b[..., 0:1, :]
     for k in range(1, a.shape[-1]):
         out = out + a[..., :, k:k + 1] * b[..., k:k + 1, :]
+    return out
+
+
+def vecdot(a, b):
+    """Σ_k a[..., k] b[..., k] over the last axis (broadcast), numpy or torch, added in index order (as `matmul`):
+    the portable ``a @ v`` for [..., K] @ [K] and ``einsum("...ij,...j->...i")`` as ``vecdot(A, v[..., None, :])``."""
+    a, b = _operand(a), _operand(b)
+    if a.shape[-1] != b.shape[-1]:
+        raise ValueError(f"vecdot: expected operands with one last-axis length, got {tuple(a.shape)} and {tuple(b.shape)}")
+    out = a[..., 0] * b[..., 0]
+    for k in range(1, a.shape[-1]):
+        out = out + a[..., k] * b[..., k]
     return out

@@ -8,7 +8,7 @@ a fresh process per setting, each with its own numba cache:
 - ``host``: nothing pinned (this machine's CPU: numba's LLVM host target, torch's widest kernels);
 - ``avx2``: an AVX2-only x86-64 machine emulated on this one (numba compiled for ``znver3``, torch's
   AVX2 kernels, MKL and oneDNN capped at AVX2, glibc's AVX-512 variants off, numpy's AVX-512 code paths
-  off and its OpenBLAS on its AVX2 (Haswell) kernels: before stop 62 numpy's were left on);
+  off and its OpenBLAS on its AVX2 (Haswell) kernels: until 2026-11-29 numpy's were left on);
 - ``portable``: PORTABLE (numba ``generic``, torch ``default``, MKL CBWR, oneDNN SSE4.1);
 - ``portable_avx2``: the portable settings on the emulated AVX2 machine;
 - ``blas_sse3`` (recordings only): numpy's OpenBLAS on its SSE3 (``Prescott``) kernels and torch's MKL capped at

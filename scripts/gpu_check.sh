@@ -66,7 +66,7 @@ for px in 128 512; do  # one record each, so that a time limit keeps the first
     --method ours --method ours_2dgs --points 20000 --scaling 1,2,4,8,16 --iterations 100 \
     > $LOGS/cpu_train_scaling_$px.json"
 done
-# does the 3DGS step's thread-growing gap (docs/cpu-rasterizer.md, "Past two cores") go when numba's
+# does the 3DGS step's thread-growing gap (results/speed/README.md, "Past two cores") go when numba's
 # OpenMP workers keep spinning between kernels? per-stage profile at 16 threads, policies alternated
 step cpu_wait_policy 150 bash -c "for p in default ACTIVE default ACTIVE; do echo \$p; w=OMP_WAIT_POLICY=ACTIVE; \
   [ \$p = ACTIVE ] || w=; env $CPU_ENV \$w python3 -m egobench.bench.cpu_profile --sigma 2.5 --repeats 15 \

@@ -120,12 +120,12 @@ def _float32_records(stdout: str) -> dict:
 
 #: the kernel sets an xdist suite compiles at its start, one per worker, float32 and float64 (`warm_up`)
 WARM_UP_SETS = ("3dgs", "2dgs")
-#: a session this small (a file, a -k selection) compiles only what its tests use
+#: a test run this small (a file, a -k selection) compiles only what its tests use
 WARM_UP_MIN_TESTS = 100
 
 
 def _warm_up_folder(tmp_path_factory) -> Path:
-    """The folder of the warm-up records, shared by the session's xdist workers."""
+    """The folder of the warm-up records, shared by the run's xdist workers."""
     return tmp_path_factory.getbasetemp().parent / "egobench-kernel-warm-up"
 
 
@@ -164,7 +164,7 @@ def warm_up(session, tmp_path_factory) -> None:
 
 
 def cold_warm_up(tmp_path_factory) -> dict | None:
-    """The warm-up's records {set: {"digest", "hits", "misses", "built"}} when this session's warm-up built
+    """The warm-up's records {set: {"digest", "hits", "misses", "built"}} when this run's warm-up built
     every set of `WARM_UP_SETS` in a child (`warm_up`, `kernel_build`); None when it did not run or found a
     set built. Fails with the warm-up's error output where a compile failed."""
     folder = _warm_up_folder(tmp_path_factory)

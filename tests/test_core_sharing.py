@@ -37,11 +37,11 @@ def test_each_thread_reads_its_own_row_or_the_others(threads):
 def test_classify_by_the_cross_to_own_ratio():
     assert cs.classify(24e-6, 24.2e-6) == {"own_read_us": 24.0, "cross_read_us": 24.2, "cross_to_own": 1.01,
                                            "shared_cache": True}
-    assert cs.classify(25.4e-6, 89.8e-6)["shared_cache"] is False  # stop 58's two dies: ratio 3.54
+    assert cs.classify(25.4e-6, 89.8e-6)["shared_cache"] is False  # the 2026-11-29 Zen 4 VM's two dies: ratio 3.54
     assert cs.classify(10e-6, 15e-6)["shared_cache"] is True and cs.classify(10e-6, 15.1e-6)["shared_cache"] is False
     assert cs.classify(10e-6, 15.004e-6) == {"own_read_us": 10.0, "cross_read_us": 15.0, "cross_to_own": 1.5,
                                              "shared_cache": True}  # the state follows the recorded ratio
-    # three significant digits whatever the size: stop 58's CI probe, preempted, read 0.0032 (once rounded to 0.0)
+    # three significant digits whatever the size: a CI probe of 2026-11-29, preempted, read 0.0032 (once rounded to 0.0)
     assert cs.classify(31e-3, 99.3e-6)["cross_to_own"] == 0.0032
 
 

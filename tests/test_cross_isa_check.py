@@ -38,3 +38,30 @@ def test_a_recording_does_not_depend_on_the_blas_kernels(tmp_path):
     for m in meta:
         m.pop("simulation_time_s")
     assert meta[0] == meta[1]
+
+
+def test_the_simulator_calls_no_torch_operation_that_runs_in_mkl(tmp_path):
+    """torch's matrix products, inverses and determinants run in MKL, which picks its kernels by CPU vendor (AVX-512
+    code on Intel, other code on AMD); the simulator's poses, rays and normals use `portable_math.matmul` / `vecdot`
+    and `geometry.det3` instead. Every aten operation of a small simulation of each scene kind is recorded: none of
+    them is one that reaches BLAS or LAPACK."""
+    import torch
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    from tests.helpers import small_recording
+
+    blas = {"mm", "bmm", "addmm", "baddbmm", "addbmm", "matmul", "mv", "addmv", "dot", "vdot", "einsum", "tensordot",
+            "convolution", "_convolution", "inverse"}
+    seen: set[str] = set()
+
+    class Record(TorchDispatchMode):
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            seen.add(str(func.overloadpacket).split(".")[-1])
+            return func(*args, **(kwargs or {}))
+
+    with Record():
+        for kind in ("outdoor", "indoor", "object", "quest3"):
+            small_recording(tmp_path / kind, kind, 0, n_frames=3, size=16)
+    assert "mul" in seen and "add" in seen  # the mode saw the arithmetic
+    elementwise_linalg = {"linalg_cross", "linalg_vector_norm"}  # no BLAS or LAPACK behind these
+    assert sorted(op for op in seen if op in blas or "linalg" in op and op not in elementwise_linalg) == []

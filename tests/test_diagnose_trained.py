@@ -942,7 +942,7 @@ def _record_off(case, frames: list[int], error: float):
 
 
 def test_a_metadata_error_that_misses_every_held_out_frame_is_scored_on_its_own_frames_pixels():
-    """Run 3 (docs/diagnosis.md): one scale per frame cannot generalise from frame to frame, so held-out
+    """Run 3 (results/diagnosis/README.md): one scale per frame cannot generalise from frame to frame, so held-out
     frames score only whether the error happened to hit them (hard sweep: 5 of 12 cases missed for it).
     The gain is scored on every frame's odd pixels, each frame's scale from its even pixels."""
     for seed in (3, 5):

@@ -99,7 +99,7 @@ sys.stdout.write(y.numpy().tobytes().hex())
 def test_the_exposures_power_is_glibcs_rounded_and_the_same_with_numpys_avx512_paths_off():
     """On the power law the output is x * r, r = s ** (1 / gamma) in float64 (Python's math.pow: glibc, as the
     kernel) rounded to float32; and the bits do not move when numpy's AVX-512 code is off (what an AVX2-only
-    machine runs): numpy's own power gave other bits there (docs/reproducibility.md, stop 62)."""
+    machine runs): numpy's own power gave other bits there (results/cross_isa/README.md, 2026-11-29)."""
     import math
     import os
     import subprocess

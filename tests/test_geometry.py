@@ -314,7 +314,7 @@ def test_real_mps_trajectory_head_motion():
     assert 900 < rate_hz < 1100
     speed = traj.angular_speed_deg_s()
     p50, p99 = np.percentile(speed, [50, 99])
-    assert p50 == pytest.approx(27.0, abs=1.5)  # PAPER-NOTES section 4
+    assert p50 == pytest.approx(27.0, abs=1.5)  # docs/paper-notes.md §4
     assert p99 == pytest.approx(77.0, abs=3.0)
     # Angular velocity of the interpolated trajectory agrees with MPS's own (device frame).
     import pandas as pd

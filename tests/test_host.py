@@ -90,7 +90,7 @@ def test_the_benchmarks_set_the_kernels_and_torch_threads_and_restore_them(monke
 
 def test_egobench_train_runs_torch_and_the_kernels_on_every_core(tmp_path, monkeypatch):
     """`egobench train` on the CPU applies `default_threads` where no thread variable is set, and its
-    run record says so; with OMP_NUM_THREADS set (as the test session and Snakemake jobs set it) it
+    run record says so; with OMP_NUM_THREADS set (as the test suite and Snakemake jobs set it) it
     leaves torch's count and the kernels' alone."""
     import json
     import os

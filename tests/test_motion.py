@@ -18,7 +18,7 @@ from egobench.sim.motion import (
 from egobench.sim.motion_stats import angular_speed_percentiles, linear_speed_percentiles
 from egobench.sim.world import make_scene
 
-#: The real Aria sample walk (PAPER-NOTES 4; recomputed from the csv when it is present).
+#: The real Aria sample walk (docs/paper-notes.md §4; recomputed from the csv when it is present).
 REAL_ANGULAR_DEG_S = {"p25": 14.66, "p50": 27.00, "p75": 39.75, "p90": 50.87, "p99": 77.13}
 REAL_LINEAR_P50_M_S = 0.75
 REAL_DURATION_S = 11.4

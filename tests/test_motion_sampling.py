@@ -191,7 +191,7 @@ def test_the_pose_sample_staircase_renders_a_readout_about_one_nth_short(n):
     (the released code's mapping): the centres run from 0.5 / N to 1 - 0.5 / N while R(u) runs from 0
     to 1, so the least-squares slope of rendered row time on R(u) is short of 1 by a bit under 1/N
     (0.83/N at N = 4, 0.99/N at N = 64): a readout about 1/N short, which the diagnosis's readout test
-    measures on a trained run's renders (docs/diagnosis.md, null audit; `egobench diagnose --pose-samples`)."""
+    measures on a trained run's renders (results/diagnosis/README.md, null audit; `egobench diagnose --pose-samples`)."""
     r = torch.linspace(0.0, 1.0, 100001, dtype=torch.float64)[None, :]
     t_rendered = (pixel_pose_index(r, n).to(torch.float64) + 0.5) / n
     slope = float(np.polyfit(r[0].numpy(), t_rendered[0].numpy(), 1)[0])

@@ -43,14 +43,14 @@ def _recorded(config) -> dict | None:
 
 def background_wanted(config) -> bool:
     """Start the empty-folder build at collection only where no cold build is recorded for this source
-    (conftest; without this a `-n 0` session built it for ~90 s even when the record made it unneeded)."""
+    (conftest; without this a `-n 0` run built it for ~90 s even when the record made it unneeded)."""
     return _recorded(config) is None
 
 
 def _cold_and_warm(tmp_path_factory, recorded: dict | None) -> tuple[dict, dict]:
     """(digests of a process that met a cold cache, of one that found the build). The cold one is, in
-    order: this session's warm-up on a cold cache (`background.warm_up`); a cold build recorded for the same
-    source, libraries and CPU (an earlier session's); a build into an empty folder. The warm one reads the
+    order: this run's warm-up on a cold cache (`background.warm_up`); a cold build recorded for the same
+    source, libraries and CPU (an earlier run's); a build into an empty folder. The warm one reads the
     suite's cache where the build is there and serves every kernel, else that empty folder."""
     cold = background.cold_warm_up(tmp_path_factory) or recorded
     if cold is not None:
@@ -88,7 +88,7 @@ class _Cache:
 
 
 def test_the_empty_folder_build_is_started_up_front_only_without_a_record_for_this_source():
-    """A `-n 0` session with a cold build recorded for this source does not build again at collection;
+    """A `-n 0` run with a cold build recorded for this source does not build again at collection;
     without one (no cache, no record, a record of other source) it does."""
     from types import SimpleNamespace
 

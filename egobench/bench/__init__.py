@@ -240,7 +240,7 @@ def bench_raster(device: str = "cpu", repeats: int = 7, backend: str = "auto", t
 
 #: how each benchmark's thread scaling sets threads: the raster benchmark scales the compiled kernels
 #: alone (with numba's workqueue layer torch's spinning pool competed with them; under the OpenMP layer
-#: torch at N threads measured the same as at 1, docs/cpu-rasterizer.md, stop 43); the training
+#: torch at N threads measured the same as at 1, results/speed/README.md, 2026-11-26); the training
 #: benchmark times what `egobench train` does by default on the CPU
 RASTER_THREAD_POLICY = "torch 1 thread, compiled kernels N (the kernels' own scaling)"
 TRAIN_THREAD_POLICY = "torch N threads, compiled kernels N (egobench.host.default_threads)"

@@ -18,6 +18,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from egobench import portable_math as pm
 from egobench.camera.base import CameraModel
 from egobench.camera.pinhole import Pinhole
 
@@ -68,7 +69,7 @@ class Rectification:
             if float((R.T @ R - torch.eye(3, dtype=torch.float64)).abs().max()) > 1e-6 or float(torch.linalg.det(R)) <= 0:
                 raise ValueError("Rectification.build(R_src_dst): not a rotation matrix (R^T R != I or det <= 0)")
         rays_dst = dst.unproject(dst.pixel_grid(dtype=torch.float64))  # [H, W, 3]
-        rays_src = rays_dst @ R.T
+        rays_src = pm.matmul(rays_dst, R.T)
         uv, ok = src.project(rays_src)
         uv = uv.to(torch.float64)
         u, v = uv[..., 0], uv[..., 1]

@@ -1,6 +1,6 @@
 """Aria MPS files: closed-loop trajectory, semi-dense points, online calibration (read + write).
 
-Schemas (PAPER-NOTES section 4):
+Schemas (docs/paper-notes.md §4):
 - ``closed_loop_trajectory.csv``: read/written by `egobench.geometry.Trajectory`.
 - ``semidense_points.csv.gz``: uid, graph_uid, px_world, py_world, pz_world, inv_dist_std, dist_std.
 - ``online_calibration.jsonl``: one JSON object per line: tracking_timestamp_us,
@@ -26,7 +26,7 @@ import numpy as np
 from egobench.io_utils import atomic_path, read_csv
 
 SEMIDENSE_COLUMNS = ("uid", "graph_uid", "px_world", "py_world", "pz_world", "inv_dist_std", "dist_std")
-#: MPS semi-dense filter (PAPER-NOTES section 3): keep inv_dist_std < 0.01 1/m and dist_std < 0.02 m.
+#: MPS semi-dense filter (docs/paper-notes.md §3): keep inv_dist_std < 0.01 1/m and dist_std < 0.02 m.
 MAX_INV_DIST_STD = 0.01
 MAX_DIST_STD = 0.02
 GRAPH_UID = "00000000-0000-0000-0000-000000000000"  # graph uid written into synthetic files

@@ -301,7 +301,7 @@ def _name_mean_cause(testable: list[CauseResult], rnd: int, measured: np.ndarray
 def _within_frame_gain(cause, result: CauseResult, measured: np.ndarray, current: np.ndarray,
                        ctx: DiagnosisContext, split: _Split) -> float:
     """PSNR gain (dB) of a frame_local cause on the odd-checkerboard pixels of every frame, each frame's
-    parameter estimated from its own even-checkerboard pixels (docs/diagnosis.md, run 3): one number per
+    parameter estimated from its own even-checkerboard pixels (results/diagnosis/README.md, run 3): one number per
     frame cannot generalise to other frames, so held-out frames alone score which frames it hit."""
     within = cause.apply_within_frames(current, result, ctx, measured, split.fit_mask)
     return psnr(within, measured, split.eval_mask) - psnr(current, measured, split.eval_mask)

@@ -24,7 +24,7 @@ from egobench.residual.signatures import DiagnosisContext, distortion_profile, r
 
 #: Sensor of the synthetic cases (Aria-like, egobench.sim.devices.ARIA_RGB noise profile).
 FULL_WELL_E, READ_NOISE_E = 6000.0, 2.0
-#: Readout the model assumes (Aria full-sensor readout, PAPER-NOTES section 2), s.
+#: Readout the model assumes (Aria full-sensor readout, docs/paper-notes.md §2), s.
 READOUT_S = 16.26e-3
 #: Lens shading the model knows about (present in measurement and prediction).
 MODELLED_VIGNETTE = 0.3

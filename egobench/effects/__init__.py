@@ -1,5 +1,5 @@
 """One object per physical effect, one file each: the list the simulator hides, the trainer ablates and
-the diagnosis looks for (DESIGN.md, "One idea that keeps the three users of physics in step").
+the diagnosis looks for (docs/effects.md).
 
 The registry `EFFECTS` is the only list of effects; the simulator, the synthetic cases, the sweeps,
 the calibration of the nulls and the report loop over it and call each effect's hooks

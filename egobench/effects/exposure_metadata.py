@@ -14,7 +14,7 @@ from egobench.residual.signatures import decode, robust_sd
 #: A frame of a trained run is flagged when both halves of it deviate beyond this many robust standard
 #: deviations of the model's frame-to-frame error, and beyond FLAG_MIN_LOG. The floor is the largest
 #: single-frame scale that model error alone gave on the trained sweeps' cases without a metadata error
-#: (outdoor, 64 px, 800 iterations: 14 % on one frame of one null, all others <= 11 %; docs/diagnosis.md):
+#: (outdoor, 64 px, 800 iterations: 14 % on one frame of one null, all others <= 11 %; results/diagnosis/README.md):
 #: single frames of a trained model can render that much too dark or bright.
 FLAG_SIGMAS, FLAG_MIN_LOG = 4.0, math.log(1.15)
 

@@ -14,6 +14,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from egobench import portable_math as pm
+
 __all__ = [
     "quat_normalize", "quat_to_rotmat", "rotmat_to_quat", "quat_multiply", "quat_conjugate",
     "hat", "so3_exp", "so3_log", "se3_exp", "se3_log", "se3_inverse", "make_pose",
@@ -144,7 +146,7 @@ def so3_exp(omega: Tensor) -> Tensor:
     A, B, _ = _so3_coeffs(theta2)
     K = hat(omega)
     eye = torch.eye(3, dtype=omega.dtype, device=omega.device).expand_as(K)
-    return eye + A[..., None, None] * K + B[..., None, None] * (K @ K)
+    return eye + A[..., None, None] * K + B[..., None, None] * pm.matmul(K, K)
 
 
 def so3_log(R: Tensor) -> Tensor:
@@ -174,11 +176,11 @@ def se3_exp(xi: Tensor) -> Tensor:
     theta2 = (omega * omega).sum(-1)
     A, B, C = _so3_coeffs(theta2)
     K = hat(omega)
-    K2 = K @ K
+    K2 = pm.matmul(K, K)
     eye = torch.eye(3, dtype=xi.dtype, device=xi.device).expand_as(K)
     R = eye + A[..., None, None] * K + B[..., None, None] * K2
     V = eye + B[..., None, None] * K + C[..., None, None] * K2
-    t = (V @ rho[..., None])[..., 0]
+    t = pm.vecdot(V, rho[..., None, :])
     return make_pose(R, t)
 
 
@@ -198,9 +200,16 @@ def se3_log(T: Tensor) -> Tensor:
     D = torch.where(small, D_series, D_direct)
     K = hat(omega)
     eye = torch.eye(3, dtype=T.dtype, device=T.device).expand_as(K)
-    V_inv = eye - 0.5 * K + D[..., None, None] * (K @ K)
-    rho = (V_inv @ t[..., None])[..., 0]
+    V_inv = eye - 0.5 * K + D[..., None, None] * pm.matmul(K, K)
+    rho = pm.vecdot(V_inv, t[..., None, :])
     return torch.cat([rho, omega], -1)
+
+
+def det3(M: Tensor) -> Tensor:
+    """Determinants of [..., 3, 3] matrices by cofactors (elementwise; ``torch.linalg.det`` runs an LU in MKL)."""
+    return (M[..., 0, 0] * (M[..., 1, 1] * M[..., 2, 2] - M[..., 1, 2] * M[..., 2, 1])
+            - M[..., 0, 1] * (M[..., 1, 0] * M[..., 2, 2] - M[..., 1, 2] * M[..., 2, 0])
+            + M[..., 0, 2] * (M[..., 1, 0] * M[..., 2, 1] - M[..., 1, 1] * M[..., 2, 0]))
 
 
 def make_pose(R: Tensor, t: Tensor) -> Tensor:
@@ -218,14 +227,14 @@ def se3_inverse(T: Tensor) -> Tensor:
     """T [..., 4, 4] -> T^-1 [..., 4, 4] (closed form)."""
     _check_pose_shape(T, "se3_inverse(T)")
     Rt = T[..., :3, :3].transpose(-1, -2)
-    return make_pose(Rt, -(Rt @ T[..., :3, 3:4])[..., 0])
+    return make_pose(Rt, -pm.vecdot(Rt, T[..., None, :3, 3]))
 
 
 def transform_points(T: Tensor, p: Tensor) -> Tensor:
     """T [..., 4, 4] applied to points p [..., N, 3] -> [..., N, 3]."""
     _check_pose_shape(T, "transform_points(T)")
     _check_last(p, 3, "transform_points(p)", "[..., N, 3]")
-    return p @ T[..., :3, :3].transpose(-1, -2) + T[..., None, :3, 3]
+    return pm.matmul(p, T[..., :3, :3].transpose(-1, -2)) + T[..., None, :3, 3]
 
 
 def se3_interpolate(T0: Tensor, T1: Tensor, alpha: Tensor | float) -> Tensor:
@@ -250,12 +259,12 @@ def check_pose(T: Tensor, name: str = "pose", atol: float | None = None) -> Tens
         atol = 1e-6 if T.dtype == torch.float64 else 1e-4
     R = T[..., :3, :3]
     eye = torch.eye(3, dtype=T.dtype, device=T.device)
-    ortho_err = (R.transpose(-1, -2) @ R - eye).abs().amax(dim=(-1, -2))
+    ortho_err = (pm.matmul(R.transpose(-1, -2), R) - eye).abs().amax(dim=(-1, -2))
     if bool((ortho_err > atol).any()):
         raise ValueError(
             f"{name}: rotation part is not orthonormal (max |R^T R - I| = {float(ortho_err.max()):.3g} > {atol:g})"
         )
-    if bool((torch.linalg.det(R) <= 0).any()):
+    if bool((det3(R) <= 0).any()):
         raise ValueError(f"{name}: rotation part has negative determinant (a reflection, not a rotation)")
     last = T[..., 3, :] - T.new_tensor([0.0, 0.0, 0.0, 1.0])
     if bool((last.abs() > atol).any()):

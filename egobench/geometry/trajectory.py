@@ -17,6 +17,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from egobench import portable_math as pm
 from egobench.geometry.se3 import (
     check_pose, make_pose, quat_normalize, quat_to_rotmat, rotmat_to_quat, se3_exp, se3_inverse,
     se3_log, so3_log,
@@ -91,7 +92,7 @@ class Trajectory:
         self.t_ns: Tensor = t.clone()  # [M] int64
         self.T_world_device: Tensor = T.clone()  # [M, 4, 4] float64
         # Segment twists xi_i = log(T_i^-1 T_{i+1}) [M-1, 6] and durations [M-1] (s).
-        self._xi = se3_log(se3_inverse(T[:-1]) @ T[1:])
+        self._xi = se3_log(pm.matmul(se3_inverse(T[:-1]), T[1:]))
         self._dt_s = dt.to(torch.float64) * 1e-9
 
     # ---- basic properties ---------------------------------------------------------------
@@ -134,7 +135,7 @@ class Trajectory:
     def pose(self, t_ns) -> Tensor:
         """T_world_device at ``t_ns`` (int, int64 array/tensor [B]) -> [B, 4, 4] float64."""
         _, seg, alpha, is_last = self._locate(t_ns)
-        T = self.T_world_device[seg] @ se3_exp(alpha[:, None] * self._xi[seg])
+        T = pm.matmul(self.T_world_device[seg], se3_exp(alpha[:, None] * self._xi[seg]))
         # Exact at samples: alpha = 0 gives exp(0) = I exactly; the last sample is copied.
         return torch.where(is_last[:, None, None], self.T_world_device[-1].expand_as(T), T)
 
@@ -143,9 +144,9 @@ class Trajectory:
         _, seg, alpha, is_last = self._locate(t_ns)
         # At a sample the segment starting there is used; the last sample uses the last segment.
         twist = self._xi[seg] / self._dt_s[seg, None]  # [B, 6] body twist per second
-        T = self.T_world_device[seg] @ se3_exp(alpha[:, None] * self._xi[seg])
+        T = pm.matmul(self.T_world_device[seg], se3_exp(alpha[:, None] * self._xi[seg]))
         T = torch.where(is_last[:, None, None], self.T_world_device[-1].expand_as(T), T)
-        linear_world = (T[:, :3, :3] @ twist[:, :3, None])[..., 0]
+        linear_world = pm.vecdot(T[:, :3, :3], twist[:, None, :3])
         return TrajectoryVelocity(linear_world=linear_world, angular_device=twist[:, 3:].clone())
 
     def angular_speed_deg_s(self, stride: int = 1) -> np.ndarray:
@@ -239,7 +240,7 @@ class Trajectory:
             )
         vel = self.velocity(self.t_ns)
         R = self.T_world_device[:, :3, :3]
-        linear_device = (R.transpose(-1, -2) @ vel.linear_world[..., None])[..., 0]
+        linear_device = pm.vecdot(R.transpose(-1, -2), vel.linear_world[..., None, :])
         q = rotmat_to_quat(R).numpy()
         t = self.T_world_device[:, :3, 3].numpy()
         M = len(self)

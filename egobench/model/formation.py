@@ -1,4 +1,4 @@
-"""Physical image formation (paper Eqs. 3-5; PAPER-NOTES section 2).
+"""Physical image formation (paper Eqs. 3-5; docs/paper-notes.md §2).
 
 One model serves two users:
 

@@ -37,7 +37,7 @@ def _expose_fwd(x, s, r, decode, clamp, gamma, y0, x0, out, dx, ds):
     y0 = x0 ** (1 / gamma), on the line of slope y0 / x0. r [P] (scratch, x's dtype): s ** (1 / gamma) with
     decode, a float64 power rounded to r's dtype. It is computed here, by glibc's pow, and not by numpy:
     numpy's power takes other code, and gives other bits, on AVX-512 and AVX2 machines (docs/reproducibility.md,
-    stop 62); it costs ~0.25 ms more at 128 px on one thread."""
+    2026-11-29); it costs ~0.25 ms more at 128 px on one thread."""
     slope = y0 / x0
     for p in prange(x.shape[0]):
         if decode:  # only the power law reads r

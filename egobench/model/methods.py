@@ -3,7 +3,7 @@
 A method is a set of switches read by the one trainer (`egobench.train`) and the one
 evaluator (`egobench.evaluate`); there is never a copy of the trainer per method.
 
-Scene-colour spaces (what `Gaussians.colors` hold, see PAPER-NOTES §2):
+Scene-colour spaces (what `Gaussians.colors` hold, see docs/paper-notes.md §2):
 - ``scene_gamma=True`` (ours): colours are gamma-compressed irradiance; the formation model
   predicts ``encode(decode(x) * k * V)``.
 - ``scene_gamma=False`` ("w/o scene gamma"): colours are linear radiance; the formation

@@ -1,4 +1,4 @@
-"""Rolling-shutter motion sampling (paper Sec. 3, "Camera motion sampling"; PAPER-NOTES §2).
+"""Rolling-shutter motion sampling (paper Sec. 3, "Camera motion sampling"; docs/paper-notes.md §2).
 
 A frame's rows expose at different times: row time t(u) = t_c - R/2 + R(u) * R, where t_c is
 the frame's centre-row (mid-exposure) time `Frame.timestamp_ns`, R the readout duration and

@@ -4,7 +4,7 @@ Given Gaussians, a recording and one of its frames: the poses the method renders
 with (centre row; K rolling-shutter samples gathered per pixel by the row-time image R(u); M
 exposure samples averaged; or the velocity-shift model of 3DGS-on-the-move), the rasterized
 scene colour, and the method's image formation (exposure*gain normaliser k, vignette,
-response, scene gamma) that turns it into a predicted captured image (PAPER-NOTES §2).
+response, scene gamma) that turns it into a predicted captured image (docs/paper-notes.md §2).
 """
 
 from __future__ import annotations

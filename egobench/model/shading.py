@@ -1,6 +1,6 @@
 """A learnable radial lens shading: the model extension for an unmodelled vignette (issue 15).
 
-A trained model absorbs a fixed lens shading that its calibration does not state (docs/diagnosis.md:
+A trained model absorbs a fixed lens shading that its calibration does not state (results/diagnosis/README.md:
 the residual keeps 6-30 % of it), so the residual cannot show it. Trained jointly with the scene, a
 shading S(u) = exp(a2 r^2 + a4 r^4) multiplying the stated vignette takes it back: r is the distance
 from the principal point (optionally moved by a fraction of the image, a placebo centre) over the

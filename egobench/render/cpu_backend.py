@@ -32,7 +32,7 @@ EPS2D, NEAR_PLANE, FAR_PLANE = 0.3, 0.01, 1e10
 GSPLAT_PIXEL_OFFSET = 0.5
 #: bytes per cache line (x86-64 and most Arm cores)
 CACHE_LINE = 64
-#: default tile size of this backend (measured: docs/cpu-rasterizer.md)
+#: default tile size of this backend (measured: results/speed/README.md)
 DEFAULT_TILE = 16
 
 

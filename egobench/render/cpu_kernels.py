@@ -40,7 +40,7 @@ from numba.extending import intrinsic, overload
 # VM a worker idle for a few ms took ~1 ms to wake; training calls ~8 parallel kernels a step between torch
 # operations, so its kernels barely scaled (ours_2dgs at 128 px: 26.6 it/s on 2 threads against 26.4 on
 # 1). OpenMP's workers spin briefly first: 44.0-47.3 it/s, 1.58x (512 px: 1.78-1.84x). With the other core
-# busy it is ~30 % slower than workqueue (both below one thread). docs/cpu-rasterizer.md, "numba's
+# busy it is ~30 % slower than workqueue (both below one thread). results/speed/README.md, "numba's
 # threading layer".
 # An explicit NUMBA_THREADING_LAYER is respected; where OpenMP is missing numba takes the next layer.
 if "NUMBA_THREADING_LAYER" not in os.environ:
@@ -755,7 +755,7 @@ FASTMATH = {"reassoc", "contract", "nsz"}
 
 class NoAliasCompiler(Compiler):
     """numba's compiler with every array argument marked noalias, as numba compiles a parfor's loop body
-    (without it, the split 2DGS bodies ran ~1.5x slower: stop 57's exploration). Only for functions that
+    (without it, the split 2DGS bodies ran ~1.5x slower: an exploration of 2026-11-28). Only for functions that
     never write an array argument overlapping another one."""
 
     def define_pipelines(self):
@@ -931,7 +931,7 @@ TAB_COLS = 16
 def rows_needed(flat_ids, n_rows):
     """Which of n_rows (image, Gaussian) table rows the compositing reads: flat_ids [K] (`bin_tiles`)
     -> bool [n_rows]. With motion sampling each pose's rows cover a band of the image, so only ~10 %
-    of the rows are read (docs/cpu-rasterizer.md, "Tables for the rows read")."""
+    of the rows are read (results/speed/README.md, "Tables for the rows read")."""
     needed = np.zeros(n_rows, np.bool_)
     for k in range(flat_ids.shape[0]):
         needed[flat_ids[k]] = True
@@ -1357,7 +1357,7 @@ def _fwd_bin(b, tab, feats, flat_ids, bin_start, pix_view, tile_size, tiles_x, c
              out_last, rows_hit, rowt):
     """`raster_fwd` on bin b (image i, tile t): its `prange` body as a function of its own, so that numba's
     parfor passes compile it once (`BIN_BODY`: the 3DGS set compiles ~20 % faster and runs as fast;
-    docs/cpu-rasterizer.md, stop 57)."""
+    results/speed/README.md, 2026-11-28)."""
     H, W = pix_view.shape[1], pix_view.shape[2]
     Cf = feats.shape[1]
     ts = tile_size

@@ -452,7 +452,7 @@ def _prefetch_surfel(tab, tsl_rows, feats, g):
     `cpu_backend.table_buffer`), ray transform and features (both ends: a row may straddle two lines).
     Rows are random across [I*N, ·] arrays (4.3 MB of ray transforms for 6 poses x 20 000 surfels, beyond
     L2); in a 128 px training step the forward measured 7.2 -> 6.4 ms and the backward 8.2 -> 6.7 ms with
-    prefetching (stop 44), and the forward ~10 % less again with whole rows and the table aligned (stop 61)."""
+    prefetching (2026-11-26), and the forward ~10 % less again with whole rows and the table aligned (2026-11-29)."""
     ck.prefetch_row(tab, g)
     ck.prefetch_whole_row(tsl_rows, g)
     ck.prefetch_whole_row(feats, g)

@@ -4,7 +4,7 @@ numba cached (docs/cpu-rasterizer.md, "Where the kernels compile").
 Why: numba compiles a parallel kernel's loop body first as a library of its own and keeps it in the
 compiling process; the kernel that numba caches holds another copy, optimized again. LLVM's linker
 binds the first, so the process that compiles a kernel runs other machine code than every process that
-loads it: other bits under fast-math contraction (stop 55). So the first process that renders a (dtype,
+loads it: other bits under fast-math contraction (measured 2026-11-28). So the first process that renders a (dtype,
 mode) with the compiled backend runs ``python -m egobench.render.kernel_build`` under a file lock, which
 compiles into numba's cache and leaves a marker there (`marker_path`); then it, and every later process,
 loads. A kernel that still misses the cache compiles in the process, as numba does by default.
@@ -12,7 +12,7 @@ loads. A kernel that still misses the cache compiles in the process, as numba do
 ``EGOBENCH_KERNEL_BUILD=in-process`` compiles where rendered instead (the child itself uses it). With
 ``NUMBA_OPT=max`` in the environment numba runs its first, cheap pass at -O3 with loop vectorization too,
 so the loop body's own library is optimized twice as the cached copy is: a process that compiles then runs
-the cached bits at the cached speed (measured, stop 65; the compile takes about twice as long). That is the
+the cached bits at the cached speed (measured 2026-11-29; the compile takes about twice as long). That is the
 way to compile in-process where no child can run.
 """
 

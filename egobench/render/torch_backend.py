@@ -42,7 +42,7 @@ from torch import Tensor
 
 from egobench.camera.pinhole import Pinhole
 
-#: gsplat 1.5.3 constants (PAPER-NOTES section 8)
+#: gsplat 1.5.3 constants (docs/paper-notes.md §7)
 ALPHA_MIN = 1.0 / 255.0  # Gaussians with alpha below this are skipped for a pixel
 ALPHA_MAX = 0.999  # alpha is clamped to this
 T_STOP = 1e-4  # compositing stops before T * (1 - alpha) <= T_STOP

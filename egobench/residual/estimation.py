@@ -16,7 +16,7 @@ pixel residual on their first-order signature (-grad(prediction) . displacement)
 and test the per-frame slopes across frames (frames are the units: robust to spatially
 correlated model error). Their parameters are then refined by Gauss-Newton on the warped
 prediction, which is also how `apply` re-renders the prediction under the corrected model
-(bilinear warp of the predicted image by the corrected displacement field; docs/diagnosis.md).
+(a Lanczos-4 warp of the predicted image by the corrected displacement field, `signatures.warp`).
 
 Noise compares the high-passed residual variance in flat regions with the assumed
 Poisson-Gaussian model; it does not change the mean prediction (its gain is a held-out

@@ -135,7 +135,7 @@ class DeviceProfile:
 # Lens: "camera-rgb" Projection.Params of the first line of the MPS sample's
 # online_calibration.jsonl (image 1408x1408 = the 2880 sensor binned 2x with a crop).
 # Extrinsics and time offset: same entry (T_Device_Camera, TimeOffsetSec_Device_Camera).
-# Readout: 16.26 ms for the full 2880-row sensor (paper / PAPER-NOTES section 4; the 1408
+# Readout: 16.26 ms for the full 2880-row sensor (docs/paper-notes.md §2; the 1408
 # sample itself reports 5 ms in its binned mode).
 # Frame rate: 10 fps (paper section 5: "10 FPS JPEG-compressed 8MP images").
 # Response: gamma 2.2 (paper Eq. 3 default).
@@ -185,7 +185,7 @@ ARIA_RGB = DeviceProfile(
 #   log(inv_dist_std) ~ Normal(mean=-5.78, std=1.36) (16/50/84th percentiles -7.27/-5.78/-4.55),
 #   dist_std = inv_dist_std * distance^2 (first-order propagation; the sample's ratio
 #   dist_std/inv_dist_std has sqrt median 3.0 m, the typical viewing distance).
-# Filter (PAPER-NOTES section 3): keep inv_dist_std < 0.01 and dist_std < 0.02 (the sample keeps 44 %).
+# Filter (docs/paper-notes.md §3): keep inv_dist_std < 0.01 and dist_std < 0.02 (the sample keeps 44 %).
 # --------------------------------------------------------------------------------------
 ARIA_SLAM = DeviceProfile(
     name="aria_slam",
@@ -219,7 +219,7 @@ class SemiDenseNoise:
 
     log_inv_dist_std_mean: float = -5.78  # mean of log(inv_dist_std [1/m]) in the real sample
     log_inv_dist_std_std: float = 1.36  # std of log(inv_dist_std) in the real sample
-    max_inv_dist_std: float = 0.01  # filter threshold, 1/m (PAPER-NOTES section 3)
+    max_inv_dist_std: float = 0.01  # filter threshold, 1/m (docs/paper-notes.md §3)
     max_dist_std: float = 0.02  # filter threshold, m
 
 

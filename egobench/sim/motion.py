@@ -61,7 +61,7 @@ class HeadMotionConfig:
 
     duration_s: float = 15.0  # trajectory length, seconds
     setting: MotionSetting = "normal"  # normal walk, fast (quick head turns) or static (standing)
-    rate_hz: float = 1000.0  # sampling rate; MPS closed-loop trajectories are 1 kHz (PAPER-NOTES 4)
+    rate_hz: float = 1000.0  # sampling rate; MPS closed-loop trajectories are 1 kHz (docs/paper-notes.md §4)
     start_ns: int = 0  # device-clock time of the first sample, ns
     walk_speed_m_s: float = 0.75  # mean walking speed: median of the real sample (0.75 m/s); slow indoor walking
     speed_variation: float = 0.2  # relative std of slow speed changes (sample: p25/p75 = 0.44/0.89 m/s)

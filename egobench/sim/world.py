@@ -78,7 +78,7 @@ SURFACE_EPS_M = 1e-4
 def luminance(rgb: Tensor) -> Tensor:
     """Rec.709 luminance of linear RGB [..., 3] -> [...]."""
     w = torch.tensor(LUMINANCE_WEIGHTS, dtype=rgb.dtype, device=rgb.device)
-    return rgb @ w
+    return pm.vecdot(rgb, w)
 
 
 def _unit(v: Sequence[float], name: str) -> np.ndarray:
@@ -319,7 +319,7 @@ def _box_surface_frame(q: dict, j: Tensor, p: Tensor) -> tuple[Tensor, Tensor, T
     """Oriented boxes: the face is the local axis where |p_local| / half-size is largest; uv in
     that face's plane, offset per face so that faces do not share texture."""
     R = q["R"][j]  # [n, 3, 3] columns = local axes
-    loc = torch.einsum("nji,nj->ni", R, p - q["C"][j])
+    loc = pm.vecdot(R.transpose(-1, -2), (p - q["C"][j])[:, None, :])
     h = q["H"][j]
     k = torch.argmax(torch.abs(loc) / h, dim=1)  # face axis
     sign = torch.sign(torch.gather(loc, 1, k[:, None]))[:, 0]
@@ -335,7 +335,7 @@ def _box_surface_frame(q: dict, j: Tensor, p: Tensor) -> tuple[Tensor, Tensor, T
 def _cylinder_surface_frame(q: dict, j: Tensor, p: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Capped cylinders: side uv = (angle x radius, height); caps uv = local (x, y), offset per cap."""
     R = q["R"][j]  # [n, 3, 3] columns = local axes
-    loc = torch.einsum("nji,nj->ni", R, p - q["C"][j])
+    loc = pm.vecdot(R.transpose(-1, -2), (p - q["C"][j])[:, None, :])
     r, hh = q["r"][j], q["h"][j]
     rho = torch.sqrt(loc[:, 0] ** 2 + loc[:, 1] ** 2)
     cap = (torch.abs(loc[:, 2]) - hh) > (rho - r)  # closer to a cap plane than to the side
@@ -352,8 +352,8 @@ def _cylinder_surface_frame(q: dict, j: Tensor, p: Tensor) -> tuple[Tensor, Tens
     t_cap[:, 0] = 1.0
     tu_loc = torch.where(cap[:, None], t_cap, t_side)
     tv_loc = torch.cross(n_loc, tu_loc, dim=1)
-    return (torch.where(cap[:, None], uv_cap, uv_side), torch.einsum("nij,nj->ni", R, n_loc),
-            torch.einsum("nij,nj->ni", R, tu_loc), torch.einsum("nij,nj->ni", R, tv_loc))
+    return (torch.where(cap[:, None], uv_cap, uv_side), pm.vecdot(R, n_loc[:, None, :]),
+            pm.vecdot(R, tu_loc[:, None, :]), pm.vecdot(R, tv_loc[:, None, :]))
 
 
 @dataclass(eq=False)
@@ -575,7 +575,7 @@ class Scene:
                 E = E + light.ground_albedo * E_ground * 0.5 * (1 - nz) * torch.ones(3, dtype=dt, device=dev)
             elif isinstance(light, Sun):
                 ldir = torch.as_tensor(_unit(light.direction_to_sun, "Sun.direction_to_sun"), dtype=dt, device=dev)
-                cos = torch.clamp(normals @ ldir, min=0.0)
+                cos = torch.clamp(pm.vecdot(normals, ldir), min=0.0)
                 lit = cos > 0
                 vis = torch.zeros_like(cos)
                 if bool(lit.any()):
@@ -800,13 +800,13 @@ class Scene:
 # --------------------------------------------------------------------------- intersection kernels
 def _hit_rects(q: dict, o: Tensor, d: Tensor, best_t: Tensor, best_id: Tensor) -> tuple[Tensor, Tensor]:
     """Closest rectangle per ray: (t [n], index in the rect list [n])."""
-    dn = d @ q["N"].T  # [n, P]
-    on = o @ q["N"].T
+    dn = pm.matmul(d, q["N"].T)  # [n, P]
+    on = pm.matmul(o, q["N"].T)
     eps = 1e-12
     safe = torch.where(torch.abs(dn) > eps, dn, torch.full_like(dn, eps))
     t = (q["cN"] - on) / safe
-    pu = o @ q["U"].T - q["cU"] + t * (d @ q["U"].T)
-    pv = o @ q["V"].T - q["cV"] + t * (d @ q["V"].T)
+    pu = pm.matmul(o, q["U"].T) - q["cU"] + t * pm.matmul(d, q["U"].T)
+    pv = pm.matmul(o, q["V"].T) - q["cV"] + t * pm.matmul(d, q["V"].T)
     ok = (torch.abs(dn) > eps) & (t > 0) & (torch.abs(pu) <= q["H"][:, 0]) & (torch.abs(pv) <= q["H"][:, 1])
     t = torch.where(ok, t, torch.full_like(t, math.inf))
     tmin, j = t.min(dim=1)
@@ -821,8 +821,8 @@ def _sphere_mask(C: Tensor, c2r2: Tensor, r: Tensor, o: Tensor, d: Tensor, best_
     origin (centre ahead, or origin inside), and the entry distance, which is at least
     d.(c - o) - r, is below the best hit so far.
     """
-    b = (d * o).sum(1, keepdim=True) - d @ C.T  # d.(o - c)
-    c = (o * o).sum(1, keepdim=True) - 2 * (o @ C.T) + c2r2  # |o - c|^2 - r^2
+    b = (d * o).sum(1, keepdim=True) - pm.matmul(d, C.T)  # d.(o - c)
+    c = (o * o).sum(1, keepdim=True) - 2 * pm.matmul(o, C.T) + c2r2  # |o - c|^2 - r^2
     return (b * b >= c) & ((b < 0) | (c < 0)) & (-b - r < best_t[:, None])
 
 
@@ -926,16 +926,16 @@ def _slab(ol: Tensor, dl: Tensor, H: Tensor) -> Tensor:
 def _hit_boxes_dense(q: dict, o: Tensor, d: Tensor, best_t: Tensor, best_id: Tensor) -> tuple[Tensor, Tensor]:
     """Every ray against every (big) box: [n, P] slab tests."""
     n, P = o.shape[0], q["C"].shape[0]
-    ol = (o @ q["Rflat"]).view(n, P, 3) - q["cR"]
-    dl = (d @ q["Rflat"]).view(n, P, 3)
+    ol = pm.matmul(o, q["Rflat"]).view(n, P, 3) - q["cR"]
+    dl = pm.matmul(d, q["Rflat"]).view(n, P, 3)
     tmin, j = _slab(ol, dl, q["H"]).min(dim=1)
     better = tmin < best_t
     return torch.where(better, tmin, best_t), torch.where(better, q["ids"][j], best_id)
 
 
 def _hit_spheres(q: dict, o: Tensor, d: Tensor, best_t: Tensor, best_id: Tensor) -> tuple[Tensor, Tensor]:
-    b = (d * o).sum(1, keepdim=True) - d @ q["C"].T  # d.(o - c)  [n, P]
-    c = (o * o).sum(1, keepdim=True) - 2 * (o @ q["C"].T) + q["c2r2"]  # |o - c|^2 - r^2
+    b = (d * o).sum(1, keepdim=True) - pm.matmul(d, q["C"].T)  # d.(o - c)  [n, P]
+    c = (o * o).sum(1, keepdim=True) - 2 * pm.matmul(o, q["C"].T) + q["c2r2"]  # |o - c|^2 - r^2
     disc = b * b - c
     ok = disc >= 0
     sq = torch.sqrt(torch.clamp(disc, min=0.0))

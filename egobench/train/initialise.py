@@ -1,4 +1,4 @@
-"""Initial Gaussians from the semi-dense SLAM points (PAPER-NOTES §7, as gsplat's init)."""
+"""Initial Gaussians from the semi-dense SLAM points (docs/paper-notes.md §6, as gsplat's init)."""
 
 from __future__ import annotations
 

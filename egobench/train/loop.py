@@ -1,4 +1,4 @@
-"""The training loop (paper Sec. 3-4, PAPER-NOTES §2 and §7).
+"""The training loop (paper Sec. 3-4, docs/paper-notes.md §2 and §6).
 
 Each iteration picks a training frame (seeded permutation per epoch), renders it under the
 method's pose model (centre-row pose; adaptive rolling-shutter pose samples after the warm-up;
@@ -58,7 +58,7 @@ class TrainResult:
     checkpoint: Path
     iterations: int  # completed iterations
     num_gaussians: int
-    time_s: float  # wall time of the iterations (all sessions, excluding setup and checkpoints)
+    time_s: float  # wall time of the iterations (all resumed segments, excluding setup and checkpoints)
     iters_per_s: float
     raster_time_share: float
     final_loss: float

@@ -1,4 +1,4 @@
-"""The 2DGS regularisers of the training loss (normal consistency, distortion; PAPER-NOTES §7). The
+"""The 2DGS regularisers of the training loss (normal consistency, distortion; docs/paper-notes.md §6). The
 photometric loss (0.8 L1 + 0.2 (1 - SSIM) on the valid pixels) is `egobench.train.photometric`."""
 
 from __future__ import annotations

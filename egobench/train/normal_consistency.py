@@ -1,8 +1,8 @@
-"""2DGS normal consistency (PAPER-NOTES §7): the rendered normals against the normals of the rendered
+"""2DGS normal consistency (docs/paper-notes.md §6): the rendered normals against the normals of the rendered
 depth, weighted by alpha, averaged over the valid pixels. `normal_consistency` runs a compiled CPU
 kernel (forward and hand-written backward) for CPU tensors and `normal_consistency_torch`, the
 oracle, elsewhere; on a 128 px step the torch ops took 4.6 ms (forward + backward), ~8 % of an
-`ours_2dgs` step (docs/cpu-rasterizer.md, "The projection vectorized").
+`ours_2dgs` step (results/speed/README.md, "The projection vectorized").
 """
 
 from __future__ import annotations

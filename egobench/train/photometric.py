@@ -1,8 +1,8 @@
-"""The training's photometric loss, (1 - l) L1 + l (1 - SSIM) over the valid pixels (PAPER-NOTES §7).
+"""The training's photometric loss, (1 - l) L1 + l (1 - SSIM) over the valid pixels (docs/paper-notes.md §6).
 `photometric_loss` runs a compiled CPU kernel (the value and the gradient with respect to the
 prediction in one pass, in its dtype) for CPU tensors and `photometric_loss_torch`, the oracle,
 elsewhere. On one thread the torch ops took 4.3 ms (forward + backward) at 128 px and 61.7 ms at
-512 px (docs/cpu-rasterizer.md, "The photometric loss compiled").
+512 px (results/speed/README.md, "The photometric loss compiled").
 
 SSIM as `egobench.metrics.ssim_map`: a separable 11-tap Gaussian (sigma 1.5), rows then columns, over
 the valid region; its backward is the same separable blur transposed (columns, then rows).

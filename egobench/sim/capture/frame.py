@@ -13,6 +13,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from egobench import portable_math as pm
 from egobench.camera.pinhole import Pinhole
 from egobench.data.mps import CameraCalibration
 from egobench.sim.capture.auto_exposure import AutoExposureState
@@ -195,13 +196,13 @@ def truth_depth_normal(setup: CaptureSetup, read_start_true_ns: int, exposure_tr
              + torch.round((rays.row_time_ratio * setup.clocks.readout_true_s + exposure_true_s / 2) * 1e9).to(torch.int64))
     Tp = camera_poses(setup.trajectory, as_transform(setup.cals.online), t_pix[gt_valid])  # [n, 4, 4]
     d_cam = rays.rays_cam[gt_valid]  # [n, 3] z = 1
-    d_world = torch.einsum("nij,nj->ni", Tp[:, :3, :3], d_cam)
+    d_world = pm.vecdot(Tp[:, :3, :3], d_cam[:, None, :])
     norm = d_world.norm(dim=-1, keepdim=True)
     t_hit, n_world, is_hit = geometry_cast(setup.scene, Tp[:, :3, 3].to(torch.float32).contiguous(),
                                            (d_world / norm).to(torch.float32).contiguous(), device=setup.compute)
     z = t_hit / norm[:, 0]
     z = torch.where(is_hit & torch.isfinite(z), z, torch.zeros_like(z))
-    n_cam = torch.einsum("nji,nj->ni", Tp[:, :3, :3], n_world)
+    n_cam = pm.vecdot(Tp[:, :3, :3].transpose(-1, -2), n_world[:, None, :])
     n_cam = torch.where(is_hit[:, None], n_cam, torch.zeros_like(n_cam))
     depth_map = torch.zeros(gt_valid.shape, dtype=torch.float64)
     depth_map[gt_valid] = z

@@ -12,10 +12,12 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
+from egobench import portable_math as pm
 from egobench.camera.rectify import readout_range
 from egobench.data.mps import CameraCalibration
 from egobench.sim.config import SimConfig
 from egobench.sim.devices import DeviceProfile
+from egobench.sim.world import luminance
 
 if TYPE_CHECKING:  # annotations only (these modules are imported lazily)
     pass
@@ -54,7 +56,7 @@ def device_trajectory(look_trajectory, device: DeviceProfile):
 
     R_dc = device.T_device_camera()[:3, :3]
     T_look_device = make_pose(R_dc.T, torch.zeros(3, dtype=torch.float64))
-    return Trajectory(look_trajectory.t_ns, look_trajectory.T_world_device @ T_look_device)
+    return Trajectory(look_trajectory.t_ns, pm.matmul(look_trajectory.T_world_device, T_look_device))
 
 
 def as_transform(cal: CameraCalibration) -> Tensor:  # [4, 4] float64
@@ -63,7 +65,7 @@ def as_transform(cal: CameraCalibration) -> Tensor:  # [4, 4] float64
 
 def camera_poses(trajectory, T_device_camera: Tensor, t_ns) -> Tensor:
     """T_world_camera [B, 4, 4] = trajectory.pose(t_ns) @ T_device_camera."""
-    return trajectory.pose(t_ns) @ T_device_camera
+    return pm.matmul(trajectory.pose(t_ns), T_device_camera)
 
 
 def cast_chunked(scene, origins: Tensor, dirs: Tensor, want: tuple[str, ...] = ("radiance",),
@@ -291,7 +293,7 @@ def capture_irradiance(scene, trajectory, raw: RawCamera, read_start_ns: int, ex
         vmask = valid[r0:r1, c0:c1]  # [h, w]
         if not bool(vmask.any()):
             continue
-        d = torch.einsum("hnij,nhwj->hnwi", R[r0:r1], rays[sub_idx, r0:r1, c0:c1])  # [h, n, w, 3]
+        d = pm.vecdot(R[r0:r1, :, None], rays[sub_idx, r0:r1, c0:c1].permute(1, 0, 2, 3)[..., None, :])  # [h, n, w, 3]
         orig = o[r0:r1, :, None, :].expand_as(d)
         m = vmask[:, None, :].expand(d.shape[:3])
         rad = cast_chunked(scene, orig[m].contiguous(), d[m].contiguous(),
@@ -315,11 +317,11 @@ def preview(scene, trajectory, raw: RawCamera, t_ns: int, grid: int = PREVIEW_GR
     ok = raw.valid[vv, uu]
     rays = raw.rays_cam[vv, uu][ok]  # [n, 3]
     T = camera_poses(trajectory, as_transform(raw.calibration), [t_ns])[0]
-    d = (rays @ T[:3, :3].T).to(torch.float32)
+    d = pm.matmul(rays, T[:3, :3].T).to(torch.float32)
     o = T[:3, 3].to(torch.float32).expand_as(d).contiguous()
     hit = scene.cast(o.to(device), d.to(device))
     hit = type(hit)(**{k: v.cpu() if isinstance(v, Tensor) else v for k, v in vars(hit).items()})
-    lum = hit.radiance.to(torch.float32) @ torch.tensor([0.2126, 0.7152, 0.0722])
+    lum = luminance(hit.radiance.to(torch.float32))
     good = hit.hit & torch.isfinite(hit.depth_t)
     pts = (o + d * hit.depth_t[:, None])[good].to(torch.float64)
     pix = torch.stack([uu[ok], vv[ok]], -1)[good]

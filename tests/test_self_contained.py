@@ -1,0 +1,58 @@
+"""The project speaks of itself only: no names of work periods, no files it does not contain."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+SELF = "tests/test_self_contained.py"  # holds the planted examples
+TEXT_SUFFIXES = {".py", ".md", ".yaml", ".yml", ".toml", ".sh", ".smk", ".txt", ".cfg", ".json", ".tex", ".html"}
+#: a numbered work period ("stop 62", "stops 45-49")
+WORK_PERIOD = re.compile(r"\bstops? \d", re.IGNORECASE)
+#: "session" is a work period too, but for pytest's own API
+SESSION = re.compile(r"session", re.IGNORECASE)
+PYTEST_SESSION = re.compile(r'scope="session"|request\.session|\bsession\.items\b|def warm_up\(session\b')
+#: files outside the repository that a clone does not have; the real sample data (an environment variable with a
+#: documented default, ../shared/data) is the one exception
+OUTSIDE = re.compile(r"PAPER-NOTES|DESIGN\.md|\.\./shared/(?!data\b)")
+
+
+def _text_files() -> list[Path]:
+    listed = subprocess.run(["git", "-C", str(REPO), "ls-files", "--cached", "--others", "--exclude-standard"],
+                            capture_output=True, text=True, check=True).stdout.split()
+    return [REPO / p for p in listed if (Path(p).suffix in TEXT_SUFFIXES or Path(p).name == "Snakefile")
+            and (REPO / p).is_file() and p != SELF]
+
+
+def _hits(pattern: re.Pattern, allowed: re.Pattern | None = None, under: tuple[str, ...] = ()) -> list[str]:
+    found = []
+    for path in _text_files():
+        rel = str(path.relative_to(REPO))
+        if under and not rel.startswith(under):
+            continue
+        for n, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
+            if pattern.search(allowed.sub("", line) if allowed else line):
+                found.append(f"{rel}:{n}: {line.strip()[:100]}")
+    return found
+
+
+def test_no_work_period_is_named_anywhere():
+    """Not "stop 62", not "the fourth session": a reader outside the project's history cannot place them. Dates
+    and commits can be placed."""
+    assert _hits(WORK_PERIOD) == []
+    assert _hits(SESSION, PYTEST_SESSION) == []
+
+
+def test_the_package_docs_and_tests_cite_only_files_in_the_repository():
+    assert _hits(OUTSIDE, under=("egobench/", "docs/", "tests/", "README.md", "scripts/")) == []
+
+
+def test_the_guards_catch_a_planted_example_of_each():
+    assert WORK_PERIOD.search("measured in stop 62") and WORK_PERIOD.search("after stops 45-49")
+    assert not WORK_PERIOD.search("scene_dynamic_range_stops 3.48") and not WORK_PERIOD.search("stop at 1e-4")
+    assert SESSION.search(PYTEST_SESSION.sub("", "the fourth GPU session")) is not None
+    assert SESSION.search(PYTEST_SESSION.sub("", '@pytest.fixture(scope="session")')) is None
+    assert OUTSIDE.search("see PAPER-NOTES section 2") and OUTSIDE.search("open ../shared/DESIGN.md")
+    assert not OUTSIDE.search("expected at ../shared/data/ (EGOBENCH_SHARED_DATA)")
