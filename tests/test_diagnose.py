@@ -276,3 +276,25 @@ def test_a_new_prediction_gets_its_own_geometric_view():
     view = data.with_prediction(other).geometric()
     assert not np.array_equal(view.p, data.geometric().p)
     assert np.allclose(view.m, data.geometric().m)  # the measured frames are the same
+
+
+def test_held_out_frames_are_compared_with_their_neighbouring_training_views():
+    """`neighbouring_training_views`: the fitting frames whose index is a held-out index +- 1 (by frame index, not
+    position); every fitting frame when none is held out. A reconstruction's error varies along the trajectory by
+    far more than its generalisation gap, so pooling every training frame against 1 in 8 held-out frames compares
+    different parts of the walk (it put training views 0.6-4 dB below the held-out frames)."""
+    from types import SimpleNamespace
+
+    from egobench.diagnose.core import _Split, neighbouring_training_views
+
+    def split_of(index):
+        held = index % 8 == 0
+        ctx = SimpleNamespace(frame_index=index, held_out=held)
+        return ctx, _Split(np.flatnonzero(~held), np.flatnonzero(held), None, np.ones((2, 2), bool), np.ones((2, 2), bool))
+
+    ctx, split = split_of(np.arange(17))
+    assert neighbouring_training_views(ctx, split).tolist() == [1, 7, 9, 15]
+    ctx, split = split_of(np.arange(5, 20))  # positions 0.. hold frames 5..19: held 8 and 16 at positions 3, 11
+    assert ctx.frame_index[neighbouring_training_views(ctx, split)].tolist() == [7, 9, 15, 17]
+    ctx, split = split_of(np.arange(1, 8))  # nothing held out
+    assert neighbouring_training_views(ctx, split).tolist() == list(range(7))

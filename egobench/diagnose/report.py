@@ -90,7 +90,8 @@ def signature_plot(path: Path, result: CauseResult) -> None:
 def model_error_markdown(me: dict, config) -> list[str]:
     """The trained-run section: how much of the residual is the model's own error, and what is testable."""
     lines = ["## Trained run: reconstruction error versus physics", "",
-             f"- held-out PSNR {me['held_out_psnr_db']:.2f} dB (training views {me['training_view_psnr_db']:.2f} dB); "
+             f"- held-out PSNR {me['held_out_psnr_db']:.2f} dB (their neighbouring training views "
+             f"{me['training_view_psnr_db']:.2f} dB, all training views {me.get('all_training_views_psnr_db', math.nan):.2f} dB); "
              f"the assumed sensor noise alone would give {me['noise_only_psnr_db']:.2f} dB",
              f"- model error left after the named causes: {me['model_error_psnr_db']:.2f} dB PSNR, "
              f"{me['model_error_over_noise_db']:+.1f} dB relative to the noise; non-physical share of the held-out "
