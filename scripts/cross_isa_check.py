@@ -18,7 +18,10 @@ Writes ``cross_isa.json``: per setting the host info, iterations/s (wall time of
 iterations, one thread), held-out PSNR, and per pair the largest parameter difference and the PSNR
 difference. ``--simulate-each``: the recording is also simulated again under every setting, and each is
 compared file by file with the host's (``recordings``). ``--recordings-only``: only that, no training (about
-a minute). Exploratory: one seed, one scene. Bit identity under an emulated CPU is a property of the machine
+a minute). ``--reference-digests FILE``: simulate the four scene kinds' reference recordings (`REFERENCE_CASES`)
+and compare every file's digest with FILE, written on another machine (``--write-reference-digests FILE``
+writes it; `results/cross_isa/recording_digests.json` is an AMD EPYC Zen 4 host's): the cross-vendor check
+that needs one machine at a time. Exploratory: one seed, one scene. Bit identity under an emulated CPU is a property of the machine
 this runs on (on an AMD CPU, MKL ignores some of these settings), so it is measured here and reported, not
 asserted by a test (docs/reproducibility.md).
 """
@@ -98,6 +101,34 @@ def run_setting(name: str, env_extra: dict, rec: Path, out: Path, iterations: in
     return json.loads(stdout.strip().splitlines()[-1])
 
 
+#: the recordings whose file digests `--write-reference-digests` records: each scene kind, seed 0, 32 px, 4 frames
+REFERENCE_CASES = ("outdoor", "indoor", "object", "quest3")
+
+
+def reference_digests(out: Path) -> dict[str, dict[str, str]]:
+    """Simulates `REFERENCE_CASES` under ``out`` -> {kind: {file: SHA-256}} (recording.json left out: it holds
+    the wall time)."""
+    from egobench.sim.capture import simulate_recording
+    from egobench.sim.config import SimConfig
+
+    res = {}
+    for kind in REFERENCE_CASES:
+        simulate_recording(SimConfig.from_overrides(kind, 0, {"rectified_size": 32, "n_frames": 4}), out / kind,
+                           progress=False)
+        res[kind] = {k: v for k, v in file_digests(out / kind).items() if k != "recording.json"}
+    return res
+
+
+def compare_digests(ours: dict, theirs: dict) -> dict:
+    """Per kind: identical?, files compared, and the files whose digests differ or exist on one side only."""
+    out = {}
+    for kind in sorted(ours.keys() | theirs.keys()):
+        a, b = ours.get(kind, {}), theirs.get(kind, {})
+        differing = sorted(k for k in a.keys() | b.keys() if a.get(k) != b.get(k))
+        out[kind] = {"identical": not differing, "files": len(a.keys() | b.keys()), "differing": differing[:20]}
+    return out
+
+
 def file_digests(root: Path) -> dict[str, str]:
     """Every file under root -> its SHA-256 (keys: paths relative to root)."""
     return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
@@ -133,6 +164,24 @@ def compare(out: Path, a: str, b: str) -> dict:
     return {"identical": all(np.array_equal(pa[k], pb[k]) for k in pa.files), "max_abs_diff": diff}
 
 
+def _reference_check(out: Path, write: str | None, against: str | None) -> int:
+    """`--write-reference-digests` / `--reference-digests`: prints (and writes under ``out``) the comparison."""
+    digests = reference_digests(out / "reference")
+    record = {"host": host_info(), "digests": digests}
+    if write:
+        Path(write).write_text(json.dumps(record, indent=1, sort_keys=True) + "\n")
+        print(f"wrote {write}: {sum(map(len, digests.values()))} files of {len(digests)} recordings")
+    if against:
+        theirs = json.loads(Path(against).read_text())
+        result = {"host": host_info(), "reference_host": theirs["host"],
+                  "recordings": compare_digests(digests, theirs["digests"])}
+        (out / "reference_comparison.json").write_text(json.dumps(result, indent=1))
+        for kind, r in result["recordings"].items():
+            print(kind, r)
+        return 0 if all(r["identical"] for r in result["recordings"].values()) else 1
+    return 0
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", required=True)
@@ -142,8 +191,13 @@ def main() -> int:
                     help="also simulate the recording under every setting and compare the files with the host's")
     ap.add_argument("--recordings-only", action="store_true",
                     help="only simulate the recording under every setting and compare (no training)")
+    ap.add_argument("--write-reference-digests", metavar="FILE", help="write the reference recordings' digests")
+    ap.add_argument("--reference-digests", metavar="FILE",
+                    help="compare the reference recordings' digests with FILE (written on another machine)")
     args = ap.parse_args()
     out = Path(args.out)
+    if args.write_reference_digests or args.reference_digests:
+        return _reference_check(out, args.write_reference_digests, args.reference_digests)
     rec = out / "recording"
     if not rec.exists():
         simulate(rec, args.size)

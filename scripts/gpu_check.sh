@@ -2,7 +2,7 @@
 # The GPU path's checks in one call (issue 30): on a bare CUDA machine, from the repository root,
 # install the wheels carried in .whl/ (scripts/gpu_wheels.sh: what the image lacks), JIT-build
 # gsplat's CUDA extension, then run, each under its own share of the time:
-#   pytest -m cuda (the GPU path's check first);
+#   pytest -m cuda (the GPU path's check first); a simulated recording's bytes against an AMD host's digests;
 #   CPU training's thread scaling 1..16 (bench train --scaling, 128 then 512 px), the OpenMP wait
 #   policy's effect at 16 threads, the CPU kernels' scaling (bench raster --scaling);
 #   bench raster, bench cast (rays/s by chunk size) and bench train at 2400 px / 1M Gaussians (with
@@ -59,6 +59,10 @@ from gsplat.cuda._backend import _C
 print('gsplat extension:', _C, f'{time.time() - t:.1f} s')
 assert _C is not None"
 step pytest_cuda 100 python3 -m pytest -m cuda -v -p no:cacheprovider --continue-on-collection-errors
+# the host CPU is an Intel Xeon: do a recording's bytes travel between CPU vendors? (the digests were written on an
+# AMD EPYC host, results/cross_isa/recording_digests.json; exit 1 names the files that differ)
+step cross_vendor_recordings 120 python3 scripts/cross_isa_check.py --out "$LOGS/cross_isa" \
+  --reference-digests results/cross_isa/recording_digests.json
 # the compiled CPU kernels and training on the host's 16 cores (issue 32: scaling past 2 threads)
 CPU_ENV="OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=${CPU_POOL:-16} NUMBA_CACHE_DIR=/tmp/numba_cache"
 for px in 128 512; do  # one record each, so that a time limit keeps the first

@@ -65,3 +65,18 @@ def test_the_simulator_calls_no_torch_operation_that_runs_in_mkl(tmp_path):
     assert "mul" in seen and "add" in seen  # the mode saw the arithmetic
     elementwise_linalg = {"linalg_cross", "linalg_vector_norm"}  # no BLAS or LAPACK behind these
     assert sorted(op for op in seen if op in blas or "linalg" in op and op not in elementwise_linalg) == []
+
+
+def test_reference_digests_are_compared_per_recording():
+    """`compare_digests`: per scene kind, identical when every file's digest agrees; a changed digest and a file on
+    one side only are named. The committed reference (an AMD host's) covers the four scene kinds."""
+    import json
+
+    compare = SCRIPT["compare_digests"]
+    ours = {"a": {"x.png": "1", "y.csv": "2"}, "b": {"z.json": "3"}}
+    assert compare(ours, ours) == {"a": {"identical": True, "files": 2, "differing": []},
+                                   "b": {"identical": True, "files": 1, "differing": []}}
+    theirs = {"a": {"x.png": "1", "y.csv": "9", "w.npy": "4"}, "b": {"z.json": "3"}}
+    assert compare(ours, theirs)["a"] == {"identical": False, "files": 3, "differing": ["w.npy", "y.csv"]}
+    ref = json.loads((Path(__file__).parents[1] / "results" / "cross_isa" / "recording_digests.json").read_text())
+    assert sorted(ref["digests"]) == sorted(SCRIPT["REFERENCE_CASES"]) and "cpu_model" in ref["host"]
