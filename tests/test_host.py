@@ -210,7 +210,7 @@ def test_numba_pool_is_capped_only_before_numba_loads():
 
 def test_kernels_compile_whichever_module_loads_numba_first():
     """With OMP_NUM_THREADS=1 (as Snakemake's jobs) and no NUMBA_NUM_THREADS: numba loaded before
-    egobench (pool left alone) or by the 2DGS kernels and the host record before `cpu_kernels` (pool
+    egobench (pool left alone) or by the 2DGS kernels and the host record before `egobench.render.cpu` (pool
     capped to 1), a later compilation works. Setting NUMBA_NUM_THREADS after numba loaded made every
     compilation fail (a cold cache, or a new dtype, in a Snakemake job)."""
     import os
@@ -218,9 +218,9 @@ def test_kernels_compile_whichever_module_loads_numba_first():
     import sys
 
     compile_one = "import numba; print(numba.njit(lambda x: x + 1)(1), numba.config.NUMBA_NUM_THREADS)"
-    orders = {"numba first": "import numba\nfrom egobench.render import cpu_kernels\n",
+    orders = {"numba first": "import numba\nfrom egobench.render import cpu\n",
               "2dgs first": ("from egobench.host import host_info\nhost_info()\n"
-                             "from egobench.render import cpu_kernels_2dgs\n")}
+                             "from egobench.render.cpu import surfels\n")}
     env = {k: v for k, v in os.environ.items() if k not in ("NUMBA_NUM_THREADS", "EGOBENCH_RASTER_THREADS")}
     env["OMP_NUM_THREADS"] = "1"
     out = {name: subprocess.run([sys.executable, "-c", pre + compile_one], env=env, capture_output=True, text=True,

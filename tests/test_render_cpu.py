@@ -265,9 +265,9 @@ def test_band_rows_hold_every_visible_pixel(dtype):
     test would not exercise it)."""
     import numpy as np
 
-    from egobench.render import _viewmats, cpu_backend, cpu_kernels
+    from egobench.render import _viewmats, cpu_backend, cpu as ck
 
-    ts, cw, n_checked, n_cut = 16, cpu_kernels.column_group(16), 0, 0
+    ts, cw, n_checked, n_cut = 16, ck.column_group(16), 0, 0
     for seed in range(3):
         g = edge_case_scene(seed, dtype)
         lo = torch.nn.functional.logsigmoid(g.opacity_logits).numpy()
@@ -275,11 +275,11 @@ def test_band_rows_hold_every_visible_pixel(dtype):
             g.means, g.quats, g.scales, _viewmats(pose(0.03, -0.02)[None].to(dtype)),
             torch.sigmoid(g.opacity_logits).detach(), cpu_backend.camera_array(CAM), CAM.width, CAM.height, False)
         m2, con, rad = m2.numpy(), con.numpy(), rad.numpy()
-        tab = np.empty((m2.shape[1], cpu_kernels.TAB_COLS), m2.dtype)
-        cpu_kernels.gaussian_table(m2, con, rad, lo, np.ones(m2.shape[1], bool), tab)
+        tab = np.empty((m2.shape[1], ck.TAB_COLS), m2.dtype)
+        ck.gaussian_table(m2, con, rad, lo, np.ones(m2.shape[1], bool), tab)
         pix_view, need = cpu_backend.pixel_views(None, 1, CAM.height, CAM.width, ts)
         tiles_x = math.ceil(CAM.width / ts)
-        flat, starts = cpu_kernels.bin_tiles(m2, rad, dep.numpy(), ts, tiles_x, need.shape[1] // tiles_x, need)
+        flat, starts = ck.bin_tiles(m2, rad, dep.numpy(), ts, tiles_x, need.shape[1] // tiles_x, need)
         for b in range(need.shape[1]):
             x0, y0 = (b % tiles_x) * ts, (b // tiles_x) * ts
             py, px = np.meshgrid(np.arange(y0, y0 + ts) + 0.5, np.arange(x0, x0 + ts) + 0.5, indexing="ij")
@@ -288,8 +288,8 @@ def test_band_rows_hold_every_visible_pixel(dtype):
                 dx, dy = px - float(m2[0, n, 0]), py - float(m2[0, n, 1])
                 reach = 0.5 * (A * dx * dx + 2 * B * dx * dy + C * dy * dy) - float(lo[n]) <= 5.55
                 reach &= (py < CAM.height) & (px < CAM.width)
-                box = cpu_kernels._footprint_tab(tab, n, x0, y0, ts, CAM.width, CAM.height)
-                visited, cut = visited_pixels(box, lambda qa, qb, ra, rb: cpu_kernels.band_rows(
+                box = ck._footprint_tab(tab, n, x0, y0, ts, CAM.width, CAM.height)
+                visited, cut = visited_pixels(box, lambda qa, qb, ra, rb: ck.band_rows(
                     tab, n, x0, y0, qa, qb, ra, rb), reach.shape, cw)
                 n_cut += cut
                 assert not (reach & ~visited).any(), (seed, b, n)
@@ -353,7 +353,7 @@ def test_stage_profiler_reports_every_stage_of_the_binned_scene(mode):
 
     from egobench import bench
     from egobench.bench import cpu_profile
-    from egobench.render import cpu_backend, cpu_backend_2dgs, cpu_kernels
+    from egobench.render import cpu_backend, cpu_backend_2dgs, cpu as ck
 
     st = cpu_profile.stage_times(sigma_px=1.5, width=32, n=300, repeats=1, mode=mode)
     assert all(st[k] >= 0 for k in cpu_profile.STAGES + ("bin_tiles",)) and st["render_fwd_bwd (bench step)"] > 0
@@ -369,10 +369,10 @@ def test_stage_profiler_reports_every_stage_of_the_binned_scene(mode):
             m2, _, dep, _, rad = cpu_backend_2dgs._Project2DGS.apply(g.means, g.quats, g.scales, torch.eye(4)[None],
                                                                      cam, 32, 32)
     need = np.ones((1, 4), dtype=np.bool_)
-    flat, _ = cpu_kernels.bin_tiles(m2.numpy(), rad.numpy(), dep.numpy(), 16, 2, 2, need)
+    flat, _ = ck.bin_tiles(m2.numpy(), rad.numpy(), dep.numpy(), 16, 2, 2, need)
     assert st["intersections"] == flat.shape[0] > 0
     assert 0 < st["intersections_composited"] < st["intersections"]
-    assert st["backward_pixel_evals"] % cpu_kernels.column_group(16) == 0
+    assert st["backward_pixel_evals"] % ck.column_group(16) == 0
     assert st["intersections_composited"] <= st["backward_pixel_evals"] <= st["intersections_composited"] * 16 * 16
 
 
@@ -387,7 +387,7 @@ def test_profiler_work_counts_read_rows_hit():
 
 
 def _tile_rects_reference(means2d, radii, depths, tile_size, tiles_x, tiles_y, bin_needed):
-    """`cpu_kernels.visible_rects` in plain Python: visible pairs in (image, Gaussian) order, tile ranges
+    """`ck.visible_rects` in plain Python: visible pairs in (image, Gaussian) order, tile ranges
     clipped to each image's box of needed bins."""
     rects, vis, keys = [], [], []
     I, N = depths.shape
@@ -413,7 +413,7 @@ def test_tile_rects_and_gradient_sums_match_plain_references():
     pairs cut into 1, 2, 3 or 7 ranges, across image boundaries, as threads would) and
     `reduce_isect_grad` against numpy's in-order np.add.at: the same numbers bit for bit, for any
     number of parts (threads)."""
-    from egobench.render import cpu_kernels as ck
+    from egobench.render import cpu as ck
 
     rng = np.random.default_rng(4)
     I, N, ts, tiles_x, tiles_y = 5, 300, 16, 6, 4
@@ -457,7 +457,7 @@ def test_fill_bins_matches_a_plain_counting_sort_for_any_number_of_ranges(monkey
     an image needing no bin gets none."""
     import numba
 
-    from egobench.render import cpu_kernels as ck
+    from egobench.render import cpu as ck
 
     rng = np.random.default_rng(11)
     I, N, tiles_x, tiles_y, nv = 4, 500, 5, 3, 1500
@@ -535,8 +535,8 @@ def _captured_raster(monkeypatch, mode: str, sigma_px: float):
     scene (64 px, 1500 Gaussians, float32) -> backward args; the last two are isect_grad and the
     forward's rows_hit."""
     from egobench import bench
-    from egobench.render import cpu_kernels as ck
-    from egobench.render import cpu_kernels_2dgs as k2
+    from egobench.render import cpu as ck
+    from egobench.render.cpu import surfels as k2
 
     mod, name = (k2, "raster_bwd_2dgs") if mode == "2dgs" else (ck, "raster_bwd")
     kernel, got = getattr(mod, name), {}
@@ -560,37 +560,37 @@ def _backward_with_rows(kernel, bwd_args, rows_hit):
 
 
 def test_rows_needed_marks_exactly_the_binned_rows():
-    from egobench.render import cpu_kernels
+    from egobench.render import cpu as ck
 
     flat = np.array([7, 3, 7, 0, 12, 3], np.int64)
-    np.testing.assert_array_equal(cpu_kernels.rows_needed(flat, 14), np.isin(np.arange(14), flat))
-    assert not cpu_kernels.rows_needed(flat[:0], 5).any()
+    np.testing.assert_array_equal(ck.rows_needed(flat, 14), np.isin(np.arange(14), flat))
+    assert not ck.rows_needed(flat[:0], 5).any()
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_floor_and_ceil_in_float64_are_the_float32_values_floor_and_ceil(dtype):
     """`floor_int` / `ceil_int` (rounded in float64, no C helper call for a float32): the integers
     math.floor / math.ceil give, at integers, halves, negatives, signed zeros and values near 2^23."""
-    from egobench.render import cpu_kernels
+    from egobench.render import cpu as ck
 
     rng = np.random.default_rng(3)
     vals = np.concatenate([[0.0, -0.0, 1.0, -1.0, 0.5, -0.5, 2.0**23 - 0.5, -(2.0**23) + 0.5, 1e-30, -1e-30],
                            rng.uniform(-300, 300, 200), np.round(rng.uniform(-50, 50, 20))]).astype(dtype)
     for v in vals:
-        assert cpu_kernels.floor_int(v) == math.floor(float(v)), v
-        assert cpu_kernels.ceil_int(v) == math.ceil(float(v)), v
+        assert ck.floor_int(v) == math.floor(float(v)), v
+        assert ck.ceil_int(v) == math.ceil(float(v)), v
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_table_buffer_rows_start_on_cache_lines(dtype):
     """`table_buffer`: [rows, TAB_COLS] of the dtype, C-contiguous and writeable, its first byte on a
     64-byte boundary (so every float32 row is one cache line) for any row count, rows not overlapping."""
-    from egobench.render import cpu_backend, cpu_kernels
+    from egobench.render import cpu_backend, cpu as ck
 
     held = [np.empty(k, np.uint8) for k in (1, 17, 33)]  # shift the allocator's next address
     for rows in (1, 3, 1000, 120_000):
         tab = cpu_backend.table_buffer(rows, dtype)
-        assert tab.shape == (rows, cpu_kernels.TAB_COLS) and tab.dtype == dtype
+        assert tab.shape == (rows, ck.TAB_COLS) and tab.dtype == dtype
         assert tab.flags.c_contiguous and tab.flags.writeable
         assert tab.ctypes.data % cpu_backend.CACHE_LINE == 0
         tab[:] = np.arange(rows, dtype=dtype)[:, None]
@@ -600,13 +600,13 @@ def test_table_buffer_rows_start_on_cache_lines(dtype):
 
 def test_needed_rows_lists_the_needed_rows_of_a_range_in_order():
     """`needed_rows`: the rows g in [g0, g1) with needed[g], ascending, for empty, sparse and full ranges."""
-    from egobench.render import cpu_kernels
+    from egobench.render import cpu as ck
 
     need = np.random.default_rng(5).random(700) < 0.11
     need[600:] = True
     rows = np.empty(700, np.int64)
     for g0, g1 in ((0, 700), (13, 269), (600, 700), (5, 5), (300, 301)):
-        L = cpu_kernels.needed_rows(need, g0, g1, rows)
+        L = ck.needed_rows(need, g0, g1, rows)
         np.testing.assert_array_equal(rows[:L], g0 + np.nonzero(need[g0:g1])[0])
 
 
@@ -614,7 +614,8 @@ def test_needed_rows_lists_the_needed_rows_of_a_range_in_order():
 def test_tables_fill_only_the_rows_needed(mode):
     """The Gaussian / surfel table fills the rows `rows_needed` marks, each exactly as a full table,
     and leaves the others as they were."""
-    from egobench.render import _viewmats, cpu_backend, cpu_backend_2dgs, cpu_kernels, cpu_kernels_2dgs
+    from egobench.render import _viewmats, cpu_backend, cpu_backend_2dgs, cpu as ck
+    from egobench.render.cpu import surfels
 
     g = edge_case_scene(5)
     Ts = _viewmats(torch.stack([pose(0.0, 0.03 * k, (0.01 * k, 0, 0)) for k in range(3)]))
@@ -622,14 +623,14 @@ def test_tables_fill_only_the_rows_needed(mode):
     if mode == "3dgs":
         m2, con, _, _, rad = cpu_backend._Project.apply(g.means, g.quats, g.scales, Ts, torch.sigmoid(g.opacity_logits),
                                                        cpu_backend.camera_array(CAM), CAM.width, CAM.height, False)
-        fill = lambda need, tab: cpu_kernels.gaussian_table(m2.numpy(), con.numpy(), rad.numpy(), lo, need, tab)
+        fill = lambda need, tab: ck.gaussian_table(m2.numpy(), con.numpy(), rad.numpy(), lo, need, tab)
     else:
         m2, tsl, _, _, _ = cpu_backend_2dgs._Project2DGS.apply(g.means, g.quats, g.scales, Ts,
                                                                 cpu_backend.camera_array(CAM), CAM.width, CAM.height)
-        fill = lambda need, tab: cpu_kernels_2dgs.surfel_table(m2.numpy(), tsl.numpy(), lo, need, tab)
+        fill = lambda need, tab: surfels.surfel_table(m2.numpy(), tsl.numpy(), lo, need, tab)
     rows = m2.shape[0] * m2.shape[1]
     need = np.random.default_rng(0).random(rows) < 0.3
-    full, part = np.zeros((rows, cpu_kernels.TAB_COLS)), np.full((rows, cpu_kernels.TAB_COLS), np.nan)
+    full, part = np.zeros((rows, ck.TAB_COLS)), np.full((rows, ck.TAB_COLS), np.nan)
     fill(np.ones(rows, bool), full)
     fill(need, part)
     np.testing.assert_array_equal(part[need], full[need])
@@ -640,14 +641,14 @@ def test_tables_fill_only_the_rows_needed(mode):
 def test_live_pairs_marks_the_pairs_with_any_upstream_gradient(with_normals):
     """`live_pairs` (the projection backwards skip the other pairs exactly): a pair is live when any
     channel of any gradient is non-zero at it, the normals only when asked for; a block [n0, n0 + L)."""
-    from egobench.render import cpu_kernels
+    from egobench.render import cpu as ck
 
     rng = np.random.default_rng(7)
     I, N, n0, L = 4, 300, 37, 200
     sparse = lambda *shape: rng.normal(size=shape) * (rng.random(shape) < 0.03)
     g_m2, g_second, g_dep, g_nrm = sparse(2, I, N), sparse(9, I, N), sparse(I, N), sparse(3, I, N)
     live = np.ones((I, 256), bool)
-    cpu_kernels.live_pairs(g_m2, g_second, g_dep, g_nrm, with_normals, n0, L, live)
+    ck.live_pairs(g_m2, g_second, g_dep, g_nrm, with_normals, n0, L, live)
     want = (g_m2 != 0).any(0) | (g_second != 0).any(0) | (g_dep != 0)
     if with_normals:
         want |= (g_nrm != 0).any(0)
@@ -661,7 +662,7 @@ def test_live_pairs_marks_the_pairs_with_any_upstream_gradient(with_normals):
 def test_feature_table_fills_the_needed_rows_with_colour_depth_normal(with_normals):
     """`feature_table` writes each needed row image * N + Gaussian as (colour, depth[, normal]) of that
     image and Gaussian (the layout the kernels read) and leaves the other rows as they were."""
-    from egobench.render import cpu_kernels
+    from egobench.render import cpu as ck
 
     rng = np.random.default_rng(2)
     I, N = 3, 700
@@ -670,7 +671,7 @@ def test_feature_table_fills_the_needed_rows_with_colour_depth_normal(with_norma
     normals = rng.normal(size=(I, N if with_normals else 0, 3)).astype(np.float32)
     need = rng.random(I * N) < 0.2
     out = np.full((I * N, 7 if with_normals else 4), np.nan, np.float32)
-    cpu_kernels.feature_table(colors, depths, normals, need, out)
+    ck.feature_table(colors, depths, normals, need, out)
     want = np.concatenate([np.broadcast_to(colors, (I, N, 3)), depths[..., None]] + ([normals] if with_normals else []),
                           -1).reshape(I * N, -1)
     np.testing.assert_array_equal(out[need], want[need])
@@ -734,8 +735,8 @@ def test_projection_backward_reads_float32_gradients_as_float64_copies(monkeypat
     """The projection backward gets the upstream gradients in their own dtype (no float64 copies of
     [I, N, 9] arrays a step): every value is widened to float64 as it is read, so its outputs equal,
     bit for bit, those from float64 copies of the same gradients (normals and pose gradients included)."""
-    from egobench.render import cpu_kernels as ck
-    from egobench.render import cpu_kernels_2dgs as k2
+    from egobench.render import cpu as ck
+    from egobench.render.cpu import surfels as k2
 
     mod, name = (k2, "project_bwd_2dgs") if mode == "2dgs" else (ck, "project_bwd")
     kernel, got = getattr(mod, name), {}
@@ -774,14 +775,14 @@ def test_projection_backward_reads_float32_gradients_as_float64_copies(monkeypat
 def test_radix_order_is_numpys_stable_argsort(dtype):
     """`_radix_order` of positive floats' bit patterns: the stable ascending order (ties keep their
     index order), for empty, one and many keys with ties across every radix digit."""
-    from egobench.render import cpu_kernels
+    from egobench.render import cpu as ck
 
     rng = np.random.default_rng(7)
     uint = np.uint32 if dtype == np.float32 else np.uint64
     for n in (0, 1, 5000):
         keys = (rng.integers(1, 40, n) * 0.37).astype(dtype)  # many ties
         keys[: n // 3] = rng.random(n // 3).astype(dtype) * 1e4 + 1e-3  # spread over exponents
-        order = cpu_kernels._radix_order(keys.view(uint), keys.dtype.itemsize * 8)
+        order = ck._radix_order(keys.view(uint), keys.dtype.itemsize * 8)
         np.testing.assert_array_equal(order, np.argsort(keys, kind="stable"))
 
 
@@ -796,7 +797,7 @@ def test_per_bin_bodies_compile_with_a_parfor_bodys_flags():
     fast-math function keeps the test and only its return slots are noalias. The 3DGS per-bin bodies use it."""
     from numba import njit
 
-    from egobench.render import cpu_kernels as ck
+    from egobench.render import cpu as ck
 
     x = np.linspace(1.0, 2.0, 64, dtype=np.float32)
     irs = {}
@@ -817,10 +818,10 @@ def test_per_bin_bodies_compile_with_a_parfor_bodys_flags():
 
 
 def test_needed_bins_are_the_bins_of_the_pixels():
-    """`cpu_kernels.needed_bins` (a store only where the pose changes along a tile's row) marks exactly the
+    """`ck.needed_bins` (a store only where the pose changes along a tile's row) marks exactly the
     (pose, tile) bins some pixel lies in: against numpy fancy indexing, for per-row poses (a rolling
     shutter), random per-pixel poses, and an image whose sides are not multiples of the tile size."""
-    from egobench.render import cpu_kernels
+    from egobench.render import cpu as ck
 
     rng = np.random.default_rng(3)
     H, W, ts, I = 37, 45, 16, 5
@@ -831,7 +832,7 @@ def test_needed_bins_are_the_bins_of_the_pixels():
         want = np.zeros((I, tiles_y * tiles_x), bool)
         want[ppi.reshape(-1), tile_of.reshape(-1)] = True
         got = np.zeros_like(want)
-        cpu_kernels.needed_bins(np.ascontiguousarray(ppi, dtype=np.int64), ts, tiles_x, got)
+        ck.needed_bins(np.ascontiguousarray(ppi, dtype=np.int64), ts, tiles_x, got)
         assert np.array_equal(got, want)
     assert want.sum() == tiles_x * tiles_y  # the last case: pose 0 everywhere, every tile
 

@@ -182,11 +182,12 @@ def test_2dgs_pixel_bound_holds_every_visible_pixel():
     (exact box, whole tile for discs crossing the camera plane) are exercised, and the bands cut rows."""
     import numpy as np
 
-    from egobench.render import cpu_backend, cpu_backend_2dgs, cpu_kernels, cpu_kernels_2dgs
+    from egobench.render import cpu_backend, cpu_backend_2dgs, cpu as ck
+    from egobench.render.cpu import surfels
     from egobench.render import _viewmats
 
     ts, n_checked, n_whole, n_cut = 16, 0, 0, 0
-    cw, surfel_band_rows = cpu_kernels.column_group(ts), cpu_kernels_2dgs._surfel_band_rows
+    cw, surfel_band_rows = ck.column_group(ts), surfels._surfel_band_rows
     for seed in range(3):
         g = surfel_scene(seed)
         lo = torch.nn.functional.logsigmoid(g.opacity_logits).numpy()
@@ -194,11 +195,11 @@ def test_2dgs_pixel_bound_holds_every_visible_pixel():
             g.means, g.quats, g.scales, _viewmats(pose(0.04, -0.03, (0.02, -0.01, 0.05))[None]),
             cpu_backend.camera_array(CAM), CAM.width, CAM.height)
         m2, tsl = m2.numpy(), tsl.numpy()
-        tab = np.empty((m2.shape[1], cpu_kernels.TAB_COLS), m2.dtype)
-        cpu_kernels_2dgs.surfel_table(m2, tsl, lo, np.ones(m2.shape[1], bool), tab)
+        tab = np.empty((m2.shape[1], ck.TAB_COLS), m2.dtype)
+        surfels.surfel_table(m2, tsl, lo, np.ones(m2.shape[1], bool), tab)
         pix_view, need = cpu_backend.pixel_views(None, 1, CAM.height, CAM.width, ts)
         tiles_x = math.ceil(CAM.width / ts)
-        flat, starts = cpu_kernels.bin_tiles(m2, rad.numpy(), dep.numpy(), ts, tiles_x, need.shape[1] // tiles_x, need)
+        flat, starts = ck.bin_tiles(m2, rad.numpy(), dep.numpy(), ts, tiles_x, need.shape[1] // tiles_x, need)
         for b in range(need.shape[1]):
             x0, y0 = (b % tiles_x) * ts, (b // tiles_x) * ts
             py, px = np.meshgrid(np.arange(y0, y0 + ts) + 0.5, np.arange(x0, x0 + ts) + 0.5, indexing="ij")
@@ -212,13 +213,13 @@ def test_2dgs_pixel_bound_holds_every_visible_pixel():
                 g2 = 2.0 * ((px - m2[0, n, 0]) ** 2 + (py - m2[0, n, 1]) ** 2)
                 reach = 0.5 * np.minimum(g3, g2) - lo[n] <= 5.55
                 reach &= (py < CAM.height) & (px < CAM.width)
-                ra, rb, ca, cb = cpu_kernels_2dgs._footprint_surfel(tab, n, x0, y0, ts, CAM.width, CAM.height)
+                ra, rb, ca, cb = surfels._footprint_surfel(tab, n, x0, y0, ts, CAM.width, CAM.height)
                 band = lambda qa, qb, r0, r1: surfel_band_rows(tab, n, x0, y0, qa, qb, r0, r1)  # noqa: E731
                 visited, cut = visited_pixels((ra, rb, ca, cb), band, reach.shape, cw)
                 n_cut += cut
                 assert not (reach & ~visited).any(), (seed, b, n)
                 n_checked += int(reach.any())
-                r2 = 2.0 * (cpu_kernels.SIGMA_ROW + lo[n])  # the disc crosses the camera plane: whole tile
+                r2 = 2.0 * (ck.SIGMA_ROW + lo[n])  # the disc crosses the camera plane: whole tile
                 whole = r2 > 0 and not (Wr[2] > 0 and r2 * (Wr[0] ** 2 + Wr[1] ** 2) < Wr[2] ** 2)
                 n_whole += int(whole)
                 if whole:
@@ -246,11 +247,11 @@ def test_2dgs_deterministic_across_threads(two_kernel_threads):
 
 
 def test_one_pass_feature_dot_is_the_per_channel_loops():
-    """`cpu_kernels.feature_dot` (seven channels in one pass) gives `feature_dot_channels`' sums (one pass
+    """`ck.feature_dot` (seven channels in one pass) gives `feature_dot_channels`' sums (one pass
     per channel) bit for bit, float32 and float64, on every state range it is given."""
     import numpy as np
 
-    from egobench.render import cpu_kernels as ck
+    from egobench.render import cpu as ck
 
     rng = np.random.default_rng(5)
     n_features = 7  # colour, depth, normal

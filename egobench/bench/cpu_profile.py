@@ -53,7 +53,7 @@ def _work(rows_hit: np.ndarray, cw: int) -> dict:
 
 def _stages_3dgs(g, cam, width: int, n: int, tile_size: int, repeats: int) -> tuple[dict, dict]:
     """(stage -> median ms, work counts) of the 3DGS kernels on one pose."""
-    from egobench.render import cpu_kernels as ck
+    from egobench.render import cpu as ck
 
     means, quats, scales = (t.detach().numpy() for t in (g.means, g.quats, g.scales))
     opac = torch.sigmoid(g.opacity_logits).detach().numpy()
@@ -91,8 +91,8 @@ def _stages_3dgs(g, cam, width: int, n: int, tile_size: int, repeats: int) -> tu
 def _stages_2dgs(g, cam, width: int, n: int, tile_size: int, repeats: int) -> tuple[dict, dict]:
     """(stage -> median ms, work counts) of the 2DGS kernels on one pose (colour, depth, normal and the
     depth distortion, as `render(mode="2dgs")` composites them)."""
-    from egobench.render import cpu_kernels as ck
-    from egobench.render import cpu_kernels_2dgs as k2
+    from egobench.render import cpu as ck
+    from egobench.render.cpu import surfels as k2
 
     means, quats, scales = (t.detach().numpy() for t in (g.means, g.quats, g.scales))
     lo = F.logsigmoid(g.opacity_logits).detach().numpy()
@@ -130,7 +130,7 @@ def _stages_2dgs(g, cam, width: int, n: int, tile_size: int, repeats: int) -> tu
 
 def _setup(m2, rad, dep, colors, nrm, width: int, tile_size: int, repeats: int):
     """(`raster_setup`'s result, its pixel views, its median ms, `bin_tiles`' median ms)."""
-    from egobench.render import cpu_kernels as ck
+    from egobench.render import cpu as ck
 
     pix_view, bin_needed = cb.pixel_views(None, 1, width, width, tile_size)
     tiles_x = math.ceil(width / tile_size)
@@ -151,7 +151,7 @@ def _projection_bwd_buffers(means, quats, scales, vm, chunk: int) -> tuple[list,
 def _reduce_ms(isect: np.ndarray, flat_ids: np.ndarray, rows: int, repeats: int) -> float:
     import numba
 
-    from egobench.render import cpu_kernels as ck
+    from egobench.render import cpu as ck
 
     out = np.empty((isect.shape[1], rows), np.float32)
     return _median_ms(lambda: ck.reduce_isect_grad(isect, flat_ids, flat_ids.shape[0], out, np.zeros((0, 2)),

@@ -24,11 +24,12 @@ STEP, END = "<step>", "<end>"
 
 
 def _dispatchers(module) -> list[str]:
-    """Names of the numba dispatchers defined in ``module`` (not those it imports)."""
+    """Names of the numba dispatchers of egobench's own kernels bound in ``module``: those it defines and those it
+    re-exports (the package `egobench.render.cpu` holds its rooms' kernels, and the backends call them there)."""
     from numba.core.dispatcher import Dispatcher
 
     return [name for name, v in vars(module).items()
-            if isinstance(v, Dispatcher) and getattr(v.py_func, "__module__", None) == module.__name__]
+            if isinstance(v, Dispatcher) and str(getattr(v.py_func, "__module__", "")).startswith("egobench.")]
 
 
 def _timed(name: str, fn, events: list):

@@ -1,4 +1,4 @@
-"""Compiled CPU backend of `render` (``backend="cpu"``): numba kernels (egobench/render/cpu_kernels.py)
+"""Compiled CPU backend of `render` (``backend="cpu"``): numba kernels (the package egobench/render/cpu/)
 behind two autograd functions, projection and rasterization, with gsplat 1.5.3 / torch_backend.py
 semantics (checked against the torch backend in tests/test_render_cpu.py).
 
@@ -40,7 +40,7 @@ DEFAULT_TILE = 16
 def load_error() -> str | None:
     """None when the numba kernels import (and so can compile); else a one-line reason."""
     try:
-        from egobench.render import cpu_kernels  # noqa: F401
+        from egobench.render import cpu  # noqa: F401
     except Exception as exc:  # ImportError (numba missing), llvmlite load failure
         return f"{type(exc).__name__}: {exc}".splitlines()[0]
     return None
@@ -75,7 +75,7 @@ def set_threads() -> None:
 def pose_grad(gv_parts: np.ndarray, dt: torch.dtype) -> Tensor:
     """Per-chunk partial dL/d viewmat[:3, :4] [chunks, I, 12] -> dL/d viewmats [I, 4, 4], summed in
     chunk order (deterministic for any thread count)."""
-    from egobench.render import cpu_kernels as ck
+    from egobench.render import cpu as ck
 
     chunks, I = gv_parts.shape[:2]
     part = np.empty((I * 12, 1))
@@ -92,11 +92,11 @@ class RasterSetup:
     flat_ids: np.ndarray  # [M] int64 image * N + Gaussian, sorted by (bin, depth)
     bin_start: np.ndarray  # [I * tiles + 1] int64
     bins: np.ndarray  # [NB] int64 bins to render
-    needed: np.ndarray  # [I * N] bool: the rows some intersection reads (`cpu_kernels.rows_needed`)
+    needed: np.ndarray  # [I * N] bool: the rows some intersection reads (`ck.rows_needed`)
     feats: np.ndarray  # [I * N, Cf] colour, depth (, normal); only the needed rows are filled
     tiles_x: int
-    cw: int  # `cpu_kernels.column_group`
-    kc: np.ndarray  # `cpu_kernels.compute_constants`
+    cw: int  # `ck.column_group`
+    kc: np.ndarray  # `ck.compute_constants`
     centres: np.ndarray  # pixel centres (index + 0.5), compute dtype
 
 
@@ -104,7 +104,7 @@ def raster_setup(m2: np.ndarray, radii: Tensor, depths: Tensor, colors: Tensor, 
                  pix_view: np.ndarray, bin_needed: np.ndarray, tile_size: int) -> RasterSetup:
     """m2 [I,N,2] (gsplat pixels), radii [I,N,2], depths [I,N], colors [N,3], normals [I,N,3] or
     [I,0,3]; pix_view [Iout,H,W]; bin_needed [I, tiles] -> intersections and kernel constants."""
-    from egobench.render import cpu_kernels as ck
+    from egobench.render import cpu as ck
 
     I, N = depths.shape
     _, H, W = pix_view.shape
@@ -140,7 +140,7 @@ def table_buffer(rows: int, dtype: np.dtype) -> np.ndarray:
     `CACHE_LINE` boundaries: one line per row in float32 (two in float64), so the compositing loops'
     prefetch of a row's start brings the whole row. numpy's buffers start 16 bytes into a line (glibc),
     which split every row over two lines."""
-    from egobench.render import cpu_kernels as ck
+    from egobench.render import cpu as ck
 
     nbytes = rows * ck.TAB_COLS * np.dtype(dtype).itemsize
     raw = np.empty(nbytes + CACHE_LINE, np.uint8)
@@ -161,7 +161,7 @@ def reduce_intersections(isect: np.ndarray, flat_ids: np.ndarray, I: int, N: int
     of |row[:2]|) when a holder is given."""
     import numba
 
-    from egobench.render import cpu_kernels as ck
+    from egobench.render import cpu as ck
 
     absg = np.zeros((I * N if absgrad_holder is not None else 0, 2))
     per = torch.empty((isect.shape[1], I * N), dtype=dt)  # every entry written (zeros where no intersection)
@@ -175,7 +175,7 @@ def pose_sums(per: Tensor, c0: int, c1: int) -> Tensor:
     """Channels [c0, c1) of `reduce_intersections`' [I, N, C] view summed over the poses -> [N, c1 - c0],
     contiguous (autograd keeps it as the parameter's gradient instead of copying a transposed view): one
     compiled pass over the channel-first block underneath, the poses added in order (`ck.ordered_sum`)."""
-    from egobench.render import cpu_kernels as ck
+    from egobench.render import cpu as ck
 
     block = contiguous_numpy(per.permute(2, 0, 1)[c0:c1])  # [c1 - c0, I, N], a view of the block
     out = np.empty((block.shape[2], c1 - c0), block.dtype)
@@ -191,7 +191,7 @@ def pixel_views(pixel_pose_index: Tensor | None, I: int, H: int, W: int, ts: int
     if pixel_pose_index is None:
         pix_view = np.ascontiguousarray(np.broadcast_to(np.arange(I, dtype=np.int64)[:, None, None], (I, H, W)))
         return pix_view, np.ones((I, tiles_y * tiles_x), dtype=np.bool_)
-    from egobench.render import cpu_kernels as ck
+    from egobench.render import cpu as ck
 
     ppi = np.ascontiguousarray(pixel_pose_index.detach().cpu().long().numpy())
     bin_needed = np.zeros((I, tiles_y * tiles_x), dtype=np.bool_)
@@ -205,7 +205,7 @@ class _Project(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, means, quats, scales, viewmats, opac, cam, width, height, want_normal, pixel_offset=0.0):
-        from egobench.render import cpu_kernels as ck
+        from egobench.render import cpu as ck
 
         I, N = viewmats.shape[0], means.shape[0]
         dt = means.dtype
@@ -227,7 +227,7 @@ class _Project(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_m2, g_con, g_dep, g_nrm, _g_radii):
-        from egobench.render import cpu_kernels as ck
+        from egobench.render import cpu as ck
 
         means, quats, scales, viewmats = ctx.saved_tensors
         cam, width, height, want_normal = ctx.args
@@ -264,7 +264,7 @@ class _Rasterize(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, log_opac, colors, depths, normals, radii, pix_view, bin_needed, tile_size,
                 absgrad_target):
-        from egobench.render import cpu_kernels as ck
+        from egobench.render import cpu as ck
 
         I, N = depths.shape
         Iout, H, W = pix_view.shape
@@ -289,7 +289,7 @@ class _Rasterize(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_rgb, g_depth, g_normal, g_T):
-        from egobench.render import cpu_kernels as ck
+        from egobench.render import cpu as ck
 
         tab, st, pix_view, ts, out_T, out_last, rows_hit, ab = ctx.state
         I, N, dt = ctx.shapes
@@ -357,8 +357,8 @@ def feature_outputs(out_feat: np.ndarray) -> tuple[Tensor, Tensor, Tensor]:
     [..., 1] and normal [..., Cf - 4] channels: separate outputs, so that autograd hands back one gradient per
     channel group instead of adding zero-padded full-width ones. Depth and normal are views; rgb is copied
     out once, contiguous, for its readers (the exposure, the divergence check) that would each copy it.
-    The layout is `cpu_kernels.feature_table`'s: colour before the depth channel, the normal after it."""
-    from egobench.render.cpu_kernels import DEPTH_CH
+    The layout is `ck.feature_table`'s: colour before the depth channel, the normal after it."""
+    from egobench.render.cpu import DEPTH_CH
 
     feat = torch.from_numpy(out_feat)
     rgb = torch.from_numpy(np.ascontiguousarray(out_feat[..., :DEPTH_CH]))
@@ -369,9 +369,9 @@ def pixel_grads(n_channels: int, out_T: np.ndarray, g_rgb: Tensor | None, g_dept
                 g_normal: Tensor | None, g_dist: Tensor | None = None,
                 out_feat: np.ndarray | None = None) -> np.ndarray:
     """The gradients of `feature_outputs`' outputs (None: zeros) -> the raster backward's per-pixel input
-    [Iout,H,W,n_channels] (`cpu_kernels.pack_pixel_grads`; 2DGS adds 2 dL/d distortion and ``out_feat``'s
+    [Iout,H,W,n_channels] (`ck.pack_pixel_grads`; 2DGS adds 2 dL/d distortion and ``out_feat``'s
     depth)."""
-    from egobench.render import cpu_kernels as ck
+    from egobench.render import cpu as ck
 
     P, dt = out_T.size, out_T.dtype
 
@@ -392,11 +392,11 @@ ALPHA_MIN = 1e-10
 class _AlphaDepth(torch.autograd.Function):
     """(sum w depth [..., 1], transmittance [...]) -> alpha = 1 - T and depth = sum w depth / clamp(alpha,
     ALPHA_MIN), both [..., 1]: the torch path's rsub, clamp and div and their backwards, one compiled pass
-    each (`cpu_kernels.alpha_depth`, the same bits)."""
+    each (`ck.alpha_depth`, the same bits)."""
 
     @staticmethod
     def forward(ctx, depth_sum, trans):
-        from egobench.render import cpu_kernels as ck
+        from egobench.render import cpu as ck
 
         d, t = contiguous_numpy(depth_sum).reshape(-1), contiguous_numpy(trans).reshape(-1)
         alpha, depth = np.empty_like(t), np.empty_like(t)
@@ -409,7 +409,7 @@ class _AlphaDepth(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_alpha, g_depth):
-        from egobench.render import cpu_kernels as ck
+        from egobench.render import cpu as ck
 
         (alpha_t,), d, (sum_shape, trans_shape) = ctx.saved_tensors, ctx.sums, ctx.shapes
         if g_depth is None:  # only the alpha's own gradient: rsub's negation

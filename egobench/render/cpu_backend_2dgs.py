@@ -1,4 +1,4 @@
-"""2DGS (surfels) in the compiled CPU backend: the autograd glue of `cpu_kernels_2dgs`, with the
+"""2DGS (surfels) in the compiled CPU backend: the autograd glue of `egobench.render.cpu.surfels`, with the
 semantics of torch_backend.py's 2DGS path (checked against it in tests/test_render_cpu_2dgs.py).
 
 Outputs: colour, alpha, depth, camera-frame normals, the depth distortion map
@@ -31,7 +31,7 @@ class _Project2DGS(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, means, quats, scales, viewmats, cam, width, height, pixel_offset=0.0):
-        from egobench.render import cpu_kernels_2dgs as k2
+        from egobench.render.cpu import surfels as k2
 
         I, N = viewmats.shape[0], means.shape[0]
         dt = contiguous_numpy(means).dtype
@@ -51,7 +51,7 @@ class _Project2DGS(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_m2, g_tsl, g_dep, g_nrm, _g_radii):
-        from egobench.render import cpu_kernels_2dgs as k2
+        from egobench.render.cpu import surfels as k2
 
         means, quats, scales, viewmats = ctx.saved_tensors
         I, N = viewmats.shape[0], means.shape[0]
@@ -80,7 +80,7 @@ class _Rasterize2DGS(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, tsl, log_opac, colors, depths, normals, radii, pix_view, bin_needed, tile_size,
                 absgrad_target, carrier):
-        from egobench.render import cpu_kernels_2dgs as k2
+        from egobench.render.cpu import surfels as k2
 
         I, N = depths.shape
         Iout, H, W = pix_view.shape
@@ -105,7 +105,7 @@ class _Rasterize2DGS(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_rgb, g_depth, g_normal, g_T, g_dist):
-        from egobench.render import cpu_kernels_2dgs as k2
+        from egobench.render.cpu import surfels as k2
 
         tsl_np, tab, st, pix_view, ts, out_feat, out_T, out_last, rows_hit, ab = ctx.state
         I, N, dt = ctx.shapes

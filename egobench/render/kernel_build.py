@@ -38,15 +38,16 @@ BUILT: dict[tuple[str, str], str] = {}
 #: the kernels of a set whose cache use the child checks (names; 2DGS adds "_2dgs")
 KERNELS = ("project_fwd", "project_bwd", "raster_fwd", "raster_bwd")
 #: the files whose text decides the kernels' machine code and signatures
-_SOURCES = ("cpu_kernels.py", "cpu_kernels_2dgs.py", "cpu_backend.py", "cpu_backend_2dgs.py", "kernel_build.py")
+_SOURCES = ("cpu/__init__.py", "cpu/compiler.py", "cpu/projection.py", "cpu/binning.py", "cpu/composite.py",
+            "cpu/surfels.py", "cpu_backend.py", "cpu_backend_2dgs.py", "kernel_build.py")
 
 
 def kernel_dispatchers(mode: str) -> list:
     """The numba dispatchers of `KERNELS` for ``mode`` ("3dgs", "2dgs")."""
     if mode == "3dgs":
-        from egobench.render import cpu_kernels as module
+        from egobench.render import cpu as module
     else:
-        from egobench.render import cpu_kernels_2dgs as module
+        from egobench.render.cpu import surfels as module
     suffix = "" if mode == "3dgs" else "_2dgs"
     return [getattr(module, name + suffix) for name in KERNELS]
 

@@ -3,17 +3,17 @@ torch_backend.py's `project_2dgs`, `coefficients_2dgs` and the 2DGS path of `_Co
 
 Projection: ray transform M = K [R_c s0 | R_c s1 | mean_c] (rows u_M, v_M, w_M), the centre and
 AABB radius from M's dual conic, the camera-facing normal (third rotation axis); the backward
-reuses the 3DGS helpers of `cpu_kernels` (a surfel is Mc = V R diag(s) with a zero third column).
+reuses the 3DGS helpers of `egobench.render.cpu` (a surfel is Mc = V R diag(s) with a zero third column).
 Compositing: per pixel the ray-splat intersection h_u x h_v (linear in the pixel, evaluated
 relative to the tile centre as the torch backend), min(3D, 2D low-pass) exponent, the 3DGS
 compositing rules, plus the depth distortion 2 sum_{j<k} w_j w_k (z_k - z_j). The tile loop, state
-layout, binning and gradient reduction are `cpu_kernels`' (see there for determinism and threads).
+layout, binning and gradient reduction are the 3DGS kernels' (`egobench.render.cpu`: determinism, threads).
 The forward records which rows of each column group a surfel was composited into (``rows_hit``); the
 backward visits only those (a surfel's box footprint holds 4-6x the pixels it composites into).
 
 Caching: numba keys the cache of these kernels on this file's modification time only, but they
-inline helpers of `cpu_kernels.py`; `_follow_helper_edits` (run at import) therefore touches this
-file when `cpu_kernels.py` is newer, so that an edited helper recompiles these kernels too.
+inline helpers of the package's other modules; `_follow_helper_edits` (run at import) therefore touches
+this file when one of them is newer, so that an edited helper recompiles these kernels too.
 """
 
 from __future__ import annotations
@@ -24,20 +24,24 @@ import os
 import numpy as np
 from numba import njit, prange
 
-from egobench.render import cpu_kernels as ck
-from egobench.render.cpu_kernels import (CHUNK, EXTENT_SIGMAS, FASTMATH, SIGMA_ROW, accumulate_features,
-                                         add_feature_grads, add_rot_scale_grads, add_view_and_mean_grads,
-                                         bin_tile, camera_point, composite_pixel, exponent_grad, feature_dot,
-                                         finish_tile_fwd, normal_grad, quat_grad, retire_stopped, quat_rotmat,
-                                         state_rows, tile_state_bwd, tile_state_fwd, track_rows, trim_rows_active,
-                                         uncomposite_pixel)
+from egobench.render import cpu as ck
+from egobench.render.cpu import (CHUNK, EXTENT_SIGMAS, FASTMATH, SIGMA_ROW, accumulate_features, add_feature_grads,
+                                 add_rot_scale_grads, add_view_and_mean_grads, bin_tile, camera_point, composite_pixel,
+                                 exponent_grad, feature_dot, finish_tile_fwd, normal_grad, quat_grad, quat_rotmat,
+                                 retire_stopped, state_rows, tile_state_bwd, tile_state_fwd, track_rows,
+                                 trim_rows_active, uncomposite_pixel)
+
+
+#: the modules whose helpers these kernels inline
+HELPER_MODULES = ("compiler.py", "projection.py", "binning.py", "composite.py")
 
 
 def _follow_helper_edits() -> None:
-    """Marks this file as changed (mtime) when cpu_kernels.py is newer: numba's cache would otherwise
+    """Marks this file as changed (mtime) when a helper module is newer: numba's cache would otherwise
     keep kernels compiled with an older version of the helpers they inline. No-op where read-only."""
+    here = os.path.dirname(__file__)
     try:
-        if os.path.getmtime(ck.__file__) > os.path.getmtime(__file__):
+        if max(os.path.getmtime(os.path.join(here, m)) for m in HELPER_MODULES) > os.path.getmtime(__file__):
             os.utime(__file__)
     except OSError:
         pass
@@ -46,7 +50,7 @@ def _follow_helper_edits() -> None:
 _follow_helper_edits()
 
 FILTER_2D = 2.0  # 2D low-pass filter: exponent FILTER_2D |pixel - centre|^2 / 2 (gsplat's FILTER_INV_SQUARE)
-DEPTH_CH = ck.DEPTH_CH  # feature channel holding the depth (`cpu_kernels.feature_table`'s layout)
+DEPTH_CH = ck.DEPTH_CH  # feature channel holding the depth (`composite.feature_table`'s layout)
 
 __all__ = ["project_fwd_2dgs", "project_bwd_2dgs", "raster_fwd_2dgs", "raster_bwd_2dgs", "CHUNK"]
 
@@ -461,7 +465,7 @@ def _prefetch_surfel(tab, tsl_rows, feats, g):
 @njit(cache=True, parallel=True, fastmath=FASTMATH)
 def raster_fwd_2dgs(tsl, tab, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles_x,
                     cw, kc, centres, out_feat, out_T, out_last, rows_hit):
-    """`cpu_kernels.raster_fwd` for surfels: tsl [I, N, 9] ray transforms, tab [I*N, ck.TAB_COLS]
+    """`composite.raster_fwd` for surfels: tsl [I, N, 9] ray transforms, tab [I*N, ck.TAB_COLS]
     `surfel_table` (the rows each column group visits), feats [I*N, Cf] with the depth in channel
     DEPTH_CH; out_feat [Iout, H, W, Cf + 1] gets sum w f and, in its last channel, the depth distortion
     2 sum_k w_k (z_k W_k - A_k) (W_k, A_k: sums of w_j, w_j z_j over earlier j).
