@@ -10,6 +10,7 @@ import argparse
 import importlib
 import sys
 
+from egobench.host import setup_threads
 from egobench.io_utils import DiskFullError, RunFolderBusy, is_disk_full, no_space_message
 
 #: verb -> (module, one-line help)
@@ -52,6 +53,7 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """Parse ``argv`` (default: the process's arguments) and run the verb; user errors (ValueError,
     FileNotFoundError, a run folder in use, a full disk) print one line and return 2."""
+    setup_threads()  # before a verb's module loads numba
     argv = list(sys.argv[1:] if argv is None else argv)
     verb = next((a for a in argv if not a.startswith("-")), None)
     args = build_parser(only=verb if verb in VERBS else None).parse_args(argv)

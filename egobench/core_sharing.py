@@ -21,6 +21,8 @@ from contextlib import contextmanager
 import numpy as np
 from numba import njit, prange
 
+from egobench.host import start_kernel_pool
+
 #: bytes each thread writes and reads: past a Zen 4 / Zen 5 core's 1 MB L2, well inside one die's L3
 PROBE_BYTES = 2 << 20
 #: cross / own read-time ratio up to which the two threads are taken to share one cache
@@ -74,6 +76,7 @@ def probe(repeats: int = 15, nbytes: int = PROBE_BYTES) -> dict:
 
     if numba.config.NUMBA_NUM_THREADS < 2:
         return {"shared_cache": None, "reason": "numba's pool has one thread (NUMBA_NUM_THREADS=1)"}
+    start_kernel_pool()
     before = numba.get_num_threads()
     numba.set_num_threads(2)
     try:

@@ -112,7 +112,7 @@ def cap_numba_pool(environ=None, numba_loaded: bool | None = None) -> str | None
     {threads} to every job) chose: NUMBA_NUM_THREADS := EGOBENCH_RASTER_THREADS or OMP_NUM_THREADS,
     only while NUMBA_NUM_THREADS is unset and numba is not loaded yet. numba reads it once, at import;
     set after that, every later compilation fails ("Cannot set NUMBA_NUM_THREADS to a different
-    value once the threads have been launched"). Run by ``import egobench`` -> the value set, or None."""
+    value once the threads have been launched"). Run by `setup_threads` -> the value set, or None."""
     environ = os.environ if environ is None else environ
     loaded = "numba" in sys.modules if numba_loaded is None else numba_loaded
     pool = environ.get(RASTER_THREADS_ENV) or environ.get("OMP_NUM_THREADS", "")
@@ -120,6 +120,44 @@ def cap_numba_pool(environ=None, numba_loaded: bool | None = None) -> str | None
         return None
     environ["NUMBA_NUM_THREADS"] = pool
     return pool
+
+
+def setup_threads() -> None:
+    """The process's thread set-up, called once by each entry point before it loads numba: the CLI (`cli.main`),
+    the ``python -m`` tools and the test suite (conftest). It caps numba's pool to the job's threads
+    (`cap_numba_pool`); importing egobench changes nothing. The pool starts at the first kernel
+    (`start_kernel_pool`)."""
+    cap_numba_pool()
+
+
+#: numba's threading layers in the order egobench asks for them: OpenMP first. numba's workqueue workers sleep
+#: after every parallel loop, and on a 2-core VM a worker idle for a few ms took ~1 ms to wake; training calls
+#: ~8 parallel kernels a step between torch operations, so its kernels barely scaled (ours_2dgs at 128 px: 26.6
+#: it/s on 2 threads against 26.4 on 1). OpenMP's workers spin briefly first: 44.0-47.3 it/s, 1.58x (512 px:
+#: 1.78-1.84x). With the other core busy it is ~30 % slower than workqueue. results/speed/README.md, "numba's
+#: threading layer". An explicit NUMBA_THREADING_LAYER is respected; without OpenMP numba takes the next layer.
+THREADING_LAYERS = ["omp", "tbb", "workqueue"]
+
+
+def start_kernel_pool() -> None:
+    """Starts numba's thread pool in egobench's threading layer (`THREADING_LAYERS`), once; later calls do
+    nothing. Starting the OpenMP layer sets the OpenMP thread count of the process, which torch shares (one
+    libgomp is loaded), so torch's own count is put back; numba gives each parallel loop its own count
+    (`numba.set_num_threads`). Called where the compiled kernels set their threads
+    (`render.cpu_backend.set_threads`) and by the test suite."""
+    import numba
+    import torch
+    from numba.np.ufunc import parallel
+
+    if parallel._is_initialized:
+        return
+    if "NUMBA_THREADING_LAYER" not in os.environ:
+        numba.config.THREADING_LAYER_PRIORITY = list(THREADING_LAYERS)
+        numba.config.THREADING_LAYER = "default"
+    torch_threads = torch.get_num_threads()
+    numba.get_num_threads()  # starts the pool
+    if torch.get_num_threads() != torch_threads:
+        torch.set_num_threads(torch_threads)
 
 
 def raster_threads() -> int:

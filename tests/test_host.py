@@ -209,17 +209,18 @@ def test_numba_pool_is_capped_only_before_numba_loads():
 
 
 def test_kernels_compile_whichever_module_loads_numba_first():
-    """With OMP_NUM_THREADS=1 (as Snakemake's jobs) and no NUMBA_NUM_THREADS: numba loaded before
-    egobench (pool left alone) or by the 2DGS kernels and the host record before `egobench.render.cpu` (pool
-    capped to 1), a later compilation works. Setting NUMBA_NUM_THREADS after numba loaded made every
+    """With OMP_NUM_THREADS=1 (as Snakemake's jobs) and no NUMBA_NUM_THREADS: numba loaded before the entry
+    point's `setup_threads` (pool left alone) or by the 2DGS kernels and the host record after it (pool capped
+    to 1), a later compilation works. Setting NUMBA_NUM_THREADS after numba loaded made every
     compilation fail (a cold cache, or a new dtype, in a Snakemake job)."""
     import os
     import subprocess
     import sys
 
     compile_one = "import numba; print(numba.njit(lambda x: x + 1)(1), numba.config.NUMBA_NUM_THREADS)"
-    orders = {"numba first": "import numba\nfrom egobench.render import cpu\n",
-              "2dgs first": ("from egobench.host import host_info\nhost_info()\n"
+    setup = "from egobench.host import setup_threads\nsetup_threads()\n"
+    orders = {"numba first": "import numba\n" + setup + "from egobench.render import cpu\n",
+              "2dgs first": (setup + "from egobench.host import host_info\nhost_info()\n"
                              "from egobench.render.cpu import surfels\n")}
     env = {k: v for k, v in os.environ.items() if k not in ("NUMBA_NUM_THREADS", "EGOBENCH_RASTER_THREADS")}
     env["OMP_NUM_THREADS"] = "1"
@@ -254,3 +255,33 @@ def test_numpy_vector_paths_are_recorded_and_the_avx2_emulation_turns_numpys_avx
     off = run({"NPY_DISABLE_CPU_FEATURES": avx2["NPY_DISABLE_CPU_FEATURES"]}) if numpy_avx512_targets() else enabled
     assert off == [t for t in enabled if t not in numpy_avx512_targets()]
 
+
+
+def test_importing_egobench_and_its_kernels_sets_no_thread_state():
+    """No side effects at import: in a fresh process with OMP_NUM_THREADS=1, importing egobench, the CLI and the
+    CPU kernels leaves NUMBA_NUM_THREADS unset, numba's pool unstarted and torch's thread count as it was; the
+    entry point's `setup_threads` then caps the pool, and `start_kernel_pool` starts it keeping torch's count."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    code = """
+import json, os, torch
+torch.set_num_threads(1)
+import egobench, egobench.cli
+from egobench.render import cpu
+from egobench.render.cpu import surfels
+from numba.np.ufunc import parallel
+after_import = {"numba_env": os.environ.get("NUMBA_NUM_THREADS"), "pool": parallel._is_initialized,
+                "torch": torch.get_num_threads()}
+from egobench.host import start_kernel_pool
+start_kernel_pool()
+start_kernel_pool()
+print(json.dumps({"import": after_import, "started": parallel._is_initialized, "torch": torch.get_num_threads()}))
+"""
+    env = {k: v for k, v in os.environ.items() if k not in ("NUMBA_NUM_THREADS", "EGOBENCH_RASTER_THREADS")}
+    env["OMP_NUM_THREADS"] = "1"
+    out = json.loads(subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                                    check=True).stdout.splitlines()[-1])
+    assert out == {"import": {"numba_env": None, "pool": False, "torch": 1}, "started": True, "torch": 1}

@@ -223,12 +223,15 @@ def test_no_visible_gaussian_gives_background_and_zero_gradients():
 
 def test_one_thread_per_worker_from_omp_num_threads():
     """Snakemake exports OMP_NUM_THREADS={threads} to each job: torch and the compiled kernels
-    then use that many threads (numba's pool is capped at import, its count follows torch)."""
+    then use that many threads (numba's pool is capped by the entry point's `setup_threads`, its count
+    follows torch)."""
     import os
     import subprocess
     import sys
 
-    code = ("import torch\n"
+    code = ("from egobench.host import setup_threads\n"
+            "setup_threads()\n"  # what an entry point (the CLI a Snakemake job runs) does first
+            "import torch\n"
             "from egobench.render import render\n"
             "from tests.test_render_cpu import make_scene, CAM, pose\n"
             "out = render(make_scene(20, CAM, 0), CAM, pose(), backend='cpu')\n"
@@ -313,7 +316,7 @@ def test_finite_check_is_exact_when_the_sum_overflows():
 
 def test_raster_threads_env_gives_the_kernels_their_own_count():
     """EGOBENCH_RASTER_THREADS sets the kernels' threads independently of torch's (torch at 1,
-    numba at 2: the pool is sized from it at import); without it numba follows torch; a bad value
+    numba at 2: the pool is sized from it by `setup_threads`); without it numba follows torch; a bad value
     is a ValueError naming the variable."""
     import os
     import subprocess
@@ -321,7 +324,9 @@ def test_raster_threads_env_gives_the_kernels_their_own_count():
 
     from egobench.render import cpu_backend
 
-    code = ("import torch\n"
+    code = ("from egobench.host import setup_threads\n"
+            "setup_threads()\n"  # what an entry point (the CLI a Snakemake job runs) does first
+            "import torch\n"
             "from egobench.render import render\n"
             "from tests.test_render_cpu import make_scene, CAM, pose\n"
             "out = render(make_scene(20, CAM, 0), CAM, pose(), backend='cpu')\n"

@@ -136,6 +136,9 @@ def profile_training(method: str = "ours", side: int = 128, n_points: int = 2000
 
 
 def main(argv: list[str] | None = None) -> int:
+    from egobench.host import setup_threads
+
+    setup_threads()  # an entry point (python -m): before the bench modules load numba
     from egobench.bench import _scaling_threads
     from egobench.host import host_info, keep_freed_memory
 

@@ -39,6 +39,8 @@ from torch import Tensor
 from gsplat.strategy import DefaultStrategy
 from gsplat.strategy.ops import duplicate, reset_opa, split
 
+from egobench.host import start_kernel_pool
+
 GAUSSIAN_PARAMS = ("means", "scales", "quats", "opacities", "colors")
 
 
@@ -107,6 +109,7 @@ class Densifier:
         scale = np.array([width / 2.0 * n_cameras, height / 2.0 * n_cameras],
                          dtype=grads.dtype)  # torch's float32 op casts the Python scalar so
         radii3 = radii if radii.dim() == 3 else radii[..., None]  # [C, N, R]
+        start_kernel_pool()
         _add_visible(grads, scale, radii3.contiguous().numpy(), self.state["grad2d"].numpy(),
                      self.state["count"].numpy())
 

@@ -23,7 +23,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from egobench.camera.pinhole import Pinhole
-from egobench.host import RASTER_THREADS_ENV, kernel_threads, raster_threads  # noqa: F401  (re-exported)
+from egobench.host import RASTER_THREADS_ENV, kernel_threads, raster_threads, start_kernel_pool  # noqa: F401  (re-exported)
 from egobench.render.types import Gaussians, RenderOutput
 
 #: gsplat 1.5.3 projection constants (as torch_backend)
@@ -66,9 +66,11 @@ def contiguous_numpy(t: Tensor) -> np.ndarray:
 
 
 def set_threads() -> None:
-    """numba's thread count: `host.kernel_threads` (`raster_threads`, at most numba's pool size)."""
+    """numba's thread count: `host.kernel_threads` (`raster_threads`, at most numba's pool size); the pool is
+    started first, in egobench's threading layer (`host.start_kernel_pool`)."""
     import numba
 
+    start_kernel_pool()
     numba.set_num_threads(kernel_threads())
 
 
@@ -313,6 +315,7 @@ def render_cpu(gaussians: Gaussians, camera: Pinhole, viewmats: Tensor, *, pixel
     viewmats [I, 4, 4] world-to-camera; pixel_pose_index [H, W] or None; mode "3dgs" or "2dgs"."""
     from egobench.render import kernel_build
 
+    start_kernel_pool()  # before a parallel kernel loads (loading one starts numba's pool)
     kernel_build.ensure_built(gaussians.means.dtype, mode)  # compiled in a child, loaded here: same code everywhere
     if mode == "2dgs":
         from egobench.render import cpu_backend_2dgs

@@ -30,6 +30,8 @@ from pathlib import Path
 
 import torch
 
+from egobench.host import setup_threads
+
 #: environment variable: "in-process" compiles the kernels in the rendering process (no child)
 BUILD_ENV = "EGOBENCH_KERNEL_BUILD"
 #: what `ensure_built` did per (dtype name, mode) in this process: "child" (built them), "marker" (found them
@@ -181,6 +183,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--dtype", choices=("float32", "float64"), required=True)
     parser.add_argument("--mode", choices=("3dgs", "2dgs"), required=True)
     args = parser.parse_args(argv)
+    setup_threads()
     os.environ[BUILD_ENV] = "in-process"
     render_every_kernel(getattr(torch, args.dtype), args.mode)
     stats = {d.py_func.__name__: {"hits": sum(d.stats.cache_hits.values()),

@@ -16,6 +16,7 @@ from numba import njit, prange
 from torch import Tensor
 
 from egobench.camera.pinhole import Pinhole
+from egobench.host import start_kernel_pool
 from egobench.render.cpu_backend import contiguous_numpy
 
 #: F.normalize's eps: x / max(|x|, NORM_EPS)
@@ -179,6 +180,7 @@ class _NormalConsistencyCPU(torch.autograd.Function):
         P, N, wts = np.empty((H, W, 3)), np.empty((H, W, 3)), np.empty((H, W))
         d, n, rays_np = contiguous_numpy(depth), normal.detach().numpy(), contiguous_numpy(rays)
         # the normal and the mask as they come (training: channel views), strided: no copies
+        start_kernel_pool()
         _nc_inputs(d, n, rays_np, contiguous_numpy(alpha), mask.detach().numpy(), mask_count, P, N, wts)
         ctx.arrs, ctx.dtypes = (P, N, wts, rays_np), (d.dtype, n.dtype)
         return torch.tensor(_nc_forward(P, N, wts), dtype=depth.dtype)

@@ -21,7 +21,7 @@ Pixel coordinates: gsplat's (centre of pixel (u, v) at (u + 0.5, v + 0.5)).
 from __future__ import annotations
 
 from egobench.render.cpu.compiler import (  # noqa: F401
-    BIN_BODY, FASTMATH, GATHER_AHEAD, NoAliasCompiler, PREFETCH_AHEAD, _exp_neg, _exp_neg_impl, _start_pool_keeping_torch_threads, prefetch_at, prefetch_row, prefetch_whole_row, scalar_loop,
+    BIN_BODY, FASTMATH, GATHER_AHEAD, NoAliasCompiler, PREFETCH_AHEAD, _exp_neg, _exp_neg_impl, prefetch_at, prefetch_row, prefetch_whole_row, scalar_loop,
 )
 from egobench.render.cpu.projection import (  # noqa: F401
     ALPHA_MAX, ALPHA_MIN, CHUNK, EXTENT_SIGMAS, ROW, SIGMA_SKIP, T_STOP, _U1, _U2, _U3, _argmin3, _clip_limits, _conic_grad, _cov2d_rows, _cov2d_rows_grad, _gather_extents, _or_nonzero, _project_chunk, _scatter_chunk, add_rot_scale_grads, add_view_and_mean_grads, any_live, camera_point, chunk_camera_point, chunk_scratch, gather_chunk, live_chunk, live_pairs, normal_grad, normals_chunk, project_bwd, project_fwd, quat_grad, quat_rotmat, rotated_axis, view_point, view_rows, zero_gaussian_grads,

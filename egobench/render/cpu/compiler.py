@@ -1,49 +1,16 @@
-"""numba set-up and compiler internals of the CPU kernels: the threading layer and pool, the fast-math flags and
-the noalias pipeline of split loop bodies, a branch-free exp, and LLVM intrinsics (prefetch, a scalar-loop hint)."""
+"""Compiler internals of the CPU kernels: the fast-math flags and the noalias pipeline of split loop bodies, a
+branch-free exp, and LLVM intrinsics (prefetch, a scalar-loop hint). The threads are set up by `egobench.host`
+(`setup_threads` at an entry point, `start_kernel_pool` before the first kernel runs)."""
 
 from __future__ import annotations
 
-import os
 
 import llvmlite.binding as ll
-import numba
 from llvmlite import ir
 from numba import njit, types
 from numba.core import cgutils
 from numba.core.compiler import Compiler
 from numba.extending import intrinsic, overload
-
-# Workers run one thread each when Snakemake runs jobs side by side: Snakemake exports
-# OMP_NUM_THREADS={threads} to every shell job (config resources.<step>.threads, default 1); torch
-# reads it, `cpu_backend` sets numba's count to torch's on every call, and numba's pool is capped to
-# it as well (`host.cap_numba_pool`, run by ``import egobench`` before numba loads).
-
-# Threading layer: OpenMP first. numba's workqueue workers sleep after every parallel loop, and on the 2-core
-# VM a worker idle for a few ms took ~1 ms to wake; training calls ~8 parallel kernels a step between torch
-# operations, so its kernels barely scaled (ours_2dgs at 128 px: 26.6 it/s on 2 threads against 26.4 on
-# 1). OpenMP's workers spin briefly first: 44.0-47.3 it/s, 1.58x (512 px: 1.78-1.84x). With the other core
-# busy it is ~30 % slower than workqueue (both below one thread). results/speed/README.md, "numba's
-# threading layer".
-# An explicit NUMBA_THREADING_LAYER is respected; where OpenMP is missing numba takes the next layer.
-if "NUMBA_THREADING_LAYER" not in os.environ:
-    numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
-    numba.config.THREADING_LAYER = "default"
-
-
-def _start_pool_keeping_torch_threads() -> None:
-    """Starts numba's thread pool now. Starting its OpenMP layer sets the OpenMP thread count of the
-    process, which torch shares (one libgomp is loaded), so torch's own count is put back; numba gives
-    each parallel loop its own count (`numba.set_num_threads`)."""
-    import torch
-
-    torch_threads = torch.get_num_threads()
-    numba.get_num_threads()  # starts the pool
-    if torch.get_num_threads() != torch_threads:
-        torch.set_num_threads(torch_threads)
-
-
-_start_pool_keeping_torch_threads()
-
 
 #: fast-math flags of the compositing loops: reassociation and FMA contraction let LLVM vectorize
 #: the per-row loops (results stay deterministic: the compiled order is fixed); no nnan/ninf
