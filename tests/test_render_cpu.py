@@ -871,3 +871,27 @@ def test_alpha_and_depth_are_the_torch_ops_bit_for_bit(dtype):
             assert a.dtype == b.dtype == dtype and a.shape == b.shape
             assert np.array_equal(a.contiguous().numpy().view(np.uint8), b.contiguous().numpy().view(np.uint8))
         assert float(want[3][0, :2].abs().sum()) > 0  # the clamped pixels still pass the alpha/background terms
+
+
+def test_every_kernel_is_stamped_with_the_hash_of_the_whole_package(tmp_path):
+    """numba stamps a cache with its own file's mtime; the kernels inline helpers of other modules, so egobench's
+    locator stamps each kernel of `egobench.render.cpu` with a hash of every module there: a change to any one
+    module (a planted byte) changes every kernel's stamp, and a file outside the package keeps numba's own."""
+    import shutil
+
+    from egobench.render import cpu as ck
+    from egobench.render.cpu import compiler
+    from egobench.render.cpu import surfels as k2
+
+    for kernel in (ck.project_fwd, ck.needed_bins, ck.raster_bwd, k2.raster_fwd_2dgs):
+        locator = kernel._cache._impl.locator
+        assert isinstance(locator, compiler.SourceHashLocator)
+        assert locator.get_source_stamp() == compiler.source_hash(compiler.PACKAGE_DIR)
+    copy = tmp_path / "cpu"
+    shutil.copytree(compiler.PACKAGE_DIR, copy, ignore=shutil.ignore_patterns("__pycache__"))
+    assert compiler.source_hash(copy) == compiler.package_source_hash()
+    (copy / "binning.py").write_text((copy / "binning.py").read_text() + "\n")
+    assert compiler.source_hash(copy) != compiler.package_source_hash()
+    outside = compiler.SourceHashLocator.from_function(test_every_kernel_is_stamped_with_the_hash_of_the_whole_package,
+                                                      __file__)
+    assert outside is None

@@ -4,13 +4,73 @@ branch-free exp, and LLVM intrinsics (prefetch, a scalar-loop hint). The threads
 
 from __future__ import annotations
 
+import functools
+import hashlib
+from pathlib import Path
+
 
 import llvmlite.binding as ll
 from llvmlite import ir
 from numba import njit, types
-from numba.core import cgutils
+from numba.core import caching, cgutils
 from numba.core.compiler import Compiler
 from numba.extending import intrinsic, overload
+
+#: numba's list of cache locators (its class is public from numba 0.62)
+_CACHE_IMPL = getattr(caching, "CacheImpl", None) or getattr(caching, "_CacheImpl")
+#: the folder of this package's kernel modules
+PACKAGE_DIR = Path(__file__).resolve().parent
+
+
+def source_hash(folder: Path) -> str:
+    """SHA-256 of the names and text of every Python module in ``folder``."""
+    h = hashlib.sha256()
+    for path in sorted(Path(folder).glob("*.py")):
+        h.update(path.name.encode() + b"\0" + path.read_bytes())
+    return h.hexdigest()
+
+
+@functools.lru_cache(maxsize=1)
+def package_source_hash() -> str:
+    """`source_hash` of this package: the source stamp of each of its kernels (computed once per process)."""
+    return source_hash(PACKAGE_DIR)
+
+
+class SourceHashLocator(caching._CacheLocator):
+    """numba's cache locator for this package's kernels: the one numba would pick (``NUMBA_CACHE_DIR``, the
+    in-tree ``__pycache__``, the user-wide folder), with the source stamp replaced by `package_source_hash`.
+    numba stamps a cache with its own file's modification time only, but the kernels inline helpers of the
+    package's other modules: an edited helper now recompiles every kernel that might inline it."""
+
+    def __init__(self, inner):
+        self._inner = inner
+
+    def ensure_cache_path(self):
+        self._inner.ensure_cache_path()
+
+    def get_cache_path(self):
+        return self._inner.get_cache_path()
+
+    def get_source_stamp(self):
+        return package_source_hash()
+
+    def get_disambiguator(self):
+        return self._inner.get_disambiguator()
+
+    @classmethod
+    def from_function(cls, py_func, py_file):
+        if Path(py_file).resolve().parent != PACKAGE_DIR:
+            return None
+        for other in _CACHE_IMPL._locator_classes:
+            inner = None if other is cls else other.from_function(py_func, py_file)
+            if inner is not None:
+                return cls(inner)
+        return None
+
+
+if SourceHashLocator not in _CACHE_IMPL._locator_classes:  # before the package's kernels are decorated
+    _CACHE_IMPL._locator_classes.insert(0, SourceHashLocator)
+
 
 #: fast-math flags of the compositing loops: reassociation and FMA contraction let LLVM vectorize
 #: the per-row loops (results stay deterministic: the compiled order is fixed); no nnan/ninf

@@ -11,15 +11,13 @@ layout, binning and gradient reduction are the 3DGS kernels' (`egobench.render.c
 The forward records which rows of each column group a surfel was composited into (``rows_hit``); the
 backward visits only those (a surfel's box footprint holds 4-6x the pixels it composites into).
 
-Caching: numba keys the cache of these kernels on this file's modification time only, but they
-inline helpers of the package's other modules; `_follow_helper_edits` (run at import) therefore touches
-this file when one of them is newer, so that an edited helper recompiles these kernels too.
+Caching: these kernels inline helpers of the package's other modules; their cache is stamped with a hash of
+every module of the package (`compiler.SourceHashLocator`), so an edited helper recompiles them too.
 """
 
 from __future__ import annotations
 
 import math
-import os
 
 import numpy as np
 from numba import njit, prange
@@ -31,23 +29,6 @@ from egobench.render.cpu import (CHUNK, EXTENT_SIGMAS, FASTMATH, SIGMA_ROW, accu
                                  retire_stopped, state_rows, tile_state_bwd, tile_state_fwd, track_rows,
                                  trim_rows_active, uncomposite_pixel)
 
-
-#: the modules whose helpers these kernels inline
-HELPER_MODULES = ("compiler.py", "projection.py", "binning.py", "composite.py")
-
-
-def _follow_helper_edits() -> None:
-    """Marks this file as changed (mtime) when a helper module is newer: numba's cache would otherwise
-    keep kernels compiled with an older version of the helpers they inline. No-op where read-only."""
-    here = os.path.dirname(__file__)
-    try:
-        if max(os.path.getmtime(os.path.join(here, m)) for m in HELPER_MODULES) > os.path.getmtime(__file__):
-            os.utime(__file__)
-    except OSError:
-        pass
-
-
-_follow_helper_edits()
 
 FILTER_2D = 2.0  # 2D low-pass filter: exponent FILTER_2D |pixel - centre|^2 / 2 (gsplat's FILTER_INV_SQUARE)
 DEPTH_CH = ck.DEPTH_CH  # feature channel holding the depth (`composite.feature_table`'s layout)
