@@ -71,9 +71,9 @@ def wait_for_kernels(module: ModuleType, test_name: str) -> None:
 RENDER_SCRIPT = """
 import hashlib, json, torch
 from egobench.render import kernel_build
-from tests.test_render import pose
-from tests.test_render_cpu import CAM, edge_case_scene, run
-from tests.test_render_cpu_2dgs import run2, surfel_scene
+from tests.render.test_render import pose
+from tests.render.test_render_cpu import CAM, edge_case_scene, run
+from tests.render.test_render_cpu_2dgs import run2, surfel_scene
 sets = {{"3dgs": (run, edge_case_scene), "2dgs": (run2, surfel_scene)}}
 idx = (torch.arange(CAM.height) >= CAM.height // 2).long()[:, None].expand(CAM.height, CAM.width).contiguous()
 def counts(mode):

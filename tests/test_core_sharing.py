@@ -88,7 +88,7 @@ def test_bench_train_reports_each_rounds_core_sharing(monkeypatch, two_kernel_th
     not) where its two-thread run's probes agreed, and the speed-ups are also given apart by state."""
     import egobench.train
 
-    from tests.test_bench import _train_result
+    from tests.bench.test_bench import _train_result
 
     speed = {("ours", 1): [30.0, 20.0, 33.0], ("ours", 2): [45.0, 40.0, 33.0],
              ("ours_2dgs", 1): [20.0, 10.0, 30.0], ("ours_2dgs", 2): [36.0, 10.0, 30.0]}

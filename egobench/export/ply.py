@@ -12,7 +12,7 @@ methods with scene gamma (the paper's 'ours' and its rows) and the methods witho
 model, that is the trained colour itself and a viewer's render equals egobench's (k = 1, no
 vignette). For linear scene colour (w/o scene gamma) the camera response is applied per Gaussian,
 which equals the model's render only where one opaque Gaussian covers a pixel (the model composites
-in linear, then encodes): tests/test_export.py measures a mean error of 0.05 of the display range on
+in linear, then encodes): tests/export/test_export.py measures a mean error of 0.05 of the display range on
 a short run (0.21 without the conversion).
 """
 

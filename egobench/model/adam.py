@@ -4,7 +4,7 @@
 gsplat's densification ops see torch's layout. The update is torch's single-tensor Adam operation for
 operation, fused-multiply-adds where ATen's kernels use them (lerp, addcmul), with one difference: the
 square root is IEEE's, correctly rounded, where torch's CPU sqrt is off by one unit in the last place
-in a few elements per million (exp_avg and exp_avg_sq stay bit for bit; see tests/test_adam.py).
+in a few elements per million (exp_avg and exp_avg_sq stay bit for bit; see tests/model/test_adam.py).
 On one thread torch's steps took ~0.8 ms of a 128 px training step (20 000 Gaussians, seven
 optimisers); the compiled pass runs in parallel and the bits do not depend on the thread count.
 Other devices and dtypes, and options this pass does not implement, take torch's own step.

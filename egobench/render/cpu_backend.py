@@ -1,6 +1,6 @@
 """Compiled CPU backend of `render` (``backend="cpu"``): numba kernels (the package egobench/render/cpu/)
 behind two autograd functions, projection and rasterization, with gsplat 1.5.3 / torch_backend.py
-semantics (checked against the torch backend in tests/test_render_cpu.py).
+semantics (checked against the torch backend in tests/render/test_render_cpu.py).
 
 Supported: 3DGS colour, alpha, depth, normals (``want_normal``), means2d (densification carrier,
 ``absgrad``), radii, rolling shutter (``pixel_pose_index`` with K pose samples), gradients of

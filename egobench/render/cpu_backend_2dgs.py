@@ -1,5 +1,5 @@
 """2DGS (surfels) in the compiled CPU backend: the autograd glue of `egobench.render.cpu.surfels`, with the
-semantics of torch_backend.py's 2DGS path (checked against it in tests/test_render_cpu_2dgs.py).
+semantics of torch_backend.py's 2DGS path (checked against it in tests/render/test_render_cpu_2dgs.py).
 
 Outputs: colour, alpha, depth, camera-frame normals, the depth distortion map
 (``extras["distortion"]``), radii, the projected centres (``extras["means2d_values"]``, with

@@ -2,7 +2,7 @@
 
 Each table keeps the LaTeX label it was copied from. Method keys are egobench's method names
 (``egobench/model/methods.py``, which also holds the row labels); scene keys are the paper's scene names in lower case. The values are
-exactly as printed (including the paper's ``20.449``); ``tests/test_tables.py`` re-parses the
+exactly as printed (including the paper's ``20.449``); ``tests/report/test_tables.py`` re-parses the
 ``.tex`` and checks every number.
 """
 

@@ -26,7 +26,7 @@ Per frame (docs/architecture.md conventions):
 Temporal samples S: adaptive per frame, so that the image motion between consecutive samples
 is at most `max_sample_step_px` (0.15 px): S = clamp(ceil(max_motion_px / 0.15), 1, 32), where
 max_motion_px is the largest displacement of preview scene points during the exposure at the
-first, middle and last rows. `tests/test_capture.py` checks that doubling S changes the
+first, middle and last rows. `tests/sim/test_capture.py` checks that doubling S changes the
 noise-free display image by less than half an 8-bit level on average.
 
 Interruption and resumption: the recording is built in a hidden partial folder beside the output

@@ -496,7 +496,7 @@ def grain_factor(uv: Tensor, primitive_id: Tensor, amplitude: float, seed: int,
     lattices from 0.5 m down to 4 mm, w_o = 2^(o/4) / sqrt(sum w^2). Natural images have a 1/f
     amplitude spectrum, i.e. equal power per octave (Field 1987); value noise rolls off at its own
     finest scale, and the 2^(o/4) tilt offsets that: the power per octave measured along a line is
-    flat within 2x from 0.5 m to 8 mm features (tests/test_sim_similarity_knobs.py). Octaves finer
+    flat within 2x from 0.5 m to 8 mm features (tests/sim/test_sim_similarity_knobs.py). Octaves finer
     than the footprint fade to their mean, so distant surfaces do not alias. Each primitive gets
     its own offset into the field."""
     from egobench.sim.textures import value_noise

@@ -13,8 +13,8 @@ import torch
 from egobench.camera.pinhole import Pinhole
 from egobench.render import render
 from egobench.render.types import Gaussians
-from tests.test_render import make_scene, pose
-from tests.test_render_cpu import CAM, edge_case_scene, visited_pixels
+from tests.render.test_render import make_scene, pose
+from tests.render.test_render_cpu import CAM, edge_case_scene, visited_pixels
 
 
 def surfel_scene(seed: int, dtype=torch.float64) -> Gaussians:

@@ -20,7 +20,7 @@ from egobench.workflow import config as wc
 from egobench.cli import main
 from egobench.report.tables import ci95, load_records
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 # ------------------------------------------------------------------------------------------------

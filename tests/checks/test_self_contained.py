@@ -6,8 +6,8 @@ import re
 import subprocess
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-SELF = "tests/test_self_contained.py"  # holds the planted examples
+REPO = Path(__file__).resolve().parents[2]
+SELF = "tests/checks/test_self_contained.py"  # holds the planted examples
 TEXT_SUFFIXES = {".py", ".md", ".yaml", ".yml", ".toml", ".sh", ".smk", ".txt", ".cfg", ".json", ".tex", ".html"}
 #: a numbered work period ("stop 62", "stops 45-49")
 WORK_PERIOD = re.compile(r"\bstops? \d", re.IGNORECASE)

@@ -29,7 +29,7 @@ that accumulator racily, i.e. possibly before all pixels have added to it).
 The autouse fixture makes any call into gsplat's CUDA extension fail, so the fakes are pure torch.
 
 Reference: `render(..., backend="torch")` (itself tested against a per-pixel oracle in
-tests/test_render.py).
+tests/render/test_render.py).
 """
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ import egobench.render as er  # noqa: E402
 from egobench.camera.pinhole import Pinhole  # noqa: E402
 from egobench.render import render  # noqa: E402
 from egobench.render.types import Gaussians  # noqa: E402
-from tests.test_render import make_scene, pose  # noqa: E402
+from tests.render.test_render import make_scene, pose  # noqa: E402
 
 REAL_RASTERIZATION = gsplat.rasterization
 REAL_RASTERIZATION_2DGS = gsplat.rasterization_2dgs

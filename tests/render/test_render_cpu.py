@@ -16,7 +16,7 @@ from egobench.camera.pinhole import Pinhole
 from egobench.render import render, resolve_backend
 from egobench.render.types import Gaussians
 from tests import background
-from tests.test_render import make_scene, pose
+from tests.render.test_render import make_scene, pose
 
 CAM = Pinhole(fx=20.0, fy=21.0, cx=17.3, cy=10.6, width=37, height=22)  # partial tiles at 8 and 16
 NAMES = ("means", "quats", "log_scales", "opacity_logits", "colors")
@@ -233,13 +233,13 @@ def test_one_thread_per_worker_from_omp_num_threads():
             "setup_threads()\n"  # what an entry point (the CLI a Snakemake job runs) does first
             "import torch\n"
             "from egobench.render import render\n"
-            "from tests.test_render_cpu import make_scene, CAM, pose\n"
+            "from tests.render.test_render_cpu import make_scene, CAM, pose\n"
             "out = render(make_scene(20, CAM, 0), CAM, pose(), backend='cpu')\n"
             "import numba\n"
             "print(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS, numba.get_num_threads())\n")
     env = {k: v for k, v in os.environ.items() if k != "NUMBA_NUM_THREADS"}
     env["OMP_NUM_THREADS"] = "1"
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")
     res = subprocess.run([sys.executable, "-c", code], env=env, cwd=root, capture_output=True, text=True, check=True)
     assert res.stdout.split() == ["1", "1", "1"]
@@ -328,11 +328,11 @@ def test_raster_threads_env_gives_the_kernels_their_own_count():
             "setup_threads()\n"  # what an entry point (the CLI a Snakemake job runs) does first
             "import torch\n"
             "from egobench.render import render\n"
-            "from tests.test_render_cpu import make_scene, CAM, pose\n"
+            "from tests.render.test_render_cpu import make_scene, CAM, pose\n"
             "out = render(make_scene(20, CAM, 0), CAM, pose(), backend='cpu')\n"
             "import numba\n"
             "print(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS, numba.get_num_threads())\n")
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     env = {k: v for k, v in os.environ.items() if k not in ("NUMBA_NUM_THREADS", cpu_backend.RASTER_THREADS_ENV)}
     env.update(OMP_NUM_THREADS="1", PYTHONPATH=root + os.pathsep + env.get("PYTHONPATH", ""))
     outs = []

@@ -12,7 +12,7 @@ import pytest
 from egobench.sim.config import SimConfig
 
 N_FRAMES = 6
-#: Tiny recordings (as in tests/test_capture.py, smaller): "auto" exercises the smoothed auto-exposure,
+#: Tiny recordings (as in tests/sim/test_capture.py, smaller): "auto" exercises the smoothed auto-exposure,
 #: raw frames, JPEG and exposure-metadata errors; "fixed" (object kind) the held exposure of the fixed protocol.
 CONFIGS = {
     "auto": ("outdoor", 1, {"n_frames": N_FRAMES, "rectified_size": 24, "motion": "fast", "n_semidense_points": 500,

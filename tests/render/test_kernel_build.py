@@ -1,6 +1,6 @@
 """`egobench.render.kernel_build`: the first process on a cold cache builds the kernels in one child under a
 file lock, a failed child leaves no marker and says why, and the build key follows what the machine code
-depends on. (The real build, end to end, is tests/test_render_cpu_cache.py.)"""
+depends on. (The real build, end to end, is tests/render/test_render_cpu_cache.py.)"""
 
 from __future__ import annotations
 

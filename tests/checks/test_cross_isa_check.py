@@ -3,7 +3,7 @@
 import runpy
 from pathlib import Path
 
-SCRIPT = runpy.run_path(str(Path(__file__).parents[1] / "scripts" / "cross_isa_check.py"), run_name="x")
+SCRIPT = runpy.run_path(str(Path(__file__).parents[2] / "scripts" / "cross_isa_check.py"), run_name="x")
 
 
 def test_recordings_are_compared_file_by_file(tmp_path):
@@ -78,5 +78,5 @@ def test_reference_digests_are_compared_per_recording():
                                    "b": {"identical": True, "files": 1, "differing": []}}
     theirs = {"a": {"x.png": "1", "y.csv": "9", "w.npy": "4"}, "b": {"z.json": "3"}}
     assert compare(ours, theirs)["a"] == {"identical": False, "files": 3, "differing": ["w.npy", "y.csv"]}
-    ref = json.loads((Path(__file__).parents[1] / "results" / "cross_isa" / "recording_digests.json").read_text())
+    ref = json.loads((Path(__file__).parents[2] / "results" / "cross_isa" / "recording_digests.json").read_text())
     assert sorted(ref["digests"]) == sorted(SCRIPT["REFERENCE_CASES"]) and "cpu_model" in ref["host"]

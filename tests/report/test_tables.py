@@ -16,7 +16,7 @@ from egobench.report import tables as T
 from egobench.cli import main as cli_main
 from tests.helpers import write_records
 
-PAPER_TEX = Path(__file__).resolve().parents[2] / "shared" / "paper" / "paper.tex"
+PAPER_TEX = Path(__file__).resolve().parents[3] / "shared" / "paper" / "paper.tex"
 
 
 def make_record(scene, kind, method, seed, psnr, ssim=0.5, paper_scene=None, **metrics):

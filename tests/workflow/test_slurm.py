@@ -22,7 +22,7 @@ import yaml
 
 from egobench.workflow import slurm_report as sr
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SNAKEMAKE = [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile")]
 LOCAL_PROFILE = ["--workflow-profile", str(REPO / "profiles" / "slurm_local")]
 #: results.csv columns that are wall-clock measurements, not results

@@ -19,7 +19,7 @@ from egobench.io_utils import read_json
 from egobench.workflow import config as wc
 from tests import background
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SNAKEMAKE = [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile")]
 
 
@@ -278,8 +278,8 @@ def _ci_suite() -> tuple[subprocess.CompletedProcess, Path]:
     on a cold numba cache the suite's jobs load them instead of each compiling them side by side."""
     import torch
 
-    from tests.test_render import pose
-    from tests.test_render_cpu import CAM, edge_case_scene, run
+    from tests.render.test_render import pose
+    from tests.render.test_render_cpu import CAM, edge_case_scene, run
 
     run(edge_case_scene(3, torch.float32), CAM, pose(0.1, -0.05, (0.02, 0.0, 0.0)).to(torch.float32), "cpu")
     workdir = Path(tempfile.mkdtemp(prefix="egobench_ci_suite_"))
@@ -458,7 +458,7 @@ def _real_aria_scene() -> tuple[subprocess.CompletedProcess, Path] | None:
 
     if not (SHARED_DATA / "adt_sample").is_dir() or importlib.util.find_spec("projectaria_tools") is None:
         return None
-    from tests.test_preprocess import _write_mps
+    from tests.data.test_preprocess import _write_mps
 
     workdir = Path(tempfile.mkdtemp(prefix="egobench_real_scene_"))
     scene = workdir / "adt_scene"

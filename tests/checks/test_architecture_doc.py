@@ -6,7 +6,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 DOC = (REPO / "docs" / "architecture.md").read_text()
 
 
@@ -38,3 +38,14 @@ def test_the_imports_picture_is_current():
     graph = layers.imports()
     assert "train" in graph and "render" in graph["train"] and "train" not in graph["render"]
     assert layers.render_doc(DOC, graph) == DOC, "docs/architecture.md's Imports block is stale"
+
+
+def test_the_tests_mirror_the_package():
+    """tests/<package>/ holds the tests of egobench/<package>/, tests/test_<module>.py those of a top-level module
+    egobench/<module>.py, and tests/checks/ the checks that cut across the package."""
+    tests = REPO / "tests"
+    packages = {p.name for p in (REPO / "egobench").iterdir() if (p / "__init__.py").is_file()}
+    folders = {p.name for p in tests.iterdir() if p.is_dir() and p.name not in ("__pycache__", "fixtures")}
+    assert folders - packages == {"checks"}
+    modules = {p.stem for p in (REPO / "egobench").glob("*.py")}
+    assert [p.name for p in tests.glob("test_*.py") if p.stem.removeprefix("test_") not in modules] == []
