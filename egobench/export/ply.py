@@ -26,6 +26,7 @@ import torch
 from torch import Tensor
 
 from egobench.io_utils import atomic_path, holding_run_folder
+from egobench.render.torch_backend import NEAR_PLANE, VIEWER_NEAR_PLANE
 
 SH_C0 = 0.28209479177387814
 
@@ -116,7 +117,9 @@ def export_run(run_dir: str | Path, out: str | Path) -> dict:
     run = load_trained_run(run_dir, "cpu", f"export {run_dir}")
     colours, meaning = display_colours(run.gaussians.colors, run.spec)
     comments = [f"egobench run {Path(run_dir).name}: method {run.spec.name}, iteration {run.checkpoint['iteration']}",
-                f"colours: {meaning}", "axes: world frame of the recording (metres), cameras OpenCV"]
+                f"colours: {meaning}", "axes: world frame of the recording (metres), cameras OpenCV",
+                f"near plane: egobench renders from {NEAR_PLANE} m (gsplat's); INRIA-style viewers clip below "
+                f"{VIEWER_NEAR_PLANE} m and hide the Gaussians between"]
     n = write_ply(out, run.gaussians, run.spec.splat_mode, colours, comments)
     return {"path": str(out), "gaussians": n, "mode": run.spec.splat_mode, "colours": meaning}
 

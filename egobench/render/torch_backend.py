@@ -48,6 +48,8 @@ ALPHA_MAX = 0.999  # alpha is clamped to this
 T_STOP = 1e-4  # compositing stops before T * (1 - alpha) <= T_STOP
 EPS2D = 0.3  # 2D covariance dilation, pixels^2
 NEAR_PLANE = 0.01  # metres
+#: the near plane of the INRIA 3DGS code and the viewers built on it, metres: they hide what lies nearer
+VIEWER_NEAR_PLANE = 0.2
 FAR_PLANE = 1e10  # metres
 EXTENT_SIGMAS = 3.33  # screen radius in standard deviations (upper bound)
 FILTER_INV_SQUARE_2DGS = 2.0  # 2DGS low-pass filter: sigma_2d = 2 |d|^2 / 2

@@ -7,11 +7,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
+from torch import Tensor
 
 from egobench import __version__
 from egobench.data.reader import frame_counts
 from egobench.host import host_info
 from egobench.io_utils import git_commit
+from egobench.render.torch_backend import VIEWER_NEAR_PLANE
 from egobench.train.config import TrainConfig
 from egobench.train.data import TrainingData
 from egobench.train.state import TrainState
@@ -51,7 +53,21 @@ def train_record(result: "TrainResult", state: TrainState, data: TrainingData, c
                            "warmup_iter": config.motion_warmup_iter, "rule": config.sample_rule},
         "densification_last": state.densifier.last_counts,
         "learned_shading": _learned_shading(state, config),
+        "near_cameras": near_camera_count(state.params["means"], data.frames),
     }
+
+
+def near_camera_count(means: Tensor, frames, radius_m: float = VIEWER_NEAR_PLANE) -> dict:
+    """How many Gaussians lie within ``radius_m`` of a training camera's centre (at the frame's centre-row pose):
+    what a viewer with the INRIA near plane (0.2 m) clips where egobench's renders (0.01 m) keep them. Reported,
+    not pruned: pruning would change the trained models (docs/viewer.md)."""
+    centres = torch.stack([f.T_world_camera[:3, 3] for f in frames]).to(torch.float64)  # [F, 3]
+    m = means.detach().to("cpu", torch.float64)
+    near = torch.zeros(len(m), dtype=torch.bool)
+    for c in centres:  # [N] per camera: no [N, F] distance matrix
+        near |= ((m - c) ** 2).sum(-1) < radius_m ** 2
+    return {"radius_m": radius_m, "count": int(near.sum()), "of": int(len(m)),
+            "rule": "Gaussian centres within radius_m of any training camera centre (centre-row pose)"}
 
 
 def _learned_shading(state: TrainState, config: TrainConfig) -> dict | None:

@@ -400,3 +400,20 @@ def test_depth_normals_face_the_camera_like_rendered_2dgs_normals():
     assert float(out.alpha[0, 1:-1, 1:-1].min()) > 0.9
     reg = twodgs_regularisers([out], cam, cfg, 5, interior)
     assert float(reg) < 1e-4
+
+
+def test_gaussians_near_a_training_camera_are_counted():
+    """`near_camera_count`: centres within 0.2 m (the INRIA viewers' near plane) of any training camera centre,
+    counted once however many cameras they are near; the boundary is exclusive."""
+    from types import SimpleNamespace
+
+    from egobench.train.record import near_camera_count
+
+    def frame(x):
+        T = torch.eye(4, dtype=torch.float64)
+        T[0, 3] = x
+        return SimpleNamespace(T_world_camera=T)
+
+    means = torch.tensor([[0.1, 0.0, 0.0], [1.05, 0.0, 0.1], [0.5, 0.0, 0.0], [0.0, 0.0, 0.2], [3.0, 0.0, 0.0]])
+    rec = near_camera_count(means, [frame(0.0), frame(1.0), frame(0.05)])
+    assert (rec["count"], rec["of"], rec["radius_m"]) == (2, 5, 0.2)
