@@ -27,8 +27,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from egobench.diagnose.estimators import CAUSES
-from egobench.diagnose.placebo import (calibrate_geometric, calibrate_photometric, geometric_standard_errors,
-                                       mark_untestable_on_trained_run)
+from egobench.diagnose.placebo import calibrate_geometric, calibrate_photometric, mark_untestable_on_trained_run
+from egobench.diagnose.power import geometric_standard_errors, smallest_testable
 from egobench.effects import EFFECTS
 from egobench.effects.noise import NoiseCause
 from egobench.residual.estimation import CauseResult, ResidualData
@@ -351,8 +351,6 @@ def model_error_summary(measured: np.ndarray, predicted: np.ndarray, extended: n
                         split: _Split, cfg: DiagnosisConfig, se: dict, n_testable: int) -> dict:
     """How much of a trained run's held-out residual is the model's own error (not noise, not a
     named cause), in dB, and the smallest effect of each kind still testable on this run."""
-    from egobench.diagnose.placebo import smallest_testable
-
     def mse(pred, idx):
         m = np.broadcast_to(split.eval_mask[None, :, :, None], pred[idx].shape)
         return float(np.mean(((pred[idx] - measured[idx]) ** 2)[m]))

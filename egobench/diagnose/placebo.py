@@ -42,8 +42,6 @@ from egobench.residual.signatures import frame_t_test, robust_sd, weighted_lstsq
 #: Offsets of the wrong centres of the vignette placebo, as fractions of (width, height).
 PLACEBO_CENTRE_OFFSETS = ((0.25, 0.0), (-0.25, 0.0), (0.0, 0.25), (0.0, -0.25),
                           (0.25, 0.25), (-0.25, 0.25), (0.25, -0.25), (-0.25, -0.25))
-#: Power of the minimum detectable effect (probability of detecting an effect of that size).
-MDE_POWER = 0.8
 
 
 @dataclass
@@ -781,28 +779,3 @@ def blur_given_frame_shifts(data: ResidualData, r: CauseResult) -> None:
     r.params["p_value_given_frame_shifts"] = given.p_value
     r.params["exposure_s_given_frame_shifts"] = given.params.get("exposure_s")
     r.p_value = max(r.p_value, given.p_value)
-
-
-def geometric_standard_errors(results: list[CauseResult]) -> dict:
-    """{cause: (se, df)} of the geometric causes' tested parameter (between-frame spread)."""
-    return {r.name: (r.internal["frame_se"], r.internal["frame_df"]) for r in results
-            if r.testable and "frame_se" in r.internal}
-
-
-def _mde_multiplier(alpha: float, m: int, df: int) -> float:
-    df = max(int(df), 2)
-    return float(sps.t.ppf(1 - alpha / (2 * max(m, 1)), df) + sps.t.ppf(MDE_POWER, df))
-
-
-def smallest_testable(se: dict, ctx, alpha: float, m: int) -> dict:
-    """Smallest effect of each kind this run could reveal (power MDE_POWER at level alpha / m),
-    in the effect's parameter units (see egobench.effects)."""
-    out = {}
-    for name, (s, df) in se.items():
-        if not (s is not None and math.isfinite(s) and s > 0):
-            continue
-        d = _mde_multiplier(alpha, m, df) * s
-        smallest = EFFECTS[name].smallest_testable(d, s, ctx) if name in EFFECTS else None
-        if smallest is not None:
-            out[name] = smallest
-    return out
