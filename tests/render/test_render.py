@@ -299,7 +299,7 @@ def test_gradcheck_full_render(mode):
 def test_backward_recompute_equals_stored(mode, monkeypatch):
     """The compositing backward replays the forward's chunks when they fit in memory and
     recomputes them otherwise: both must give the same gradients (multi-chunk, early-stopping bins)."""
-    from egobench.render import torch_backend
+    from egobench.render import torch_composite
 
     cam = Pinhole(fx=20.0, fy=20.0, cx=15.5, cy=9.5, width=32, height=20)
     g = make_scene(400, cam, 5, sigma_px=(1.0, 3.0), opacity_logit=2.0)
@@ -317,7 +317,7 @@ def test_backward_recompute_equals_stored(mode, monkeypatch):
         return m.detach(), {k: v.grad for k, v in inputs.items()}
 
     stored = run()
-    monkeypatch.setattr(torch_backend, "_store_fits", lambda plan: False)
+    monkeypatch.setattr(torch_composite, "_store_fits", lambda plan: False)
     recomputed = run()
     torch.testing.assert_close(stored[0], recomputed[0], atol=0, rtol=0)
     for k in stored[1]:

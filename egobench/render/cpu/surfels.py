@@ -1,5 +1,5 @@
 """numba kernels of the compiled CPU backend for 2DGS surfels (gsplat 1.5.3 semantics, as
-torch_backend.py's `project_2dgs`, `coefficients_2dgs` and the 2DGS path of `_Composite`).
+torch_backend.py's `project_2dgs`, `coefficients_2dgs` and the 2DGS path of `torch_composite._Composite`).
 
 Projection: ray transform M = K [R_c s0 | R_c s1 | mean_c] (rows u_M, v_M, w_M), the centre and
 AABB radius from M's dual conic, the camera-facing normal (third rotation axis); the backward
