@@ -49,3 +49,12 @@ def test_the_tests_mirror_the_package():
     assert folders - packages == {"checks"}
     modules = {p.stem for p in (REPO / "egobench").glob("*.py")}
     assert [p.name for p in tests.glob("test_*.py") if p.stem.removeprefix("test_") not in modules] == []
+
+
+def test_no_module_over_800_lines_and_no_docs_page_over_400():
+    """Rooms of a readable size: every module of egobench/ at most 800 lines, every page of docs/ at most 400 (the
+    history of a measurement lives in its dated record under results/, not in docs/)."""
+    long_modules = [(str(p.relative_to(REPO)), n) for p in (REPO / "egobench").rglob("*.py")
+                    if (n := len(p.read_text().splitlines())) > 800]
+    long_pages = [(p.name, n) for p in (REPO / "docs").glob("*.md") if (n := len(p.read_text().splitlines())) > 400]
+    assert (long_modules, long_pages) == ([], [])
