@@ -51,19 +51,14 @@ def pytest_collection_modifyitems(config, items):
 
 
 @pytest.fixture(scope="session", autouse=True)
-def _kernel_threads() -> None:
-    """The test suite's thread set-up (an entry point's, `egobench.host`): numba's pool started once, in
-    egobench's threading layer, with torch's thread count kept (NUMBA_NUM_THREADS is set above)."""
+def _kernels_warmed_up(request, tmp_path_factory) -> None:
+    """The suite's thread set-up, as an entry point's (`egobench.host`): numba's pool started once, in egobench's
+    threading layer, with torch's thread count kept (NUMBA_NUM_THREADS is set above). Then, on a cold numba cache
+    under pytest-xdist, the first two workers compile the 3DGS and 2DGS kernels (float32 and float64), one set
+    each, before their first test (`background.warm_up`); the tests then load them."""
     from egobench.host import start_kernel_pool
 
     start_kernel_pool()
-
-
-@pytest.fixture(scope="session", autouse=True)
-def _kernels_warmed_up(request, tmp_path_factory) -> None:
-    """On a cold numba cache under pytest-xdist, the first two workers compile the 3DGS and 2DGS kernels
-    (float32 and float64), one set each, before their first test (`background.warm_up`); the tests then
-    load them."""
     background.warm_up(request.session, tmp_path_factory)
 
 

@@ -166,6 +166,6 @@ def run(args: argparse.Namespace) -> int:
     if args.out:
         rows.to_csv(f"{args.out}_rows.csv", index=False)
         runs.to_csv(f"{args.out}_runs.csv", index=False)
-    beyond = int((~rows.within).sum()) + int((~runs.within).sum()) if len(runs) else int((~rows.within).sum())
+    beyond = int((~rows.within).sum()) + (int((~runs.within).sum()) if len(runs) else 0)
     print(f"egobench compare: {beyond} beyond tolerance ({TRAVEL_FACTOR:g} x the reference's seed spread)")
     return 0 if beyond == 0 else 1

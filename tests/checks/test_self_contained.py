@@ -9,11 +9,12 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[2]
 SELF = "tests/checks/test_self_contained.py"  # holds the planted examples
 TEXT_SUFFIXES = {".py", ".md", ".yaml", ".yml", ".toml", ".sh", ".smk", ".txt", ".cfg", ".json", ".tex", ".html"}
-#: a numbered work period ("stop 62", "stops 45-49")
+#: a numbered work period: the word for one, a space and a digit
 WORK_PERIOD = re.compile(r"\bstops? \d", re.IGNORECASE)
-#: "session" is a work period too, but for pytest's own API
-SESSION = re.compile(r"session", re.IGNORECASE)
-PYTEST_SESSION = re.compile(r'scope="session"|request\.session|\bsession\.items\b|def warm_up\(session\b')
+#: the other work-period word, allowed only as pytest's own API
+PERIOD_WORD = "ses" + "sion"  # spelled in parts: this file plants examples of what it forbids
+PERIOD_NAME = re.compile(PERIOD_WORD, re.IGNORECASE)
+PYTEST_API = re.compile(rf'scope="{PERIOD_WORD}"|request\.{PERIOD_WORD}|\b{PERIOD_WORD}\.items\b|def warm_up\({PERIOD_WORD}\b')
 #: files outside the repository that a clone does not have; the real sample data (an environment variable with a
 #: documented default, ../shared/data) is the one exception
 OUTSIDE = re.compile(r"PAPER-NOTES|DESIGN\.md|\.\./shared/(?!data\b)")
@@ -39,10 +40,10 @@ def _hits(pattern: re.Pattern, allowed: re.Pattern | None = None, under: tuple[s
 
 
 def test_no_work_period_is_named_anywhere():
-    """Not "stop 62", not "the fourth session": a reader outside the project's history cannot place them. Dates
-    and commits can be placed."""
+    """No numbered work periods and no named ones: a reader outside the project's history cannot place them.
+    Dates and commits can be placed."""
     assert _hits(WORK_PERIOD) == []
-    assert _hits(SESSION, PYTEST_SESSION) == []
+    assert _hits(PERIOD_NAME, PYTEST_API) == []
 
 
 def test_the_package_docs_and_tests_cite_only_files_in_the_repository():
@@ -50,9 +51,10 @@ def test_the_package_docs_and_tests_cite_only_files_in_the_repository():
 
 
 def test_the_guards_catch_a_planted_example_of_each():
-    assert WORK_PERIOD.search("measured in stop 62") and WORK_PERIOD.search("after stops 45-49")
+    stop = "st" + "op"
+    assert WORK_PERIOD.search(f"measured in {stop} 62") and WORK_PERIOD.search(f"after {stop}s 45-49")
     assert not WORK_PERIOD.search("scene_dynamic_range_stops 3.48") and not WORK_PERIOD.search("stop at 1e-4")
-    assert SESSION.search(PYTEST_SESSION.sub("", "the fourth GPU session")) is not None
-    assert SESSION.search(PYTEST_SESSION.sub("", '@pytest.fixture(scope="session")')) is None
+    assert PERIOD_NAME.search(PYTEST_API.sub("", f"the fourth GPU {PERIOD_WORD}")) is not None
+    assert PERIOD_NAME.search(PYTEST_API.sub("", f'@pytest.fixture(scope="{PERIOD_WORD}")')) is None
     assert OUTSIDE.search("see PAPER-NOTES section 2") and OUTSIDE.search("open ../shared/DESIGN.md")
     assert not OUTSIDE.search("expected at ../shared/data/ (EGOBENCH_SHARED_DATA)")

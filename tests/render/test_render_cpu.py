@@ -221,28 +221,38 @@ def test_no_visible_gaussian_gives_background_and_zero_gradients():
         assert bool((grads[k] == 0).all()), k
 
 
+#: a child process as a Snakemake job runs: the entry point's thread set-up, one render, then its thread counts
+THREADS_CHILD = ("from egobench.host import setup_threads\n"
+                 "setup_threads()\n"  # what an entry point (the CLI a Snakemake job runs) does first
+                 "import torch\n"
+                 "from egobench.render import render\n"
+                 "from tests.render.test_render_cpu import make_scene, CAM, pose\n"
+                 "out = render(make_scene(20, CAM, 0), CAM, pose(), backend='cpu')\n"
+                 "import numba\n"
+                 "print(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS, numba.get_num_threads())\n")
+
+
+def _thread_counts(env: dict) -> list[str]:
+    """`THREADS_CHILD` under ``env`` -> [torch threads, numba's pool size, numba's threads]."""
+    import os
+    import subprocess
+    import sys
+
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    env = dict(env, PYTHONPATH=root + os.pathsep + env.get("PYTHONPATH", ""))
+    res = subprocess.run([sys.executable, "-c", THREADS_CHILD], env=env, cwd=root, capture_output=True, text=True,
+                         check=True)
+    return res.stdout.split()
+
+
 def test_one_thread_per_worker_from_omp_num_threads():
     """Snakemake exports OMP_NUM_THREADS={threads} to each job: torch and the compiled kernels
     then use that many threads (numba's pool is capped by the entry point's `setup_threads`, its count
     follows torch)."""
     import os
-    import subprocess
-    import sys
 
-    code = ("from egobench.host import setup_threads\n"
-            "setup_threads()\n"  # what an entry point (the CLI a Snakemake job runs) does first
-            "import torch\n"
-            "from egobench.render import render\n"
-            "from tests.render.test_render_cpu import make_scene, CAM, pose\n"
-            "out = render(make_scene(20, CAM, 0), CAM, pose(), backend='cpu')\n"
-            "import numba\n"
-            "print(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS, numba.get_num_threads())\n")
     env = {k: v for k, v in os.environ.items() if k != "NUMBA_NUM_THREADS"}
-    env["OMP_NUM_THREADS"] = "1"
-    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-    env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")
-    res = subprocess.run([sys.executable, "-c", code], env=env, cwd=root, capture_output=True, text=True, check=True)
-    assert res.stdout.split() == ["1", "1", "1"]
+    assert _thread_counts(dict(env, OMP_NUM_THREADS="1")) == ["1", "1", "1"]
 
 
 def visited_pixels(box, band_rows, shape, cw):
@@ -319,27 +329,13 @@ def test_raster_threads_env_gives_the_kernels_their_own_count():
     numba at 2: the pool is sized from it by `setup_threads`); without it numba follows torch; a bad value
     is a ValueError naming the variable."""
     import os
-    import subprocess
-    import sys
 
     from egobench.render import cpu_backend
 
-    code = ("from egobench.host import setup_threads\n"
-            "setup_threads()\n"  # what an entry point (the CLI a Snakemake job runs) does first
-            "import torch\n"
-            "from egobench.render import render\n"
-            "from tests.render.test_render_cpu import make_scene, CAM, pose\n"
-            "out = render(make_scene(20, CAM, 0), CAM, pose(), backend='cpu')\n"
-            "import numba\n"
-            "print(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS, numba.get_num_threads())\n")
-    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     env = {k: v for k, v in os.environ.items() if k not in ("NUMBA_NUM_THREADS", cpu_backend.RASTER_THREADS_ENV)}
-    env.update(OMP_NUM_THREADS="1", PYTHONPATH=root + os.pathsep + env.get("PYTHONPATH", ""))
-    outs = []
-    for value in ("2", None):
-        e = dict(env, **({cpu_backend.RASTER_THREADS_ENV: value} if value else {}))
-        res = subprocess.run([sys.executable, "-c", code], env=e, cwd=root, capture_output=True, text=True, check=True)
-        outs.append(res.stdout.split())
+    env["OMP_NUM_THREADS"] = "1"
+    outs = [_thread_counts(dict(env, **({cpu_backend.RASTER_THREADS_ENV: value} if value else {})))
+            for value in ("2", None)]
     assert outs == [["1", "2", "2"], ["1", "1", "1"]]
     os.environ[cpu_backend.RASTER_THREADS_ENV] = "two"
     try:
