@@ -12,13 +12,17 @@ per-pixel image velocity is derived for the twin), distortion is not tested (raw
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from egobench.diagnose.core import DiagnosisConfig, diagnose_residuals
+from egobench.diagnose.report import save_png, write_report
 from egobench.effects import EFFECTS
 from egobench.residual.signatures import DiagnosisContext, decode, encode
+from egobench.sim import motion_stats
 
 RGB_STREAM = "214-1"
 #: Causes testable on the ADT pair (see module docstring).
@@ -60,8 +64,6 @@ def read_rgb_frames(vrs_path: str | Path) -> tuple[np.ndarray, np.ndarray, np.nd
 
 
 def _area_down(img: np.ndarray, factor: int) -> np.ndarray:
-    import cv2
-
     H, W = img.shape[:2]
     return cv2.resize(img, (W // factor, H // factor), interpolation=cv2.INTER_AREA)
 
@@ -113,13 +115,9 @@ def adt_pair(adt_dir: str | Path, downsample: int = 8, gamma: float = 2.2):
 
 
 def motion_comparison(real_trajectory: str | Path | None) -> dict:
-    """Simulated vs real head-motion statistics via egobench.sim.motion_stats (when available)."""
+    """Simulated vs real head-motion statistics via egobench.sim.motion_stats (with a real trajectory)."""
     if real_trajectory is None:
         return {"note": "no real trajectory given (--real-trajectory)"}
-    try:
-        from egobench.sim import motion_stats
-    except ImportError as exc:
-        return {"note": f"egobench.sim.motion_stats not available: {exc}"}
     try:
         rows = motion_stats.compare(str(real_trajectory), kind="indoor", seeds=[0, 1], duration_s=10.0)
     except Exception as exc:  # report, do not fail the diagnosis
@@ -130,10 +128,6 @@ def motion_comparison(real_trajectory: str | Path | None) -> dict:
 def diagnose_adt(adt_dir: str | Path, out_dir: str | Path, config: DiagnosisConfig | None = None,
                  downsample: int = 8, real_trajectory: str | Path | None = None) -> dict:
     """Diagnose the twin against the real frames; write the report into out_dir; return the JSON record."""
-    from dataclasses import replace
-
-    from egobench.diagnose.report import write_report
-
     meas, pred, ctx, info = adt_pair(adt_dir, downsample)
     cfg = replace(config or DiagnosisConfig(), causes=ADT_CAUSES, max_causes=len(ADT_CAUSES))
     d = diagnose_residuals(meas, pred, ctx, cfg)
@@ -151,8 +145,6 @@ def _unmodelled_figure(path: Path, measured: np.ndarray, trimmed: np.ndarray) ->
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from egobench.diagnose.report import save_png
 
     n = trimmed.shape[0]
     fig, axes = plt.subplots(1, n, figsize=(3 * n, 3), squeeze=False)

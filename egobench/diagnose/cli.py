@@ -4,10 +4,22 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import replace
 from pathlib import Path
 
-from egobench.data.reader import add_input_arguments
+import yaml
+
+import egobench.train  # called as egobench.train.train: a replacement there (tests) is the one run
+from egobench.analysis.similarity import exposure_gain_ratio
+from egobench.data.layout import recording_root
+from egobench.data.reader import add_input_arguments, recording_from_args
+from egobench.diagnose.absorption import hidden_testable, load_retention
 from egobench.diagnose.core import DiagnosisConfig, diagnose_residuals
+from egobench.diagnose.extension import judge_shading, learned_shading_of, load_shading_null, run_setup
+from egobench.diagnose.report import write_report
+from egobench.diagnose.sources import ground_truth_source, run_source
+from egobench.diagnose.trained_sweep import PHOTOMETRIC, TrainedSweepConfig, extension_gain, run_trained_sweep
+from egobench.model.methods import get_method
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -90,8 +102,6 @@ def run(args: argparse.Namespace) -> int:
 
 def _trained_sweep(args: argparse.Namespace, cfg: DiagnosisConfig, out: Path) -> int:
     """--sweep --trained: the hidden-case sweep on trained runs (egobench.diagnose.trained_sweep)."""
-    from egobench.diagnose.trained_sweep import PHOTOMETRIC, TrainedSweepConfig, run_trained_sweep
-
     effects = tuple(e.strip() for e in args.sweep_effects.split(",") if e.strip()) if args.sweep_effects else PHOTOMETRIC
     sc = TrainedSweepConfig(null_cases=args.sweep_null, seeds=args.sweep_seeds, effects=effects, kind=args.sweep_kind,
                             size=args.sweep_size, n_frames=args.sweep_frames, method=args.method,
@@ -106,8 +116,6 @@ def _trained_sweep(args: argparse.Namespace, cfg: DiagnosisConfig, out: Path) ->
 
 def sim_overrides(pairs: list[str]) -> dict:
     """FIELD=VALUE strings of --sweep-sim -> {field: value} (values read as YAML scalars: 0.001, true, null)."""
-    import yaml
-
     out = {}
     for pair in pairs:
         key, sep, value = pair.partition("=")
@@ -119,26 +127,17 @@ def sim_overrides(pairs: list[str]) -> dict:
 
 def _train_for_diagnosis(args: argparse.Namespace, rec: Path, out: Path) -> Path:
     """--train: train --method with the --preset rules of `egobench train`, at full resolution, into OUT/run."""
-    from dataclasses import replace
-
-    from egobench.data.reader import recording_from_args
-    from egobench.model.methods import get_method
-    from egobench.train import preset_config, train
-
-    config = replace(preset_config(args.preset), max_side=0, device=args.device or "cpu")
+    config = replace(egobench.train.preset_config(args.preset), max_side=0, device=args.device or "cpu")
     if args.iterations is not None:
         config = config.scaled_to(args.iterations)
     run_dir = out / "run"
     recording = recording_from_args(rec, get_method(args.method).calibration, args)
-    train(recording, args.method, config, run_dir, progress=not args.no_progress)
+    egobench.train.train(recording, args.method, config, run_dir, progress=not args.no_progress)
     return run_dir
 
 
 def _diagnose_recording(args: argparse.Namespace, cfg: DiagnosisConfig, out: Path) -> int:
     """Diagnose one recording against the simulator's world (ground_truth) or a trained run's renders."""
-    from egobench.diagnose.report import write_report
-    from egobench.diagnose.sources import ground_truth_source, run_source
-
     if not args.recording:
         raise ValueError("recording: a recording folder is required (or use --sweep / --adt)")
     rec = Path(args.recording)
@@ -153,14 +152,10 @@ def _diagnose_recording(args: argparse.Namespace, cfg: DiagnosisConfig, out: Pat
                          pose_samples=args.pose_samples,
                          trajectory_path=args.trajectory, semidense_path=args.points)
     else:
-        from egobench.data.layout import recording_root
-
         if not (recording_root(rec) / "ground_truth" / "truth.json").is_file():
             raise ValueError(f"{rec}: no ground_truth/truth.json (not simulated): pass --run RUN_DIR or --train")
         src = ground_truth_source(rec, max_frames=args.max_frames, progress=not args.no_progress)
-    if source == "run":  # the null includes the trained model's own error (egobench.diagnose.placebo)
-        from dataclasses import replace
-
+    if source == "run":  # the null includes the trained model's own error (egobench.diagnose.placebo, `Cause.trained_placebos`)
         cfg = replace(cfg, trained_run=True)
     extension = _shading_extension(args, rec, run_dir, src, out) if args.shading_null else None
     d = diagnose_residuals(src.measured, src.predicted, src.context, cfg)
@@ -180,8 +175,6 @@ def _diagnose_recording(args: argparse.Namespace, cfg: DiagnosisConfig, out: Pat
 
 def _add_hidden_testable(d, paths: list[str]) -> None:
     """--retention: the smallest testable hidden effects (egobench.diagnose.absorption) into model_error."""
-    from egobench.diagnose.absorption import hidden_testable, load_retention
-
     if d.model_error is None:
         raise ValueError("--retention: needs a trained run's diagnosis (--run RUN_DIR or --train)")
     retention, sources = load_retention(paths)
@@ -191,12 +184,6 @@ def _add_hidden_testable(d, paths: list[str]) -> None:
 
 def _shading_extension(args: argparse.Namespace, rec: Path, run_dir: Path | None, src, out: Path) -> dict:
     """--shading-null: the learned lens shading of the run (or of its extension run) against the sweep's nulls."""
-    from egobench.data.reader import recording_from_args
-    from egobench.diagnose.extension import (extension_gain, judge_shading, learned_shading_of, load_shading_null,
-                                             run_setup)
-    from egobench.model.methods import get_method
-    from egobench.analysis.similarity import exposure_gain_ratio
-
     if run_dir is None:
         raise ValueError("--shading-null: the model extension needs a trained run (--run RUN_DIR or --train)")
     null = load_shading_null(args.shading_null)

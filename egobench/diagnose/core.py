@@ -26,11 +26,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from egobench.diagnose.estimators import CAUSES
-from egobench.diagnose.placebo import calibrate_geometric, calibrate_photometric, mark_untestable_on_trained_run
+from egobench.diagnose.estimators import CAUSES, variance_model_cause
+from egobench.diagnose.placebo import mark_untestable_on_trained_run, trained_run_records
 from egobench.diagnose.power import geometric_standard_errors, smallest_testable
 from egobench.effects import EFFECTS
 from egobench.effects.noise import NoiseCause
+from egobench.residual.calibration import merge_record
 from egobench.residual.estimation import CauseResult, ResidualData
 from egobench.residual.signatures import LEVEL, DiagnosisContext, box3, checkerboard, erode, holm, psnr
 
@@ -254,7 +255,7 @@ def _name_noise(testable: list[CauseResult], rnd: int, measured: np.ndarray, cur
     gain_nll = _noise_nll_gain(noise_cause, noise, measured, current, ctx, split.eval_idx, split.eval_mask)
     noise.params["held_out_nll_gain_nats_per_px"] = gain_nll
     if gain_nll > cfg.noise_nll_gain_floor:
-        return NamedCause("noise", rnd, noise.p_adjusted, noise.effect_rms, noise.params, 0.0, gain_nll)
+        return NamedCause(noise.name, rnd, noise.p_adjusted, noise.effect_rms, noise.params, 0.0, gain_nll)
     # the fitted noise does not predict held-out residuals better: not worth modelling
     noise.significant, noise.score = False, 0.0
     noise.reason = (f"held-out NLL gain {gain_nll:.4f} nats/px <= {cfg.noise_nll_gain_floor} "
@@ -330,7 +331,7 @@ def _noise_variance(pred: np.ndarray, ctx: DiagnosisContext, idx: np.ndarray) ->
     if ctx.noise_reference is not None:
         ref = ctx.noise_reference[idx]
         return np.broadcast_to(np.mean(ref**2, axis=(1, 2), keepdims=True), pred.shape)
-    noise: NoiseCause = CAUSES["noise"]  # type: ignore[assignment]
+    noise: NoiseCause = variance_model_cause()  # type: ignore[assignment]
     if ctx.noise_shot is None:
         return np.full(pred.shape, ctx.quantisation_level**2 / 12.0)
     return noise.variance(pred, None, ctx, idx)
@@ -415,14 +416,15 @@ def diagnose_residuals(
         data = ResidualData(measured[split.fit_idx], current[split.fit_idx], ctx, split.fit_idx,
                             border_px=cfg.border_px, pixel_mask=split.fit_pixels)
         results = [CAUSES[name].fit(data) for name in cfg.causes if name not in {n.name for n in named}]
-        if rnd == 1 and data._photometric is not None and data._photometric.testable:
-            pf = data._photometric
+        pf = data.photometric_if_fitted
+        if rnd == 1 and pf is not None and pf.testable:
             unmodelled_fraction = float(pf.trimmed.mean()) if pf.n_cells else 0.0
             unmodelled_map = getattr(pf, "trimmed_map", None)
         testable = [r for r in results if r.testable]
         if cfg.trained_run:
-            se = calibrate_photometric(data, testable, int(cfg.placebo_draws), int(cfg.placebo_seed) + rnd)
-            calibrate_geometric(data, testable, int(cfg.placebo_seed) + rnd)
+            records, se = trained_run_records(data, testable, int(cfg.placebo_draws), int(cfg.placebo_seed) + rnd)
+            for result, record in records:
+                merge_record(result, record)
             mark_untestable_on_trained_run(testable)
             testable = [r for r in testable if r.testable]  # (white balance and noise are not identifiable on a trained run)
             if rnd == 1:

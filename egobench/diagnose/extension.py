@@ -15,9 +15,8 @@ import json
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-import numpy as np
-
 from egobench.diagnose.trained_sweep import EXTENSION_SIGMAS, SETUP_FIELDS, read_summary, train_once
+from egobench.train.checkpoint import config_of
 
 
 @dataclass(frozen=True)
@@ -49,8 +48,6 @@ def learned_shading_of(run_dir: str | Path, recording, out_dir: str | Path, meth
     """(learned corner attenuation, run folder it comes from): the run's own when it was trained with
     ``learn_shading``; otherwise the same training config with the shading learned, trained into
     OUT/run_shading (resumable)."""
-    from egobench.train.checkpoint import config_of
-
     record = _train_record(Path(run_dir))
     if record.get("learned_shading"):
         return float(record["learned_shading"]["corner_attenuation"]), str(run_dir)
@@ -58,16 +55,6 @@ def learned_shading_of(run_dir: str | Path, recording, out_dir: str | Path, meth
     done = train_once(recording, record.get("method", method), replace(config_of(record), learn_shading=True), ext,
                       progress=progress)
     return float(done["learned_shading"]["corner_attenuation"]), str(ext)
-
-
-def extension_gain(recording, base_run: str | Path, extension_run: str | Path) -> dict:
-    """Held-out PSNR (dB, mean over the held-out frames, as eval.json) of the run and of its extension
-    run, and the gain of the extension; nothing is written into either run."""
-    from egobench.evaluate import held_out_psnr
-
-    base = float(np.mean(held_out_psnr(recording, base_run)))
-    ext = float(np.mean(held_out_psnr(recording, extension_run)))
-    return {"base_psnr_db": base, "extension_psnr_db": ext, "gain_db": ext - base}
 
 
 def _train_record(run_dir: Path) -> dict:
@@ -106,18 +93,3 @@ def judge_shading(learned: float, null: ShadingNull, setup: dict, exposure_ratio
             "called": "vignette (or response)" if above else None,
             "setup": setup, "setup_mismatch": mismatch, "exposure_ratio": float(exposure_ratio),
             "null_source": null.source, "notes": notes}
-
-
-def shading_markdown(x: dict) -> str:
-    """The report.md section of the extension's call."""
-    head = (f"Learned corner attenuation {x['learned_corner_attenuation']:.3f}; the {x['n_null']} sweep nulls learn "
-            f"{x['null_mean']:.3f} +- {x['null_sd']:.3f} (threshold {x['threshold']:.3f} = mean + "
-            f"{x['sigmas']:.0f} sd, {x['null_source']}).")
-    call = (f"Called: a lens shading beyond the stated vignette, {x['estimate']:.3f} at the view's corner "
-            f"(learned - null mean)." if x["above_threshold"] else "Not called: within the nulls.")
-    gain = x.get("held_out")
-    if gain:
-        call += (f" Held-out PSNR {gain['base_psnr_db']:.2f} dB without the learned shading, "
-                 f"{gain['extension_psnr_db']:.2f} dB with it (gain {gain['gain_db']:+.2f} dB).")
-    notes = "".join(f"\n- {n}" for n in x["notes"])
-    return f"\n## Model extension: a learned lens shading\n\n{head}\n\n{call}\n{notes}\n"

@@ -13,10 +13,14 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import pandas as pd
+from tqdm import tqdm
 
+from egobench.diagnose import DiagnosisConfig, diagnose_residuals
+from egobench.diagnose.sources import run_source
 from egobench.effects.readout import READOUT
 from egobench.io_utils import read_json, write_json
 
@@ -50,11 +54,6 @@ def _readout_columns(ranking: list) -> dict:
 
 def audit_run(scene: str, recording: Path, run: Path, method: str, pose_samples: int | None = None) -> dict:
     """One null run's diagnosis, reduced to a row: verdict, named causes, the readout's statistics."""
-    from dataclasses import replace
-
-    from egobench.diagnose import DiagnosisConfig, diagnose_residuals
-    from egobench.diagnose.sources import run_source
-
     src = run_source(recording, run, progress=False, pose_samples=pose_samples)
     d = diagnose_residuals(src.measured, src.predicted, src.context, replace(DiagnosisConfig(), trained_run=True))
     metrics = read_json(run / "eval.json").get("metrics", {}) if (run / "eval.json").is_file() else {}
@@ -98,8 +97,6 @@ def main(argv: list[str] | None = None) -> int:
         raise ValueError(f"--shard: expected i/n with 1 <= i <= n, got {args.shard!r}")
     out = Path(args.out)
     (out / "rows").mkdir(parents=True, exist_ok=True)
-    from tqdm import tqdm
-
     runs = [r for r in null_runs(Path(args.results), args.method)
             if (not args.seed or r[2].name in args.seed) and (not args.scene or r[0] in args.scene)][i - 1::n]
     for scene, recording, run in tqdm(runs, desc=f"null audit {args.shard}", unit="run"):

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -164,6 +165,21 @@ def markdown(d: Diagnosis, title: str) -> str:
     return "\n".join(lines)
 
 
+def shading_markdown(x: dict) -> str:
+    """The report.md section of the model extension's call (`egobench.diagnose.extension.judge_shading`)."""
+    head = (f"Learned corner attenuation {x['learned_corner_attenuation']:.3f}; the {x['n_null']} sweep nulls learn "
+            f"{x['null_mean']:.3f} +- {x['null_sd']:.3f} (threshold {x['threshold']:.3f} = mean + "
+            f"{x['sigmas']:.0f} sd, {x['null_source']}).")
+    call = (f"Called: a lens shading beyond the stated vignette, {x['estimate']:.3f} at the view's corner "
+            f"(learned - null mean)." if x["above_threshold"] else "Not called: within the nulls.")
+    gain = x.get("held_out")
+    if gain:
+        call += (f" Held-out PSNR {gain['base_psnr_db']:.2f} dB without the learned shading, "
+                 f"{gain['extension_psnr_db']:.2f} dB with it (gain {gain['gain_db']:+.2f} dB).")
+    notes = "".join(f"\n- {n}" for n in x["notes"])
+    return f"\n## Model extension: a learned lens shading\n\n{head}\n\n{call}\n{notes}\n"
+
+
 def write_report(out_dir: str | Path, d: Diagnosis, measured: np.ndarray, predicted: np.ndarray,
                  title: str = "Residual diagnosis", extra: dict | None = None,
                  shading_extension: dict | None = None) -> dict:
@@ -179,12 +195,8 @@ def write_report(out_dir: str | Path, d: Diagnosis, measured: np.ndarray, predic
     write_json(out / "diagnosis.json", record)
     text = markdown(d, title)
     if shading_extension is not None:
-        from egobench.diagnose.extension import shading_markdown
-
         text += shading_markdown(shading_extension)
     if extra:
-        import json
-
         text += "\n## Extra\n\n```json\n" + json.dumps(extra, indent=1, default=str)[:6000] + "\n```\n"
     with atomic_path(out / "report.md") as tmp:
         tmp.write_text(text)

@@ -13,9 +13,38 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
+from egobench.camera import Rectification
+from egobench.data import load_recording
+from egobench.data.coverage import training_view_count
+from egobench.data.layout import FACTORY_CALIBRATION_FILE, MPS_SLAM, ONLINE_CALIBRATION_FILE, recording_root
+from egobench.data.mps import read_calibration_json, read_online_calibration
 from egobench.io_utils import read_json
+from egobench.model.formation import (
+    FormationConfig,
+    FormationModel,
+    GammaResponse,
+    PoissonGaussianNoise,
+    quantise,
+    radial_vignette,
+)
+from egobench.model.predict import (
+    RenderSettings,
+    formation_model,
+    method_normaliser,
+    predict_frame,
+    run_maps,
+    sample_counts,
+)
 from egobench.residual.signatures import DiagnosisContext
+from egobench.sim.camera_calibration import make_calibrations
+from egobench.sim.capture import RawCamera, capture_irradiance, sampled_raw_pixels, view_readout_rows
+from egobench.sim.capture.setup import rectification_rig
+from egobench.sim.config import SimConfig
+from egobench.sim.devices import get_device
+from egobench.sim.world import make_scene
+from egobench.train.checkpoint import load_trained_run
 
 #: Time step of the finite-difference image velocity, ns (1 ms).
 VELOCITY_DT_NS = 1_000_000
@@ -104,10 +133,6 @@ def recording_rectification(recording_dir: str | Path, calibration: str, device,
     Simulated recordings rectify each stream with its own calibration (online: the first line of
     mps/slam/online_calibration.jsonl; factory: factory_calibration.json) onto the stored pinhole,
     without rotation (egobench.sim.capture.setup.rectification_rig)."""
-    from egobench.camera import Rectification
-    from egobench.data.layout import FACTORY_CALIBRATION_FILE, MPS_SLAM, ONLINE_CALIBRATION_FILE, recording_root
-    from egobench.data.mps import read_calibration_json, read_online_calibration
-
     root = recording_root(recording_dir)
     try:
         if calibration == "factory":
@@ -149,8 +174,6 @@ def pipeline_noise_reference(
     rectification of a 77 px raw image onto 64 px removes ~65 % of the high-passed noise
     variance, which an analytic per-pixel model would miss (a false "noise" alarm).
     """
-    from egobench.model.formation import GammaResponse, quantise
-
     F_, H, W, _ = predicted.shape
     src, dst = rect.src, rect.dst
     Hs, Ws = src.height, src.width
@@ -200,9 +223,6 @@ def run_context(recording_dir: str | Path, rec, frames, predicted: np.ndarray, v
     The assumed noise is the device profile's; on a recording with an MPS calibration of that
     camera, the noise test is calibrated like the ground-truth path (`pipeline_noise_reference`:
     one draw of the assumed noise through 8-bit raw, the bilinear rectification and 8-bit)."""
-    from egobench.model.formation import PoissonGaussianNoise
-    from egobench.sim.devices import get_device
-
     meta = dict(meta)
     noise, dev = None, None
     device = (rec.meta or {}).get("device")
@@ -249,15 +269,6 @@ def _recast_setup(root: Path, info: dict, config, rec, gamma: float) -> tuple[_R
     The model's camera is the true one minus the hidden effects (VIBA-size calibration noise is
     left out: with point-sampled, aliased textures even 0.01 deg moves edge pixels by many levels).
     ValueError when the online calibration on disk is not the simulator's."""
-    from egobench.data.layout import MPS_SLAM, ONLINE_CALIBRATION_FILE
-    from egobench.data.mps import read_online_calibration
-    from egobench.model.formation import FormationConfig, FormationModel, PoissonGaussianNoise, radial_vignette
-    from egobench.sim.camera_calibration import make_calibrations
-    from egobench.sim.capture import RawCamera, sampled_raw_pixels, view_readout_rows
-    from egobench.sim.capture.setup import rectification_rig
-    from egobench.sim.devices import get_device
-    from egobench.sim.world import make_scene
-
     dev = get_device(config.device_name)
     cals = make_calibrations(config)
     cal_online = cals.online
@@ -291,8 +302,6 @@ def _recast_frame(rc: _Recast, frame, read_start_true_ns: int) -> tuple[np.ndarr
     """One frame re-cast with what the model assumes -> (predicted display [H, W, 3] float32,
     rectified like the captured image; one draw of the assumed noise through the same pipeline
     (8-bit raw, rectify, 8-bit) minus the prediction [H, W, 3], or None without noise)."""
-    from egobench.sim.capture import capture_irradiance
-
     read_start_model = read_start_true_ns - rc.hidden_offset_ns
     irr = capture_irradiance(rc.scene, rc.trajectory, rc.raw, read_start_model, frame.exposure_s,
                              rc.readout_stated_s, 1)
@@ -323,12 +332,6 @@ def ground_truth_source(recording_dir: str | Path, max_frames: int | None = None
     the measured one (rectifying display values, as the capture does, avoids a Jensen bias). Any hidden
     effect therefore appears in measured - predicted and nothing else does.
     """
-    from tqdm import tqdm
-
-    from egobench.data import load_recording
-    from egobench.data.layout import recording_root
-    from egobench.sim.config import SimConfig
-
     root = recording_root(recording_dir)
     info = read_json(root / "recording.json")
     truth = read_json(root / "ground_truth" / "truth.json")
@@ -368,14 +371,6 @@ def run_source(recording_dir: str | Path, run_dir: str | Path, max_frames: int |
     the run's own count (at most 8 by default). The run's staircase of pose samples shortens its
     effective readout by about 1/N (`motion_sampling.pixel_pose_index`), which the readout test
     measures as a readout error; a fine staircase leaves the recording's timing alone in the residual."""
-    from tqdm import tqdm
-
-    from egobench.data import load_recording
-    from egobench.data.coverage import training_view_count
-    from egobench.model.predict import (RenderSettings, formation_model, method_normaliser, predict_frame, run_maps,
-                                        sample_counts)
-    from egobench.train.checkpoint import load_trained_run
-
     run = load_trained_run(run_dir, device, f"diagnose run {run_dir}")
     spec, cam = run.spec, run.camera
     rec = load_recording(recording_dir, calibration=spec.calibration, trajectory_path=trajectory_path,

@@ -14,6 +14,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
+from tqdm import tqdm
 
 from egobench.diagnose.core import NO_DISCREPANCY, DiagnosisConfig, diagnose_residuals
 from egobench.diagnose.synthetic import make_case
@@ -57,9 +59,6 @@ ERROR_UNITS = {name: e.error_unit for name, e in EFFECTS.items()}
 def run_sweep(out_dir: str | Path, config: SweepConfig | None = None, diag: DiagnosisConfig | None = None,
               effects: list[str] | None = None, progress: bool = True) -> dict:
     """Run the sweep; write sweep.csv, sweep.json and sweep.md into out_dir; return the summary."""
-    import pandas as pd
-    from tqdm import tqdm
-
     cfg = config or SweepConfig()
     effects = effects or list(EFFECTS)
     unknown = [e for e in effects if e not in EFFECTS]

@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from egobench.effects import EFFECTS
+from egobench.effects.base import PhotometricTruth
 from egobench.model.formation import GammaResponse, PoissonGaussianNoise, quantise, radial_vignette
 from egobench.residual.signatures import DiagnosisContext, distortion_profile, radial_coordinates
 
@@ -96,11 +97,10 @@ def _row_times(R: np.ndarray, effect: str | None, value) -> tuple[np.ndarray, np
 def _photometric_truth(effect: str | None, value, H: int, W: int, gamma_assumed: float):
     """(modelled vignette [H, W], true vignette [H, W], true white balance [3], true noise, true gamma)."""
     vig_model = radial_vignette((H, W), MODELLED_VIGNETTE).numpy().astype(np.float64)
-    truth = {"vignette": vig_model.copy(), "white_balance": np.ones(3),
-             "noise": PoissonGaussianNoise(FULL_WELL_E, READ_NOISE_E), "gamma": gamma_assumed}
+    truth = PhotometricTruth(vig_model.copy(), np.ones(3), PoissonGaussianNoise(FULL_WELL_E, READ_NOISE_E), gamma_assumed)
     if effect is not None:
         EFFECTS[effect].synth_photometric(truth, value, (H, W))
-    return vig_model, truth["vignette"], truth["white_balance"], truth["noise"], truth["gamma"]
+    return vig_model, truth.vignette, truth.white_balance, truth.noise, truth.gamma
 
 
 def make_case(

@@ -17,11 +17,25 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
+from tqdm import tqdm
 
-from egobench.diagnose.core import NO_DISCREPANCY, RECONSTRUCTION_ERROR, DiagnosisConfig
+from egobench.data import load_recording
+from egobench.data.layout import MPS_SLAM, ONLINE_CALIBRATION_FILE, recording_root
+from egobench.data.mps import read_online_calibration
+from egobench.diagnose.core import NO_DISCREPANCY, RECONSTRUCTION_ERROR, DiagnosisConfig, diagnose_residuals
+from egobench.diagnose.report import write_report
+from egobench.diagnose.sources import recording_rectification, run_source
 from egobench.diagnose.sweep import ERROR_UNITS, parameter_error
 from egobench.effects import EFFECTS
+from egobench.evaluate import held_out_psnr
 from egobench.io_utils import atomic_path, write_json
+from egobench.model.formation import radial_vignette
+from egobench.model.shading import farthest_corner
+from egobench.sim import capture
+from egobench.sim.config import SimConfig, hidden_effect_overrides
+from egobench.sim.devices import get_device
+from egobench.train import preset_config, train
 
 #: Hidden magnitudes (deviation from nominal, the effect's unit; white balance and response: see
 #: `Effect.trained_value`) at the sizes of issue 15's targets (each effect's `trained_magnitudes`).
@@ -63,8 +77,6 @@ class TrainedSweepConfig:
         for name, lo in (("null_cases", 0), ("seeds", 1), ("size", 16), ("n_frames", 9), ("iterations", 1)):
             if int(getattr(self, name)) < lo:
                 raise ValueError(f"TrainedSweepConfig.{name}: expected an integer >= {lo}, got {getattr(self, name)}")
-        from egobench.sim.config import SimConfig
-
         unknown = sorted(set(self.sim) - set(SimConfig.__dataclass_fields__))
         if unknown:
             raise ValueError(f"TrainedSweepConfig.sim: unknown SimConfig fields {unknown}")
@@ -93,29 +105,20 @@ def cases(cfg: TrainedSweepConfig) -> list[dict]:
 
 def _run_case(case: dict, cfg: TrainedSweepConfig, case_dir: Path, diag: DiagnosisConfig) -> dict:
     """Simulate, train and diagnose one case (each step resumes) -> the diagnosis record."""
-    from egobench.diagnose.core import diagnose_residuals
-    from egobench.diagnose.report import write_report
-    from egobench.diagnose.sources import run_source
-    from egobench.sim.capture import simulate_recording
-    from egobench.sim.config import SimConfig, hidden_effect_overrides
-    from egobench.train import preset_config
-
     overrides = {"n_frames": cfg.n_frames, "rectified_size": cfg.size, "readout_s": 0.01626, "motion": cfg.motion,
                  **cfg.sim}
     if case["effect"] is not None:
         overrides.update(hidden_effect_overrides(case["effect"], case["value"]))
     rec = case_dir / "recording"
     if not (rec / "recording.json").is_file():
-        simulate_recording(SimConfig.from_overrides(cfg.kind, case["sim_seed"], overrides), rec, progress=False,
-                           resume="auto")
+        capture.simulate_recording(SimConfig.from_overrides(cfg.kind, case["sim_seed"], overrides), rec,
+                                   progress=False, resume="auto")
     run = case_dir / "run"
     tc = replace(preset_config("cpu"), max_side=0, device="cpu").scaled_to(cfg.iterations)
     train_once(rec, cfg.method, tc, run)
     if case["effect"] is not None and EFFECTS[case["effect"]].hidden_on_raw_sensor:  # the truth as the view sees it
         case["value_in_view"] = vignette_in_view(rec, case["value"])
     if cfg.shading_extension:  # the model extension's learned shading (set on the case)
-        from egobench.diagnose.extension import extension_gain
-
         record = train_once(rec, cfg.method, replace(tc, learn_shading=True), case_dir / "run_shading")
         case["learned_shading"] = float(record["learned_shading"]["corner_attenuation"])
         case["extension_gain_db"] = extension_gain(rec, run, case_dir / "run_shading")["gain_db"]
@@ -128,26 +131,25 @@ def _run_case(case: dict, cfg: TrainedSweepConfig, case_dir: Path, diag: Diagnos
 def train_once(rec, method: str, tc, run: Path, progress: bool = False) -> dict:
     """Train ``run`` (``rec``: a recording folder or a loaded Recording) unless a complete train.json
     is there (an interrupted run resumes); its record."""
-    from egobench.train import train
-
     done = run / "train.json"
     if not done.is_file() or not json.loads(done.read_text()).get("complete"):
         train(rec, method, tc, run, resume="auto", progress=progress)
     return json.loads(done.read_text())
 
 
+def extension_gain(recording, base_run: str | Path, extension_run: str | Path) -> dict:
+    """Held-out PSNR (dB, mean over the held-out frames, as eval.json) of the run and of its extension
+    run, and the gain of the extension; nothing is written into either run (here rather than in
+    `egobench.diagnose.extension`, which builds on this module: the sweep's cases and a user's run share it)."""
+    base = float(np.mean(held_out_psnr(recording, base_run)))
+    ext = float(np.mean(held_out_psnr(recording, extension_run)))
+    return {"base_psnr_db": base, "extension_psnr_db": ext, "gain_db": ext - base}
+
+
 def vignette_in_view(recording_dir: str | Path, corner_attenuation: float) -> float:
     """The attenuation, at the rectified view's corner farthest from the principal point, of a hidden
     lens shading that attenuates the RAW image's corner by ``corner_attenuation`` (the simulator's
     parameter): the diagnosis estimates the shading in the view, normalised at that corner."""
-    from egobench.data import load_recording
-    from egobench.data.layout import MPS_SLAM, ONLINE_CALIBRATION_FILE, recording_root
-    from egobench.data.mps import read_online_calibration
-    from egobench.diagnose.sources import recording_rectification
-    from egobench.model.formation import radial_vignette
-    from egobench.model.shading import farthest_corner
-    from egobench.sim.devices import get_device
-
     rec = load_recording(recording_dir, "online")
     dev = get_device((rec.meta or {}).get("device") or "aria")
     rect, _ = recording_rectification(recording_dir, "online", dev, rec.camera)
@@ -230,9 +232,6 @@ def _resumed_row(done: Path, diagnosis_json: Path) -> dict:
 def run_trained_sweep(out_dir: str | Path, cfg: TrainedSweepConfig | None = None, diag: DiagnosisConfig | None = None,
                       progress: bool = True) -> dict:
     """Run (or resume) every case; write trained_sweep.csv / .json / .md into out_dir; return the summary."""
-    import pandas as pd
-    from tqdm import tqdm
-
     cfg = (cfg or TrainedSweepConfig()).validate()
     diag = (diag or DiagnosisConfig()).validate()
     out = Path(out_dir)

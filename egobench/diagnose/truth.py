@@ -22,7 +22,12 @@ import math
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
+import scipy.stats as sps
 import torch
+
+from egobench.evaluate import held_out_renders
+from egobench.io_utils import atomic_path
 
 #: Pixels used: the model's opacity at least this (uncovered pixels have no scene colour to judge).
 MIN_ALPHA = 0.5
@@ -42,8 +47,6 @@ def log_radiance_error(scene_linear: np.ndarray, truth: np.ndarray, weight: np.n
 def held_out_radiance_error(recording_dir, run_dir) -> float:
     """The run's scene colour against the simulator's clean radiance over the held-out frames
     (`log_radiance_error` over pixels with opacity >= MIN_ALPHA and positive radiance)."""
-    from egobench.evaluate import held_out_renders
-
     model, truth, weight = [], [], []
     for lin, alpha, radiance in held_out_renders(recording_dir, run_dir):
         ok = (alpha >= MIN_ALPHA) & (radiance.min(-1) > 0) & (lin.min(-1) > 0)
@@ -83,8 +86,6 @@ def sweep_truth_gains(sweep_dir: str | Path) -> list[dict]:
 def truth_markdown(df) -> str:
     """Per effect: cases, median held-out PSNR gain of the extension, median radiance errors, the median
     reduction, and the reduction against the nulls' (one-sided Mann-Whitney p: larger than on nulls)."""
-    import scipy.stats as sps
-
     null = df[df.effect == "none"].radiance_error_reduction.to_numpy()
     lines = ["| effect | n | extension: held-out PSNR gain (median dB) | radiance error without | with | "
              "reduction (median) | nearer the truth | reduction above the nulls' (Mann-Whitney p) |",
@@ -102,10 +103,6 @@ def truth_markdown(df) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    import pandas as pd
-
-    from egobench.io_utils import atomic_path
-
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--sweep", required=True, help="a trained-run sweep folder (its cases/ with run_shading/)")
     args = parser.parse_args(argv)

@@ -29,6 +29,19 @@ Sampling = Literal["uniform", "signed", "log_uniform"]
 
 Value = float | tuple[float, ...]
 
+#: The order in which a trained run's placebos run, by `Effect.trained_placebo`.
+TRAINED_PLACEBO_ORDER = ("photometric", "radial_centres", "velocity_permutation")
+
+
+@dataclass
+class PhotometricTruth:
+    """The photometric truth of a synthetic case, which `Effect.synth_photometric` changes where its effect hides."""
+
+    vignette: np.ndarray  # [H, W] the lens shading
+    white_balance: np.ndarray  # [3] channel gains
+    noise: Any  # the sensor noise model (egobench.model.formation.PoissonGaussianNoise)
+    gamma: float  # the response's gamma
+
 
 @dataclass(frozen=True)
 class Effect:
@@ -115,13 +128,10 @@ class Effect:
     hidden_on_raw_sensor: ClassVar[bool] = False
     #: The model extension (a lens shading learned with the scene, egobench.model.shading) is meant to learn it.
     learned_by_shading_extension: ClassVar[bool] = False
-    #: The placebo that calibrates its null on a trained run (egobench.diagnose.placebo):
-    #: "velocity_permutation" (motion-driven causes), "radial_centres" (static radial causes), or None.
+    #: The evidence its trained-run placebos read (`Cause.trained_placebos`), which also orders them
+    #: (`TRAINED_PLACEBO_ORDER`): "photometric" (the cell fit at the render's resolution), "radial_centres"
+    #: (wrong centres of a static radial cause), "velocity_permutation" (motion-driven causes), or None (no placebo).
     trained_placebo: ClassVar[str | None] = None
-    #: On a trained run, a readout-like cause must also beat wrong row times (`row_time_placebo`).
-    trained_row_time_placebo: ClassVar[bool] = False
-    #: On a trained run, also tested given a separate shift along the motion in every frame.
-    tested_given_frame_shifts: ClassVar[bool] = False
     #: Why a trained run cannot show it (not tested there), or None.
     trained_run_untestable: ClassVar[str | None] = None
     #: A variance model (named by its held-out likelihood gain), not a mean model of the residual.
@@ -192,8 +202,8 @@ class Effect:
         """The true irradiance [F, H, W, 3] from ``image(row times, displacement)``: one instant per row."""
         return image(t_true, disp_true)
 
-    def synth_photometric(self, truth: dict, value: Value, shape: tuple[int, int]) -> None:
-        """Change the photometric truth in place: {"vignette" [H, W], "white_balance" [3], "noise", "gamma"}."""
+    def synth_photometric(self, truth: PhotometricTruth, value: Value, shape: tuple[int, int]) -> None:
+        """Change the photometric truth in place."""
 
     # ---- the diagnosis ------------------------------------------------------------------------
     def smallest_testable(self, d: float, se: float, ctx) -> dict | None:

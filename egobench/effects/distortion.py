@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import copy
+from dataclasses import replace as dc_replace
+
 import numpy as np
 
 from egobench.effects.base import Effect
-from egobench.residual.estimation import GeometricCause
-from egobench.residual.signatures import distortion_profile, radial_coordinates
+from egobench.residual.calibration import PLACEBO_CENTRE_OFFSETS, PlaceboRecord, beat_placebos
+from egobench.residual.estimation import GeometricCause, ResidualData
+from egobench.residual.signatures import distortion_profile, frame_t_test, radial_coordinates
 
 
 class DistortionCause(GeometricCause):
@@ -55,6 +59,35 @@ class DistortionCause(GeometricCause):
         out["displacement_px"] = (num / np.maximum(den, 1e-300) * gm).tolist()
         out["fit_displacement_px"] = (theta[0] * gm).tolist()
         return out
+
+
+    def trained_placebos(self, result, evidence):
+        """On a trained run: the radial statistic about wrong centres (`distortion_placebo`)."""
+        return [distortion_placebo(self, evidence.data)] if result.testable else []
+
+
+def distortion_placebo(cause: DistortionCause, data: ResidualData) -> PlaceboRecord:
+    """Lens distortion on a trained run must beat radial placebos: the same per-frame
+    radial-displacement statistic about wrong centres (PLACEBO_CENTRE_OFFSETS). p_placebo = the
+    larger of the rank p (1 + exceed) / 9 when a placebo is as strong, and the normal tail of |t|
+    against the placebos' |t| (model error near the image border, where the model has less
+    coverage, is radial about any centre and inflates them all)."""
+    H, W = data.m.shape[1:3]
+
+    def t_of(d):
+        est, info = cause.first_order(d)
+        return frame_t_test(est[:, 0], info[:, 0]).t
+
+    t_real = t_of(data)
+    cx, cy = data.ctx.principal_point
+    t_placebo = []
+    for ox, oy in PLACEBO_CENTRE_OFFSETS:
+        d = copy.copy(data)
+        d.ctx = dc_replace(data.ctx, principal_point=(cx + ox * W, cy + oy * H))
+        t_placebo.append(t_of(d))
+    p, exceed, p_tail = beat_placebos(t_real, t_placebo)
+    return PlaceboRecord(p, {"calibration": {"p_value_placebo": p, "first_order_t": t_real, "placebo_centre_t": t_placebo,
+                                             "placebo_exceed": exceed, "p_tail": p_tail}})
 
 
 class Distortion(Effect):

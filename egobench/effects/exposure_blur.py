@@ -9,8 +9,10 @@ import numpy as np
 
 from egobench.effects.base import Effect
 from egobench.effects.readout import ReadoutCause
+from egobench.effects.time_offset import TimeOffsetCause
+from egobench.residual.calibration import PlaceboRecord, velocity_placebo
 from egobench.residual.estimation import CauseResult, GeometricCause, ResidualData
-from egobench.residual.signatures import directional_second_derivative
+from egobench.residual.signatures import directional_second_derivative, warp
 
 #: Sub-exposure instants a synthetic case averages over.
 SYNTH_SUBSAMPLES = 16
@@ -51,7 +53,7 @@ class ExposureBlurCause(GeometricCause):
 
     def fit_unconditioned(self, data: ResidualData) -> CauseResult:
         """The blur fit on the residual as it is, without removing the best row-dependent shift first
-        (the time-offset placebo, egobench.diagnose.placebo, supplies its own shift)."""
+        (`blur_given_frame_shifts` supplies its own shift)."""
         return super().fit(data)
 
     def fit(self, data):
@@ -73,6 +75,14 @@ class ExposureBlurCause(GeometricCause):
         return res
 
 
+    def trained_placebos(self, result, evidence):
+        """On a trained run: the velocity placebo, and the blur given a shift in every frame (`blur_given_frame_shifts`)."""
+        record = velocity_placebo(self, result, evidence)
+        if record is None:
+            return []
+        given = blur_given_frame_shifts(self, evidence.data) if result.testable else None
+        return [record] + ([given] if given is not None else [])
+
 class _Instants(Sequence):
     """The exposure's sub-instants as (weight, displacement [f, H, W, 2] = velocity x time) pairs, each
     displacement made when it is read: all n_sub at once were the diagnosis's largest block at its peak
@@ -90,6 +100,24 @@ class _Instants(Sequence):
         return self._weight, self._velocity * self._times[i]
 
 
+
+def blur_given_frame_shifts(cause: ExposureBlurCause, data: ResidualData) -> PlaceboRecord | None:
+    """Exposure blur on a trained run, tested GIVEN a separate shift along the motion in every frame
+    (in place: p-value = the larger of both). A trained model's per-frame pose/timing errors are
+    shifts along each frame's motion with varying sign; their second-order term (1/2) d^T H d is
+    positive whatever the sign, exactly the blur signature, which one global shift cannot remove."""
+    if data.velocity is None:
+        return None
+    est, _ = TimeOffsetCause().first_order(data)  # per-frame time shift dt_f [f, 1], s
+    shifted, inside = warp(data.p, data.velocity * est[:, 0][:, None, None, None])
+    shifted_data = data.with_prediction(np.clip(shifted, 0.0, 1.0), inside)
+    given = cause.fit_unconditioned(shifted_data)
+    if not given.testable:
+        return None
+    return PlaceboRecord(given.p_value, {"p_value_given_frame_shifts": given.p_value,
+                                         "exposure_s_given_frame_shifts": given.params.get("exposure_s")})
+
+
 class ExposureBlur(Effect):
     cause_class = ExposureBlurCause  # the diagnosis's estimator (egobench.residual.estimation)
     identifiability = (
@@ -98,7 +126,6 @@ class ExposureBlur(Effect):
     trained_magnitudes = (8e-3,)
     synth_speed_px_s = (250.0, 600.0)  # blur needs fast image motion to show at a few ms
     trained_placebo = "velocity_permutation"
-    tested_given_frame_shifts = True
 
     def sim_overrides(self, value, affected_fraction=0.25):
         return {"exposure_s": float(value)}

@@ -7,8 +7,9 @@ import math
 import numpy as np
 
 from egobench.effects.base import Effect
-from egobench.residual.estimation import (DISPLAY_MAX, DISPLAY_MIN, Cause, CauseResult, ResidualData, own_term,
-                                          photometric_apply)
+from egobench.residual.calibration import OWN_P, Cells, PlaceboRecord, TrainedRunEvidence
+from egobench.residual.estimation import (DISPLAY_MAX, DISPLAY_MIN, Cause, CauseResult, PhotometricFit, ResidualData,
+                                          own_term, photometric_apply)
 from egobench.residual.signatures import decode, robust_sd
 
 #: A frame of a trained run is flagged when both halves of it deviate beyond this many robust standard
@@ -201,6 +202,24 @@ class ExposureMetadataCause(Cause):
         return self.apply(predicted, within, ctx, np.arange(predicted.shape[0]), measured=measured, fit_mask=fit_mask)
 
 
+    def trained_placebos(self, result, evidence):
+        """On a trained run: the per-frame scales of the frames' left and right halves must agree beyond
+        shuffled pairings (`exposure_split_half`); the frames it flags become the estimate (in place)."""
+        if not evidence.photometric_fit.testable:
+            return []
+        split = _in_recording_frames(evidence.memo(metadata_split_half), evidence.data)
+        if "frames_flagged_in_both_halves" in split:
+            _metadata_estimate_from_split(result, split["frames_flagged_in_both_halves"])
+        info = {k: v for k, v in split.items() if k != "testable"}
+        calibration = {"p_value_placebo": split["p"], "render_blur_px": evidence.blur_px, **info}
+        return [PlaceboRecord(split["p"], {"p_value_cells": OWN_P, "calibration": calibration})]
+
+    def trained_standard_error(self, evidence):
+        if not evidence.photometric_fit.testable:
+            return None
+        split = evidence.memo(metadata_split_half)
+        return split["robust_sd"], split.get("n_frames", 0) - 1
+
 def held_out_flags(left: np.ndarray, right: np.ndarray, recorded_log: np.ndarray | None = None) -> np.ndarray:
     """Which frames [n] (capture order; log scales of their left / right halves [n]; recorded log
     exposure x gain [n]) the split-half rule flags (`metadata_flags`, or `recorded_glitch_flags`): a
@@ -236,8 +255,115 @@ def _pixel_log_scales(measured: np.ndarray, predicted: np.ndarray, ctx, fit_mask
     return log_ratio(m & left, math.nan), log_ratio(m & ~left, math.nan), log_ratio(m, 0.0)
 
 
+
+# ------------------------------------------------------------------------------------------------
+# On a trained run (egobench.residual.calibration)
+
+def gain_like(fit: PhotometricFit, cells: Cells, frames: np.ndarray) -> np.ndarray:
+    """Is each frame's deviation [n frames] the same for its dark and bright cells, as a gain's is?
+    -> bool [n]: the within-frame slope of the partial residual over the cell's log intensity is
+    within FLAG_SIGMAS robust sds of the frames' median slope. A model that under-renders bright
+    content (measured on an outdoor null's flagged frame: measured / predicted 1.2 in its darkest
+    fifth, 0.57 in its brightest) tilts its frame; a metadata error scales every cell alike."""
+    pr, x = fit.partial_residual("frame"), fit.log_p
+    slope = np.full(fit.n_frames, np.nan)
+    for f in range(fit.n_frames):
+        sel = fit.keep & (cells.frame == f)
+        if sel.sum() >= 8 and np.ptp(x[sel]) > 0:
+            w = fit.w[sel]
+            xc = x[sel] - np.average(x[sel], weights=w)
+            slope[f] = np.sum(w * xc * pr[sel]) / max(np.sum(w * xc * xc), 1e-300)
+    ok = np.isfinite(slope)
+    if ok.sum() < 4:
+        return np.ones(len(frames), dtype=bool)
+    med, sd = np.median(slope[ok]), robust_sd(slope[ok])
+    return ~(np.abs(slope[frames] - med) > FLAG_SIGMAS * sd)
+
+
+def exposure_split_half(fit: PhotometricFit, cells: Cells, draws: int, rng: np.random.Generator,
+                        recorded_log: np.ndarray | None = None) -> dict:
+    """Agreement of per-frame log scales from the left and right halves of each frame, against
+    the same agreement with the right halves' frame labels shuffled (placebo) -> empirical p.
+    Frames flagged: `metadata_flags`, and `recorded_glitch_flags` with ``recorded_log`` [fitted frames]."""
+    pr = fit.partial_residual("frame")
+    keep = fit.keep
+    left = cells.col < cells.n_cols / 2.0
+    dev = np.full((2, fit.n_frames), np.nan)
+    for h, side in enumerate((left, ~left)):
+        for f in range(fit.n_frames):  # per-frame weighted means
+            sel = keep & side & (cells.frame == f)
+            if sel.sum() >= 4:
+                dev[h, f] = np.average(pr[sel], weights=fit.w[sel])
+    ok = np.isfinite(dev).all(axis=0)
+    a, b = dev[0, ok], dev[1, ok]
+    if a.size < 4:
+        return {"testable": False, "p": 1.0, "corr": 0.0, "robust_sd": math.nan}
+    a, b = a - np.median(a), b - np.median(b)
+
+    def corr(x, y):
+        return float(np.sum(x * y) / math.sqrt(max(np.sum(x * x) * np.sum(y * y), 1e-300)))
+
+    observed = corr(a, b)
+    placebo = np.array([corr(a, rng.permutation(b)) for _ in range(int(draws))])
+    p = float((1 + np.sum(placebo >= observed)) / (1 + draws))
+    off, flags, threshold = metadata_flags(a, b)
+    view_shared = np.flatnonzero(ok)[off & ~flags]
+    flags, unchanged, glitch = record_aware_flags(flags, a, b, None if recorded_log is None else recorded_log[ok])
+    frames = np.flatnonzero(ok)[flags | glitch]
+    not_gain = frames[~gain_like(fit, cells, frames)]
+    frames = np.setdiff1d(frames, not_gain)
+    p_corr = p
+    if frames.size == 0:
+        p = 1.0
+    return {"testable": True, "p": p, "p_placebo_corr": p_corr, "corr": observed,
+            "placebo_corr_q99": float(np.quantile(placebo, 0.99)),
+            "flag_threshold_log": threshold, "frames_flagged_in_both_halves": frames.tolist(),
+            "frames_off_but_not_a_gain": not_gain.tolist(), "frames_off_with_their_view_neighbours": view_shared.tolist(),
+            "frames_where_the_record_jumps_alone": np.flatnonzero(ok)[glitch].tolist(),
+            "frames_off_at_an_unchanged_fixed_record": np.flatnonzero(ok)[unchanged].tolist(),
+            "robust_sd": threshold / FLAG_SIGMAS, "n_frames": int(a.size)}
+
+
+def _metadata_estimate_from_split(r: CauseResult, flagged: list[int]) -> None:
+    """The exposure-metadata estimate on the frames the split-half test flags (in place), so that the
+    test and the estimate agree; the joint fit's own flags (one median/MAD) stay as flagged_frames_cells."""
+    scale = r.params.get("frame_scale", {})
+    errors = [1.0 / scale[f] - 1.0 for f in flagged if f in scale]  # recorded = true x (1 + e)
+    r.params["flagged_frames_cells"] = r.params.get("flagged_frames", [])
+    r.params["flagged_frames"] = [f for f in flagged if f in scale]
+    r.params["exposure_relative_error"] = errors
+    r.params["median_exposure_relative_error"] = float(np.median(errors)) if errors else 0.0
+    r.internal["held_out_rule"] = True  # a trained run: held-out frames are corrected only where flagged
+    if r.plot:
+        r.plot["flagged"] = r.params["flagged_frames"]
+
+
+
+def metadata_split_half(evidence: TrainedRunEvidence) -> dict:
+    """`exposure_split_half` of a trained run (frames as positions among the fitted frames; shared with the
+    response's test, which leaves the flagged frames out)."""
+    data = evidence.data
+    return exposure_split_half(evidence.photometric_fit, evidence.cells, evidence.draws, evidence.rng(15),
+                               data.ctx.log_exposure_gain[data.frames])
+
+
+#: `exposure_split_half`'s lists of frames
+SPLIT_FRAME_LISTS = ("frames_flagged_in_both_halves", "frames_off_but_not_a_gain", "frames_off_with_their_view_neighbours",
+                     "frames_where_the_record_jumps_alone", "frames_off_at_an_unchanged_fixed_record")
+
+
+def _in_recording_frames(split: dict, data: ResidualData) -> dict:
+    """``split`` with its frame lists as the recording's frame indices (positions among the fitted frames there)."""
+    out = dict(split)
+    if "frames_flagged_in_both_halves" in out:
+        for key in SPLIT_FRAME_LISTS:
+            out[key] = [int(data.ctx.frame_index[data.frames[i]]) for i in out[key]]
+    return out
+
+
 class ExposureMetadata(Effect):
     cause_class = ExposureMetadataCause  # the diagnosis's estimator (egobench.residual.estimation)
+    trained_placebo = "photometric"
     identifiability = (
         "only when the recorded exposure x gain varies or some frames are wrong against the others; a "
         "model-error floor of 15 % on single frames applies on trained runs; at a fixed exposure x gain, "

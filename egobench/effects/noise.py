@@ -160,7 +160,7 @@ class Noise(Effect):
         return abs(params["noise_std_factor"] / value - 1.0)
 
     def synth_photometric(self, truth, value, shape):
-        truth["noise"] = truth["noise"].scaled(float(value))
+        truth.noise = truth.noise.scaled(float(value))
 
     def plot_signature(self, ax, plot):
         ax.loglog(plot["signal"], plot["observed_var"], "o", label="observed")

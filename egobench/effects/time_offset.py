@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from egobench.effects.base import Effect
+from egobench.residual.calibration import velocity_placebo
 from egobench.residual.estimation import GeometricCause, velocity_term, velocity_term_basis
 
 
@@ -29,6 +30,11 @@ class TimeOffsetCause(GeometricCause):
         return {"time_offset_error_s": float(theta[0]),
                 "sign": "positive: the camera exposed later (device clock) than the model assumes"}
 
+
+    def trained_placebos(self, result, evidence):
+        """On a trained run: the velocity placebo (`egobench.residual.calibration.velocity_placebo`)."""
+        record = velocity_placebo(self, result, evidence)
+        return [] if record is None else [record]
 
 class TimeOffset(Effect):
     cause_class = TimeOffsetCause  # the diagnosis's estimator (egobench.residual.estimation)

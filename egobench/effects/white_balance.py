@@ -7,6 +7,7 @@ import math
 import numpy as np
 
 from egobench.effects.base import Effect
+from egobench.residual.calibration import PlaceboRecord, frame_test
 from egobench.residual.estimation import Cause, CauseResult, ResidualData, own_term, photometric_apply
 
 
@@ -39,9 +40,21 @@ class WhiteBalanceCause(Cause):
         log = result.internal["log_gain"] + result.internal["log_global"]
         return photometric_apply(predicted, log[None, None, None, :], ctx.gamma_assumed)
 
+    def trained_placebos(self, result, evidence):
+        """On a trained run the gains are not testable (`WhiteBalance.trained_run_untestable`); the channel
+        gains' test across frames is kept for the record."""
+        if not evidence.photometric_fit.testable:
+            return []
+        est, var = evidence.frame_estimates
+        tr, tb = frame_test(est[:, 0], var[:, 0]), frame_test(est[:, 1], var[:, 1])
+        p = min(1.0, 2.0 * min(tr.p_value, tb.p_value))
+        return [PlaceboRecord(None, {"calibration": {"p_value_placebo": p, "render_blur_px": evidence.blur_px}},
+                              untestable=True, reason=WhiteBalance.trained_run_untestable)]
+
 
 class WhiteBalance(Effect):
     cause_class = WhiteBalanceCause  # the diagnosis's estimator (egobench.residual.estimation)
+    trained_placebo = "photometric"
     identifiability = (
         "never on a trained run: a constant per-channel gain is absorbed exactly into the colours the "
         "model learns; only against an independent reference of the scene's colours (a twin, a chart)")
@@ -70,7 +83,7 @@ class WhiteBalance(Effect):
         return float(np.max(np.abs(np.asarray(params["channel_gains_relative_to_green"]) / rel - 1)))
 
     def synth_photometric(self, truth, value, shape):
-        truth["white_balance"] = np.asarray(value, dtype=np.float64)
+        truth.white_balance = np.asarray(value, dtype=np.float64)
 
     def smallest_testable(self, d, se, ctx):
         return {"channel_gain_relative": math.exp(d) - 1.0}

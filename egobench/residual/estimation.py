@@ -25,9 +25,11 @@ log-likelihood gain, not PSNR).
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
 from egobench.residual.signatures import (LEVEL, DiagnosisContext, block_sum, decode, encode, encode_slope, erode,
@@ -48,8 +50,6 @@ GEOMETRIC_PREFILTER_PX = 0.0
 
 def gaussian_lowpass(x: np.ndarray, sigma: float) -> np.ndarray:
     """Gaussian low-pass over the image axes of x [F, H, W, C] (edge replication)."""
-    import cv2
-
     F, H, W, C = x.shape
     out = np.empty_like(x, dtype=np.float64)
     for f in range(F):  # one separable filter per frame
@@ -112,8 +112,6 @@ class ResidualData:
     def with_prediction(self, predicted: np.ndarray, inside: np.ndarray | None = None) -> "ResidualData":
         """The same measured frames against another prediction [f, H, W, 3]; pixels outside
         ``inside`` [f, H, W] (e.g. warped from beyond the border) are not usable."""
-        import copy
-
         out = copy.copy(self)
         out.p = np.asarray(predicted, dtype=np.float64)
         out.r = out.m - out.p
@@ -126,6 +124,22 @@ class ResidualData:
         out._photometric = None
         out._geometric = None  # a cached view of the old prediction would be stale
         return out
+
+    def with_measurement(self, measured: np.ndarray) -> "ResidualData":
+        """The same prediction against other measured frames [f, H, W, 3] (a blurred copy of these: the
+        trained-run calibration's resolution match). The usable pixels stay those of these frames, and the
+        prediction's derivatives are shared."""
+        out = copy.copy(self)
+        out.m = measured
+        out.m_lin = decode(out.m, self.ctx.gamma_assumed)
+        out.r = out.m - out.p
+        out._photometric = out._geometric = None
+        return out
+
+    @property
+    def photometric_if_fitted(self) -> "PhotometricFit | None":
+        """The photometric fit when a cause has already made it, else None (nothing is fitted here)."""
+        return self._photometric
 
     def geometric(self) -> "ResidualData":
         """The view the geometric causes fit on: measured and predicted low-passed by a Gaussian of
@@ -336,6 +350,16 @@ class Cause:
         """A frame_local cause: extend every frame of ctx [F, H, W, 3] with parameters estimated
         from that frame's own fit_mask [H, W] pixels only (fitted frames' joint-fit values unused)."""
         raise NotImplementedError  # pragma: no cover
+
+    def trained_placebos(self, result: CauseResult, evidence) -> list:
+        """The placebos this cause must beat on a trained run, as records the diagnosis merges in order
+        (`egobench.residual.calibration`: ``evidence`` is its `TrainedRunEvidence`); none by default."""
+        return []
+
+    def trained_standard_error(self, evidence) -> tuple[float, int] | None:
+        """(se, df) between frames of the parameter the trained-run calibration tests (the smallest testable
+        effect), or None (a geometric cause's comes with its fit)."""
+        return None
 
     def _untestable(self, reason: str) -> CauseResult:
         return CauseResult(self.name, self.kind, testable=False, reason=reason)

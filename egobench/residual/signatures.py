@@ -16,6 +16,7 @@ import functools
 import math
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 import torch
 from scipy import stats as sps
@@ -174,7 +175,6 @@ def warp(img: np.ndarray, displacement_px: np.ndarray) -> tuple[np.ndarray, np.n
     if displacement_px.shape != (F, H, W, 2):
         raise ValueError(f"displacement_px: expected shape {[F, H, W, 2]}, got {list(displacement_px.shape)}")
     v, u = _pixel_rows_cols(H, W)
-    import cv2
 
     out = np.empty((F, H, W, C), dtype=np.float32)
     inside = np.empty((F, H, W), dtype=bool)

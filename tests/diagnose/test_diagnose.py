@@ -154,7 +154,7 @@ def test_velocity_placebo_tables_match_the_regressors_rebuilt_with_permuted_velo
 def test_a_velocity_basis_that_is_not_the_regressors_is_refused(monkeypatch):
     """The placebos check the tables on the true pairing: a basis with the wrong sign gives -t there."""
     from egobench.diagnose.estimators import CAUSES
-    from egobench.diagnose.placebo import _velocity_tables
+    from egobench.residual.calibration import velocity_tables as _velocity_tables
     from egobench.residual.estimation import ResidualData, velocity_term_basis
 
     case = make_case("time_offset", 0.003, seed=2)

@@ -107,7 +107,9 @@ def test_high_frequency_model_error_is_not_named_noise_on_a_trained_run(null_rec
     """A trained render's own high-frequency error (here: pixel-scale texture error three times the
     sensor noise) raises the high-passed residual variance at every level exactly like stronger
     noise: the ground-truth path names it noise, a trained-run diagnosis must call noise not testable."""
-    from egobench.diagnose.placebo import NOISE_UNTESTABLE
+    from egobench.effects import EFFECTS
+
+    NOISE_UNTESTABLE = EFFECTS["noise"].trained_run_untestable
 
     _root, src = null_recording
     ctx = src.context

@@ -122,7 +122,7 @@ def test_model_error_numbers_match_a_known_white_error():
 
 
 def _photometric_fit(measured, predicted, ctx):
-    from egobench.diagnose.placebo import _cells
+    from egobench.residual.calibration import photometric_cells as _cells
     from egobench.residual.estimation import ResidualData
 
     data = ResidualData(measured, predicted, ctx, np.arange(measured.shape[0]))
@@ -130,7 +130,7 @@ def _photometric_fit(measured, predicted, ctx):
 
 
 def test_exposure_split_half_placebo_is_uniformish_on_nulls_and_finds_the_affected_frames():
-    from egobench.diagnose.placebo import exposure_split_half
+    from egobench.effects.exposure_metadata import exposure_split_half
 
     p_null = []
     for seed in range(8):
@@ -162,7 +162,7 @@ def test_vignette_must_beat_wrong_centre_placebos():
     """A real vignette fits best about the principal point; an off-centre dark blob in every frame
     (model error tied to the image, e.g. a missed object in a corner) is what a radial term about a
     wrong centre fits better, so it is not named vignette."""
-    from egobench.diagnose.placebo import vignette_placebo
+    from egobench.effects.vignette import vignette_placebo
 
     case = make_case("vignette", 0.35, seed=2)
     _, fit, cells = _photometric_fit(case.measured, model_error(case.predicted, 1), case.context)
@@ -183,16 +183,16 @@ def test_response_statistic_is_unbiased_under_model_error():
     """Multiplicative model error biases the cell-level log-log slope (errors in variables), blur
     makes a model look like a response error (light leaks between cells); the per-frame slope on
     log MEASURED intensity after resolution matching is not fooled and still finds gamma 2.65."""
-    from egobench.diagnose.placebo import _radial, per_frame_photometric, render_blur, resolution_matched
+    from egobench.diagnose.estimators import assumed_noise_variance
+    from egobench.residual.calibration import (per_frame_photometric, photometric_cells, radial_terms, render_blur,
+                                               resolution_matched)
 
     def slope(measured, predicted, ctx):
         data, _, _ = _photometric_fit(measured, predicted, ctx)
-        sigma = render_blur(data)
+        sigma = render_blur(data, assumed_noise_variance)
         fit = resolution_matched(data, sigma).photometric()
-        from egobench.diagnose.placebo import _cells
-
-        cells = _cells(fit)
-        est, _ = per_frame_photometric(fit, cells, *_radial(cells, ctx.principal_point, 48, 48))
+        cells = photometric_cells(fit)
+        est, _ = per_frame_photometric(fit, cells, *radial_terms(cells, ctx.principal_point, 48, 48))
         c = est[:, 3][np.isfinite(est[:, 3])]
         return sigma, float(c.mean()), float(c.std() / np.sqrt(c.size)), float(data.photometric().coefs("response")[0])
 
@@ -314,7 +314,8 @@ def test_per_frame_pose_jitter_along_the_motion_is_not_exposure_blur():
     varying sign; their second-order term mimics blur in every frame (a global shift cannot remove
     it). Tested given a per-frame shift, exposure blur is not significant; a real blur still is."""
     from egobench.diagnose.estimators import CAUSES
-    from egobench.diagnose.placebo import blur_given_frame_shifts
+    from egobench.effects.exposure_blur import blur_given_frame_shifts
+    from egobench.residual.calibration import merge_record
     from egobench.residual.estimation import ResidualData
     from egobench.residual.signatures import warp
 
@@ -325,12 +326,12 @@ def test_per_frame_pose_jitter_along_the_motion_is_not_exposure_blur():
     data = ResidualData(null.measured, np.clip(jittered, 0, 1), null.context, np.arange(F))
     r = CAUSES["exposure_blur"].fit(data)
     assert r.p_value < 1e-3  # fooled without the per-frame shifts
-    blur_given_frame_shifts(data, r)
+    merge_record(r, blur_given_frame_shifts(CAUSES["exposure_blur"], data))
     assert r.params["p_value_given_frame_shifts"] > 0.01 and r.p_value > 0.01
     case = make_case("exposure_blur", 8e-3, seed=4, speed_px_s=(250.0, 600.0))
     data = ResidualData(case.measured, case.predicted, case.context, np.arange(F))
     r = CAUSES["exposure_blur"].fit(data)
-    blur_given_frame_shifts(data, r)
+    merge_record(r, blur_given_frame_shifts(CAUSES["exposure_blur"], data))
     assert r.params["p_value_given_frame_shifts"] < 1e-6
 
 
@@ -678,7 +679,7 @@ def test_a_frame_whose_bright_cells_alone_are_off_is_not_a_gain():
     bright content tilts its frame's residual over log intensity. gain_like tells them apart."""
     from types import SimpleNamespace
 
-    from egobench.diagnose.placebo import gain_like
+    from egobench.effects.exposure_metadata import gain_like
 
     rng = np.random.default_rng(11)
     n_frames, per = 40, 60
@@ -716,7 +717,7 @@ def test_the_placebo_p_is_a_sequential_rank_p_that_heavy_tails_cannot_shrink():
     alpha 0.01 on most seeds; the rank p does not."""
     import scipy.stats as sps
 
-    from egobench.diagnose.placebo import sequential_rank_p
+    from egobench.residual.calibration import sequential_rank_p
 
     p, exceed, ts = sequential_rank_p(1.0, lambda k: 5.0 if k % 2 else -5.0)
     assert (p, exceed, len(ts)) == (1.0, 10, 10)
@@ -743,7 +744,8 @@ def test_readout_must_follow_the_true_row_times():
     corner that follows the motion (a region rendered late) gives the uncalibrated readout statistic
     p < 1e-5 but is as strong read along the columns, so it is not called a readout error."""
     from egobench.diagnose.estimators import CAUSES
-    from egobench.diagnose.placebo import row_time_placebo
+    from egobench.effects.readout import row_time_placebo
+    from egobench.residual.calibration import merge_record
     from egobench.residual.estimation import ResidualData
     from egobench.residual.signatures import warp
 
@@ -751,7 +753,7 @@ def test_readout_must_follow_the_true_row_times():
         d = ResidualData(case.measured, case.predicted, case.context, np.arange(case.measured.shape[0]))
         r = CAUSES["readout"].fit(d)
         p_uncalibrated = r.p_value
-        row_time_placebo(d, r)
+        merge_record(r, row_time_placebo(CAUSES["readout"], d))
         return p_uncalibrated, r.params["calibration_row_time"]
 
     _, c = fitted(make_case("readout", 0.5, seed=3, speed_px_s=(250.0, 600.0)))
@@ -781,7 +783,7 @@ def test_an_exposure_slope_is_tested_against_circular_shifts_not_only_permutatio
     response at permutation p 0.0002). Against circular shifts of the exposure the false-alarm rate
     is at most the level, and a true slope whose signal is ~5x the model error's sd is still detected
     in most draws (the price of smooth series: few independent frames)."""
-    from egobench.diagnose.placebo import exposure_shift_placebo
+    from egobench.effects.response import exposure_shift_placebo
 
     rng = np.random.default_rng(27)
     perm_alarms, shift_alarms, hits = 0, 0, 0

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import ast
 import dataclasses
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+import egobench
 from egobench.effects import EFFECTS, Effect, get_effect, sample_hidden_effects
 from egobench.model.formation import FormationConfig
 
@@ -96,33 +99,76 @@ def test_sample_hidden_effects_is_seeded_and_order_independent():
 # One home per effect: every user of an effect calls its hooks (issue 33)
 
 
-def _effect_name_branches(root) -> list[str]:
-    """`x == "<effect name>"` / `!=` comparisons in egobench/ outside egobench/effects/ (ast scan)."""
-    import ast
-    from pathlib import Path
+def _names_in(node) -> list[str]:
+    """Effect names written as a literal in ``node``, or in a tuple, list or set literal it is."""
+    if isinstance(node, ast.Constant) and node.value in EFFECTS:
+        return [node.value]
+    if isinstance(node, (ast.Tuple, ast.List, ast.Set)):
+        return [e.value for e in node.elts if isinstance(e, ast.Constant) and e.value in EFFECTS]
+    return []
 
+
+def _effect_name_uses(source: str, every_use: bool) -> list[tuple[int, str, str]]:
+    """(line, kind, name) of each effect name in ``source`` that decides by name: a comparison (==, !=), and with
+    ``every_use`` also a membership test (in, not in), a subscript, a dict key or a .get/.pop/.setdefault key."""
+    kinds = (ast.Eq, ast.NotEq, ast.In, ast.NotIn) if every_use else (ast.Eq, ast.NotEq)
+    found = []
+    for node in ast.walk(ast.parse(source)):
+        names, kind = [], type(node).__name__
+        if isinstance(node, ast.Compare) and any(isinstance(op, kinds) for op in node.ops):
+            names = [n for side in [node.left, *node.comparators] for n in _names_in(side)]
+        elif every_use and isinstance(node, ast.Subscript):
+            names = _names_in(node.slice)
+        elif every_use and isinstance(node, ast.Dict):
+            names = [n for k in node.keys if k is not None for n in _names_in(k)]
+        elif (every_use and isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
+              and node.func.attr in ("get", "pop", "setdefault") and node.args):
+            names, kind = _names_in(node.args[0]), "Call"
+        found += [(node.lineno, kind, n) for n in names]
+    return found
+
+
+#: Where every use of an effect name counts (the diagnosis loops over the registry and calls the effects'
+#: hooks); elsewhere in egobench/ only comparisons count ("distortion" also names a 2DGS loss, "noise" a texture,
+#: "white_balance" a SimConfig field).
+EVERY_USE = ("diagnose",)
+
+
+def _effect_name_branches(root) -> list[str]:
+    """Effect names that decide by name in egobench/ outside egobench/effects/ (ast scan; `_effect_name_uses`)."""
     found = []
     for path in sorted(Path(root).rglob("*.py")):
-        if "effects" in path.relative_to(root).parts[:1]:
+        rel = path.relative_to(root)
+        if rel.parts[:1] == ("effects",):
             continue
-        for node in ast.walk(ast.parse(path.read_text())):
-            if isinstance(node, ast.Compare) and any(isinstance(op, (ast.Eq, ast.NotEq)) for op in node.ops):
-                for side in [node.left, *node.comparators]:
-                    if isinstance(side, ast.Constant) and side.value in EFFECTS:
-                        found.append(f"{path.relative_to(root)}:{node.lineno} == {side.value!r}")
+        every = rel.parts[:1] in [(p,) for p in EVERY_USE]
+        found += [f"{rel}:{line} {kind} {name!r}" for line, kind, name in _effect_name_uses(path.read_text(), every)]
     return found
 
 
 def test_no_branch_on_an_effect_name_outside_its_own_file():
-    from pathlib import Path
-
-    import egobench
-
     root = Path(egobench.__file__).parent
     assert _effect_name_branches(root) == []
     # the scan finds what it looks for: a planted branch is reported
     probe = root.parent / "tests" / "fixtures" / "effect_branch_probe"
-    assert _effect_name_branches(probe) == ["probe.py:2 == 'vignette'"]
+    assert _effect_name_branches(probe) == ["probe.py:2 Compare 'vignette'"]
+
+
+def test_the_diagnosis_scan_catches_a_planted_example_of_each_use():
+    planted = {
+        'by_name["vignette"].reason = "x"': "Subscript",
+        'if "response" in by_name: pass': "Compare",
+        'if name not in ("noise", "white_balance"): pass': "Compare",
+        'se = {"exposure_metadata": (1.0, 2)}': "Dict",
+        'r = by_name.get("readout")': "Call",
+        'ok = name != "distortion"': "Compare",
+    }
+    for line, kind in planted.items():
+        uses = _effect_name_uses(line, every_use=True)
+        assert uses and {k for _l, k, _n in uses} == {kind}, line
+    assert _effect_name_uses('x = by_name["vignette"]', every_use=False) == []
+    assert _effect_name_uses('x = name == "time_offset"', every_use=False) == [(1, "Compare", "time_offset")]
+    assert _effect_name_uses('x = d["gamma"]; y = "frames" in d', every_use=True) == []
 
 
 def test_the_hooks_carry_what_the_sweeps_and_the_simulator_did_by_name():
