@@ -69,7 +69,7 @@ class DistortionCause(GeometricCause):
 def distortion_placebo(cause: DistortionCause, data: ResidualData) -> PlaceboRecord:
     """Lens distortion on a trained run must beat radial placebos: the same per-frame
     radial-displacement statistic about wrong centres (PLACEBO_CENTRE_OFFSETS). p_placebo = the
-    larger of the rank p (1 + exceed) / 9 when a placebo is as strong, and the normal tail of |t|
+    larger of the rank p (1 + exceed) / 9 when a placebo is as strong, and the Student-t tail of |t| (`beat_placebos`)
     against the placebos' |t| (model error near the image border, where the model has less
     coverage, is radial about any centre and inflates them all)."""
     H, W = data.m.shape[1:3]

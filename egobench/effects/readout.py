@@ -106,7 +106,7 @@ def row_time_placebo(cause: GeometricCause, data: ResidualData) -> PlaceboRecord
     with the row-time ratio replaced by `row_time_maps`. Model error that varies over the image (a
     poorly fitted top or border) and follows the motion correlates with any of them; a readout error
     only with the true rows. p = the larger of the rank p (1 + exceed) / (1 + n) when a placebo is as
-    strong and the normal tail of |t| against the placebos' |t| (as the distortion's radial placebo)."""
+    strong and the Student-t tail of |t| (`beat_placebos`) against the placebos' |t| (as the distortion's radial placebo)."""
     j = cause.tested_index
 
     def t_of(d):

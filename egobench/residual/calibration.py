@@ -222,6 +222,8 @@ class Derangements:
     stream (every cause sees the same sequence)."""
 
     def __init__(self, n: int, seed: int) -> None:
+        if n < 2:
+            raise ValueError(f"Derangements: {n} frame(s) have no permutation without a frame in place (need >= 2)")
         self.n, self.rng, self.perms = n, np.random.default_rng([int(seed), 1515]), []
 
     def __getitem__(self, k: int) -> np.ndarray:
@@ -254,7 +256,9 @@ def beat_placebos(t_real: float, t_placebo: list[float]) -> tuple[float, int, fl
     placebos' |t| (a handful of placebos cannot give a small rank p alone). The tail is the Student-t
     prediction interval of n draws, (|t| - mean) / (sd sqrt(1 + 1/n)) on n - 1 degrees of freedom: the
     placebos' mean and sd are estimates (a normal tail named distortion on an outdoor response case
-    at t 4.6 against 8 wrong centres at 2.1 +- 0.6: p 6e-5; this tail: 0.004)."""
+    at t 4.6 against 8 wrong centres at 2.1 +- 0.6: p 6e-5; this tail: 0.004). Needs at least two placebos."""
+    if len(t_placebo) < 2:
+        raise ValueError(f"beat_placebos: needs at least 2 placebo statistics for their spread, got {len(t_placebo)}")
     exceed = int(sum(abs(t) >= abs(t_real) for t in t_placebo))
     a = np.abs(np.asarray(t_placebo))
     n = a.size
