@@ -21,6 +21,7 @@ VERBS: dict[str, tuple[str, str]] = {
     "evaluate": ("egobench.evaluate", "evaluate a trained run on the held-out frames"),
     "export": ("egobench.export.ply", "write a trained run as an INRIA 3DGS PLY (SuperSplat, viser, nerfstudio)"),
     "render": ("egobench.export.video", "render a trained run along its recording's trajectory into a video"),
+    "view": ("egobench.export.viewer", "write a self-contained HTML page to look inside a trained scene in the browser"),
     "tables": ("egobench.report.tables", "build the paper-shaped CSV and LaTeX tables from run records"),
     "plots": ("egobench.report.plots", "draw the figures from run records and recordings"),
     "compare": ("egobench.report.compare", "compare regenerated tables with the committed ones, within the tolerance"),

@@ -1,6 +1,7 @@
 # The researcher's view of a trained scene: per scene, the first seed of 'ours' as an INRIA 3DGS
-# PLY (SuperSplat, viser, nerfstudio open it) and a side-by-side fly-through video (ours, w/o motion
-# sampling when the scene trains it, the captured frames) that the HTML report shows.
+# PLY (SuperSplat, viser, nerfstudio open it), a side-by-side fly-through video (ours, w/o motion
+# sampling when the scene trains it, the captured frames) and a self-contained viewer page (WebGL,
+# the camera's own exposure, the same two runs) that the HTML report links.
 
 
 rule export_ply:
@@ -41,3 +42,24 @@ rule render_video:
     shell:
         "egobench render {params.run_dir} --recording {input.recording} --video {output.video}"
         " {params.args} --no-progress > {log} 2>&1"
+
+
+rule view_page:
+    input:
+        recording=f"{R}/recordings/{{scene}}",
+        records=lambda wildcards: [f"{r}/eval.json" for r in SUITE.viewer_runs(wildcards.scene) if r],
+    output:
+        page=report(f"{R}/viewer/{{scene}}/view/index.html", caption="report/viewer_page.rst", category="Viewer"),
+    conda:
+        "envs/egobench.yaml"
+    log:
+        f"{R}/logs/viewer/{{scene}}/view.log",
+    params:
+        run_dir=lambda wildcards, input: os.path.dirname(input.records[0]),
+        out=lambda wildcards, output: os.path.dirname(output.page),
+        args=lambda wildcards: SUITE.view_args(wildcards.scene),
+    threads: res("viewer", "threads")
+    resources:
+        mem_mb=res("viewer", "mem_mb"),
+    shell:
+        "egobench view {params.run_dir} --recording {input.recording} --out {params.out} {params.args} > {log} 2>&1"

@@ -331,11 +331,11 @@ class Suite:
         return [f"{self.root}/diagnosis/{s}/{m}" for s, m in self.diagnose_jobs]
 
     def viewer_outputs(self) -> list[str]:
-        """Per scene that trains 'ours': its PLY and fly-through video (config.viewer)."""
+        """Per scene that trains 'ours': its PLY, fly-through video and viewer page (config.viewer)."""
         if not self.viewer["enabled"]:
             return []
         return [f"{self.root}/viewer/{s}/{name}" for s, sc in self.scenes.items() if "ours" in sc.methods
-                for name in ("ours.ply", "flythrough.mp4")]
+                for name in ("ours.ply", "flythrough.mp4", "view/index.html")]
 
     def viewer_runs(self, scene: str) -> tuple[str, str | None]:
         """(the run folder of 'ours', of w/o motion sampling or None) at the scene's first seed of each."""
@@ -349,6 +349,11 @@ class Suite:
         v, (_, compare) = self.viewer, self.viewer_runs(scene)
         out = f"--captured --max-frames {int(v['max_frames'])} --every {int(v['every'])} --fps {float(v['fps']):g}"
         return out + (f" --compare {compare}" if compare else "")
+
+    def view_args(self, scene: str) -> str:
+        """`egobench view` options of a scene's page: the second run to toggle to, when the scene trains it."""
+        _, compare = self.viewer_runs(scene)
+        return f"--compare {compare}" if compare else ""
 
     def methods(self) -> list[str]:
         every = [*self.scenes.values(), *self.sensitivity_scenes.values()]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import json
 import os
 import shutil
 import subprocess
@@ -353,6 +354,11 @@ def _check_ci_suite(res: subprocess.CompletedProcess, tmp_path: Path) -> None:
     video = cv2.VideoCapture(str(root / "viewer" / "outdoor_0" / "flythrough.mp4"))
     size = (int(video.get(cv2.CAP_PROP_FRAME_WIDTH)), int(video.get(cv2.CAP_PROP_FRAME_HEIGHT)))
     assert int(video.get(cv2.CAP_PROP_FRAME_COUNT)) == 32 and size == (3 * 48 * 6, 20 + 48 * 6)
+    # The viewer page: one file with every frame of the recording and both runs' Gaussians.
+    page = (root / "viewer" / "outdoor_0" / "view" / "index.html").read_text()
+    data = json.loads(page.split('<script id="egobench-data" type="application/json">', 1)[1].split("</script>", 1)[0])
+    assert len(data["frames"]) == 32 and [r["method"] for r in data["runs"]] == ["ours", "no_motion_sampling"]
+    assert data["runs"][0]["n"] == len(ck["params"]["means"])
     # The similarity table measures the suite's recording at its own resolution.
     sim = read_json(root / "similarity" / "similarity.json")["recordings"]
     sim_csv = pd.read_csv(root / "similarity" / "similarity.csv")
@@ -373,6 +379,7 @@ def _check_ci_suite(res: subprocess.CompletedProcess, tmp_path: Path) -> None:
     assert rep.returncode == 0, rep.stderr[-3000:]
     assert (tmp_path / "report.html").stat().st_size > 10_000
     assert "flythrough.mp4" in (tmp_path / "report.html").read_text(errors="replace")
+    assert "index.html" in (tmp_path / "report.html").read_text(errors="replace")
 
 
 # ------------------------------------------------------------------------------------------------
