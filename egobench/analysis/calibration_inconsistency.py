@@ -22,6 +22,7 @@ from torch import Tensor
 
 from egobench.analysis.calibration_reprojection import frame_number, from_camera, median_p90, observed_in_test_px, online_at, to_camera
 from egobench.camera.pinhole import Pinhole
+from egobench.model.motion_sampling import sparse_points_camera
 
 #: Frames with fewer observations of a point than this leave its residual undefined.
 MIN_VIEWS = 2
@@ -76,8 +77,6 @@ def absorbed_residual_px(u_obs: Tensor, valid: Tensor, pinhole: Pinhole, T_world
 
 def _world_points(recording, frames: list, every: int, max_per_frame: int) -> Tensor:
     """Sparse-depth points of every ``every``-th frame, in the world [P, 3] float64."""
-    from egobench.model.motion_sampling import sparse_points_camera
-
     chunks = []
     for f in frames[::every]:
         if f.sparse_depth is None or len(f.sparse_depth.z) == 0:

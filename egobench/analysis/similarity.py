@@ -52,14 +52,26 @@ import io
 import math
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 from torch import Tensor
+from tqdm import tqdm
 
 from egobench.analysis.calibration_inconsistency import calibration_inconsistency
 from egobench.analysis.calibration_reprojection import (frame_number, from_camera, median_p90, observed_in_test_px, online_at,
                                         to_camera)
+from egobench.camera.pinhole import Pinhole
+from egobench.data.layout import (FACTORY_CALIBRATION_FILE, MPS_SLAM, ONLINE_CALIBRATION_FILE, is_stream,
+                                  variant_path)
+from egobench.data.mps import parse_calibration_record, read_calibration_json, read_online_calibration
+from egobench.data.reader import load_recording
 from egobench.data.recording import Frame, Recording
+from egobench.io_utils import atomic_path, read_json, write_json
+from egobench.model.methods import get_method
+from egobench.model.motion_sampling import displacements_px, sparse_points_camera
+from egobench.model.predict import sample_counts
+from egobench.train.config import TrainConfig
 
 SCHEMA = "egobench.similarity/1"
 #: Radial frequency band (cycles/pixel) of the spectral-slope fit; the Nyquist frequency is 0.5.
@@ -100,8 +112,6 @@ def rs_shift_px(recording: Recording, truth: dict | None = None, pixel_scale: fl
 
     ``truth``: a truth.json dict; its frames' ``read_start_true_ns`` and ``hidden_effects.readout_true_s``
     replace the stream's stated clocks where the frame number matches."""
-    from egobench.model.motion_sampling import displacements_px
-
     true_start, readout_true_ns = {}, None
     if truth is not None:
         true_start = {int(r["index"]): int(r["read_start_true_ns"]) for r in truth.get("frames", [])}
@@ -137,8 +147,6 @@ def trajectory_rs_shift_px(trajectory, T_device_camera: Tensor, focal_px: float 
     1 / ``fps`` s, ``points_per_frame`` seeded uniform pixels at ``depth_m``, moved between the
     poses at read start and read end; points leaving the image dropped. Used for the paper scale:
     the real Aria walk at f = 1200 px, 2400 px, 16.26 ms (`paper_operating_point`)."""
-    from egobench.camera.pinhole import Pinhole
-
     pin = Pinhole(fx=focal_px, fy=focal_px, cx=(size_px - 1) / 2, cy=(size_px - 1) / 2, width=size_px, height=size_px)
     readout_ns = readout_s * 1e9
     starts = np.arange(trajectory.start_ns, trajectory.end_ns - readout_ns, 1e9 / fps).round().astype(np.int64)
@@ -183,8 +191,6 @@ def calibration_reprojection_px(points_device: Tensor, reference, test, pinhole,
 
 def _frame_points_device(recording: Recording, frame: Frame) -> Tensor | None:
     """The frame's sparse-depth points in the device frame [P, 3] float64 (None without points)."""
-    from egobench.model.motion_sampling import sparse_points_camera
-
     if frame.sparse_depth is None or len(frame.sparse_depth.z) == 0:
         return None
     return from_camera(frame.T_device_camera, sparse_points_camera(recording, frame))
@@ -198,9 +204,6 @@ def read_calibrations(recording: Recording, truth: dict | None) -> dict:
     """The RGB calibrations a recording folder carries: 'factory' (factory_calibration.json),
     'online' (list of (tracking_timestamp_us, cal) from mps/slam/online_calibration.jsonl), 'true'
     (truth.json); each None where absent."""
-    from egobench.data.layout import FACTORY_CALIBRATION_FILE, MPS_SLAM, ONLINE_CALIBRATION_FILE
-    from egobench.data.mps import parse_calibration_record, read_calibration_json, read_online_calibration
-
     label, root = _camera_label(recording), recording.root.parent
     out: dict = {"factory": None, "online": None, "true": None}
     if (root / FACTORY_CALIBRATION_FILE).is_file():
@@ -254,10 +257,6 @@ def calibration_errors(online_rec: Recording, factory_rec: Recording | None, cal
 # ----------------------------------------------------------------------------------------
 def motion_samples(recording: Recording, pixel_scale: float = 1.0, config=None) -> dict:
     """'ours'' rolling-shutter pose-sample counts on the training frames, at the training resolution."""
-    from egobench.model.methods import get_method
-    from egobench.model.predict import sample_counts
-    from egobench.train.config import TrainConfig
-
     config = TrainConfig.cpu() if config is None else config
     counts = np.asarray(sample_counts(recording, recording.train_frames, get_method("ours"), config.max_pose_samples,
                                       config.sample_rule, pixel_scale=pixel_scale))
@@ -374,8 +373,6 @@ def ideal_hf_fraction(n_px: int) -> float:
 
 
 def _resize(img: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    import cv2
-
     if (img.shape[1], img.shape[0]) == size:
         return img
     return cv2.resize(img, size, interpolation=cv2.INTER_AREA if size[0] < img.shape[1] else cv2.INTER_LINEAR)
@@ -416,8 +413,6 @@ def _training_size(recording: Recording, resolution: int) -> tuple[int, int]:
 
 
 def _mask_at(recording: Recording, size: tuple[int, int]) -> np.ndarray:
-    import cv2
-
     mask = recording.mask.numpy().astype(np.uint8)
     return cv2.resize(mask, size, interpolation=cv2.INTER_NEAREST).astype(bool)
 
@@ -479,17 +474,12 @@ def _clean_luminance(recording: Recording, frames: list[Frame], size: tuple[int,
 # one recording
 # ----------------------------------------------------------------------------------------
 def _read_truth(recording: Recording) -> dict | None:
-    from egobench.io_utils import read_json
-
     path = None if recording.ground_truth is None else Path(recording.ground_truth) / "truth.json"
     return read_json(path) if path is not None and path.is_file() else None
 
 
 def _factory_stream(online_stream: Path) -> Recording | None:
     """The factory-calibration sibling of a rectified online stream folder (authors' naming), or None."""
-    from egobench.data.layout import is_stream, variant_path
-    from egobench.data.reader import load_recording
-
     folder = variant_path(online_stream, "factory")
     return load_recording(folder, "factory") if is_stream(folder) else None
 
@@ -497,8 +487,6 @@ def _factory_stream(online_stream: Path) -> Recording | None:
 def measure_recording(path: str | Path, resolution: int | None = None, max_image_frames: int = MAX_IMAGE_FRAMES) -> dict:
     """Every similarity measure of one recording folder (or stream folder), at ``resolution`` px
     wide (default: the rectified width). Keys: `METRIC_KEYS` plus provenance (see the module doc)."""
-    from egobench.data.reader import load_recording
-
     rec = load_recording(path, "online")
     width = rec.camera.width
     resolution = width if resolution is None else int(resolution)
@@ -697,10 +685,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
-    from egobench.io_utils import atomic_path, write_json
-
     results = [measure_recording(p, args.resolution)
                for p in tqdm(args.recordings, desc="similarity", unit="rec", disable=args.no_progress)]
     paper = paper_operating_point()

@@ -19,7 +19,9 @@ and ``row_time_ratio.npy`` (full-precision ``image_index.png``) in each stream f
 
 from __future__ import annotations
 
+import os
 import re
+import shutil
 from pathlib import Path
 
 TRANSFORMS = "transforms.json"
@@ -76,9 +78,6 @@ def link_mps_files(stream: Path, mps_dir: Path, absolute: bool = False) -> None:
     to the MPS files: relative when the MPS folder lies inside the recording (it can move) unless
     ``absolute`` (the authors' choice; needed when the folder is renamed into another parent). An
     MPS folder that is not ``mps/slam/`` of the capture (`check_stream_input`'s rule) is copied."""
-    import os
-    import shutil
-
     recording = stream.absolute().parent
     for name in (TRAJECTORY_FILE, POINTS_FILE):
         link, target = stream / name, (mps_dir / name).absolute()

@@ -22,8 +22,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
+import torch
 
-from egobench.io_utils import atomic_path, read_csv
+from egobench.camera import Fisheye624
+from egobench.geometry import Trajectory, quat_to_rotmat, rotmat_to_quat
+from egobench.io_utils import atomic_path, read_csv, read_json, write_json
 
 SEMIDENSE_COLUMNS = ("uid", "graph_uid", "px_world", "py_world", "pz_world", "inv_dist_std", "dist_std")
 #: MPS semi-dense filter (docs/paper-notes.md §3): keep inv_dist_std < 0.01 1/m and dist_std < 0.02 m.
@@ -37,8 +41,6 @@ GRAPH_UID = "00000000-0000-0000-0000-000000000000"  # graph uid written into syn
 # ----------------------------------------------------------------------------------------
 def read_trajectory(path: str | Path):
     """closed_loop_trajectory.csv -> `egobench.geometry.Trajectory` (T_world_device, 1 kHz)."""
-    from egobench.geometry import Trajectory
-
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: trajectory file not found")
@@ -74,8 +76,6 @@ class SemiDensePoints:
 def read_semidense_points(path: str | Path, filter: bool = True, max_inv_dist_std: float = MAX_INV_DIST_STD,
                           max_dist_std: float = MAX_DIST_STD) -> SemiDensePoints:
     """Read semidense_points.csv(.gz); ValueError names the file, line and column of bad rows."""
-    import pandas as pd
-
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: semi-dense points file not found")
@@ -138,17 +138,10 @@ class CameraCalibration:
 
     def camera(self):
         """The `egobench.camera.Fisheye624` model of this calibration."""
-        import torch
-
-        from egobench.camera import Fisheye624
-
         return Fisheye624(torch.as_tensor(np.asarray(self.params, dtype=np.float64)), self.width, self.height)
 
     def to_mps_entry(self) -> dict:
         """The CameraCalibrations[] JSON entry."""
-        from egobench.geometry import rotmat_to_quat
-        import torch
-
         q = rotmat_to_quat(torch.as_tensor(self.T_device_camera[:3, :3], dtype=torch.float64)).tolist()
         entry = {
             "Calibrated": True,
@@ -167,9 +160,6 @@ class CameraCalibration:
     def from_mps_entry(cls, entry: dict, image_size: tuple[int, int], readout_s: float = 0.0,
                        where: str = "calibration") -> "CameraCalibration":
         """Parse one CameraCalibrations[] entry; ValueError names `where` and the field."""
-        from egobench.geometry import quat_to_rotmat
-        import torch
-
         try:
             label = str(entry["Label"])
             proj = entry["Projection"]
@@ -286,12 +276,8 @@ def write_online_calibration(path: str | Path, records: list[CalibrationRecord])
 
 def read_calibration_json(path: str | Path) -> CalibrationRecord:
     """A single calibration object (our factory_calibration.json)."""
-    from egobench.io_utils import read_json
-
     return parse_calibration_record(read_json(path), where=str(path))
 
 
 def write_calibration_json(path: str | Path, record: CalibrationRecord) -> None:
-    from egobench.io_utils import write_json
-
     write_json(path, record.to_json())

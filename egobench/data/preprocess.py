@@ -27,16 +27,24 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
+from tqdm import tqdm
 
+from egobench.camera import Rectification
+from egobench.camera.pinhole import Pinhole
 from egobench.data.layout import (MPS_SLAM, OBSERVATIONS_FILE, ONLINE_CALIBRATION_FILE, POINTS_FILE, TRAJECTORY_FILE,
                                   link_mps_files, stream_folder_name)
-from egobench.data.mps import CalibrationRecord, CameraCalibration
+from egobench.data.mps import (CalibrationRecord, CameraCalibration, read_online_calibration, read_semidense_points,
+                               read_trajectory)
+from egobench.data.transforms import write_camera_maps, write_png, write_transforms
+from egobench.io_utils import read_csv, read_json, write_json
 
 #: Rolling-shutter readout by raw image height (the authors' values; Aria Gen 1).
 READOUT_NS_BY_HEIGHT = {2880: 16_260_000, 1408: 5_000_000, 480: 0}
@@ -70,9 +78,6 @@ class MpsInputs:
 
 def read_mps_folder(mps_dir: str | Path, need_online: bool) -> MpsInputs:
     """Read an MPS slam folder; FileNotFoundError names each missing file."""
-    from egobench.data.mps import read_online_calibration, read_semidense_points, read_trajectory
-    from egobench.io_utils import read_csv
-
     mps_dir = Path(mps_dir)
     if not mps_dir.is_dir():
         raise FileNotFoundError(f"{mps_dir}: MPS folder not found (expected the MPS output's slam/ folder with "
@@ -110,16 +115,12 @@ def _online_for(records: list[CalibrationRecord], t_ns: int, label: str) -> Came
 
 
 def rectified_pinhole(focal_px: float, size_px: int):
-    from egobench.camera.pinhole import Pinhole
-
     return Pinhole(fx=float(focal_px), fy=float(focal_px), cx=(size_px - 1) / 2, cy=(size_px - 1) / 2,
                    width=int(size_px), height=int(size_px))
 
 
 def read_vignette(path: str | Path | None, height: int, width: int) -> tuple[np.ndarray, str | None]:
     """Raw-sensor lens shading [H, W] in 0..1 from a PNG (8 or 16 bit; colour -> mean), or flat + a warning."""
-    import cv2
-
     if path is None:
         return np.ones((height, width), np.float32), (
             "no --vignette: a flat lens shading is written; the real fall-off (Aria RGB corners are several "
@@ -220,8 +221,6 @@ class _Rig:
         self.pinhole, self.key, self.rect = pinhole, None, None
 
     def get(self, cal: CameraCalibration):
-        from egobench.camera import Rectification
-
         key = (tuple(np.round(cal.params, 12).tolist()), cal.width, cal.height)
         if key != self.key:
             self.key, self.rect = key, Rectification.build(cal.camera(), self.pinhole)
@@ -231,9 +230,6 @@ class _Rig:
 def _process_frame(i: int, provider, stream_id, mps: MpsInputs, cal_of, rig: _Rig, depth: SparseDepthIndex,
                    label: str, partial: Path) -> dict:
     """Rectify frame ``i``, write its image and sparse depth; its transforms entry (or {"skipped": why})."""
-    from egobench.data.transforms import write_png
-    from egobench.io_utils import write_json
-
     image_data, record = provider.get_image_data_by_index(stream_id, i)
     raw = image_data.to_numpy_array()
     where = f"VRS {label} frame {i}"
@@ -268,10 +264,6 @@ def _process_frame(i: int, provider, stream_id, mps: MpsInputs, cal_of, rig: _Ri
 
 def _open_partial(partial: Path, fingerprint: dict) -> None:
     """Keep a partial folder of the same inputs and options (resume); discard one of others."""
-    import shutil
-
-    from egobench.io_utils import read_json, write_json
-
     manifest = partial / ".frames" / "options.json"
     if partial.exists():
         try:
@@ -290,13 +282,6 @@ def _open_partial(partial: Path, fingerprint: dict) -> None:
 def preprocess(vrs: str | Path, mps_dir: str | Path, out: str | Path, options: PreprocessOptions | None = None,
                progress: bool = True) -> Path:
     """Rectify the VRS's RGB stream with the MPS trajectory, calibration and points; -> the stream folder."""
-    import shutil
-
-    from tqdm import tqdm
-
-    from egobench.data.transforms import write_camera_maps, write_transforms
-    from egobench.io_utils import read_json, write_json
-
     o = options or PreprocessOptions()
     vrs, mps_dir, out = Path(vrs), Path(mps_dir), Path(out)
     if not vrs.is_file():

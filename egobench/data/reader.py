@@ -11,6 +11,7 @@ symlinks) unless passed explicitly (``--trajectory``, ``--points``).
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -18,8 +19,10 @@ import torch
 
 from egobench.data.layout import (POINTS_FILE, TRAJECTORY_END_MARGIN_NS, TRAJECTORY_FILE, check_stream_input,
                                   find_stream, resolves_inside)
+from egobench.data.mps import MAX_DIST_STD, MAX_INV_DIST_STD, read_semidense_points, read_trajectory
 from egobench.data.recording import Calibration, Frame, Recording
 from egobench.data.transforms import TransformsFile, read_png, read_sparse_depth, read_transforms
+from egobench.io_utils import read_json
 
 
 def _input_file(explicit: str | Path | None, folder: Path, name: str, what: str, option: str) -> Path:
@@ -35,8 +38,6 @@ def _input_file(explicit: str | Path | None, folder: Path, name: str, what: str,
 
 def _load_points(path: Path) -> torch.Tensor:
     """Filtered semi-dense points [P, 3] float32; ValueError when the MPS quality filter keeps none."""
-    from egobench.data.mps import MAX_DIST_STD, MAX_INV_DIST_STD, read_semidense_points
-
     pts = read_semidense_points(path, filter=False)
     kept = pts.filtered()
     if len(kept) == 0:
@@ -121,8 +122,6 @@ def dropped_summary(rec: Recording) -> str | None:
 
 def say_dropped(rec: Recording, verb: str) -> None:
     """Name the frames the reader dropped on the console of ``egobench <verb>`` (the records keep them too)."""
-    import sys
-
     if line := dropped_summary(rec):
         print(f"egobench {verb}: note: {line}", file=sys.stderr)
 
@@ -170,9 +169,6 @@ def load_recording(path: str | Path, calibration: Calibration = "online", *, tra
     semidense_points.csv.gz. Every frame is validated (missing image, bad JSON, NaN pose,
     readout outside the trajectory -> ValueError naming the file and the frame).
     """
-    from egobench.data.mps import read_trajectory
-    from egobench.io_utils import read_json
-
     folder = find_stream(path, calibration)
     tf = read_transforms(folder)
     traj_file = _input_file(trajectory_path, folder, TRAJECTORY_FILE, "trajectory", "--trajectory")

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+import cv2
 import numpy as np
 import torch
 from torch import Tensor
@@ -89,8 +90,6 @@ class Recording:
 
     def load_image(self, frame: Frame) -> Tensor:
         """The frame's image as float32 [H, W, 3] in 0..1 (gamma-encoded, as captured)."""
-        import cv2
-
         img = cv2.imread(str(frame.image_path), cv2.IMREAD_COLOR)
         if img is None:
             raise FileNotFoundError(f"{frame.image_path}: image of frame {frame.index} is missing or unreadable")

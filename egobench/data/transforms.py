@@ -29,10 +29,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from egobench.camera.pinhole import Pinhole
-from egobench.io_utils import atomic_path, write_json
+from egobench.data.layout import TRANSFORMS, TRANSFORMS_WITH_DEPTH, stream_file, transforms_file
+from egobench.data.recording import SparseDepth
+from egobench.io_utils import atomic_path, read_json, write_json
 
 #: Plausibility bounds of the capture metadata, generous around an Aria RGB frame (exposures of
 #: 0.1-40 ms, analog gains 1-16, a rolling-shutter readout of 5-33 ms).
@@ -96,8 +99,6 @@ def write_transforms(folder: str | Path, frames: list[dict], camera_label: str =
                      camera_model: str = "linear", extra: dict | None = None) -> None:
     """Write transforms_with_sparse_depth.json (frames as given) and transforms.json (without
     the per-frame ``sparse_depth``), atomically, as the authors' preprocessing leaves them."""
-    from egobench.data.layout import TRANSFORMS, TRANSFORMS_WITH_DEPTH
-
     obj: dict[str, Any] = {"camera_model": camera_model, "camera_label": camera_label}
     obj.update(extra or {})
     plain = [{k: v for k, v in f.items() if k != "sparse_depth"} for f in frames]
@@ -108,8 +109,6 @@ def write_transforms(folder: str | Path, frames: list[dict], camera_label: str =
 
 def write_png(path: str | Path, image: np.ndarray) -> None:
     """Write an 8-bit PNG atomically (RGB [H,W,3] or grey [H,W] uint8)."""
-    import cv2
-
     image = np.asarray(image)
     if image.dtype != np.uint8:
         raise ValueError(f"write_png({path}): expected uint8, got {image.dtype}")
@@ -187,9 +186,6 @@ def read_transforms(path: str | Path, check_files: bool = True) -> TransformsFil
     """Parse and validate a transforms file (or a stream folder's: transforms_with_sparse_depth.json,
     else transforms.json); ValueError names the file, frame and field. Paths inside are relative
     to the file's folder."""
-    from egobench.data.layout import TRANSFORMS_WITH_DEPTH, stream_file, transforms_file
-    from egobench.io_utils import read_json
-
     path = Path(path)
     if path.is_dir():
         found = transforms_file(path)
@@ -254,9 +250,6 @@ def read_transforms(path: str | Path, check_files: bool = True) -> TransformsFil
 
 def read_sparse_depth(path: str | Path, where: str = ""):
     """Sparse depth JSON -> egobench.data.recording.SparseDepth; ValueError names the file."""
-    from egobench.data.recording import SparseDepth
-    from egobench.io_utils import read_json
-
     path = Path(path)
     obj = read_json(path)
     keys = ("u", "v", "z", "inverseDistanceStd", "distanceStd")
@@ -276,8 +269,6 @@ def read_sparse_depth(path: str | Path, where: str = ""):
 
 
 def read_png(path: str | Path, what: str, grey: bool = True) -> np.ndarray:
-    import cv2
-
     img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE if grey else cv2.IMREAD_COLOR)
     if img is None:
         raise ValueError(f"{path}: {what} image missing or unreadable")

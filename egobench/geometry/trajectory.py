@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import torch
 from torch import Tensor
 
@@ -183,8 +184,6 @@ class Trajectory:
     @classmethod
     def from_mps_csv(cls, path: str | os.PathLike) -> "Trajectory":
         """Read MPS closed_loop_trajectory.csv (timestamps us -> ns, quaternion xyzw -> wxyz)."""
-        import pandas as pd
-
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"{path}: trajectory file not found")
@@ -229,8 +228,6 @@ class Trajectory:
 
     def to_mps_csv(self, path: str | os.PathLike, graph_uid: str = DEFAULT_GRAPH_UID) -> None:
         """Write the MPS closed_loop_trajectory.csv columns (atomically); t_ns must be whole microseconds."""
-        import pandas as pd
-
         rem = torch.remainder(self.t_ns, 1000)
         if bool((rem != 0).any()):
             i = int((rem != 0).nonzero()[0, 0])

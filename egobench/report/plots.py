@@ -22,19 +22,23 @@ from __future__ import annotations
 import argparse
 import json
 import re
+import tempfile
 from pathlib import Path
 from typing import Sequence
 
+import cv2
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from egobench.data.reader import add_input_arguments, load_recording  # noqa: E402
 from egobench.report import paper_numbers as pn  # noqa: E402
 from egobench.report.outputs import FIGURE_FILES, FIGURES  # noqa: E402
 from egobench.io_utils import atomic_path  # noqa: E402
 from egobench.report.tables import GROUPS, RunRecord, gains_frame, load_records, method_label  # noqa: E402
+from egobench.sim.figures import motion_displacement_figure  # noqa: E402
 
 OUTPUT_FILES = FIGURE_FILES  # every file `make_plots` writes (egobench.report.outputs)
 #: Columns of the qualitative figure (after the ground truth), in the paper's order.
@@ -127,8 +131,6 @@ def head_speed_figure(records: Sequence[RunRecord]):
 
 
 def _read_rgb(path: Path) -> np.ndarray:
-    import cv2
-
     img = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if img is None:
         raise ValueError(f"{path}: render is missing or unreadable")
@@ -158,10 +160,6 @@ def ground_truth(record: RunRecord, frame: int, shape: tuple[int, ...]) -> np.nd
     """The captured held-out image of ``frame`` at the render's ``shape`` [H, W, 3]."""
     gt = _gt_cheap(record.run_dir, frame)
     if gt is None:
-        import cv2
-
-        from egobench.data.reader import load_recording
-
         rec_path = record.raw.get("recording")
         if not rec_path:
             raise ValueError(f"{record.path}: field 'recording' is missing; cannot find the ground truth of frame {frame}")
@@ -276,15 +274,6 @@ def motion_figure(recordings: Sequence[str | Path], trajectory: str | None = Non
     (read with ``trajectory`` / ``points`` when given: the CLI's --trajectory / --points)."""
     if not recordings:
         return placeholder_figure("Motion displacement", "no recording given (--recordings)"), "placeholder: no recording"
-    try:
-        from egobench.sim.figures import motion_displacement_figure
-    except ImportError as exc:
-        return placeholder_figure("Motion displacement", f"egobench.sim.figures unavailable ({exc})"), \
-            f"placeholder: egobench.sim.figures.motion_displacement_figure unavailable ({exc})"
-    import tempfile
-
-    from egobench.data.reader import load_recording
-
     rec_path = Path(recordings[0])
     rec = load_recording(rec_path, "online", trajectory_path=trajectory, semidense_path=points)
     with tempfile.TemporaryDirectory() as tmp:
@@ -332,8 +321,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--recordings", nargs="*", default=[], help="recording folders (motion-displacement figure)")
     parser.add_argument("--qualitative-scene", default=None,
                         help="scene of the qualitative and 3x-gain figures (default: first scene with ours renders)")
-    from egobench.data.reader import add_input_arguments
-
     add_input_arguments(parser)  # for the --recordings figure
 
 

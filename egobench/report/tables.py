@@ -28,6 +28,7 @@ import pandas as pd
 from egobench.report import paper_numbers as pn
 from egobench.report.outputs import TABLE_FILES
 from egobench.io_utils import atomic_path, read_json
+from egobench.model.methods import get_method
 
 RUN_SCHEMA = "egobench.run/1"
 #: Metrics a record may carry (None = not measured).
@@ -55,8 +56,6 @@ PAPER_BLOCK = "paper"
 def method_label(method: str, group: str | None = None) -> str:
     """The paper's row label of a method (egobench/model/methods.py), or its key if unregistered."""
     try:
-        from egobench.model.methods import get_method
-
         spec = get_method(method)
     except (ImportError, ValueError):
         return method

@@ -37,6 +37,7 @@ import torch
 
 from egobench import portable_math as pm
 from egobench.data.mps import CalibrationRecord, CameraCalibration
+from egobench.geometry import so3_exp
 from egobench.sim.config import SimConfig
 from egobench.sim.devices import ARIA_SLAM, DeviceProfile, get_device
 
@@ -57,8 +58,6 @@ def _random_unit(rng: np.random.Generator, n: int) -> np.ndarray:
 
 
 def _rotation(axis: np.ndarray, angle_rad: float) -> np.ndarray:
-    from egobench.geometry import so3_exp
-
     return so3_exp(torch.as_tensor(axis * angle_rad, dtype=torch.float64)).numpy()
 
 

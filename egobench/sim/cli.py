@@ -11,10 +11,10 @@ from __future__ import annotations
 import argparse
 import json
 
+from egobench.sim.config import SCENE_KINDS, SimConfig
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from egobench.sim.config import SCENE_KINDS
-
     parser.add_argument("--kind", required=True, choices=SCENE_KINDS, help="scene kind")
     parser.add_argument("--out", required=True, help="recording folder to write (replaced atomically)")
     parser.add_argument("--seed", type=int, default=0, help="seed of scene, motion, noise and calibration errors")
@@ -40,7 +40,6 @@ def parse_overrides(items: list[str]) -> dict[str, str]:
 
 def run(args: argparse.Namespace) -> int:
     from egobench.sim.capture import simulate_recording
-    from egobench.sim.config import SimConfig
 
     overrides = parse_overrides(args.overrides)
     if args.frames is not None:

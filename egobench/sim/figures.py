@@ -13,10 +13,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from egobench.data.reader import load_recording
+from egobench.geometry import se3_inverse, transform_points
+from egobench.io_utils import atomic_path
+
 
 def _frame_points_world(recording, frame) -> torch.Tensor:  # [P, 3] float64
-    from egobench.geometry import transform_points
-
     cam = recording.camera
     sd = frame.sparse_depth
     if sd is not None and sd.z.shape[0] > 0:
@@ -27,7 +29,6 @@ def _frame_points_world(recording, frame) -> torch.Tensor:  # [P, 3] float64
     pts = recording.points_world.to(torch.float64)
     if pts.shape[0] == 0:
         return pts
-    from egobench.geometry import se3_inverse
 
     pc = transform_points(se3_inverse(frame.T_world_camera.to(torch.float64)), pts)
     uv, ok = cam.project(pc)
@@ -37,8 +38,6 @@ def _frame_points_world(recording, frame) -> torch.Tensor:  # [P, 3] float64
 
 def readout_displacement_px(recording, frame) -> np.ndarray:  # [P]
     """Pixel displacement of the frame's sparse points between the read-start and read-end poses."""
-    from egobench.geometry import se3_inverse, transform_points
-
     if isinstance(frame, int):
         frame = recording.frames[frame]
     pts = _frame_points_world(recording, frame)
@@ -69,8 +68,6 @@ def motion_displacement_figure(recording, out_png: str | Path) -> np.ndarray:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from egobench.io_utils import atomic_path
-
     q = displacement_percentiles(recording)
     t = np.array([(f.timestamp_ns - recording.frames[0].timestamp_ns) * 1e-9 for f in recording.frames])
     fig, ax = plt.subplots(figsize=(7, 3), dpi=120)
@@ -94,9 +91,6 @@ def contact_sheet(recording_dir: str | Path, out_png: str | Path, n: int = 8) ->
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from egobench.data.reader import load_recording
-    from egobench.io_utils import atomic_path
 
     rec = load_recording(recording_dir, "online")
     rec_f = None

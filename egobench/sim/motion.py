@@ -38,12 +38,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
 import numpy as np
+import pandas as pd
 import torch
 
 from egobench import portable_math as pm
+from egobench.geometry import Trajectory
 
 if TYPE_CHECKING:  # pragma: no cover
-    from egobench.geometry import Trajectory
     from egobench.sim.world import Scene, WalkRegion
 
 MotionSetting = Literal["normal", "fast", "static"]
@@ -428,8 +429,6 @@ def head_motion_arrays(config: HeadMotionConfig, scene: "Scene", seed: int) -> t
 
 def simulate_head_motion(config: HeadMotionConfig, scene: "Scene", seed: int) -> "Trajectory":
     """A 1 kHz (config.rate_hz) trajectory of the look frame (+z = gaze) in ``scene``'s world."""
-    from egobench.geometry import Trajectory
-
     t_ns, T = head_motion_arrays(config, scene, seed)
     return Trajectory(torch.from_numpy(t_ns), torch.from_numpy(T))
 
@@ -449,8 +448,6 @@ def _gravity_alignment(gravity_world: np.ndarray) -> np.ndarray:
 
 def _read_gravity(path: Path) -> np.ndarray:
     """Mean gravity_{x,y,z}_world of an MPS csv; (0, 0, -9.81) when the columns are absent."""
-    import pandas as pd
-
     cols = ["gravity_x_world", "gravity_y_world", "gravity_z_world"]
     header = pd.read_csv(path, nrows=0).columns
     if not all(c in header for c in cols):
@@ -475,8 +472,6 @@ def replay_trajectory(path_csv: str | Path, scene: "Scene", rgb_axis_device: tup
        the walk region; among ``yaw_candidates`` yaws x a grid of start points the one keeping
        most of the path inside the walk region is used. Timestamps are kept.
     """
-    from egobench.geometry import Trajectory
-
     path = Path(path_csv)
     real = Trajectory.from_mps_csv(path)
     T = real.T_world_device.numpy().copy()

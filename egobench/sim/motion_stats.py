@@ -21,7 +21,10 @@ from pathlib import Path
 
 import numpy as np
 
+from egobench.geometry import Trajectory
 from egobench.io_utils import atomic_path, write_json
+from egobench.sim.motion import HeadMotionConfig, simulate_head_motion
+from egobench.sim.world import make_scene
 
 PERCENTILES: tuple[int, ...] = (25, 50, 75, 90, 99)
 SETTINGS: tuple[str, ...] = ("normal", "fast", "static")
@@ -68,10 +71,6 @@ def motion_summary(trajectories: list) -> dict:
 def compare(real_csv: str | Path | None, kind: str, seeds: list[int], duration_s: float,
             settings: tuple[str, ...] = SETTINGS) -> dict:
     """Rows {source: summary} for the real csv (if given) and each simulated setting."""
-    from egobench.geometry import Trajectory
-    from egobench.sim.motion import HeadMotionConfig, simulate_head_motion
-    from egobench.sim.world import make_scene
-
     rows: dict[str, dict] = {}
     if real_csv is not None:
         rows["real"] = motion_summary([Trajectory.from_mps_csv(real_csv)]) | {"source": str(real_csv)}

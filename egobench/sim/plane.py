@@ -6,12 +6,16 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 from torch import Tensor
 
 from egobench.camera.pinhole import Pinhole
-from egobench.data.recording import Frame, Recording
+from egobench.data.recording import Frame, Recording, SparseDepth
+from egobench.geometry import TrajectoryVelocity, se3_exp
+from egobench.render import render
+from egobench.render.types import Gaussians
 
 
 class TwistTrajectory:
@@ -21,15 +25,11 @@ class TwistTrajectory:
         self.T0, self.xi, self.t0_ns = T0.to(torch.float64), xi_per_s.to(torch.float64), int(t0_ns)
 
     def pose(self, t_ns) -> Tensor:
-        from egobench.geometry import se3_exp
-
         t = torch.as_tensor(t_ns).reshape(-1).to(torch.float64)
         dt = (t - self.t0_ns) * 1e-9
         return self.T0[None] @ se3_exp(dt[:, None] * self.xi[None])
 
     def velocity(self, t_ns):
-        from egobench.geometry import TrajectoryVelocity
-
         T = self.pose(t_ns)
         lin = (T[:, :3, :3] @ self.xi[:3, None])[..., 0]
         return TrajectoryVelocity(linear_world=lin, angular_device=self.xi[3:].expand(T.shape[0], 3).clone())
@@ -38,8 +38,6 @@ class TwistTrajectory:
 def _plane_gaussians():
     """The ground-truth scene: a 30 x 30 grid of coloured Gaussians on the plane z = 2.5 m
     (x in +-3 m, y in +-2 m), each 0.6 grid steps wide, nearly opaque."""
-    from egobench.render.types import Gaussians
-
     side = 30
     xs, ys = torch.linspace(-3.0, 3.0, side), torch.linspace(-2.0, 2.0, side)
     gx, gy = torch.meshgrid(xs, ys, indexing="xy")
@@ -55,8 +53,6 @@ def _plane_gaussians():
 
 def _sparse_depth(means_world: Tensor, T_world_camera: Tensor, cam: Pinhole):
     """The Gaussian centres [N, 3] seen in the image as sparse depth (u, v, z; tiny std)."""
-    from egobench.data.recording import SparseDepth
-
     T_cw = torch.linalg.inv(T_world_camera)
     pc = (means_world.double() @ T_cw[:3, :3].T + T_cw[:3, 3])
     uv, valid = cam.project(pc)
@@ -67,10 +63,6 @@ def _sparse_depth(means_world: Tensor, T_world_camera: Tensor, cam: Pinhole):
 
 def _write_frame(root: Path, i: int, truth, cam: Pinhole, T_wc: Tensor, with_ground_truth: bool) -> Path:
     """Render frame ``i`` at its centre-row pose; write images/NNNNN.png (and ground-truth depth/normal)."""
-    import cv2
-
-    from egobench.render import render
-
     with torch.no_grad():
         out = render(truth, cam, T_wc[None].float(), pixel_pose_index=None, mode="3dgs",
                      background=torch.zeros(3), backend="auto", want_normal=with_ground_truth)

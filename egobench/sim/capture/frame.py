@@ -16,6 +16,10 @@ from torch import Tensor
 from egobench import portable_math as pm
 from egobench.camera.pinhole import Pinhole
 from egobench.data.mps import CameraCalibration
+from egobench.data import transforms  # write_sparse_depth looked up per call (a test makes it fail midway)
+from egobench.data.transforms import frame_entry, write_png
+from egobench.geometry import se3_inverse, transform_points
+from egobench.sim.camera_calibration import calibration_record
 from egobench.sim.capture.auto_exposure import AutoExposureState
 from egobench.sim.capture.raw import (
     FLOAT16_MAX,
@@ -60,8 +64,6 @@ def _noise_generator(config: SimConfig) -> torch.Generator:
 
 def restore_run(setup: CaptureSetup, out_dir: Path, states: list[dict]) -> CaptureRun:
     """A fresh run, advanced past the frames earlier runs completed (`states`: their state records in order)."""
-    from egobench.sim.camera_calibration import calibration_record
-
     config = setup.config
     run = CaptureRun(result=CaptureResult(path=out_dir, n_frames=config.n_frames, time_s=0.0),
                      auto_exposure=AutoExposureState(device=setup.device, protocol=config.protocol,
@@ -169,8 +171,6 @@ class RawFrame:
 
 def capture_raw_frame(setup: CaptureSetup, run: CaptureRun, k: int, partial: Path) -> RawFrame:
     """Frame k's raw capture: preview and auto-exposure, rolling-shutter irradiance, formation (raw/ PNG if asked)."""
-    from egobench.data.transforms import write_png
-
     config = setup.config
     read_start_true = setup.clocks.read_start_true_ns(k)
     exp = _expose_frame(setup, run.auto_exposure, read_start_true)
@@ -224,8 +224,6 @@ def _write_ground_truth(setup: CaptureSetup, frame: RawFrame, partial: Path) -> 
 
 def visible_semidense(setup: CaptureSetup, t_ns: int) -> Tensor:
     """[M] bool: filtered semi-dense points not occluded from the true camera centre at `t_ns`."""
-    from egobench.geometry import se3_inverse, transform_points
-
     clean = setup.semidense.clean_world
     T_mid = camera_poses(setup.trajectory, as_transform(setup.cals.true), [t_ns])[0]
     visible = torch.zeros(clean.shape[0], dtype=torch.bool)
@@ -255,9 +253,6 @@ def stream_frame_times_ns(cal: CameraCalibration, read_start_cam_ns: int, readou
 
 def _write_sparse_depth(setup: CaptureSetup, rig: tuple[Rectification, Pinhole], T_world_camera: Tensor, visible: Tensor, path: Path) -> None:
     """The visible filtered semi-dense points (noisy) projected into a rig's pinhole -> its sparse depth file."""
-    from egobench.data.transforms import write_sparse_depth
-    from egobench.geometry import se3_inverse, transform_points
-
     rect, pin = rig
     sd_filtered = setup.semidense.filtered
     pcam = transform_points(se3_inverse(T_world_camera), setup.semidense.noisy_world[visible])
@@ -267,16 +262,13 @@ def _write_sparse_depth(setup: CaptureSetup, rig: tuple[Rectification, Pinhole],
     iv = uv[:, 1].round().long().clamp(0, pin.height - 1)
     inside &= rect.valid[iv, iu]
     idx = visible.nonzero()[:, 0][inside]
-    write_sparse_depth(path, uv[inside].numpy(), pcam[inside, 2].numpy(), sd_filtered.inv_dist_std[idx.numpy()],
-                       sd_filtered.dist_std[idx.numpy()])
+    transforms.write_sparse_depth(path, uv[inside].numpy(), pcam[inside, 2].numpy(),
+                                  sd_filtered.inv_dist_std[idx.numpy()], sd_filtered.dist_std[idx.numpy()])
 
 
 def _write_stream_frame(setup: CaptureSetup, run: CaptureRun, name: str, cal: CameraCalibration, frame: RawFrame,
                         visible: Tensor, partial: Path) -> None:
     """Frame k in the stream of calibration `name`: rectified image, transforms entry, sparse depth (online: calibration line)."""
-    from egobench.data.transforms import frame_entry, write_png
-    from egobench.sim.camera_calibration import calibration_record
-
     k = frame.index
     rect, pin = setup.rigs[name]
     stream = partial / setup.streams[name]

@@ -15,6 +15,8 @@ from torch import Tensor
 from egobench import portable_math as pm
 from egobench.camera.rectify import readout_range
 from egobench.data.mps import CameraCalibration
+from egobench.geometry import Trajectory, make_pose, se3_inverse, transform_points
+from egobench.model.formation import exposure_sample_times_ns
 from egobench.sim.config import SimConfig
 from egobench.sim.devices import DeviceProfile
 from egobench.sim.world import luminance
@@ -52,8 +54,6 @@ def device_trajectory(look_trajectory, device: DeviceProfile):
     is rotated (~39 deg) against the device frame, so T_world_device = T_world_look @
     [R_device_camera^T | 0]; then T_world_device @ T_device_camera looks along the head's +z.
     """
-    from egobench.geometry import Trajectory, make_pose
-
     R_dc = device.T_device_camera()[:3, :3]
     T_look_device = make_pose(R_dc.T, torch.zeros(3, dtype=torch.float64))
     return Trajectory(look_trajectory.t_ns, pm.matmul(look_trajectory.T_world_device, T_look_device))
@@ -268,8 +268,6 @@ def capture_irradiance(scene, trajectory, raw: RawCamera, read_start_ns: int, ex
     the pixel area once. Invalid raw pixels (outside the lens model) are 0. ``device``: where rays
     are built and cast (SimConfig.compute_device); the result comes back on the CPU.
     """
-    from egobench.model.formation import exposure_sample_times_ns
-
     H, W = raw.valid.shape
     P = int(raw.pixel_samples)
     S = paired_temporal_samples(int(n_samples), P)
@@ -340,8 +338,6 @@ def motion_during_exposure_px(trajectory, raw: RawCamera, points_world: Tensor, 
     t_rows = row_start_times_ns(read_start_ns, readout_s, H, raw.readout_rows)[[a, (a + b) // 2, b]]
     t_end = t_rows + int(round(exposure_s * 1e9))
     T = camera_poses(trajectory, as_transform(raw.calibration), torch.cat([t_rows, t_end]))
-    from egobench.geometry import se3_inverse, transform_points
-
     pc = transform_points(se3_inverse(T)[:, None], points_world[None])  # [6, P, 3]
     uv, ok = cam.project(pc)
     disp = (uv[3:] - uv[:3]).norm(dim=-1)

@@ -9,7 +9,15 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
 import numpy as np
+from tqdm import tqdm
 
+import egobench
+from egobench.data.layout import (FACTORY_CALIBRATION_FILE, MPS_SLAM, ONLINE_CALIBRATION_FILE, POINTS_FILE,
+                                  TRAJECTORY_FILE, link_mps_files)
+from egobench.data.mps import write_calibration_json, write_online_calibration, write_semidense_points
+from egobench.data.transforms import write_camera_maps, write_transforms
+from egobench.io_utils import write_json
+from egobench.sim.camera_calibration import calibration_record
 from egobench.sim.capture.frame import CaptureRun, frame_state, restore_run, simulate_frame
 from egobench.sim.capture.resume import (
     PARTIAL_SCHEMA,
@@ -46,9 +54,6 @@ def simulate_recording(config: SimConfig, out_dir: str | Path, progress: bool = 
     egobench.train.train); the result then has ``complete=False`` and ``path`` = the partial folder.
     On success the partial folder replaces `out_dir` (os.replace after removing an old `out_dir`).
     """
-    import egobench
-    from egobench.io_utils import write_json
-
     config.validate()
     if resume not in (True, False, "auto"):
         raise ValueError(f"simulate_recording: resume must be True, False or 'auto', got {resume!r}")
@@ -95,8 +100,6 @@ def simulate_recording(config: SimConfig, out_dir: str | Path, progress: bool = 
 # ----------------------------------------------------------------------------------------
 def _make_folders(config: SimConfig, partial: Path) -> None:
     """The partial folder's MPS folder and per-frame folders (raw/ only when raw frames are written)."""
-    from egobench.data.layout import MPS_SLAM
-
     for sub in (str(MPS_SLAM),) + frame_dirs(config)[1:]:
         (partial / sub).mkdir(parents=True, exist_ok=True)
     if config.write_raw:
@@ -105,8 +108,6 @@ def _make_folders(config: SimConfig, partial: Path) -> None:
 
 def _frame_indices(config: SimConfig, first: int, end: int, progress: bool):
     """Frames first..end-1, with a tqdm bar counting from `first` of n_frames when `progress`."""
-    from tqdm import tqdm
-
     iterator = range(first, end)
     if progress:
         iterator = tqdm(iterator, desc=f"simulate {config.recording_name}", unit="frame", initial=first,
@@ -116,8 +117,6 @@ def _frame_indices(config: SimConfig, first: int, end: int, progress: bool):
 
 def _write_stream_files(setup: CaptureSetup, frames_out: dict[str, list[dict]], partial: Path) -> None:
     """Each stream's camera maps (vignette, valid mask, row time ratio) and transforms.json."""
-    from egobench.data.transforms import write_camera_maps, write_transforms
-
     for name, cal in setup.calibrations():
         rect, pin = setup.rigs[name]
         stream = partial / setup.streams[name]
@@ -130,17 +129,6 @@ def _write_stream_files(setup: CaptureSetup, frames_out: dict[str, list[dict]], 
 
 def _write_mps_files(setup: CaptureSetup, calib_lines: list[CalibrationRecord], partial: Path) -> None:
     """Trajectory, semi-dense points, online calibration (MPS folder), factory calibration, per-stream links."""
-    from egobench.data.layout import (
-        FACTORY_CALIBRATION_FILE,
-        MPS_SLAM,
-        ONLINE_CALIBRATION_FILE,
-        POINTS_FILE,
-        TRAJECTORY_FILE,
-        link_mps_files,
-    )
-    from egobench.data.mps import write_calibration_json, write_online_calibration, write_semidense_points
-    from egobench.sim.camera_calibration import calibration_record
-
     mps_dir = partial / MPS_SLAM
     setup.trajectory.to_mps_csv(mps_dir / TRAJECTORY_FILE)
     write_semidense_points(mps_dir / POINTS_FILE, setup.semidense.points)
@@ -152,8 +140,6 @@ def _write_mps_files(setup: CaptureSetup, calib_lines: list[CalibrationRecord], 
 
 def _truth_json(setup: CaptureSetup, truth_frames: list[dict]) -> dict:
     """ground_truth/truth.json: the true calibration, calibration errors, hidden effects, units, frame records."""
-    from egobench.sim.camera_calibration import calibration_record
-
     config, dev, cals, clocks = setup.config, setup.device, setup.cals, setup.clocks
     noise_model = setup.photometric.noise_model
     return {
@@ -182,8 +168,6 @@ def _truth_json(setup: CaptureSetup, truth_frames: list[dict]) -> dict:
 
 def _recording_json(setup: CaptureSetup, result: CaptureResult) -> dict:
     """recording.json: name, kind, device, motion, seed, SimConfig, sizes, fps, time and temporal-sample summary."""
-    import egobench
-
     config, dev = setup.config, setup.device
     H_raw, W_raw = setup.raw.valid.shape
     return {
@@ -198,8 +182,6 @@ def _recording_json(setup: CaptureSetup, result: CaptureResult) -> dict:
 
 def _write_recording_files(setup: CaptureSetup, run: CaptureRun, partial: Path, t_begin: float) -> None:
     """The recording-level files once every frame is done: streams, MPS, truth.json, recording.json."""
-    from egobench.io_utils import write_json
-
     _write_stream_files(setup, run.frames_out, partial)
     _write_mps_files(setup, run.calib_lines, partial)
     run.result.time_s = run.elapsed_before_s + time.perf_counter() - t_begin
@@ -210,8 +192,6 @@ def _write_recording_files(setup: CaptureSetup, run: CaptureRun, partial: Path, 
 def _simulate_into(config: SimConfig, out_dir: Path, partial: Path, chash: str, states: list[dict], resuming: bool,
                    progress: bool, stop_after: int | None, t_begin: float) -> CaptureResult:
     """The body of `simulate_recording`: frames len(states).. into `partial`, then the recording files."""
-    from egobench.io_utils import write_json
-
     setup = build_capture_setup(config)
     if resuming:  # frames already completed by an earlier run: their records and the state after the last one
         drop_frames_from(partial, len(states), frame_dirs(config))

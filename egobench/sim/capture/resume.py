@@ -12,6 +12,9 @@ from typing import TYPE_CHECKING
 
 import torch
 
+import egobench
+from egobench.data.layout import stream_folder_name
+from egobench.io_utils import read_json
 from egobench.sim.config import SimConfig
 from egobench.sim.devices import get_device
 
@@ -30,8 +33,6 @@ RESUME_SUBDIR = ".resume"
 
 def stream_names(config: SimConfig) -> dict[str, str]:
     """calibration -> rectified stream folder name, by the authors' naming (egobench.data.layout)."""
-    from egobench.data.layout import stream_folder_name
-
     dev = get_device(config.device_name)
     focal = config.focal_ratio() * config.rectified_size
     return {name: stream_folder_name(dev.label, focal, config.rectified_size, factory=name == "factory")
@@ -52,8 +53,6 @@ def partial_dir(out_dir: str | Path) -> Path:
 
 def sim_config_hash(config: SimConfig) -> str:
     """sha1 (hex) of the canonical SimConfig (`to_dict`, sorted keys) and the egobench version."""
-    import egobench
-
     blob = json.dumps({"sim_config": config.to_dict(), "egobench_version": egobench.__version__}, sort_keys=True)
     return hashlib.sha1(blob.encode()).hexdigest()
 
@@ -65,8 +64,6 @@ def frame_state_path(partial: Path, k: int) -> Path:
 def read_partial(partial: Path, config_hash: str) -> tuple[list[dict], str | None]:
     """-> (state records of the completed frames 0..m-1 in order, None), or ([], why the partial
     folder cannot be resumed). Frame m is the first without a readable state file of this config."""
-    from egobench.io_utils import read_json
-
     manifest = partial / RESUME_SUBDIR / "partial.json"
     try:
         meta = read_json(manifest)

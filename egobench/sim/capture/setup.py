@@ -7,12 +7,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import cv2
 import numpy as np
 import torch
 from torch import Tensor
 
+from egobench.camera import Rectification
 from egobench.camera.pinhole import Pinhole
 from egobench.data.mps import CameraCalibration, SemiDensePoints
+from egobench.model.formation import FormationConfig, FormationModel, PoissonGaussianNoise, radial_vignette
+from egobench.sim.camera_calibration import make_calibrations
 from egobench.sim.capture.raw import (
     TRAJECTORY_MARGIN_S,
     RawCamera,
@@ -24,11 +28,11 @@ from egobench.sim.capture.resume import stream_names
 from egobench.sim.capture.semidense import make_semidense_points
 from egobench.sim.config import SimConfig
 from egobench.sim.devices import SEMIDENSE_NOISE, DeviceProfile, get_device
+from egobench.sim.motion import HeadMotionConfig, simulate_head_motion
+from egobench.sim.world import make_scene
 
 if TYPE_CHECKING:  # annotations only (these modules are imported lazily)
-    from egobench.camera import Rectification
     from egobench.geometry import Trajectory
-    from egobench.model.formation import FormationModel, PoissonGaussianNoise
     from egobench.sim.camera_calibration import CalibrationSet
 
 
@@ -54,8 +58,6 @@ def to_uint8(display: Tensor) -> np.ndarray:
 
 
 def jpeg_roundtrip(img: np.ndarray, quality: int) -> np.ndarray:
-    import cv2
-
     ok, buf = cv2.imencode(".jpg", cv2.cvtColor(img, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
     if not ok:
         raise ValueError("JPEG encoding failed")
@@ -64,8 +66,6 @@ def jpeg_roundtrip(img: np.ndarray, quality: int) -> np.ndarray:
 
 def rectification_rig(cal: CameraCalibration, rect_size: int, focal_ratio: float):
     """(Rectification, pinhole) of a calibration: pinhole f = focal_ratio * W, centred, same axes."""
-    from egobench.camera import Rectification
-
     W = H = int(rect_size)
     f = float(focal_ratio) * W
     pin = Pinhole(fx=f, fy=f, cx=(W - 1) / 2, cy=(H - 1) / 2, width=W, height=H)
@@ -77,8 +77,6 @@ def rectification_rig(cal: CameraCalibration, rect_size: int, focal_ratio: float
 # ----------------------------------------------------------------------------------------
 def calibrated_vignette(cal: CameraCalibration, dev: DeviceProfile) -> Tensor:
     """[H_raw, W_raw] the device's calibrated lens shading for `cal` (radial about its principal point)."""
-    from egobench.model.formation import radial_vignette
-
     p = cal.params
     return radial_vignette((cal.height, cal.width), 1.0 - dev.vignette_corner, dev.vignette_power,
                            centre=(float(p[1]), float(p[2])))
@@ -100,8 +98,6 @@ class FrameClocks:
 
 def _device_motion(config: SimConfig, dev: DeviceProfile, scene) -> Trajectory:
     """The device trajectory (T_world_device) over the frames plus TRAJECTORY_MARGIN_S each side."""
-    from egobench.sim.motion import HeadMotionConfig, simulate_head_motion
-
     duration_s = 2 * TRAJECTORY_MARGIN_S + config.n_frames / dev.fps
     look = simulate_head_motion(HeadMotionConfig(duration_s=duration_s, setting=config.motion), scene, config.seed)
     return device_trajectory(look, dev)
@@ -131,8 +127,6 @@ class PhotometricTruth:
 def _photometric_truth(config: SimConfig, dev: DeviceProfile, true_cal: CameraCalibration,
                        raw_hw: tuple[int, int]) -> PhotometricTruth:
     """Response, noise, lens shading and white balance the raw frames are formed with."""
-    from egobench.model.formation import FormationConfig, FormationModel, PoissonGaussianNoise, radial_vignette
-
     gamma = config.response_gamma if config.response_gamma is not None else dev.response_gamma
     formation = FormationModel(FormationConfig.ground_truth(gamma=gamma, noise=config.noise))
     noise_model = PoissonGaussianNoise(
@@ -219,9 +213,6 @@ class CaptureSetup:
 
 def build_capture_setup(config: SimConfig) -> CaptureSetup:
     """Device, calibrations, scene, trajectory, clocks, raw camera, formation, rigs, hidden frames, semi-dense points."""
-    from egobench.sim.camera_calibration import make_calibrations
-    from egobench.sim.world import make_scene
-
     dev = get_device(config.device_name)
     compute = config.compute_torch_device()
     cals = make_calibrations(config)

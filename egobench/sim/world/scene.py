@@ -10,7 +10,7 @@ import torch
 from torch import Tensor
 
 from egobench import portable_math as pm
-from egobench.sim.textures import evaluate_texture
+from egobench.sim.textures import evaluate_texture, value_noise
 from egobench.sim.world.lighting import AmbientLight, Light, PointLight, SkyDome, Sun, _rgb_unit_luminance
 from egobench.sim.world.primitives import (
     BIG_BOX_RADIUS_M,
@@ -499,8 +499,6 @@ def grain_factor(uv: Tensor, primitive_id: Tensor, amplitude: float, seed: int,
     flat within 2x from 0.5 m to 8 mm features (tests/sim/test_sim_similarity_knobs.py). Octaves finer
     than the footprint fade to their mean, so distant surfaces do not alias. Each primitive gets
     its own offset into the field."""
-    from egobench.sim.textures import value_noise
-
     p = uv + (primitive_id.to(uv.dtype) * 17.31)[:, None]
     w = [2.0 ** (o / 4.0) for o in range(GRAIN_OCTAVES)]
     norm = math.sqrt(sum(x * x for x in w))
