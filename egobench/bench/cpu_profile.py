@@ -23,7 +23,10 @@ import torch.nn.functional as F
 
 from egobench import bench
 from egobench.host import host_info, setup_threads, start_kernel_pool
+from egobench.render import cpu as ck
 from egobench.render import cpu_backend as cb
+from egobench.render import kernel_build, render
+from egobench.render.cpu import surfels as k2
 
 
 #: the clock of `_median_ms`: process CPU time (all threads) by default, which a shared machine's
@@ -53,8 +56,6 @@ def _work(rows_hit: np.ndarray, cw: int) -> dict:
 
 def _stages_3dgs(g, cam, width: int, n: int, tile_size: int, repeats: int) -> tuple[dict, dict]:
     """(stage -> median ms, work counts) of the 3DGS kernels on one pose."""
-    from egobench.render import cpu as ck
-
     means, quats, scales = (t.detach().numpy() for t in (g.means, g.quats, g.scales))
     opac = torch.sigmoid(g.opacity_logits).detach().numpy()
     lo = F.logsigmoid(g.opacity_logits).detach().numpy()
@@ -91,9 +92,6 @@ def _stages_3dgs(g, cam, width: int, n: int, tile_size: int, repeats: int) -> tu
 def _stages_2dgs(g, cam, width: int, n: int, tile_size: int, repeats: int) -> tuple[dict, dict]:
     """(stage -> median ms, work counts) of the 2DGS kernels on one pose (colour, depth, normal and the
     depth distortion, as `render(mode="2dgs")` composites them)."""
-    from egobench.render import cpu as ck
-    from egobench.render.cpu import surfels as k2
-
     means, quats, scales = (t.detach().numpy() for t in (g.means, g.quats, g.scales))
     lo = F.logsigmoid(g.opacity_logits).detach().numpy()
     vm, ca, I, N = np.eye(4, dtype=np.float32)[None], cb.camera_array(cam), 1, n
@@ -130,8 +128,6 @@ def _stages_2dgs(g, cam, width: int, n: int, tile_size: int, repeats: int) -> tu
 
 def _setup(m2, rad, dep, colors, nrm, width: int, tile_size: int, repeats: int):
     """(`raster_setup`'s result, its pixel views, its median ms, `bin_tiles`' median ms)."""
-    from egobench.render import cpu as ck
-
     pix_view, bin_needed = cb.pixel_views(None, 1, width, width, tile_size)
     tiles_x = math.ceil(width / tile_size)
     args = (m2, torch.from_numpy(rad), torch.from_numpy(dep), colors, torch.from_numpy(nrm), pix_view,
@@ -151,8 +147,6 @@ def _projection_bwd_buffers(means, quats, scales, vm, chunk: int) -> tuple[list,
 def _reduce_ms(isect: np.ndarray, flat_ids: np.ndarray, rows: int, repeats: int) -> float:
     import numba
 
-    from egobench.render import cpu as ck
-
     out = np.empty((isect.shape[1], rows), np.float32)
     return _median_ms(lambda: ck.reduce_isect_grad(isect, flat_ids, flat_ids.shape[0], out, np.zeros((0, 2)),
                                                    numba.get_num_threads()), repeats)
@@ -168,8 +162,6 @@ def stage_times(sigma_px: float = 2.5, width: int = 128, n: int = 20000, repeats
     """-> {stage: median ms, and the work counts} of the compiled backend's stages on the benchmark
     scene (float32, one pose), mode "3dgs" or "2dgs"; the whole bench step and the glue outside the
     kernels (step - stages)."""
-    from egobench.render import kernel_build, render
-
     spec = bench._case_spec((width, n, sigma_px))
     cam, g = bench.bench_camera(spec), bench.bench_scene(spec)
     cb.set_threads()

@@ -15,9 +15,15 @@ import argparse
 import json
 import statistics
 import sys
+import tempfile
 import time
 from collections import defaultdict
 from contextlib import contextmanager
+from pathlib import Path
+
+from egobench.bench import _scaling_threads, _timed_training, train_config, train_scene, warm_up
+from egobench.host import host_info, keep_freed_memory, setup_threads
+from egobench.train import loop
 
 #: the mark of a training step's start and end in the event list (not a kernel name)
 STEP, END = "<step>", "<end>"
@@ -46,8 +52,6 @@ def kernel_clock(events: list):
     """Within: every compiled kernel of the loaded ``egobench`` modules and the trainer's ``train_step`` append
     (name, start, end) to ``events`` (steps as `STEP` and `END` marks); the originals are put back on exit.
     Kernels must be compiled (or loaded) before: a kernel compiled within would see a wrapper as a global."""
-    from egobench.train import loop
-
     patched = []
     for mod in [m for k, m in list(sys.modules.items()) if k.startswith("egobench.") and m is not None]:
         for name in _dispatchers(mod):
@@ -116,11 +120,6 @@ def profile_training(method: str = "ours", side: int = 128, n_points: int = 2000
     """`step_breakdown` of one timed training run per thread count (after `bench.warm_up`), on `egobench bench
     train`'s scene and settings (`bench.train_scene`, `bench.train_config`); the first tenth of the steps is left
     out (allocations)."""
-    import tempfile
-    from pathlib import Path
-
-    from egobench.bench import _timed_training, train_config, train_scene, warm_up
-
     out = {}
     with tempfile.TemporaryDirectory() as tmp:
         rec = train_scene(Path(tmp) / "rec", side, n_points)
@@ -136,12 +135,7 @@ def profile_training(method: str = "ours", side: int = 128, n_points: int = 2000
 
 
 def main(argv: list[str] | None = None) -> int:
-    from egobench.host import setup_threads
-
-    setup_threads()  # an entry point (python -m): before the bench modules load numba
-    from egobench.bench import _scaling_threads
-    from egobench.host import host_info, keep_freed_memory
-
+    setup_threads()  # an entry point (python -m)
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--method", default="ours")
     p.add_argument("--resolution", type=int, default=128)

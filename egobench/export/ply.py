@@ -26,7 +26,10 @@ import torch
 from torch import Tensor
 
 from egobench.io_utils import atomic_path, holding_run_folder
+from egobench.model.predict import formation_model
 from egobench.render.torch_backend import NEAR_PLANE, VIEWER_NEAR_PLANE
+from egobench.render.types import Gaussians
+from egobench.train.checkpoint import load_trained_run
 
 SH_C0 = 0.28209479177387814
 
@@ -40,8 +43,6 @@ def ply_properties(mode: str = "3dgs", n_rest: int = 0) -> list[str]:
 
 def display_colours(colors: Tensor, spec) -> tuple[Tensor, str]:
     """[N, 3] scene colours -> (display colours at k = 1 without shading, what they mean)."""
-    from egobench.model.predict import formation_model
-
     if not spec.formation:
         return colors, "the trained colour (no image formation model)"
     if spec.scene_gamma:
@@ -74,8 +75,6 @@ def write_ply(path: str | Path, gaussians, mode: str, colours: Tensor, comments:
 def read_ply(path: str | Path):
     """An INRIA 3DGS (or 2DGS) PLY -> (`Gaussians` with colours ``0.5 + C0 f_dc``, mode). Binary little
     endian float properties only; ValueError names the file and what differs."""
-    from egobench.render.types import Gaussians
-
     path = Path(path)
     with open(path, "rb") as fh:
         lines = []
@@ -112,8 +111,6 @@ def read_ply(path: str | Path):
 @holding_run_folder("export", "run_dir", exclusive=False)
 def export_run(run_dir: str | Path, out: str | Path) -> dict:
     """Export a trained run's Gaussians to ``out`` (INRIA PLY); returns what was written."""
-    from egobench.train.checkpoint import load_trained_run
-
     run = load_trained_run(run_dir, "cpu", f"export {run_dir}")
     colours, meaning = display_colours(run.gaussians.colors, run.spec)
     comments = [f"egobench run {Path(run_dir).name}: method {run.spec.name}, iteration {run.checkpoint['iteration']}",

@@ -16,11 +16,18 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
+from tqdm import tqdm
 
+from egobench.data import load_recording
 from egobench.data.reader import add_input_arguments
 from egobench.io_utils import atomic_path, check_written, holding_run_folder
+from egobench.model.predict import (
+    RenderSettings, formation_model, method_normaliser, predict_frame, resize_map, run_maps, sample_counts,
+)
+from egobench.train.checkpoint import check_run_complete, load_trained_run, recording_for_run
 
 #: Panels are enlarged (nearest neighbour) to at least this height, with a label bar above.
 MIN_PANEL_PX, LABEL_PX = 256, 20
@@ -36,10 +43,6 @@ class _Panel:
 
 
 def _run_panel(run_dir, recording_dir, device: str | None):
-    from egobench.data import load_recording
-    from egobench.model.predict import RenderSettings, formation_model, method_normaliser, run_maps
-    from egobench.train.checkpoint import check_run_complete, load_trained_run
-
     run = load_trained_run(run_dir, device, f"render {run_dir}")
     check_run_complete(run_dir, run.checkpoint)
     rec = recording_dir if not isinstance(recording_dir, (str, Path)) else load_recording(recording_dir, run.spec.calibration)
@@ -53,8 +56,6 @@ def _run_panel(run_dir, recording_dir, device: str | None):
 
 def _predict(panel: _Panel, timestamp_ns: int) -> np.ndarray:
     """[H, W, 3] uint8: the panel's image of the frame at ``timestamp_ns``."""
-    from egobench.model.predict import predict_frame, resize_map, sample_counts
-
     held = panel.run
     frame = next((f for f in panel.recording.frames if f.timestamp_ns == timestamp_ns), None)
     if frame is None:
@@ -73,8 +74,6 @@ def _predict(panel: _Panel, timestamp_ns: int) -> np.ndarray:
 
 def _labelled(img: np.ndarray, label: str, scale: int) -> np.ndarray:
     """A panel enlarged ``scale`` x (nearest), with its label in a bar above (RGB uint8)."""
-    import cv2
-
     big = cv2.resize(img, (img.shape[1] * scale, img.shape[0] * scale), interpolation=cv2.INTER_NEAREST)
     bar = np.zeros((LABEL_PX, big.shape[1], 3), np.uint8)
     cv2.putText(bar, label, (4, LABEL_PX - 6), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1, cv2.LINE_AA)
@@ -87,9 +86,6 @@ def render_video(run_dir, recording_dir, out: str | Path, *, compare=None, captu
                  progress: bool = True) -> dict:
     """Render the recording's frames (every ``every``-th, at most ``max_frames``) as panels side by
     side into ``out`` (MPEG-4); returns frames, size and panels written."""
-    import cv2
-    from tqdm import tqdm
-
     if Path(out).suffix.lower() != ".mp4":
         raise ValueError(f"render: --video {out}: expected a .mp4 file (MPEG-4)")
     if every < 1 or (max_frames is not None and max_frames < 1) or not fps > 0:
@@ -137,8 +133,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from egobench.train.checkpoint import recording_for_run
-
     out = render_video(args.run, recording_for_run(args.run, args), args.video, compare=args.compare, captured=args.captured,
                        every=args.every, max_frames=args.max_frames, fps=args.fps, device=args.device,
                        progress=not args.no_progress)

@@ -29,6 +29,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from egobench.model.gamma_exposure import compiled_exposure_applies, gamma_expose
+
 ResponseKind = Literal["gamma", "linear", "srgb", "authors_srgb22"]
 
 #: Default camera response exponent (paper: "gamma value 2.2 as our default setting").
@@ -543,8 +545,6 @@ class FormationModel:
             scale = scale * _per_image(scale_k, scene_colour, "scale_k", positive=True)
         scale = scale * self._shading(scene_colour, vignette, white_balance)
         if isinstance(self.response, GammaResponse):
-            from egobench.model.gamma_exposure import compiled_exposure_applies, gamma_expose
-
             if compiled_exposure_applies(scene_colour, scale):  # one compiled pass on the CPU
                 return gamma_expose(scene_colour, scale, self.response.gamma, self.response.toe_linear,
                                     decode=scene_gamma, clamp=cfg.clamp)

@@ -39,6 +39,7 @@ import torch
 from torch import Tensor
 
 from egobench.data.recording import Frame, Recording
+from egobench.geometry import make_pose, so3_exp
 
 #: The released code measures pixel motion over this window (its `_motion_sample_max`, 2 ms).
 MOTION_WINDOW_S = 2e-3
@@ -242,8 +243,6 @@ def velocity_poses(T_world_camera: Tensor, twist_camera: Tensor, dt_s: Tensor) -
     (the pose and times, built on the host from the trajectory, follow a trainable twist on the GPU);
     differentiable in both inputs.
     """
-    from egobench.geometry import make_pose, so3_exp  # geometry is another engineer's module
-
     like = dict(device=twist_camera.device, dtype=twist_camera.dtype)
     dt = dt_s.to(**like)[:, None]  # [K, 1]
     T_rel = make_pose(so3_exp(dt * twist_camera[None, 3:]), dt * twist_camera[None, :3])  # [K, 4, 4]

@@ -9,26 +9,27 @@ response, scene gamma) that turns it into a predicted captured image (docs/paper
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import TYPE_CHECKING, Literal
+from dataclasses import dataclass, replace
+from typing import Literal
 
+import cv2
 import numpy as np
 import torch
 from torch import Tensor
 
+import egobench.render  # `egobench.render.render`, looked up at each call (tests replace it)
 from egobench.camera.pinhole import Pinhole
 from egobench.data.recording import Frame, Recording
+from egobench.geometry import se3_exp
+from egobench.model import motion_sampling  # its functions looked up at each call (tests replace them)
+from egobench.model.formation import FormationConfig, FormationModel, exposure_gain_normaliser
 from egobench.model.methods import MethodSpec
-from egobench.render.types import first_image
-
-if TYPE_CHECKING:  # pragma: no cover
-    from egobench.render.types import Gaussians, RenderOutput
+from egobench.model.shading import learned_vignette
+from egobench.render.types import Gaussians, RenderOutput, first_image
 
 
 def resize_map(x: Tensor, camera: Pinhole, kind: Literal["area", "nearest"] = "area") -> Tensor:
     """Resize an [H, W] or [H, W, C] map to the camera's size (area average, or nearest)."""
-    import cv2
-
     if tuple(x.shape[:2]) == (camera.height, camera.width):
         return x
     interp = cv2.INTER_AREA if kind == "area" else cv2.INTER_NEAREST
@@ -56,18 +57,12 @@ def frame_maps(recording: Recording, camera: Pinhole) -> FrameMaps:
 def run_maps(recording: Recording, run) -> FrameMaps:
     """`frame_maps` at a trained run's camera, its vignette times the lens shading the run learned
     (`egobench.model.shading`; unchanged for runs without one)."""
-    from dataclasses import replace
-
-    from egobench.model.shading import learned_vignette
-
     maps = frame_maps(recording, run.camera)
     return replace(maps, vignette=learned_vignette(maps.vignette, run.camera, run.checkpoint.get("extra") or {}, run.config))
 
 
 def exposure_normaliser(recording: Recording) -> Tensor:
     """k [F] over all frames of the recording (exposure*gain / median), float32."""
-    from egobench.model.formation import exposure_gain_normaliser
-
     exposure = torch.tensor([f.exposure_s for f in recording.frames], dtype=torch.float64)
     gain = torch.tensor([f.gain for f in recording.frames], dtype=torch.float64)
     return exposure_gain_normaliser(exposure, gain).to(torch.float32)
@@ -85,8 +80,6 @@ def sample_counts(recording: Recording, frames: list[Frame], spec: MethodSpec, m
 
     A frame whose sparse depth is empty gets 1 sample (as the released code: it cannot see motion).
     """
-    from egobench.model.motion_sampling import estimate_motion
-
     if spec.motion_sampling == "centre":
         return [1] * len(frames)
     counts = []
@@ -94,23 +87,19 @@ def sample_counts(recording: Recording, frames: list[Frame], spec: MethodSpec, m
         if f.sparse_depth is None or len(f.sparse_depth.z) == 0:
             counts.append(1)
             continue
-        est = estimate_motion(recording, f, max_samples=max_samples, rule=rule, pixel_scale=pixel_scale)
+        est = motion_sampling.estimate_motion(recording, f, max_samples=max_samples, rule=rule, pixel_scale=pixel_scale)
         counts.append(est.n_samples)
     return counts
 
 
 def gaussians_from_params(params: dict) -> "Gaussians":
     """The trainer's parameter dict (means, scales, quats, opacities, colors) as `Gaussians`."""
-    from egobench.render.types import Gaussians
-
     return Gaussians(means=params["means"], quats=params["quats"], log_scales=params["scales"],
                      opacity_logits=params["opacities"], colors=params["colors"])
 
 
 def formation_model(spec: MethodSpec):
     """The trainer's image formation model for ``spec`` (its response gamma)."""
-    from egobench.model.formation import FormationConfig, FormationModel
-
     return FormationModel(FormationConfig.paper_trainer(gamma=spec.response_gamma))
 
 
@@ -131,13 +120,11 @@ class PoseSampleCache:
 
     def samples(self, recording: Recording, frame: Frame, n: int, n_exposure_samples: int,
                 row_time_ratio: Tensor) -> tuple[Tensor, Tensor | None]:
-        from egobench.model.motion_sampling import exposure_pose_samples, pixel_pose_index
-
         key = (int(frame.timestamp_ns), n, n_exposure_samples)
         if key not in self.poses:
-            self.poses[key] = exposure_pose_samples(recording, frame, n, n_exposure_samples).to(torch.float32)
+            self.poses[key] = motion_sampling.exposure_pose_samples(recording, frame, n, n_exposure_samples).to(torch.float32)
         if n > 1 and n not in self.ppi:
-            self.ppi[n] = pixel_pose_index(row_time_ratio, n)
+            self.ppi[n] = motion_sampling.pixel_pose_index(row_time_ratio, n)
         return self.poses[key], self.ppi.get(n) if n > 1 else None
 
 
@@ -151,8 +138,6 @@ def frame_poses(recording: Recording, frame: Frame, spec: MethodSpec, n: int, ro
     pose-optimising / velocity-shift methods. ``cache`` (a run's, for its fixed ``row_time_ratio``)
     keeps the trajectory samples and pixel indices between calls.
     """
-    from egobench.geometry import se3_exp
-
     if spec.motion_sampling == "velocity_shift":
         return _velocity_shift_poses(recording, frame, n, row_time_ratio, pose_delta, twist, n_exposure_samples)
     if n == 1 and n_exposure_samples == 1:
@@ -170,21 +155,16 @@ def _velocity_shift_poses(recording: Recording, frame: Frame, n: int, row_time_r
                           pose_delta: Tensor | None, twist: Tensor | None,
                           n_exposure_samples: int) -> tuple[Tensor, Tensor | None]:
     """3DGS-on-the-move: the centre pose moved by a constant twist over the pinhole row times."""
-    from egobench.geometry import se3_exp
-    from egobench.model.motion_sampling import (
-        frame_twist_camera, linear_row_time_ratio, pixel_pose_index, sample_times_ns, velocity_poses,
-    )
-
     H, W = row_time_ratio.shape
     T_c = frame.T_world_camera.to(torch.float32)
     if pose_delta is not None:  # a trainable on the training device: the host pose follows it
         T_c = T_c.to(pose_delta.device) @ se3_exp(pose_delta.to(torch.float32))
     if twist is None:
-        twist = frame_twist_camera(recording, frame).to(torch.float32)
-    times = sample_times_ns(frame, n, n_exposure_samples)  # [M, K]
+        twist = motion_sampling.frame_twist_camera(recording, frame).to(torch.float32)
+    times = motion_sampling.sample_times_ns(frame, n, n_exposure_samples)  # [M, K]
     dt = ((times - float(frame.timestamp_ns)) * 1e-9).reshape(-1)
-    poses = velocity_poses(T_c, twist.to(torch.float32), dt).reshape(times.shape[0], n, 4, 4)
-    ppi = pixel_pose_index(linear_row_time_ratio(H, W).to(row_time_ratio.device), n) if n > 1 else None
+    poses = motion_sampling.velocity_poses(T_c, twist.to(torch.float32), dt).reshape(times.shape[0], n, 4, 4)
+    ppi = motion_sampling.pixel_pose_index(motion_sampling.linear_row_time_ratio(H, W).to(row_time_ratio.device), n) if n > 1 else None
     return poses, ppi
 
 
@@ -206,13 +186,11 @@ class RenderSettings:
 def render_frame(gaussians, camera: Pinhole, poses: Tensor, ppi: Tensor | None, spec: MethodSpec,
                  settings: RenderSettings, want_normal: bool = False) -> list["RenderOutput"]:
     """Render the M exposure samples of one frame -> list of M RenderOutput (one image each)."""
-    from egobench.render import render
-
     device = settings.device
     bg = torch.tensor(settings.background, dtype=torch.float32, device=device)
     outs = []
     for m in range(poses.shape[0]):  # exposure samples (1 unless the method asks for blur)
-        outs.append(render(
+        outs.append(egobench.render.render(
             gaussians, camera, poses[m].to(device),
             pixel_pose_index=None if ppi is None else ppi.to(device),
             mode=spec.splat_mode, background=bg, backend=settings.backend,

@@ -24,7 +24,16 @@ from torch import Tensor
 
 from egobench.camera.pinhole import Pinhole
 from egobench.host import RASTER_THREADS_ENV, kernel_threads, raster_threads, start_kernel_pool  # noqa: F401  (re-exported)
+from egobench.render import kernel_build
 from egobench.render.types import Gaussians, RenderOutput
+
+try:  # the numba kernels; when they cannot load, `load_error` says why and `render` uses the torch backend
+    from egobench.render import cpu as ck
+except Exception as _exc:  # ImportError (numba missing), llvmlite load failure
+    ck, _LOAD_ERROR = None, f"{type(_exc).__name__}: {_exc}".splitlines()[0]
+else:
+    _LOAD_ERROR = None
+    from egobench.render import cpu_backend_2dgs  # it imports this module back (as `cb`)
 
 #: gsplat 1.5.3 projection constants (as torch_backend)
 EPS2D, NEAR_PLANE, FAR_PLANE = 0.3, 0.01, 1e10
@@ -39,11 +48,7 @@ DEFAULT_TILE = 16
 @functools.lru_cache(maxsize=1)
 def load_error() -> str | None:
     """None when the numba kernels import (and so can compile); else a one-line reason."""
-    try:
-        from egobench.render import cpu  # noqa: F401
-    except Exception as exc:  # ImportError (numba missing), llvmlite load failure
-        return f"{type(exc).__name__}: {exc}".splitlines()[0]
-    return None
+    return _LOAD_ERROR
 
 
 @functools.lru_cache(maxsize=None)
@@ -77,8 +82,6 @@ def set_threads() -> None:
 def pose_grad(gv_parts: np.ndarray, dt: torch.dtype) -> Tensor:
     """Per-chunk partial dL/d viewmat[:3, :4] [chunks, I, 12] -> dL/d viewmats [I, 4, 4], summed in
     chunk order (deterministic for any thread count)."""
-    from egobench.render import cpu as ck
-
     chunks, I = gv_parts.shape[:2]
     part = np.empty((I * 12, 1))
     ck.ordered_sum(gv_parts.reshape(1, chunks, I * 12), part)
@@ -106,8 +109,6 @@ def raster_setup(m2: np.ndarray, radii: Tensor, depths: Tensor, colors: Tensor, 
                  pix_view: np.ndarray, bin_needed: np.ndarray, tile_size: int) -> RasterSetup:
     """m2 [I,N,2] (gsplat pixels), radii [I,N,2], depths [I,N], colors [N,3], normals [I,N,3] or
     [I,0,3]; pix_view [Iout,H,W]; bin_needed [I, tiles] -> intersections and kernel constants."""
-    from egobench.render import cpu as ck
-
     I, N = depths.shape
     _, H, W = pix_view.shape
     tiles_x, tiles_y = math.ceil(W / tile_size), math.ceil(H / tile_size)
@@ -142,8 +143,6 @@ def table_buffer(rows: int, dtype: np.dtype) -> np.ndarray:
     `CACHE_LINE` boundaries: one line per row in float32 (two in float64), so the compositing loops'
     prefetch of a row's start brings the whole row. numpy's buffers start 16 bytes into a line (glibc),
     which split every row over two lines."""
-    from egobench.render import cpu as ck
-
     nbytes = rows * ck.TAB_COLS * np.dtype(dtype).itemsize
     raw = np.empty(nbytes + CACHE_LINE, np.uint8)
     start = -raw.ctypes.data % CACHE_LINE
@@ -163,8 +162,6 @@ def reduce_intersections(isect: np.ndarray, flat_ids: np.ndarray, I: int, N: int
     of |row[:2]|) when a holder is given."""
     import numba
 
-    from egobench.render import cpu as ck
-
     absg = np.zeros((I * N if absgrad_holder is not None else 0, 2))
     per = torch.empty((isect.shape[1], I * N), dtype=dt)  # every entry written (zeros where no intersection)
     ck.reduce_isect_grad(isect, flat_ids, flat_ids.shape[0], per.numpy(), absg, numba.get_num_threads())
@@ -177,8 +174,6 @@ def pose_sums(per: Tensor, c0: int, c1: int) -> Tensor:
     """Channels [c0, c1) of `reduce_intersections`' [I, N, C] view summed over the poses -> [N, c1 - c0],
     contiguous (autograd keeps it as the parameter's gradient instead of copying a transposed view): one
     compiled pass over the channel-first block underneath, the poses added in order (`ck.ordered_sum`)."""
-    from egobench.render import cpu as ck
-
     block = contiguous_numpy(per.permute(2, 0, 1)[c0:c1])  # [c1 - c0, I, N], a view of the block
     out = np.empty((block.shape[2], c1 - c0), block.dtype)
     ck.ordered_sum(block, out)
@@ -193,8 +188,6 @@ def pixel_views(pixel_pose_index: Tensor | None, I: int, H: int, W: int, ts: int
     if pixel_pose_index is None:
         pix_view = np.ascontiguousarray(np.broadcast_to(np.arange(I, dtype=np.int64)[:, None, None], (I, H, W)))
         return pix_view, np.ones((I, tiles_y * tiles_x), dtype=np.bool_)
-    from egobench.render import cpu as ck
-
     ppi = np.ascontiguousarray(pixel_pose_index.detach().cpu().long().numpy())
     bin_needed = np.zeros((I, tiles_y * tiles_x), dtype=np.bool_)
     ck.needed_bins(ppi, ts, tiles_x, bin_needed)
@@ -207,8 +200,6 @@ class _Project(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, means, quats, scales, viewmats, opac, cam, width, height, want_normal, pixel_offset=0.0):
-        from egobench.render import cpu as ck
-
         I, N = viewmats.shape[0], means.shape[0]
         dt = means.dtype
         m2 = np.empty((I, N, 2), dtype=contiguous_numpy(means).dtype)
@@ -229,8 +220,6 @@ class _Project(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_m2, g_con, g_dep, g_nrm, _g_radii):
-        from egobench.render import cpu as ck
-
         means, quats, scales, viewmats = ctx.saved_tensors
         cam, width, height, want_normal = ctx.args
         I, N = viewmats.shape[0], means.shape[0]
@@ -266,8 +255,6 @@ class _Rasterize(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, log_opac, colors, depths, normals, radii, pix_view, bin_needed, tile_size,
                 absgrad_target):
-        from egobench.render import cpu as ck
-
         I, N = depths.shape
         Iout, H, W = pix_view.shape
         m2 = gsplat_pixels(means2d)
@@ -291,8 +278,6 @@ class _Rasterize(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_rgb, g_depth, g_normal, g_T):
-        from egobench.render import cpu as ck
-
         tab, st, pix_view, ts, out_T, out_last, rows_hit, ab = ctx.state
         I, N, dt = ctx.shapes
         Cf = st.feats.shape[1]
@@ -313,13 +298,9 @@ def render_cpu(gaussians: Gaussians, camera: Pinhole, viewmats: Tensor, *, pixel
                mode: str = "3dgs") -> RenderOutput:
     """Render with the compiled kernels; same contract as the torch path of `render`.
     viewmats [I, 4, 4] world-to-camera; pixel_pose_index [H, W] or None; mode "3dgs" or "2dgs"."""
-    from egobench.render import kernel_build
-
     start_kernel_pool()  # before a parallel kernel loads (loading one starts numba's pool)
     kernel_build.ensure_built(gaussians.means.dtype, mode)  # compiled in a child, loaded here: same code everywhere
     if mode == "2dgs":
-        from egobench.render import cpu_backend_2dgs
-
         return cpu_backend_2dgs.render_cpu_2dgs(gaussians, camera, viewmats, pixel_pose_index=pixel_pose_index,
                                                 background=background, tile_size=tile_size, absgrad=absgrad)
     means = gaussians.means
@@ -361,11 +342,9 @@ def feature_outputs(out_feat: np.ndarray) -> tuple[Tensor, Tensor, Tensor]:
     channel group instead of adding zero-padded full-width ones. Depth and normal are views; rgb is copied
     out once, contiguous, for its readers (the exposure, the divergence check) that would each copy it.
     The layout is `ck.feature_table`'s: colour before the depth channel, the normal after it."""
-    from egobench.render.cpu import DEPTH_CH
-
     feat = torch.from_numpy(out_feat)
-    rgb = torch.from_numpy(np.ascontiguousarray(out_feat[..., :DEPTH_CH]))
-    return rgb, feat[..., DEPTH_CH:DEPTH_CH + 1], feat[..., DEPTH_CH + 1:]
+    rgb = torch.from_numpy(np.ascontiguousarray(out_feat[..., :ck.DEPTH_CH]))
+    return rgb, feat[..., ck.DEPTH_CH:ck.DEPTH_CH + 1], feat[..., ck.DEPTH_CH + 1:]
 
 
 def pixel_grads(n_channels: int, out_T: np.ndarray, g_rgb: Tensor | None, g_depth: Tensor | None,
@@ -374,8 +353,6 @@ def pixel_grads(n_channels: int, out_T: np.ndarray, g_rgb: Tensor | None, g_dept
     """The gradients of `feature_outputs`' outputs (None: zeros) -> the raster backward's per-pixel input
     [Iout,H,W,n_channels] (`ck.pack_pixel_grads`; 2DGS adds 2 dL/d distortion and ``out_feat``'s
     depth)."""
-    from egobench.render import cpu as ck
-
     P, dt = out_T.size, out_T.dtype
 
     def rows(g: Tensor | None, *row: int) -> np.ndarray:  # [P, *row]; no rows for None
@@ -399,8 +376,6 @@ class _AlphaDepth(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, depth_sum, trans):
-        from egobench.render import cpu as ck
-
         d, t = contiguous_numpy(depth_sum).reshape(-1), contiguous_numpy(trans).reshape(-1)
         alpha, depth = np.empty_like(t), np.empty_like(t)
         ck.alpha_depth(d, t, t.dtype.type(1.0), t.dtype.type(ALPHA_MIN), alpha, depth)
@@ -412,8 +387,6 @@ class _AlphaDepth(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_alpha, g_depth):
-        from egobench.render import cpu as ck
-
         (alpha_t,), d, (sum_shape, trans_shape) = ctx.saved_tensors, ctx.sums, ctx.shapes
         if g_depth is None:  # only the alpha's own gradient: rsub's negation
             return None, None if g_alpha is None else (-g_alpha).reshape(trans_shape)

@@ -17,11 +17,8 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from egobench.camera.pinhole import Pinhole
-from egobench.render.cpu_backend import (GSPLAT_PIXEL_OFFSET, NEAR_PLANE, FAR_PLANE, contiguous_numpy, pose_grad,
-                                         set_threads, camera_array, composite_output, feature_outputs,
-                                         gsplat_pixels, pixel_grads, pixel_views,
-                                         pose_sums, radius_max, raster_setup, reduce_intersections, rows_hit_buffer,
-                                         table_buffer, upstream_grad)
+from egobench.render import cpu_backend as cb  # the module, not its names: it imports this one
+from egobench.render.cpu import surfels as k2
 from egobench.render.types import Gaussians, RenderOutput
 
 
@@ -31,16 +28,14 @@ class _Project2DGS(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, means, quats, scales, viewmats, cam, width, height, pixel_offset=0.0):
-        from egobench.render.cpu import surfels as k2
-
         I, N = viewmats.shape[0], means.shape[0]
-        dt = contiguous_numpy(means).dtype
+        dt = cb.contiguous_numpy(means).dtype
         m2, tsl = np.empty((I, N, 2), dt), np.empty((I, N, 9), dt)
         dep, nrm = np.empty((I, N), dt), np.empty((I, N, 3), dt)
         rad = np.empty((I, N, 2), dtype=np.int32)
-        set_threads()
-        k2.project_fwd_2dgs(contiguous_numpy(means), contiguous_numpy(quats), contiguous_numpy(scales), contiguous_numpy(viewmats), cam, width, height, NEAR_PLANE,
-                            FAR_PLANE, m2, tsl, dep, rad, nrm)
+        cb.set_threads()
+        k2.project_fwd_2dgs(cb.contiguous_numpy(means), cb.contiguous_numpy(quats), cb.contiguous_numpy(scales), cb.contiguous_numpy(viewmats), cam, width, height, cb.NEAR_PLANE,
+                            cb.FAR_PLANE, m2, tsl, dep, rad, nrm)
         ctx.save_for_backward(means, quats, scales, viewmats)
         ctx.cam = cam
         if pixel_offset:
@@ -51,21 +46,19 @@ class _Project2DGS(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_m2, g_tsl, g_dep, g_nrm, _g_radii):
-        from egobench.render.cpu import surfels as k2
-
         means, quats, scales, viewmats = ctx.saved_tensors
         I, N = viewmats.shape[0], means.shape[0]
 
-        dt_np = contiguous_numpy(means).dtype
-        grads = tuple(upstream_grad(g, shape, dt_np) for g, shape in
+        dt_np = cb.contiguous_numpy(means).dtype
+        grads = tuple(cb.upstream_grad(g, shape, dt_np) for g, shape in
                       ((g_m2, (I, N, 2)), (g_tsl, (I, N, 9)), (g_dep, (I, N)), (g_nrm, (I, N, 3))))
         gm, gq, gs = np.empty((N, 3)), np.empty((N, 4)), np.empty((N, 3))
         gv_parts = np.zeros((max(1, math.ceil(N / k2.CHUNK)), I, 12))
-        set_threads()
-        k2.project_bwd_2dgs(*(contiguous_numpy(t).astype(np.float64) for t in (means, quats, scales, viewmats)), ctx.cam,
-                            NEAR_PLANE, FAR_PLANE, *grads, gm, gq, gs, gv_parts)
+        cb.set_threads()
+        k2.project_bwd_2dgs(*(cb.contiguous_numpy(t).astype(np.float64) for t in (means, quats, scales, viewmats)), ctx.cam,
+                            cb.NEAR_PLANE, cb.FAR_PLANE, *grads, gm, gq, gs, gv_parts)
         dt = means.dtype
-        gv = pose_grad(gv_parts, dt) if ctx.needs_input_grad[3] else None
+        gv = cb.pose_grad(gv_parts, dt) if ctx.needs_input_grad[3] else None
         return (torch.from_numpy(gm).to(dt), torch.from_numpy(gq).to(dt), torch.from_numpy(gs).to(dt), gv,
                 None, None, None, None)
 
@@ -80,20 +73,18 @@ class _Rasterize2DGS(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, tsl, log_opac, colors, depths, normals, radii, pix_view, bin_needed, tile_size,
                 absgrad_target, carrier):
-        from egobench.render.cpu import surfels as k2
-
         I, N = depths.shape
         Iout, H, W = pix_view.shape
-        m2 = gsplat_pixels(means2d)
-        st = raster_setup(m2, radii, depths, colors, normals, pix_view, bin_needed, tile_size)
-        tsl_np, lo = contiguous_numpy(tsl), contiguous_numpy(log_opac)
+        m2 = cb.gsplat_pixels(means2d)
+        st = cb.raster_setup(m2, radii, depths, colors, normals, pix_view, bin_needed, tile_size)
+        tsl_np, lo = cb.contiguous_numpy(tsl), cb.contiguous_numpy(log_opac)
         Cf = st.feats.shape[1]
         out_feat = np.zeros((Iout, H, W, Cf + 1), dtype=m2.dtype)  # + distortion
         out_T = np.zeros((Iout, H, W), dtype=m2.dtype)
         out_last = np.zeros((Iout, H, W), dtype=np.int32)
-        rows_hit = rows_hit_buffer(st.flat_ids.shape[0], tile_size, st.cw)
-        set_threads()
-        tab = table_buffer(I * N, m2.dtype)
+        rows_hit = cb.rows_hit_buffer(st.flat_ids.shape[0], tile_size, st.cw)
+        cb.set_threads()
+        tab = cb.table_buffer(I * N, m2.dtype)
         k2.surfel_table(m2, tsl_np, lo, st.needed, tab)
         k2.raster_fwd_2dgs(tsl_np, tab, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, tile_size,
                            st.tiles_x, st.cw, st.kc, st.centres, out_feat, out_T, out_last, rows_hit)
@@ -101,22 +92,20 @@ class _Rasterize2DGS(torch.autograd.Function):
         ctx.shapes = (I, N, colors.dtype)
         ctx.set_materialize_grads(False)  # unused outputs: zeros written here, not allocated by autograd
         feat = torch.from_numpy(out_feat)
-        return (*feature_outputs(out_feat[..., :Cf]), torch.from_numpy(out_T), feat[..., Cf])
+        return (*cb.feature_outputs(out_feat[..., :Cf]), torch.from_numpy(out_T), feat[..., Cf])
 
     @staticmethod
     def backward(ctx, g_rgb, g_depth, g_normal, g_T, g_dist):
-        from egobench.render.cpu import surfels as k2
-
         tsl_np, tab, st, pix_view, ts, out_feat, out_T, out_last, rows_hit, ab = ctx.state
         I, N, dt = ctx.shapes
         Cf = st.feats.shape[1]
-        g_state = pixel_grads(Cf + 2, out_T, g_rgb, g_depth, g_normal, g_dist, out_feat)  # + 2 dL/d dist, depth
-        gT = np.zeros(out_T.shape, out_T.dtype) if g_T is None else contiguous_numpy(g_T)
+        g_state = cb.pixel_grads(Cf + 2, out_T, g_rgb, g_depth, g_normal, g_dist, out_feat)  # + 2 dL/d dist, depth
+        gT = np.zeros(out_T.shape, out_T.dtype) if g_T is None else cb.contiguous_numpy(g_T)
         isect = np.zeros((st.flat_ids.shape[0], 12 + Cf), st.kc.dtype)
-        set_threads()
+        cb.set_threads()
         k2.raster_bwd_2dgs(tsl_np, tab, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, ts, st.tiles_x,
                            st.cw, st.kc, st.centres, out_T, out_last, g_state, gT, isect, rows_hit)
-        per = reduce_intersections(isect, st.flat_ids, I, N, dt, ab)
+        per = cb.reduce_intersections(isect, st.flat_ids, I, N, dt, ab)
         c = 12  # features: colour, depth, normal
         g_carrier = None
         if ctx.needs_input_grad[11]:  # gsplat's gradient_2dgs: (dL/dM[0, 2], dL/dM[1, 2]) * M[2, 2]
@@ -125,7 +114,7 @@ class _Rasterize2DGS(torch.autograd.Function):
             carrier = np.empty((I, N, 2), per_cf.dtype)
             k2.carrier_grad(per_cf[4], per_cf[7], tsl_np.reshape(I * N, 9), carrier.reshape(I * N, 2))
             g_carrier = torch.from_numpy(carrier)
-        return (per[..., 0:2], per[..., 2:11], per[..., 11].sum(0), pose_sums(per, c, c + 3), per[..., c + 3],
+        return (per[..., 0:2], per[..., 2:11], per[..., 11].sum(0), cb.pose_sums(per, c, c + 3), per[..., c + 3],
                 per[..., c + 4:c + 7], None, None, None, None, None, g_carrier)
 
 
@@ -136,24 +125,24 @@ def render_cpu_2dgs(gaussians: Gaussians, camera: Pinhole, viewmats: Tensor, *, 
     H, W = camera.height, camera.width
     I = viewmats.shape[0]
     means2d_out, tsl, depths, normals, radii = _Project2DGS.apply(  # means2d_out: egobench's pixels
-        gaussians.means, gaussians.quats, gaussians.scales, viewmats, camera_array(camera), W, H,
-        GSPLAT_PIXEL_OFFSET)
+        gaussians.means, gaussians.quats, gaussians.scales, viewmats, cb.camera_array(camera), W, H,
+        cb.GSPLAT_PIXEL_OFFSET)
     # gsplat's gradient_2dgs carrier (torch_backend.densify_carrier_2dgs: zeros added to the ray transforms'
     # translation column), its gradient given by the rasterizer's backward rather than by torch ops on [I, N, 3, 3]
     carrier = torch.zeros((I, means2d_out.shape[1], 2), dtype=tsl.dtype, requires_grad=True) if tsl.requires_grad else None
     if carrier is None and means2d_out.requires_grad:  # with a carrier nothing reads this gradient
         means2d_out.retain_grad()
     ts = int(tile_size)
-    pix_view, bin_needed = pixel_views(pixel_pose_index, I, H, W, ts)
+    pix_view, bin_needed = cb.pixel_views(pixel_pose_index, I, H, W, ts)
     holder = [means2d_out] if absgrad and means2d_out.requires_grad else None
     rgb_sum, depth_sum, normal, trans, dist = _Rasterize2DGS.apply(
         means2d_out, tsl, F.logsigmoid(gaussians.opacity_logits), gaussians.colors, depths, normals, radii, pix_view,
         bin_needed, ts, holder, carrier)
-    rgb, alpha, depth = composite_output(rgb_sum, depth_sum, trans, background)
+    rgb, alpha, depth = cb.composite_output(rgb_sum, depth_sum, trans, background)
     extras = {"backend": "cpu", "tile_size": ts, "distortion": dist[..., None]}
     means2d = means2d_out
     if carrier is not None:  # as the torch and gsplat backends: means2d carries gsplat's gradient_2dgs
         extras["means2d_values"] = means2d_out
         means2d = carrier
     return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, normal=normal, means2d=means2d,
-                        radii=radius_max(radii), extras=extras)
+                        radii=cb.radius_max(radii), extras=extras)

@@ -22,6 +22,7 @@ import torch
 from torch import Tensor
 
 from egobench.camera.pinhole import Pinhole
+from egobench.render import gather_pixels
 from egobench.render.torch_backend import face_camera, gsplat_K, quat_to_rotmat
 from egobench.render.types import Gaussians, RenderOutput
 
@@ -31,8 +32,6 @@ EPS2D = 0.3
 
 def _gather(images: Tensor, index: Tensor | None) -> Tensor:
     """[K, H, W, C] -> [1, H, W, C] per-pixel pose sample (`gather_pixels`), or as is without an index."""
-    from egobench.render import gather_pixels
-
     return images if index is None else gather_pixels(images, index)
 
 

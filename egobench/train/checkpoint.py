@@ -17,8 +17,10 @@ from pathlib import Path
 import torch
 
 from egobench.camera.pinhole import Pinhole
-from egobench.io_utils import atomic_path
+from egobench.data.reader import recording_from_args
+from egobench.io_utils import atomic_path, read_json
 from egobench.model.methods import MethodSpec, get_method
+from egobench.model.predict import gaussians_from_params
 from egobench.train.config import TrainConfig
 
 CHECKPOINT_FORMAT = "egobench.checkpoint/1"
@@ -122,8 +124,6 @@ class TrainedRun:
 def load_trained_run(run_dir: str | Path, device: str | None, where: str) -> TrainedRun:
     """The run in ``run_dir`` ready to render on ``device`` (default: its training device,
     `render_device`); ``where`` names the caller in errors."""
-    from egobench.model.predict import gaussians_from_params
-
     run_dir = Path(run_dir)
     ck = read_run_checkpoint(run_dir / "checkpoint.pt")
     config = config_of(ck)
@@ -139,8 +139,6 @@ def check_run_complete(run_dir: str | Path, ck: dict) -> None:
     """A run folder is complete when its checkpoint ran every iteration of its config and its
     train.json describes that checkpoint (method, seed, config hash, iterations); otherwise a
     ValueError says what is missing or disagrees (a killed or overwritten run is never evaluated)."""
-    from egobench.io_utils import read_json
-
     run_dir = Path(run_dir)
     it, total = int(ck.get("iteration", -1)), int(ck.get("config", {}).get("iterations", -1))
     if it < total:
@@ -164,8 +162,6 @@ def check_run_complete(run_dir: str | Path, ck: dict) -> None:
 def recording_for_run(run_dir: str | Path, args) -> object:
     """A verb's ``--recording`` for the run in ``run_dir``: the path as given, or, with --trajectory
     or --points, the recording loaded with them in the run's calibration."""
-    from egobench.data.reader import recording_from_args
-
     if not (getattr(args, "trajectory", None) or getattr(args, "points", None)):
         return args.recording
     method = read_run_checkpoint(Path(run_dir) / "checkpoint.pt")["method"]

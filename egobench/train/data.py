@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import torch
 from torch import Tensor
+from tqdm import tqdm
 
 from egobench.camera.pinhole import Pinhole
 from egobench.data.recording import Frame, Recording
@@ -63,8 +64,6 @@ def load_image_store(recording: Recording, frames: list[Frame], camera: Pinhole,
     image pyramids on disk). ``pin_memory`` allocates page-locked host memory (for non-blocking
     host-to-GPU copies of one frame per iteration). ``progress``: tqdm bar "load images" on stderr.
     """
-    from tqdm import tqdm
-
     H, W = camera.height, camera.width
     shape = (len(frames), H, W, 3)
     try:

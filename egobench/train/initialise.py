@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 from torch import Tensor
 
+from egobench.model.formation import GammaResponse
 from egobench.model.methods import MethodSpec
 from egobench.train.config import TrainConfig
 from egobench.train.data import TrainingData, image_to_float
@@ -13,8 +15,6 @@ from egobench.train.data import TrainingData, image_to_float
 
 def _knn_rms_distance(points: Tensor, k: int = 3) -> Tensor:
     """RMS distance of each point [N, 3] to its k nearest neighbours -> [N] (as gsplat's init)."""
-    from scipy.spatial import cKDTree
-
     pts = points.detach().cpu().numpy().astype(np.float64)
     if len(pts) <= k:
         return torch.full((len(pts),), 0.01, dtype=torch.float32)
@@ -28,8 +28,6 @@ def scene_colour_from_image(pixel: Tensor, k: Tensor, vignette: Tensor, spec: Me
     """Invert the method's formation for initial colours: pixel [P, 3] display -> scene colour."""
     if not spec.formation:
         return pixel
-    from egobench.model.formation import GammaResponse
-
     resp = GammaResponse(spec.response_gamma)
     lin = resp.decode(pixel) / (k[:, None] * vignette[:, None]).clamp_min(1e-3)
     return resp.encode(lin).clamp(0, 1) if spec.scene_gamma else lin.clamp(0, 4)

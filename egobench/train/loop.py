@@ -25,9 +25,13 @@ from typing import Literal
 
 import torch
 from torch import Tensor
+from tqdm import tqdm
 
+from egobench.core_sharing import bracketing
+from egobench.data import load_recording
 from egobench.data.reader import say_dropped
 from egobench.data.recording import Recording
+from egobench.host import kernel_threads
 from egobench.io_utils import holding_run_folder, write_json
 from egobench.model.methods import MethodSpec, get_method
 from egobench.model.optim import GAUSSIAN_PARAMS
@@ -35,6 +39,8 @@ from egobench.model.predict import (
     PoseSampleCache, RenderSettings, formation_model, frame_poses, gaussians_from_params, mean_rgb, predict_image,
     render_frame,
 )
+from egobench.model.shading import KEY, radius2_of, shading
+from egobench.render import resolve_backend
 from egobench.render.finite import all_finite
 from egobench.train.checkpoint import checkpoint_matches, resumable_checkpoint, write_checkpoint
 from egobench.train.config import TrainConfig
@@ -97,8 +103,6 @@ def step_context(data: TrainingData, config: TrainConfig, device: torch.device) 
 
 
 def _shading_r2(data: TrainingData, config: TrainConfig, device: torch.device) -> Tensor | None:
-    from egobench.model.shading import radius2_of
-
     return radius2_of(data.camera, config).to(device) if config.learn_shading else None
 
 
@@ -150,8 +154,6 @@ def _vignette(state: TrainState, ctx: StepContext) -> Tensor:
     """The stated vignette, times the learnable shading when the run learns one."""
     if ctx.shading_r2 is None:
         return ctx.vignette
-    from egobench.model.shading import KEY, shading
-
     return ctx.vignette * shading(ctx.shading_r2, state.extra[KEY])
 
 
@@ -198,8 +200,6 @@ def _recording_for(recording_dir, spec: MethodSpec) -> Recording:
                 f"loaded with {recording_dir.calibration!r}"
             )
         return recording_dir
-    from egobench.data import load_recording
-
     return load_recording(recording_dir, calibration=spec.calibration)
 
 
@@ -214,8 +214,6 @@ def _checkpoint_state(state: TrainState, method: str, config: TrainConfig, data:
 
 def _warn_backend(device: torch.device, config: TrainConfig) -> str:
     """Resolve (maybe build) the rasterizer backend before timing starts; warn on a slow CUDA fallback."""
-    from egobench.render import resolve_backend
-
     backend = resolve_backend(config.backend, device)
     if device.type == "cuda" and backend == "torch" and config.backend == "auto":
         print("egobench train: warning: gsplat's CUDA extension cannot be loaded (needs nvcc to build once); "
@@ -234,8 +232,6 @@ def train(recording_dir, method: str, config: TrainConfig, out_dir, *, resume: b
     method and config and otherwise starts afresh (a stale checkpoint is replaced). ``stop_after``
     ends after that many total iterations (as an interruption would: checkpoint written, no train.json).
     """
-    from tqdm import tqdm
-
     spec = get_method(method)
     ckpt_path = Path(out_dir) / "checkpoint.pt"
     data = prepare_data(_recording_for(recording_dir, spec), spec, config, progress=progress)
@@ -273,10 +269,7 @@ def _probing_cores(backend: str, iterating: bool):
     nothing was probed)."""
     if backend != "cpu" or not iterating:
         return contextlib.nullcontext({})
-    from egobench import core_sharing
-    from egobench.host import kernel_threads
-
-    return core_sharing.bracketing(kernel_threads() > 1)
+    return bracketing(kernel_threads() > 1)
 
 
 def _drop_stale_records(out_dir: Path) -> None:

@@ -13,6 +13,7 @@ from egobench import __version__
 from egobench.data.reader import frame_counts
 from egobench.host import host_info
 from egobench.io_utils import git_commit
+from egobench.model.shading import KEY, corner_attenuation
 from egobench.render.torch_backend import VIEWER_NEAR_PLANE
 from egobench.train.config import TrainConfig
 from egobench.train.data import TrainingData
@@ -72,8 +73,6 @@ def near_camera_count(means: Tensor, frames, radius_m: float = VIEWER_NEAR_PLANE
 
 def _learned_shading(state: TrainState, config: TrainConfig) -> dict | None:
     """The learned lens shading's coefficients and corner attenuation (None without learn_shading)."""
-    from egobench.model.shading import KEY, corner_attenuation
-
     if KEY not in state.extra:
         return None
     a = state.extra[KEY].detach().cpu().tolist()

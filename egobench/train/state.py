@@ -10,7 +10,9 @@ import torch
 from torch import Tensor
 
 from egobench.model.adam import adam_step
+from egobench.model.motion_sampling import frame_twist_camera
 from egobench.model.optim import GAUSSIAN_PARAMS, DensifySchedule, Densifier, make_adam
+from egobench.model.shading import KEY
 from egobench.train.config import TrainConfig
 from egobench.train.data import TrainingData
 from egobench.train.initialise import init_params
@@ -87,15 +89,11 @@ def _extra_trainables(data: TrainingData, config: TrainConfig, device: torch.dev
     velocity-shift methods; shading [2] (zeros: none) with ``config.learn_shading``."""
     extra: dict[str, torch.nn.Parameter] = {}
     if config.learn_shading:
-        from egobench.model.shading import KEY
-
         extra[KEY] = torch.nn.Parameter(torch.zeros(2, device=device))
     F = len(data.frames)
     if data.spec.pose_optimisation:
         extra["pose_delta"] = torch.nn.Parameter(torch.zeros(F, 6, device=device))
     if data.spec.motion_sampling == "velocity_shift":
-        from egobench.model.motion_sampling import frame_twist_camera
-
         extra["twist"] = torch.nn.Parameter(
             torch.stack([frame_twist_camera(data.recording, f) for f in data.frames]).float().to(device))
     return extra
