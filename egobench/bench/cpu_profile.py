@@ -62,9 +62,9 @@ def _stages_3dgs(g, cam, width: int, n: int, tile_size: int, repeats: int) -> tu
     vm, ca, I, N = np.eye(4, dtype=np.float32)[None], cb.camera_array(cam), 1, n
     m2, con = np.empty((I, N, 2), np.float32), np.empty((I, N, 3), np.float32)
     dep, rad, nrm = np.empty((I, N), np.float32), np.empty((I, N, 2), np.int32), np.zeros((I, 0, 3), np.float32)
-    out = {"project_fwd": _median_ms(lambda: ck.project_fwd(means, quats, scales, opac, vm, ca, width, width, cb.EPS2D,
-                                                            cb.NEAR_PLANE, cb.FAR_PLANE, False, m2, con, dep, rad, nrm),
-                                     repeats)}
+    splats, view, proj = ck.Splats(means, quats, scales), cb.view_args(vm, ca, width, width), \
+        ck.Projected(m2, con, dep, rad, nrm)
+    out = {"project_fwd": _median_ms(lambda: ck.project_fwd(splats, opac, view, False, proj), repeats)}
     st, pix_view, setup_ms, bin_ms = _setup(m2, rad, dep, g.colors.detach(), nrm, width, tile_size, repeats)
     out["bin_tiles"], out["raster_setup(incl. bin_tiles)"] = bin_ms, setup_ms
     tab = cb.table_buffer(I * N, np.float32)
@@ -73,19 +73,20 @@ def _stages_3dgs(g, cam, width: int, n: int, tile_size: int, repeats: int) -> tu
     of, oT, ol = np.zeros((I, width, width, Cf), np.float32), np.zeros((I, width, width), np.float32), \
         np.zeros((I, width, width), np.int32)
     rows_hit = cb.rows_hit_buffer(st.flat_ids.shape[0], tile_size, st.cw)
-    common = (tab, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, tile_size, st.tiles_x, st.cw, st.kc,
-              st.centres)
-    out["raster_fwd"] = _median_ms(lambda: ck.raster_fwd(*common, of, oT, ol, rows_hit), repeats)
+    common = (ck.Tables(tab, st.feats), st.tiles(pix_view, tile_size), st.constants())
+    out["raster_fwd"] = _median_ms(lambda: ck.raster_fwd(*common, ck.Composite(of, oT, ol), rows_hit), repeats)
     rng = np.random.default_rng(0)
     gF, gT = rng.standard_normal(of.shape).astype(np.float32), rng.standard_normal(oT.shape).astype(np.float32)
     isect = np.zeros((st.flat_ids.shape[0], 6 + Cf), np.float32)
-    out["raster_bwd"] = _median_ms(lambda: ck.raster_bwd(*common, oT, ol, gF, gT, isect, rows_hit), repeats)
+    px = ck.BackwardPixels(oT, ol, gF, gT)
+    out["raster_bwd"] = _median_ms(lambda: ck.raster_bwd(*common, px, isect, rows_hit), repeats)
     out["reduce_isect_grad"] = _reduce_ms(isect, st.flat_ids, I * N, repeats)
-    grads = (rng.standard_normal((2, I, N)), rng.standard_normal((3, I, N)), rng.standard_normal((I, N)),
-             np.zeros((3, I, 0)))  # channel first, as `reduce_isect_grad` writes them
-    f64, res = _projection_bwd_buffers(means, quats, scales, vm, ck.CHUNK)
-    out["project_bwd"] = _median_ms(lambda: ck.project_bwd(*f64, ca, width, width, cb.EPS2D, cb.NEAR_PLANE,
-                                                           cb.FAR_PLANE, False, *grads, *res), repeats)
+    # channel first, as `reduce_isect_grad` writes them
+    grads = ck.ProjectedGrads(rng.standard_normal((2, I, N)), rng.standard_normal((3, I, N)),
+                              rng.standard_normal((I, N)), np.zeros((3, I, 0)))
+    splats64, vm64, res = _projection_bwd_buffers(means, quats, scales, vm, ck.CHUNK)
+    view64 = cb.view_args(vm64, ca, width, width)
+    out["project_bwd"] = _median_ms(lambda: ck.project_bwd(splats64, view64, False, grads, res), repeats)
     return out, _work(rows_hit, st.cw)
 
 
@@ -97,9 +98,9 @@ def _stages_2dgs(g, cam, width: int, n: int, tile_size: int, repeats: int) -> tu
     vm, ca, I, N = np.eye(4, dtype=np.float32)[None], cb.camera_array(cam), 1, n
     m2, tsl, dep = np.empty((I, N, 2), np.float32), np.empty((I, N, 9), np.float32), np.empty((I, N), np.float32)
     nrm, rad = np.empty((I, N, 3), np.float32), np.empty((I, N, 2), np.int32)
-    out = {"project_fwd": _median_ms(lambda: k2.project_fwd_2dgs(means, quats, scales, vm, ca, width, width,
-                                                                 cb.NEAR_PLANE, cb.FAR_PLANE, m2, tsl, dep, rad, nrm),
-                                     repeats)}
+    splats, view, proj = ck.Splats(means, quats, scales), cb.view_args(vm, ca, width, width), \
+        ck.ProjectedSurfels(m2, tsl, dep, rad, nrm)
+    out = {"project_fwd": _median_ms(lambda: k2.project_fwd_2dgs(splats, view, proj), repeats)}
     st, pix_view, setup_ms, bin_ms = _setup(m2, rad, dep, g.colors.detach(), nrm, width, tile_size, repeats)
     out["bin_tiles"], out["raster_setup(incl. bin_tiles)"] = bin_ms, setup_ms
     tab = cb.table_buffer(I * N, np.float32)
@@ -108,21 +109,21 @@ def _stages_2dgs(g, cam, width: int, n: int, tile_size: int, repeats: int) -> tu
     of, oT, ol = np.zeros((I, width, width, Cf + 1), np.float32), np.zeros((I, width, width), np.float32), \
         np.zeros((I, width, width), np.int32)
     rows_hit = cb.rows_hit_buffer(st.flat_ids.shape[0], tile_size, st.cw)
-    rest = (st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, tile_size, st.tiles_x, st.cw, st.kc, st.centres)
-    out["raster_fwd"] = _median_ms(lambda: k2.raster_fwd_2dgs(tsl, tab, *rest, of, oT, ol, rows_hit), repeats)
+    common = (ck.SurfelTables(tsl, tab, st.feats), st.tiles(pix_view, tile_size), st.constants())
+    out["raster_fwd"] = _median_ms(lambda: k2.raster_fwd_2dgs(*common, ck.Composite(of, oT, ol), rows_hit), repeats)
     rng = np.random.default_rng(0)
     g_state = rng.standard_normal((I, width, width, Cf + 2)).astype(np.float32)
     g_state[..., Cf + 1] = of[..., k2.DEPTH_CH]  # the forward's depth, as the backend passes it
     gT = rng.standard_normal(oT.shape).astype(np.float32)
     isect = np.zeros((st.flat_ids.shape[0], 12 + Cf), np.float32)
-    out["raster_bwd"] = _median_ms(lambda: k2.raster_bwd_2dgs(tsl, tab, *rest, oT, ol, g_state, gT, isect, rows_hit),
-                                   repeats)
+    px = ck.BackwardPixels(oT, ol, g_state, gT)
+    out["raster_bwd"] = _median_ms(lambda: k2.raster_bwd_2dgs(*common, px, isect, rows_hit), repeats)
     out["reduce_isect_grad"] = _reduce_ms(isect, st.flat_ids, I * N, repeats)
-    grads = (rng.standard_normal((2, I, N)), rng.standard_normal((9, I, N)), rng.standard_normal((I, N)),
-             rng.standard_normal((3, I, N)))
-    f64, res = _projection_bwd_buffers(means, quats, scales, vm, k2.CHUNK)
-    out["project_bwd"] = _median_ms(lambda: k2.project_bwd_2dgs(*f64, ca, cb.NEAR_PLANE, cb.FAR_PLANE, *grads, *res),
-                                    repeats)
+    grads = ck.ProjectedSurfelGrads(rng.standard_normal((2, I, N)), rng.standard_normal((9, I, N)),
+                                    rng.standard_normal((I, N)), rng.standard_normal((3, I, N)))
+    splats64, vm64, res = _projection_bwd_buffers(means, quats, scales, vm, k2.CHUNK)
+    view64 = cb.view_args(vm64, ca, width, width)
+    out["project_bwd"] = _median_ms(lambda: k2.project_bwd_2dgs(splats64, view64, grads, res), repeats)
     return out, _work(rows_hit, st.cw)
 
 
@@ -137,11 +138,12 @@ def _setup(m2, rad, dep, colors, nrm, width: int, tile_size: int, repeats: int):
     return st, pix_view, _median_ms(lambda: cb.raster_setup(*args), repeats), bin_ms
 
 
-def _projection_bwd_buffers(means, quats, scales, vm, chunk: int) -> tuple[list, tuple]:
-    """The projection backward's float64 inputs and its outputs (g_means, g_quats, g_scales, pose parts)."""
+def _projection_bwd_buffers(means, quats, scales, vm, chunk: int) -> tuple:
+    """The projection backward's float64 inputs (`ck.Splats`, viewmats) and its outputs (`ck.SplatGrads`)."""
     N, I = means.shape[0], vm.shape[0]
-    res = (np.empty((N, 3)), np.empty((N, 4)), np.empty((N, 3)), np.zeros((max(1, math.ceil(N / chunk)), I, 12)))
-    return [a.astype(np.float64) for a in (means, quats, scales, vm)], res
+    res = ck.SplatGrads(np.empty((N, 3)), np.empty((N, 4)), np.empty((N, 3)),
+                        np.zeros((max(1, math.ceil(N / chunk)), I, 12)))
+    return ck.Splats(*(a.astype(np.float64) for a in (means, quats, scales))), vm.astype(np.float64), res
 
 
 def _reduce_ms(isect: np.ndarray, flat_ids: np.ndarray, rows: int, repeats: int) -> float:

@@ -12,6 +12,7 @@ On one thread the torch ops took 0.76 ms forward and 1.12 ms backward at 128 px.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -19,6 +20,27 @@ from numba import njit, prange
 from torch import Tensor
 
 from egobench.render.cpu_backend import set_threads
+
+
+class ExposureCurve(NamedTuple):
+    """What `_expose_fwd` computes: decode (bool: decode x before scaling), clamp (bool: clip the result to
+    [0, 1]), and the toed gamma curve: gamma (float, the exponent), y0 (float, the display value where the toe
+    ends), x0 (float, the linear value where it ends; y0 = x0 ** (1 / gamma))."""
+
+    decode: bool
+    clamp: bool
+    gamma: float
+    y0: float
+    x0: float
+
+
+class Exposed(NamedTuple):
+    """What `_expose_fwd` writes, each [P, 3] in x's dtype: out (the exposed colour), dx and ds (the partials
+    of each output by its own x and by the pixel's s)."""
+
+    out: np.ndarray
+    dx: np.ndarray
+    ds: np.ndarray
 
 
 @njit(cache=True, inline="always")
@@ -31,13 +53,16 @@ def _encode(z, gamma, x0, slope):
 
 
 @njit(cache=True, parallel=True)
-def _expose_fwd(x, s, r, decode, clamp, gamma, y0, x0, out, dx, ds):
-    """x [P, 3], s [P] (scale >= 0) -> out [P, 3] and the partials dx, ds [P, 3] of each output by its own x
-    and by the pixel's s (zero where the clamp cuts). The toe: linear values below x0, display values below
-    y0 = x0 ** (1 / gamma), on the line of slope y0 / x0. r [P] (scratch, x's dtype): s ** (1 / gamma) with
+def _expose_fwd(x, s, r, curve, exposed):
+    """x [P, 3], s [P] (scale >= 0), curve (`ExposureCurve`) -> exposed (`Exposed`): out [P, 3] and the
+    partials dx, ds [P, 3] of each output by its own x and by the pixel's s (zero where the clamp cuts). The
+    toe: linear values below x0, display values below y0 = x0 ** (1 / gamma), on the line of slope y0 / x0.
+    r [P] (scratch, x's dtype): s ** (1 / gamma) with
     decode, a float64 power rounded to r's dtype. It is computed here, by glibc's pow, and not by numpy:
     numpy's power takes other code, and gives other bits, on AVX-512 and AVX2 machines (docs/reproducibility.md,
     2026-11-29); it costs ~0.25 ms more at 128 px on one thread."""
+    decode, clamp, gamma, y0, x0 = curve.decode, curve.clamp, curve.gamma, curve.y0, curve.x0
+    out, dx, ds = exposed.out, exposed.dx, exposed.ds
     slope = y0 / x0
     for p in prange(x.shape[0]):
         if decode:  # only the power law reads r
@@ -83,7 +108,7 @@ class _GammaExposeCPU(torch.autograd.Function):
         y0 = toe_linear ** (1.0 / gamma)
         out, dx, ds = (np.empty_like(x_np) for _ in range(3))
         set_threads()
-        _expose_fwd(x_np, s_np, r_np, decode, clamp, gamma, y0, toe_linear, out, dx, ds)
+        _expose_fwd(x_np, s_np, r_np, ExposureCurve(decode, clamp, gamma, y0, toe_linear), Exposed(out, dx, ds))
         ctx.partials, ctx.s_shape = (dx, ds), s.shape
         return torch.from_numpy(out).view(H, W, 3)
 

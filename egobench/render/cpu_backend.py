@@ -104,6 +104,14 @@ class RasterSetup:
     kc: np.ndarray  # `ck.compute_constants`
     centres: np.ndarray  # pixel centres (index + 0.5), compute dtype
 
+    def tiles(self, pix_view: np.ndarray, tile_size: int):
+        """The compositing kernels' `ck.Tiles` for pix_view [Iout,H,W] and tile_size."""
+        return ck.Tiles(self.flat_ids, self.bin_start, self.bins, pix_view, tile_size, self.tiles_x, self.cw)
+
+    def constants(self):
+        """The compositing kernels' `ck.Constants` (kc, centres)."""
+        return ck.Constants(self.kc, self.centres)
+
 
 def raster_setup(m2: np.ndarray, radii: Tensor, depths: Tensor, colors: Tensor, normals: Tensor,
                  pix_view: np.ndarray, bin_needed: np.ndarray, tile_size: int) -> RasterSetup:
@@ -124,6 +132,12 @@ def raster_setup(m2: np.ndarray, radii: Tensor, depths: Tensor, colors: Tensor, 
     centres = (np.arange(max(W, H) + tile_size) + 0.5).astype(m2.dtype)
     return RasterSetup(flat_ids, bin_start, bins, needed, feats, tiles_x, ck.column_group(tile_size),
                        ck.compute_constants(m2.dtype), centres)
+
+
+def view_args(viewmats: np.ndarray, cam: np.ndarray, width: int, height: int):
+    """A projection kernel's `ck.View`: viewmats [I, 4, 4] world-to-camera, cam (`camera_array`), the image size,
+    and gsplat's EPS2D, NEAR_PLANE, FAR_PLANE."""
+    return ck.View(viewmats, cam, width, height, EPS2D, NEAR_PLANE, FAR_PLANE)
 
 
 def upstream_grad(g: Tensor | None, shape: tuple[int, ...], dtype: np.dtype) -> np.ndarray:
@@ -207,8 +221,9 @@ class _Project(torch.autograd.Function):
         dep = np.empty((I, N), dtype=m2.dtype)
         rad = np.empty((I, N, 2), dtype=np.int32)
         nrm = np.zeros((I, N, 3) if want_normal else (I, 0, 3), dtype=m2.dtype)
-        ck.project_fwd(contiguous_numpy(means), contiguous_numpy(quats), contiguous_numpy(scales), contiguous_numpy(opac), contiguous_numpy(viewmats), cam, width, height,
-                       EPS2D, NEAR_PLANE, FAR_PLANE, want_normal, m2, con, dep, rad, nrm)
+        splats = ck.Splats(contiguous_numpy(means), contiguous_numpy(quats), contiguous_numpy(scales))
+        ck.project_fwd(splats, contiguous_numpy(opac), view_args(contiguous_numpy(viewmats), cam, width, height),
+                       want_normal, ck.Projected(m2, con, dep, rad, nrm))
         ctx.save_for_backward(means, quats, scales, viewmats)
         ctx.args = (cam, width, height, want_normal)
         if pixel_offset:
@@ -232,9 +247,10 @@ class _Project(torch.autograd.Function):
         n_chunks = max(1, math.ceil(N / ck.CHUNK))
         gv_parts = np.zeros((n_chunks, I, 12))
         set_threads()
-        ck.project_bwd(contiguous_numpy(means).astype(np.float64), contiguous_numpy(quats).astype(np.float64),
-                       contiguous_numpy(scales).astype(np.float64), contiguous_numpy(viewmats).astype(np.float64), cam, width, height,
-                       EPS2D, NEAR_PLANE, FAR_PLANE, want_normal, g_m2, g_con, g_dep, g_nrm, gm, gq, gs, gv_parts)
+        splats = ck.Splats(*(contiguous_numpy(t).astype(np.float64) for t in (means, quats, scales)))
+        view = view_args(contiguous_numpy(viewmats).astype(np.float64), cam, width, height)
+        ck.project_bwd(splats, view, want_normal, ck.ProjectedGrads(g_m2, g_con, g_dep, g_nrm),
+                       ck.SplatGrads(gm, gq, gs, gv_parts))
         dt = means.dtype
         gv = pose_grad(gv_parts, dt) if ctx.needs_input_grad[3] else None
         return (torch.from_numpy(gm).to(dt), torch.from_numpy(gq).to(dt), torch.from_numpy(gs).to(dt), gv,
@@ -268,8 +284,8 @@ class _Rasterize(torch.autograd.Function):
         ck.gaussian_table(m2, contiguous_numpy(conics), contiguous_numpy(radii), contiguous_numpy(log_opac),
                           st.needed, tab)
         rows_hit = rows_hit_buffer(st.flat_ids.shape[0], tile_size, st.cw)
-        ck.raster_fwd(tab, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, tile_size,
-                      st.tiles_x, st.cw, st.kc, st.centres, out_feat, out_T, out_last, rows_hit)
+        ck.raster_fwd(ck.Tables(tab, st.feats), st.tiles(pix_view, tile_size), st.constants(),
+                      ck.Composite(out_feat, out_T, out_last), rows_hit)
         ctx.state = (tab, st, pix_view, tile_size, out_T, out_last, rows_hit, absgrad_target)
         ctx.has_normals = bool(normals.shape[1])
         ctx.shapes = (I, N, colors.dtype)
@@ -285,8 +301,8 @@ class _Rasterize(torch.autograd.Function):
         gT = np.zeros(out_T.shape, out_T.dtype) if g_T is None else contiguous_numpy(g_T)
         isect = np.zeros((st.flat_ids.shape[0], 6 + Cf), st.kc.dtype)
         set_threads()
-        ck.raster_bwd(tab, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, ts, st.tiles_x, st.cw,
-                      st.kc, st.centres, out_T, out_last, gF, gT, isect, rows_hit)
+        ck.raster_bwd(ck.Tables(tab, st.feats), st.tiles(pix_view, ts), st.constants(),
+                      ck.BackwardPixels(out_T, out_last, gF, gT), isect, rows_hit)
         per = reduce_intersections(isect, st.flat_ids, I, N, dt, ab)
         g_normals = per[..., 10:13] if ctx.has_normals else None
         return (per[..., 0:2], per[..., 2:5], per[..., 5].sum(0), pose_sums(per, 6, 9), per[..., 9],

@@ -17,6 +17,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from egobench.camera.pinhole import Pinhole
+from egobench.render import cpu as ck
 from egobench.render import cpu_backend as cb  # the module, not its names: it imports this one
 from egobench.render.cpu import surfels as k2
 from egobench.render.types import Gaussians, RenderOutput
@@ -34,10 +35,11 @@ class _Project2DGS(torch.autograd.Function):
         dep, nrm = np.empty((I, N), dt), np.empty((I, N, 3), dt)
         rad = np.empty((I, N, 2), dtype=np.int32)
         cb.set_threads()
-        k2.project_fwd_2dgs(cb.contiguous_numpy(means), cb.contiguous_numpy(quats), cb.contiguous_numpy(scales), cb.contiguous_numpy(viewmats), cam, width, height, cb.NEAR_PLANE,
-                            cb.FAR_PLANE, m2, tsl, dep, rad, nrm)
+        splats = ck.Splats(cb.contiguous_numpy(means), cb.contiguous_numpy(quats), cb.contiguous_numpy(scales))
+        k2.project_fwd_2dgs(splats, cb.view_args(cb.contiguous_numpy(viewmats), cam, width, height),
+                            ck.ProjectedSurfels(m2, tsl, dep, rad, nrm))
         ctx.save_for_backward(means, quats, scales, viewmats)
-        ctx.cam = cam
+        ctx.cam, ctx.image_size = cam, (width, height)
         if pixel_offset:
             m2 -= pixel_offset  # in the compute dtype, as torch would subtract it
         radii = torch.from_numpy(rad)
@@ -55,8 +57,9 @@ class _Project2DGS(torch.autograd.Function):
         gm, gq, gs = np.empty((N, 3)), np.empty((N, 4)), np.empty((N, 3))
         gv_parts = np.zeros((max(1, math.ceil(N / k2.CHUNK)), I, 12))
         cb.set_threads()
-        k2.project_bwd_2dgs(*(cb.contiguous_numpy(t).astype(np.float64) for t in (means, quats, scales, viewmats)), ctx.cam,
-                            cb.NEAR_PLANE, cb.FAR_PLANE, *grads, gm, gq, gs, gv_parts)
+        splats = ck.Splats(*(cb.contiguous_numpy(t).astype(np.float64) for t in (means, quats, scales)))
+        view = cb.view_args(cb.contiguous_numpy(viewmats).astype(np.float64), ctx.cam, *ctx.image_size)
+        k2.project_bwd_2dgs(splats, view, ck.ProjectedSurfelGrads(*grads), ck.SplatGrads(gm, gq, gs, gv_parts))
         dt = means.dtype
         gv = cb.pose_grad(gv_parts, dt) if ctx.needs_input_grad[3] else None
         return (torch.from_numpy(gm).to(dt), torch.from_numpy(gq).to(dt), torch.from_numpy(gs).to(dt), gv,
@@ -86,8 +89,8 @@ class _Rasterize2DGS(torch.autograd.Function):
         cb.set_threads()
         tab = cb.table_buffer(I * N, m2.dtype)
         k2.surfel_table(m2, tsl_np, lo, st.needed, tab)
-        k2.raster_fwd_2dgs(tsl_np, tab, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, tile_size,
-                           st.tiles_x, st.cw, st.kc, st.centres, out_feat, out_T, out_last, rows_hit)
+        k2.raster_fwd_2dgs(ck.SurfelTables(tsl_np, tab, st.feats), st.tiles(pix_view, tile_size), st.constants(),
+                           ck.Composite(out_feat, out_T, out_last), rows_hit)
         ctx.state = (tsl_np, tab, st, pix_view, tile_size, out_feat, out_T, out_last, rows_hit, absgrad_target)
         ctx.shapes = (I, N, colors.dtype)
         ctx.set_materialize_grads(False)  # unused outputs: zeros written here, not allocated by autograd
@@ -103,8 +106,8 @@ class _Rasterize2DGS(torch.autograd.Function):
         gT = np.zeros(out_T.shape, out_T.dtype) if g_T is None else cb.contiguous_numpy(g_T)
         isect = np.zeros((st.flat_ids.shape[0], 12 + Cf), st.kc.dtype)
         cb.set_threads()
-        k2.raster_bwd_2dgs(tsl_np, tab, st.feats, st.flat_ids, st.bin_start, st.bins, pix_view, ts, st.tiles_x,
-                           st.cw, st.kc, st.centres, out_T, out_last, g_state, gT, isect, rows_hit)
+        k2.raster_bwd_2dgs(ck.SurfelTables(tsl_np, tab, st.feats), st.tiles(pix_view, ts), st.constants(),
+                           ck.BackwardPixels(out_T, out_last, g_state, gT), isect, rows_hit)
         per = cb.reduce_intersections(isect, st.flat_ids, I, N, dt, ab)
         c = 12  # features: colour, depth, normal
         g_carrier = None

@@ -40,7 +40,7 @@ BUILT: dict[tuple[str, str], str] = {}
 #: the kernels of a set whose cache use the child checks (names; 2DGS adds "_2dgs")
 KERNELS = ("project_fwd", "project_bwd", "raster_fwd", "raster_bwd")
 #: the files whose text decides the kernels' machine code and signatures
-_SOURCES = ("cpu/__init__.py", "cpu/compiler.py", "cpu/projection.py", "cpu/binning.py", "cpu/composite.py",
+_SOURCES = ("cpu/__init__.py", "cpu/args.py", "cpu/compiler.py", "cpu/projection.py", "cpu/binning.py", "cpu/composite.py",
             "cpu/surfels.py", "cpu_backend.py", "cpu_backend_2dgs.py", "kernel_build.py")
 
 

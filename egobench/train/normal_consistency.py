@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import functools
 import math
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -46,6 +47,25 @@ def normal_consistency_torch(depth: Tensor, normal: Tensor, alpha: Tensor, mask:
     return (err * mask).sum() / mask.sum().clamp_min(1)
 
 
+class RenderedMaps(NamedTuple):
+    """The maps `_nc_inputs` reads, any float dtype, read as they come (strided views too): depth [H, W],
+    normal [H, W, 3] (rendered), alpha [H, W], mask [H, W]."""
+
+    depth: np.ndarray
+    normal: np.ndarray
+    alpha: np.ndarray
+    mask: np.ndarray
+
+
+class NCInputs(NamedTuple):
+    """The kernels' float64 inputs (`_nc_inputs` writes them): P [H, W, 3] back-projected points, N [H, W, 3]
+    rendered normals, wts [H, W] alpha mask / mask count."""
+
+    P: np.ndarray
+    N: np.ndarray
+    wts: np.ndarray
+
+
 @njit(cache=True, inline="always")
 def _unit(x, y, z):
     """(x, y, z) / max(|(x, y, z)|, NORM_EPS) -> (unit vector, the divisor)."""
@@ -72,10 +92,12 @@ def _unit_grad(gx, gy, gz, x, y, z, s):
 
 
 @njit(cache=True, parallel=True)
-def _nc_inputs(depth, normal, rays, alpha, mask, mask_count, P, N, wts):
-    """depth, alpha, mask [H, W], normal [H, W, 3] (any float dtype), rays [H, W, 3] float64 -> P = rays depth
-    [H, W, 3], N = normal [H, W, 3] and wts = alpha mask / mask_count [H, W] in float64 (the torch ops'
-    operations, in one pass)."""
+def _nc_inputs(maps, rays, mask_count, out):
+    """maps (`RenderedMaps`: depth, alpha, mask [H, W], normal [H, W, 3], any float dtype), rays [H, W, 3]
+    float64 -> out (`NCInputs`): P = rays depth [H, W, 3], N = normal [H, W, 3] and wts = alpha mask /
+    mask_count [H, W] in float64 (the torch ops' operations, in one pass)."""
+    depth, normal, alpha, mask = maps.depth, maps.normal, maps.alpha, maps.mask
+    P, N, wts = out.P, out.N, out.wts
     H, W = wts.shape
     for v in prange(H):
         for u in range(W):
@@ -181,7 +203,8 @@ class _NormalConsistencyCPU(torch.autograd.Function):
         d, n, rays_np = contiguous_numpy(depth), normal.detach().numpy(), contiguous_numpy(rays)
         # the normal and the mask as they come (training: channel views), strided: no copies
         start_kernel_pool()
-        _nc_inputs(d, n, rays_np, contiguous_numpy(alpha), mask.detach().numpy(), mask_count, P, N, wts)
+        _nc_inputs(RenderedMaps(d, n, contiguous_numpy(alpha), mask.detach().numpy()), rays_np, mask_count,
+                   NCInputs(P, N, wts))
         ctx.arrs, ctx.dtypes = (P, N, wts, rays_np), (d.dtype, n.dtype)
         return torch.tensor(_nc_forward(P, N, wts), dtype=depth.dtype)
 

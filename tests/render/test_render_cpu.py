@@ -428,8 +428,8 @@ def test_tile_rects_and_gradient_sums_match_plain_references():
         np.testing.assert_array_equal(got, ref)
     boxes = ck._needed_boxes(bin_needed, tiles_x, tiles_y)
     for parts in (2, 3, 7):
-        out = np.empty((I * N, 4), np.int32), np.empty(I * N, np.int64), np.empty(I * N, depths.dtype)
-        nv = ck._tile_rects(means2d, radii, depths, ts, tiles_x, tiles_y, boxes, parts, *out)
+        out = ck.Rects(np.empty((I * N, 4), np.int32), np.empty(I * N, np.int64), np.empty(I * N, depths.dtype))
+        nv = ck._tile_rects(ck.Footprints(means2d, radii, depths), ck.TileGrid(ts, tiles_x, tiles_y), boxes, parts, out)
         for got, ref in zip(out, want):
             np.testing.assert_array_equal(got[:nv], ref)
     assert 0 < len(want[1]) < I * N and not np.any(want[1] // N == 2)
@@ -531,6 +531,15 @@ def test_pose_sums_add_the_poses_in_order_contiguous_on_any_number_of_threads():
         numba.set_num_threads(before)
 
 
+def _copied(a):
+    """A kernel argument copied: an array, a named tuple of them (field by field), or as it is."""
+    if isinstance(a, np.ndarray):
+        return np.copy(a)
+    if isinstance(a, tuple) and hasattr(a, "_fields"):
+        return type(a)(*(_copied(x) for x in a))
+    return a
+
+
 def _captured_raster(monkeypatch, mode: str, sigma_px: float):
     """Kernel arguments of one render + backward (mode "3dgs" or "2dgs") on an `egobench bench raster`
     scene (64 px, 1500 Gaussians, float32) -> backward args; the last two are isect_grad and the
@@ -544,7 +553,7 @@ def _captured_raster(monkeypatch, mode: str, sigma_px: float):
 
     def keep(*args):
         kernel(*args)
-        got["bwd"] = [np.copy(a) if isinstance(a, np.ndarray) else a for a in args]
+        got["bwd"] = [_copied(a) for a in args]
 
     monkeypatch.setattr(mod, name, keep)
     spec = bench._case_spec((64, 1500, sigma_px))
@@ -554,7 +563,7 @@ def _captured_raster(monkeypatch, mode: str, sigma_px: float):
 
 
 def _backward_with_rows(kernel, bwd_args, rows_hit):
-    args = [np.copy(a) if isinstance(a, np.ndarray) else a for a in bwd_args[:-1]] + [rows_hit]
+    args = [_copied(a) for a in bwd_args[:-1]] + [rows_hit]
     args[-2][:] = 0
     kernel(*args)
     return args[-2]
@@ -743,7 +752,7 @@ def test_projection_backward_reads_float32_gradients_as_float64_copies(monkeypat
     kernel, got = getattr(mod, name), {}
 
     def keep(*args):
-        got["args"] = [np.copy(a) if isinstance(a, np.ndarray) else a for a in args]
+        got["args"] = [_copied(a) for a in args]
         kernel(*args)
 
     monkeypatch.setattr(mod, name, keep)
@@ -755,18 +764,17 @@ def test_projection_backward_reads_float32_gradients_as_float64_copies(monkeypat
     w = torch.randn(out.rgb.shape, generator=torch.Generator().manual_seed(2))
     ((out.rgb * w).sum() + out.normal.sum() + out.depth.sum()).backward()
     args = got["args"]
-    grads = [j for j, a in enumerate(args) if isinstance(a, np.ndarray) and a.dtype == np.float32]
-    assert len(grads) == 4  # means2d, conics / ray transforms, depths, normals
+    upstream = args[-2]  # (ck.ProjectedGrads / ProjectedSurfelGrads): means2d, conics / ray transforms, depths, normals
+    assert len(upstream) == 4 and all(a.dtype == np.float32 for a in upstream)
     outs = []
     for widen in (False, True):
-        run = [np.copy(a) if isinstance(a, np.ndarray) else a for a in args]
+        run = [_copied(a) for a in args]
         if widen:
-            for j in grads:
-                run[j] = run[j].astype(np.float64)
-        for a in run[-4:]:
+            run[-2] = type(upstream)(*(a.astype(np.float64) for a in run[-2]))
+        for a in run[-1]:  # ck.SplatGrads: means, quats, scales, pose parts
             a[:] = 0
         kernel(*run)
-        outs.append(run[-4:])
+        outs.append(list(run[-1]))
     for a, b in zip(*outs):
         np.testing.assert_array_equal(a, b)
     assert all(np.abs(a).max() > 0 for a in outs[0])

@@ -145,7 +145,7 @@ def test_kernel_inputs_are_the_torch_ops_bits_for_float32_views():
     """`_nc_inputs` (back-projected points, float64 normals and weights in one compiled pass) gives the bits
     of the torch ops it replaced, for float32 inputs read through strided views as training passes them
     (the normal a channel slice of the feature image, the mask a channel of the per-channel mask)."""
-    from egobench.train.normal_consistency import _nc_inputs, _rays
+    from egobench.train.normal_consistency import NCInputs, RenderedMaps, _nc_inputs, _rays
 
     depth, normal, alpha, mask, cam = _inputs(torch.float32, H=13, W=17, seed=5)
     mask = mask * torch.rand(13, 17, generator=torch.Generator().manual_seed(6))  # soft: products that round
@@ -158,8 +158,8 @@ def test_kernel_inputs_are_the_torch_ops_bits_for_float32_views():
     want_P = rays * depth.detach()[..., None].to(torch.float64)
     want_w = alpha.to(torch.float64) * mask_view.to(torch.float64) / count.to(torch.float64)
     P, N, wts = np.empty((13, 17, 3)), np.empty((13, 17, 3)), np.empty((13, 17))
-    _nc_inputs(depth.detach().numpy(), normal_view.numpy(), rays.numpy(), alpha.numpy(), mask_view.numpy(),
-               float(count), P, N, wts)
+    _nc_inputs(RenderedMaps(depth.detach().numpy(), normal_view.numpy(), alpha.numpy(), mask_view.numpy()),
+               rays.numpy(), float(count), NCInputs(P, N, wts))
     assert np.array_equal(P, want_P.numpy()) and np.array_equal(wts, want_w.numpy())
     assert np.array_equal(N, normal_view.to(torch.float64).numpy())
     assert float(want_w.sum()) > 0.1  # the mean alpha over a non-empty mask: the weights are not all zero

@@ -1,6 +1,8 @@
 """The compiled CPU backend's numba kernels (3DGS; gsplat 1.5.3 semantics, as torch_backend.py), in rooms:
-`compiler` (numba set-up, fast-math, intrinsics), `projection`, `binning`, `composite`, and `surfels` (2DGS).
-This package namespace holds every kernel and helper of the first four (the backends call them as ``ck.*``).
+`compiler` (numba set-up, fast-math, intrinsics), `projection`, `binning`, `composite`, and `surfels` (2DGS);
+`args` holds the named tuples that group the kernels' arguments (no kernel takes more than eight).
+This package namespace holds every kernel, helper and argument group of the first five (the backends call
+them as ``ck.*``).
 
 Projection (forward and backward, per Gaussian), tile binning (sequential counting sort: the
 intersection order is (bin, depth, Gaussian index), as the torch backend's stable sorts), and
@@ -20,11 +22,14 @@ Pixel coordinates: gsplat's (centre of pixel (u, v) at (u + 0.5, v + 0.5)).
 
 from __future__ import annotations
 
+from egobench.render.cpu.args import (  # noqa: F401
+    BackwardPixels, BinLayout, Composite, Constants, Ewa, Footprints, IsectGrad, Pair, Projected, ProjectedGrads, ProjectedSurfelGrads, ProjectedSurfels, Rects, SortedPairs, SplatGrads, Splats, SurfelIsectGrad, SurfelTableInputs, SurfelTables, Tables, Tile, TileGrid, Tiles, View,
+)
 from egobench.render.cpu.compiler import (  # noqa: F401
     BIN_BODY, FASTMATH, GATHER_AHEAD, NoAliasCompiler, PREFETCH_AHEAD, _exp_neg, _exp_neg_impl, prefetch_at, prefetch_row, prefetch_whole_row, scalar_loop,
 )
 from egobench.render.cpu.projection import (  # noqa: F401
-    ALPHA_MAX, ALPHA_MIN, CHUNK, EXTENT_SIGMAS, ROW, SIGMA_SKIP, T_STOP, _U1, _U2, _U3, _argmin3, _clip_limits, _conic_grad, _cov2d_rows, _cov2d_rows_grad, _gather_extents, _or_nonzero, _project_chunk, _scatter_chunk, add_rot_scale_grads, add_view_and_mean_grads, any_live, camera_point, chunk_camera_point, chunk_scratch, gather_chunk, live_chunk, live_pairs, normal_grad, normals_chunk, project_bwd, project_fwd, quat_grad, quat_rotmat, rotated_axis, view_point, view_rows, zero_gaussian_grads,
+    ALPHA_MAX, ALPHA_MIN, CHUNK, EXTENT_SIGMAS, ROW, SIGMA_SKIP, T_STOP, _U1, _U2, _U3, _argmin3, _clip_limits, _conic_grad, _cov2d_rows, _cov2d_rows_grad, _gather_extents, _or_nonzero, _project_chunk, _scatter_chunk, add_mean_grads, add_normal_view_grads, add_rot_scale_grads, add_view_grads, any_live, camera_point, chunk_camera_point, chunk_scratch, gather_chunk, live_chunk, live_pairs, normal_grad, normals_chunk, project_bwd, project_fwd, quat_grad, quat_rotmat, rotated_axis, view_point, view_rows, zero_gaussian_grads,
 )
 from egobench.render.cpu.binning import (  # noqa: F401
     FILL_PART_MIN, RADIX_BITS, RECT_PART_MIN, _bin_walk, _fill_bins, _fill_bins_parts, _needed_boxes, _radix_order, _rects_part, _slots_from_counts, _tile_rects, bin_tiles, fill_bins, needed_bins, visible_rects,

@@ -9,6 +9,8 @@ import numba
 import numpy as np
 from numba import njit, prange
 
+from egobench.render.cpu.args import BinLayout, Footprints, Rects, SortedPairs, TileGrid
+
 
 @njit(cache=True)
 def needed_bins(pixel_pose, tile_size, tiles_x, bin_needed):
@@ -83,9 +85,13 @@ def _needed_boxes(bin_needed, tiles_x, tiles_y):
 
 
 @njit(cache=True)
-def _rects_part(means2d, radii, depths, tile_size, tiles_x, tiles_y, boxes, k0, k1, rect, vis, keys):
-    """The visible pairs among k0 <= k < k1 (k = image * N + Gaussian), in k order: their tile rectangles
-    (x0, x1, y0, y1), k and depth written to rect, vis, keys from row k0 on -> their count."""
+def _rects_part(pairs, grid, boxes, k0, k1, out):
+    """The visible pairs (`Footprints`) among k0 <= k < k1 (k = image * N + Gaussian), in k order: their tile
+    rectangles (x0, x1, y0, y1) in the grid (`TileGrid`), clipped to each image's boxes (`_needed_boxes`), k and
+    depth written to out (`Rects`: rect, vis, keys) from row k0 on -> their count."""
+    means2d, radii, depths = pairs.means2d, pairs.radii, pairs.depths
+    tile_size, tiles_x, tiles_y = grid.tile_size, grid.tiles_x, grid.tiles_y
+    rect, vis, keys = out.rect, out.vis, out.keys
     N = depths.shape[1]
     if k1 <= k0:  # no pairs (also N = 0)
         return 0
@@ -117,14 +123,14 @@ def _rects_part(means2d, radii, depths, tile_size, tiles_x, tiles_y, boxes, k0, 
 
 
 @njit(cache=True, parallel=True)
-def _tile_rects(means2d, radii, depths, tile_size, tiles_x, tiles_y, boxes, parts, rect, vis, keys):
+def _tile_rects(pairs, grid, boxes, parts, out):
     """`_rects_part` over ``parts`` ranges of pairs in parallel (rows from each range's first pair on),
     then packed in order -> the count: the same rows as one range, for any number of parts."""
-    total = depths.size
+    rect, vis, keys = out.rect, out.vis, out.keys
+    total = pairs.depths.size
     counts = np.empty(parts, np.int64)
     for c in prange(parts):
-        counts[c] = _rects_part(means2d, radii, depths, tile_size, tiles_x, tiles_y, boxes, c * total // parts,
-                                (c + 1) * total // parts, rect, vis, keys)
+        counts[c] = _rects_part(pairs, grid, boxes, c * total // parts, (c + 1) * total // parts, out)
     nv = counts[0]
     for c in range(1, parts):  # in order, each range moved down (never past its own rows): sequential
         k0 = c * total // parts
@@ -137,18 +143,19 @@ def _tile_rects(means2d, radii, depths, tile_size, tiles_x, tiles_y, boxes, part
 
 
 def visible_rects(means2d, radii, depths, tile_size, tiles_x, tiles_y, bin_needed):
-    """Tile rectangles [nv, 4] int32 (x0, x1, y0, y1) of the nv visible (image, Gaussian) pairs, their
-    flat ids (ascending) and depths; the pairs in one range per kernel thread (one range: no parallel
+    """`Rects` of the nv visible (image, Gaussian) pairs: tile rectangles [nv, 4] int32 (x0, x1, y0, y1),
+    their flat ids (ascending) and depths; the pairs in one range per kernel thread (one range: no parallel
     loop), the same result for any thread count."""
     boxes = _needed_boxes(bin_needed, tiles_x, tiles_y)
-    rect, vis = np.empty((depths.size, 4), np.int32), np.empty(depths.size, np.int64)
-    keys = np.empty(depths.size, depths.dtype)
+    pairs, grid = Footprints(means2d, radii, depths), TileGrid(tile_size, tiles_x, tiles_y)
+    out = Rects(np.empty((depths.size, 4), np.int32), np.empty(depths.size, np.int64),
+                np.empty(depths.size, depths.dtype))
     parts = min(numba.get_num_threads(), depths.size // RECT_PART_MIN)
     if parts <= 1:
-        nv = _rects_part(means2d, radii, depths, tile_size, tiles_x, tiles_y, boxes, 0, depths.size, rect, vis, keys)
+        nv = _rects_part(pairs, grid, boxes, 0, depths.size, out)
     else:
-        nv = _tile_rects(means2d, radii, depths, tile_size, tiles_x, tiles_y, boxes, parts, rect, vis, keys)
-    return rect[:nv], vis[:nv], keys[:nv]
+        nv = _tile_rects(pairs, grid, boxes, parts, out)
+    return Rects(out.rect[:nv], out.vis[:nv], out.keys[:nv])
 
 
 #: the fewest depth-sorted visible pairs (entries of perm) per kernel thread for which `fill_bins` splits
@@ -157,10 +164,12 @@ FILL_PART_MIN = 4096
 
 
 @njit(cache=True, inline="always")
-def _bin_walk(rect, vis, perm, j0, j1, N, tiles_x, bin_needed, slot, flat_ids, place):
-    """The intersections of the sorted entries j0 <= j < j1 (entry j: visible pair perm[j]; rect [nv, 4] its
-    tiles, vis [nv] its flat id) with needed bins: counted into slot [I * tiles] (place False), or written
-    at flat_ids[slot[b]], slot[b] advanced (place True)."""
+def _bin_walk(pairs, j0, j1, layout, slot, flat_ids, place):
+    """The intersections of the sorted entries j0 <= j < j1 (`SortedPairs`; entry j: visible pair perm[j],
+    rect [nv, 4] its tiles, vis [nv] its flat id) with the needed bins (`BinLayout`): counted into slot
+    [I * tiles] (place False), or written at flat_ids[slot[b]], slot[b] advanced (place True)."""
+    rect, vis, perm = pairs.rect, pairs.vis, pairs.perm
+    N, tiles_x, bin_needed = layout.N, layout.tiles_x, layout.bin_needed
     n_tiles = bin_needed.shape[1]
     for j in range(j0, j1):
         q = perm[j]
@@ -198,10 +207,11 @@ def _fill_bins(rect, vis, perm, N, tiles_x, bin_needed):
     """Counting sort by bin of the visible pairs' intersections, the pairs taken in the order ``perm``
     (front to back; read through perm: a numpy [nv, 4] gather cost ~0.27 ms at 128 px) -> (flat_ids,
     bin_start), on one thread."""
+    pairs, layout = SortedPairs(rect, vis, perm), BinLayout(N, tiles_x, bin_needed)
     slot = np.zeros((1, bin_needed.size), np.int64)
-    _bin_walk(rect, vis, perm, 0, perm.shape[0], N, tiles_x, bin_needed, slot[0], slot[0], False)
+    _bin_walk(pairs, 0, perm.shape[0], layout, slot[0], slot[0], False)
     flat_ids, bin_start = _slots_from_counts(slot)
-    _bin_walk(rect, vis, perm, 0, perm.shape[0], N, tiles_x, bin_needed, slot[0], flat_ids, True)
+    _bin_walk(pairs, 0, perm.shape[0], layout, slot[0], flat_ids, True)
     return flat_ids, bin_start
 
 
@@ -212,12 +222,12 @@ def _fill_bins_parts(rect, vis, perm, N, tiles_x, bin_needed, parts):
     nv = perm.shape[0]
     slot = np.zeros((parts, bin_needed.size), np.int64)
     for p in prange(parts):
-        _bin_walk(rect, vis, perm, p * nv // parts, (p + 1) * nv // parts, N, tiles_x, bin_needed, slot[p],
-                  slot[p], False)
+        _bin_walk(SortedPairs(rect, vis, perm), p * nv // parts, (p + 1) * nv // parts,
+                  BinLayout(N, tiles_x, bin_needed), slot[p], slot[p], False)
     flat_ids, bin_start = _slots_from_counts(slot)
     for p in prange(parts):
-        _bin_walk(rect, vis, perm, p * nv // parts, (p + 1) * nv // parts, N, tiles_x, bin_needed, slot[p],
-                  flat_ids, True)
+        _bin_walk(SortedPairs(rect, vis, perm), p * nv // parts, (p + 1) * nv // parts,
+                  BinLayout(N, tiles_x, bin_needed), slot[p], flat_ids, True)
     return flat_ids, bin_start
 
 

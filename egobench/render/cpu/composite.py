@@ -8,6 +8,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from egobench.render.cpu.args import IsectGrad, Tile
 from egobench.render.cpu.compiler import (
     BIN_BODY,
     FASTMATH,
@@ -239,25 +240,26 @@ def _footprint_tab(tab, g, x0, y0, ts, W, H):
 
 
 @njit(cache=True, inline="always")
-def bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout):
-    """Bin b (image i, tile t) -> (i, output image o, tile pixel bounds x0, y0, x1, y1)."""
+def bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout, cw):
+    """Bin b (image i, tile t) -> its `Tile` (i, output image o, tile pixel bounds x0, y0, x1, y1, ts, cw)."""
     i, t = b // n_tiles, b % n_tiles
     o = 0 if Iout == 1 else i
     x0, y0 = (t % tiles_x) * ts, (t // tiles_x) * ts
-    return i, o, x0, y0, min(x0 + ts, W), min(y0 + ts, H)
+    return Tile(i, o, x0, y0, min(x0 + ts, W), min(y0 + ts, H), ts, cw)
 
 
 @njit(cache=True, inline="always")
-def tile_of_bin(b, pix_view, ts, tiles_x):
+def tile_of_bin(b, pix_view, ts, tiles_x, cw):
     """`bin_tile` of bin b, its sizes read from the view map pix_view [Iout, H, W] (ts-pixel tiles, tiles_x
-    per row) -> (i, o, x0, y0, x1, y1)."""
+    per row, column groups of cw) -> its `Tile`."""
     Iout, H, W = pix_view.shape
-    return bin_tile(b, tiles_x * ((H + ts - 1) // ts), tiles_x, ts, W, H, Iout)
+    return bin_tile(b, tiles_x * ((H + ts - 1) // ts), tiles_x, ts, W, H, Iout, cw)
 
 
 @njit(cache=True, inline="always")
-def _start_tile_fwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, one, T, row_active):
-    """T = 1 at the tile's pixels whose view is i (counted per row in row_active) -> pixels to composite."""
+def _start_tile_fwd(pix_view, tile, one, T, row_active):
+    """T = 1 at the tile's (`Tile`) pixels whose view is i (counted per row in row_active) -> pixels to composite."""
+    i, o, x0, y0, x1, y1, ts, cw = tile.i, tile.o, tile.x0, tile.y0, tile.x1, tile.y1, tile.ts, tile.cw
     n_active = 0
     for v in range(y0, y1):
         for u in range(x0, x1):
@@ -279,8 +281,11 @@ def retire_stopped(row_active, sbuf, ra, rb, ca, cb, ts, cw):
 
 
 @njit(cache=True, inline="always")
-def finish_tile_fwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, T, last, acc, out_feat, out_T, out_last):
-    """Writes the tile's state (|T|, last, accumulated features) to the output pixels whose view is i."""
+def finish_tile_fwd(pix_view, tile, T, last, acc, out):
+    """Writes the tile's (`Tile`) state (|T|, last, accumulated features) to the output pixels whose view is
+    i (out: `Composite`)."""
+    i, o, x0, y0, x1, y1, ts, cw = tile.i, tile.o, tile.x0, tile.y0, tile.x1, tile.y1, tile.ts, tile.cw
+    out_feat, out_T, out_last = out.feat, out.T, out.last
     for v in range(y0, y1):
         for u in range(x0, x1):
             if pix_view[o, v, u] != i:
@@ -293,10 +298,13 @@ def finish_tile_fwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, T, last, acc, out_fe
 
 
 @njit(cache=True, inline="always")
-def _start_tile_bwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, out_T, out_last, g_T, g_feat, T, gTT, last, gF,
-                    k_end):
-    """Loads the forward's final T, last and the output gradients of the tile's pixels whose view is i
-    into the tile state -> one past the last intersection to visit."""
+def _start_tile_bwd(pix_view, tile, px, T, gTT, last, gF, k_end):
+    """Loads the forward's final T, last and the output gradients (px: `BackwardPixels`) of the tile's
+    (`Tile`) pixels whose view is i into the tile state -> one past the last intersection to visit (k_end
+    on entry: at least)."""
+    i, o, x0, y0, x1, y1, ts, cw = tile.i, tile.o, tile.x0, tile.y0, tile.x1, tile.y1, tile.ts, tile.cw
+    out_T, out_last = px.T, px.last
+    g_feat, g_T = px.g_feat, px.g_T
     for v in range(y0, y1):
         for u in range(x0, x1):
             if pix_view[o, v, u] != i:
@@ -312,8 +320,10 @@ def _start_tile_bwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, out_T, out_last, g_T
 
 
 @njit(cache=True, inline="always")
-def _write_isect_grad(isect_grad, k, half, gmx, gmy, ga, gb, gc, glo, gf):
-    """Row k of isect_grad: dL/d (mean x, y, conic a, b, c, log opacity, features gf)."""
+def _write_isect_grad(isect_grad, k, half, sums, gf):
+    """Row k of isect_grad: dL/d (mean x, y, conic a, b, c, log opacity, features gf) from the intersection's
+    sums (`IsectGrad`; half: 0.5 in the compute dtype)."""
+    gmx, gmy, ga, gb, gc, glo = sums.mx, sums.my, sums.a, sums.b, sums.c, sums.lo
     isect_grad[k, 0] = gmx
     isect_grad[k, 1] = gmy
     isect_grad[k, 2] = half * ga
@@ -388,17 +398,19 @@ def _tile_base(centres, x0, y0, ts, cw, kc):
 
 
 @njit(cache=True, inline="always")
-def tile_state_fwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, Cf, kc, centres):
-    """Per-tile state of the forward (compute dtype, `_state_index` layout) -> (T [P] (1 at the pixels
-    whose view is i), acc [Cf, P], last [P] int32, pixel centres cxt, cyt [P], weights wbuf [P],
-    stop flags sbuf [P] int32, row_active [ts] pixels still compositing per row, their number)."""
+def tile_state_fwd(pix_view, tile, Cf, consts):
+    """Per-tile state of the forward (compute dtype, `_state_index` layout; tile: `Tile`, consts:
+    `Constants`) -> (T [P] (1 at the pixels whose view is i), acc [Cf, P], last [P] int32, pixel centres
+    cxt, cyt [P], weights wbuf [P], stop flags sbuf [P] int32, row_active [ts] pixels still compositing
+    per row, their number)."""
+    kc, ts = consts.kc, tile.ts
     P = ts * ts
-    T, last, cxt, cyt = _tile_base(centres, x0, y0, ts, cw, kc)
+    T, last, cxt, cyt = _tile_base(consts.centres, tile.x0, tile.y0, ts, tile.cw, kc)
     acc = np.zeros((Cf, P), kc.dtype)
     wbuf = np.empty(P, kc.dtype)
     sbuf = np.zeros(P, np.int32)  # 1 where the last Gaussian stopped the pixel
     row_active = np.zeros(ts, np.int64)
-    n_active = _start_tile_fwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, kc[1], T, row_active)
+    n_active = _start_tile_fwd(pix_view, tile, kc[1], T, row_active)
     return T, acc, last, cxt, cyt, wbuf, sbuf, row_active, n_active
 
 
@@ -412,16 +424,17 @@ def accumulate_features(acc, wbuf, feats, g, pa, pb):
 
 
 @njit(cache=True, inline="always")
-def tile_state_bwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, Cf, kc, centres, out_T, out_last, g_T, g_feat, k_begin):
-    """Per-tile state of the backward, loaded from the forward's results (`_start_tile_bwd`) -> (T,
-    gTT, suffix, gF [Cf, P], last, cxt, cyt, ebuf, wbuf, gf [Cf], one past the last intersection to visit)."""
+def tile_state_bwd(pix_view, tile, Cf, consts, px, k_begin):
+    """Per-tile state of the backward (tile: `Tile`, consts: `Constants`), loaded from the forward's results
+    and the output gradients (px: `BackwardPixels`; `_start_tile_bwd`) -> (T, gTT, suffix, gF [Cf, P], last,
+    cxt, cyt, ebuf, wbuf, gf [Cf], one past the last intersection to visit (at least k_begin))."""
+    kc, ts = consts.kc, tile.ts
     P = ts * ts
-    T, last, cxt, cyt = _tile_base(centres, x0, y0, ts, cw, kc)
+    T, last, cxt, cyt = _tile_base(consts.centres, tile.x0, tile.y0, ts, tile.cw, kc)
     gTT = np.zeros(P, kc.dtype)
     suffix = np.zeros(P, kc.dtype)
     gF = np.zeros((Cf, P), kc.dtype)
-    k_end = _start_tile_bwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, out_T, out_last, g_T, g_feat, T, gTT, last,
-                            gF, k_begin)
+    k_end = _start_tile_bwd(pix_view, tile, px, T, gTT, last, gF, k_begin)
     return (T, gTT, suffix, gF, last, cxt, cyt, np.empty(P, kc.dtype), np.empty(P, kc.dtype), np.empty(Cf, kc.dtype),
             k_end)
 
@@ -499,18 +512,19 @@ def _exponent(dx, dy, hA, B, hC, lo):
 
 
 @njit(**BIN_BODY)
-def _fwd_bin(b, tab, feats, flat_ids, bin_start, pix_view, tile_size, tiles_x, cw, kc, centres, out_feat, out_T,
-             out_last, rows_hit, rowt):
+def _fwd_bin(b, tables, tiles, consts, out, rows_hit, rowt):
     """`raster_fwd` on bin b (image i, tile t): its `prange` body as a function of its own, so that numba's
     parfor passes compile it once (`BIN_BODY`: the 3DGS set compiles ~20 % faster and runs as fast;
     results/speed/README.md, 2026-11-28)."""
+    tab, feats, kc = tables.tab, tables.feats, consts.kc
+    flat_ids, bin_start, pix_view, ts, tiles_x, cw = tiles.flat_ids, tiles.bin_start, tiles.pix_view, \
+        tiles.tile_size, tiles.tiles_x, tiles.cw
     H, W = pix_view.shape[1], pix_view.shape[2]
     Cf = feats.shape[1]
-    ts = tile_size
     zero, no_row, ts32 = kc[3], np.int32(-1), np.int32(ts)
-    i, o, x0, y0, x1, y1 = tile_of_bin(b, pix_view, ts, tiles_x)
-    T, acc, last, cxt, cyt, wbuf, sbuf, row_active, n_active = tile_state_fwd(pix_view, o, i, x0, y0, x1, y1,
-                                                                               ts, cw, Cf, kc, centres)
+    tile = tile_of_bin(b, pix_view, ts, tiles_x, cw)
+    x0, y0 = tile.x0, tile.y0
+    T, acc, last, cxt, cyt, wbuf, sbuf, row_active, n_active = tile_state_fwd(pix_view, tile, Cf, consts)
     for k in range(bin_start[b], bin_start[b + 1]):
         if n_active == 0:
             break
@@ -547,40 +561,41 @@ def _fwd_bin(b, tab, feats, flat_ids, bin_start, pix_view, tile_size, tiles_x, c
             if stopped:
                 n_active -= stopped
                 retire_stopped(row_active, sbuf, qra, qrb, q * cw, q * cw + 1, ts, cw)
-    finish_tile_fwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, T, last, acc, out_feat, out_T, out_last)
+    finish_tile_fwd(pix_view, tile, T, last, acc, out)
 
 
 @njit(cache=True, parallel=True, fastmath=FASTMATH)
-def raster_fwd(tab, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles_x,
-               cw, kc, centres, out_feat, out_T, out_last, rows_hit):
-    """Front-to-back compositing of each bin (image i, tile t) in ``bins`` into the output pixels
-    whose view is i (pix_view [Iout,H,W]). tab [I*N, TAB_COLS] `gaussian_table` (centres, conics,
-    log opacities, footprints); feats [I*N, Cf] per (image, Gaussian) features; cw
-    `column_group`; kc `compute_constants`; centres [max(W, H) + tile_size] pixel centres
-    (index + 0.5), compute dtype. Writes out_feat [Iout,H,W,Cf] (sum w f), out_T [Iout,H,W]
-    (composited transmittance) and out_last [Iout,H,W] (one past the last composited intersection).
+def raster_fwd(tables, tiles, consts, out, rows_hit):
+    """Front-to-back compositing of each bin (image i, tile t) in ``tiles.bins`` into the output pixels
+    whose view is i (`Tiles`: pix_view [Iout,H,W], intersections flat_ids by bin_start, tile_size, tiles_x,
+    cw `column_group`). tables (`Tables`): tab [I*N, TAB_COLS] `gaussian_table` (centres, conics, log
+    opacities, footprints), feats [I*N, Cf] per (image, Gaussian) features; consts (`Constants`): kc
+    `compute_constants`, centres [max(W, H) + tile_size] pixel centres (index + 0.5), compute dtype.
+    Writes out (`Composite`): feat [Iout,H,W,Cf] (sum w f), T [Iout,H,W] (composited transmittance) and
+    last [Iout,H,W] (one past the last composited intersection).
     Per-pixel state: T > 0 while compositing, -T once stopped, 0 for pixels of other views; stored
     in column groups (`_state_index`) so that the pixels a Gaussian can reach in a group (its
     ellipse's rows, trimmed to rows still compositing) are one contiguous range, updated by one
     branch-free loop (it vectorizes). rows_hit [M, ts // cw, 2] int16 (zeros on entry): per intersection
     and column group, the rows [first, last + 1) it was composited into (w > 0), else an empty range;
     the backward visits only those."""
-    rowt = state_rows(tile_size, cw)  # the same for every tile
+    rowt = state_rows(tiles.tile_size, tiles.cw)  # the same for every tile
+    bins = tiles.bins
     for jb in prange(bins.shape[0]):
-        _fwd_bin(bins[jb], tab, feats, flat_ids, bin_start, pix_view, tile_size, tiles_x, cw, kc, centres, out_feat,
-                 out_T, out_last, rows_hit, rowt)
+        _fwd_bin(bins[jb], tables, tiles, consts, out, rows_hit, rowt)
 
 
 @njit(**BIN_BODY)
-def _bwd_bin(b, tab, feats, flat_ids, bin_start, pix_view, tile_size, tiles_x, cw, kc, centres, out_T, out_last, g_feat,
-             g_T, isect_grad, rows_hit):
+def _bwd_bin(b, tables, tiles, consts, px, isect_grad, rows_hit):
     """`raster_bwd` on bin b: its `prange` body, compiled as `_fwd_bin` is."""
+    tab, feats, kc = tables.tab, tables.feats, consts.kc
+    flat_ids, bin_start, pix_view, ts, tiles_x, cw = tiles.flat_ids, tiles.bin_start, tiles.pix_view, \
+        tiles.tile_size, tiles.tiles_x, tiles.cw
     Cf = feats.shape[1]
-    ts = tile_size
     zero = kc[3]
-    i, o, x0, y0, x1, y1 = tile_of_bin(b, pix_view, ts, tiles_x)
-    T, gTT, suffix, gF, last, cxt, cyt, ebuf, wbuf, gf, k_end = tile_state_bwd(
-        pix_view, o, i, x0, y0, x1, y1, ts, cw, Cf, kc, centres, out_T, out_last, g_T, g_feat, bin_start[b])
+    tile = tile_of_bin(b, pix_view, ts, tiles_x, cw)
+    T, gTT, suffix, gF, last, cxt, cyt, ebuf, wbuf, gf, k_end = tile_state_bwd(pix_view, tile, Cf, consts, px,
+                                                                                bin_start[b])
     for k in range(k_end - 1, bin_start[b] - 1, -1):
         g = flat_ids[k]
         gp = flat_ids[max(k - PREFETCH_AHEAD, bin_start[b])]
@@ -649,18 +664,18 @@ def _bwd_bin(b, tab, feats, flat_ids, bin_start, pix_view, tile_size, tiles_x, c
                 gc += G * dy * dy
                 glo -= G
             add_feature_grads(gf, wbuf, gF, pa, pb, zero)
-        _write_isect_grad(isect_grad, k, kc[0], gmx, gmy, ga, gb, gc, glo, gf)
+        _write_isect_grad(isect_grad, k, kc[0], IsectGrad(gmx, gmy, ga, gb, gc, glo), gf)
 
 
 @njit(cache=True, parallel=True, fastmath=FASTMATH)
-def raster_bwd(tab, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles_x,
-               cw, kc, centres, out_T, out_last, g_feat, g_T, isect_grad, rows_hit):
-    """Back-to-front backward of `raster_fwd` (T recovered by division, as gsplat): isect_grad
+def raster_bwd(tables, tiles, consts, px, isect_grad, rows_hit):
+    """Back-to-front backward of `raster_fwd` (T recovered by division, as gsplat; tables, tiles, consts: the
+    forward's) from px (`BackwardPixels`: the forward's T and last, dL/d feat, dL/dT): isect_grad
     [M, 6 + Cf] per intersection (dL/d mean x, y; dL/d conic a, b, c; dL/d log opacity; dL/d features).
     rows_hit: the forward's; the pixels outside those rows were not composited into (zero terms)."""
+    bins = tiles.bins
     for jb in prange(bins.shape[0]):
-        _bwd_bin(bins[jb], tab, feats, flat_ids, bin_start, pix_view, tile_size, tiles_x, cw, kc, centres, out_T,
-                 out_last, g_feat, g_T, isect_grad, rows_hit)
+        _bwd_bin(bins[jb], tables, tiles, consts, px, isect_grad, rows_hit)
 
 
 @njit(cache=True)

@@ -8,6 +8,8 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from egobench.render.cpu.args import Ewa, Pair
+
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.999
 T_STOP = 1e-4
@@ -66,10 +68,11 @@ _U1, _U2, _U3 = np.uint64(1), np.uint64(2), np.uint64(3)
 
 
 @njit(cache=True, inline="always")
-def gather_chunk(means, quats, scales, n0, L, normal_axis, R, g_in, g_rot):
-    """Per-Gaussian inputs of Gaussians [n0, n0 + L) -> g_in [6 CHUNK] (input dtype: rows 0-2 the mean, 3-5
-    the scales), g_rot [>= 12 CHUNK] (rows 0-8 the rotation matrix row-major, 9-11 its column of the
-    normal: normal_axis, or the shortest axis where it is -1)."""
+def gather_chunk(splats, n0, L, normal_axis, R, g_in, g_rot):
+    """Per-Gaussian inputs of Gaussians [n0, n0 + L) of splats (`Splats`) -> g_in [6 CHUNK] (input dtype: rows
+    0-2 the mean, 3-5 the scales), g_rot [>= 12 CHUNK] (rows 0-8 the rotation matrix row-major, 9-11 its
+    column of the normal: normal_axis, or the shortest axis where it is -1). R [3, 3]: scratch."""
+    means, quats, scales = splats.means, splats.quats, splats.scales
     for j in range(L):
         n = n0 + j
         R, _, _, _, _, _ = quat_rotmat(quats[n, 0], quats[n, 1], quats[n, 2], quats[n, 3], R)
@@ -139,9 +142,13 @@ def chunk_camera_point(v, g_in, j):
 
 
 @njit(cache=True, inline="always")
-def _project_chunk(v, g_in, g_rot, L, cam, lims, eps2d, near, far, width, height, out):
+def _project_chunk(v, g_in, g_rot, L, view, lims, out):
     """One pose (v: `view_rows`) and the chunk's Gaussians (`gather_chunk`, `_gather_extents`) -> out [8 CHUNK]: rows
-    u, v, depth, conic (3), radii x, y (0 where culled). Branch-free: the loop vectorizes."""
+    u, v, depth, conic (3), radii x, y (0 where culled). view: `View` (its camera, image size, eps2d, near,
+    far); lims: `_clip_limits`. Branch-free: the loop vectorizes."""
+    cam = view.cam
+    eps2d, near, far = view.eps2d, view.near, view.far
+    width, height = view.width, view.height
     fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
     lxp, lxn, lyp, lyn = lims
     R_ = ROW
@@ -208,27 +215,28 @@ def normals_chunk(v, g_in, g_rot, L, q0, normals):
 
 
 @njit(cache=True, parallel=True)
-def project_fwd(means, quats, scales, opac, viewmats, cam, width, height, eps2d, near, far, want_normal,
-                means2d, conics, depths, radii, normals):
-    """means [N,3], quats [N,4], scales [N,3], opac [N], viewmats [I,4,4], cam (fx, fy, cx, cy)
-    -> fills means2d [I,N,2], conics [I,N,3], depths [I,N], radii [I,N,2] int32, normals [I,N,3].
+def project_fwd(splats, opac, view, want_normal, out):
+    """splats `Splats` (means [N,3], quats [N,4], scales [N,3]), opac [N], view `View` (viewmats [I,4,4],
+    cam (fx, fy, cx, cy), width, height, eps2d, near, far) -> fills out `Projected`: means2d [I,N,2],
+    conics [I,N,3], depths [I,N], radii [I,N,2] int32, normals [I,N,3] (with want_normal; else [I,0,3]).
     Per chunk of Gaussians: their inputs gathered once, then per pose a vectorized loop over them
     (`_project_chunk`; 3-4x faster on 6 poses than a scalar loop per Gaussian, bitwise the same)."""
+    means, viewmats = splats.means, view.viewmats
     N = means.shape[0]
     I = viewmats.shape[0]
-    lims = _clip_limits(cam, width, height)
-    m2f, conf, depf, radf = means2d.reshape(I * N * 2), conics.reshape(I * N * 3), depths.reshape(I * N), \
-        radii.reshape(I * N * 2)
-    nrmf = normals.reshape(normals.size)
+    lims = _clip_limits(view.cam, view.width, view.height)
+    m2f, conf, depf, radf = out.means2d.reshape(I * N * 2), out.conics.reshape(I * N * 3), \
+        out.depths.reshape(I * N), out.radii.reshape(I * N * 2)
+    nrmf = out.normals.reshape(out.normals.size)
     for ch in prange((N + CHUNK - 1) // CHUNK):
-        n0, L, g_in, g_rot, out = chunk_scratch(ch, N, means.dtype, 14, 8)
-        gather_chunk(means, quats, scales, n0, L, -1, np.empty((3, 3)), g_in, g_rot)
+        n0, L, g_in, g_rot, rows = chunk_scratch(ch, N, means.dtype, 14, 8)
+        gather_chunk(splats, n0, L, -1, np.empty((3, 3)), g_in, g_rot)
         _gather_extents(opac, n0, L, g_rot)
         for i in range(I):
             v = view_rows(viewmats[i])
             q0 = np.uint64(i * N + n0)
-            _project_chunk(v, g_in, g_rot, L, cam, lims, eps2d, near, far, width, height, out)
-            _scatter_chunk(out, q0, L, m2f, depf, conf, radf)
+            _project_chunk(v, g_in, g_rot, L, view, lims, rows)
+            _scatter_chunk(rows, q0, L, m2f, depf, conf, radf)
             if want_normal:
                 normals_chunk(v, g_in, g_rot, L, q0, nrmf)
 
@@ -293,9 +301,10 @@ def zero_gaussian_grads(g_means, g_quats, g_scales, n):
 
 
 @njit(cache=True, inline="always")
-def _cov2d_rows(V, R, scales, n, j00, j11, tx, ty, eps2d, Mc, A0, A1):
-    """Fills Mc [3, 3] = V[:3, :3] R diag(s) and the rows A0, A1 [3] of J Mc (J: EWA Jacobian with
-    j00, j11, tx, ty) -> 2D covariance (c00, c11, c01) with the eps2d dilation."""
+def _cov2d_rows(V, R, scales, n, ewa, Mc, A0, A1):
+    """Fills Mc [3, 3] = V[:3, :3] R diag(s) (s: scales[n]) and the rows A0, A1 [3] of J Mc (ewa: `Ewa`, J and
+    eps2d) -> 2D covariance (c00, c11, c01) with the eps2d dilation."""
+    j00, j11, tx, ty, eps2d = ewa.j00, ewa.j11, ewa.tx, ewa.ty, ewa.eps2d
     v = view_rows(V)
     for c in range(3):
         Mc[0, c], Mc[1, c], Mc[2, c] = rotated_axis(v, R[0, c], R[1, c], R[2, c], scales[n, c])
@@ -318,8 +327,11 @@ def _conic_grad(gA, gB, gC, c00, c11, c01, det, valid):
 
 
 @njit(cache=True, inline="always")
-def _cov2d_rows_grad(g00, g11, g01, A0, A1, Mc, j00, j11, tx, ty, gMc):
-    """Backward of `_cov2d_rows`: fills gMc [3, 3] -> (dL/dj00, dL/dj11, dL/dtx, dL/dty)."""
+def _cov2d_rows_grad(g_cov, A0, A1, Mc, ewa, gMc):
+    """Backward of `_cov2d_rows` from g_cov = dL/d covariance (g00, g11, g01), its A0, A1, Mc and ewa (`Ewa`):
+    fills gMc [3, 3] -> (dL/dj00, dL/dj11, dL/dtx, dL/dty)."""
+    g00, g11, g01 = g_cov
+    j00, j11, tx, ty = ewa.j00, ewa.j11, ewa.tx, ewa.ty
     g_j00 = 0.0
     g_j11 = 0.0
     g_tx = 0.0
@@ -339,9 +351,11 @@ def _cov2d_rows_grad(g00, g11, g01, A0, A1, Mc, j00, j11, tx, ty, gMc):
 
 
 @njit(cache=True, inline="always")
-def normal_grad(V, R, ax, x, y, z, g_normals, i, n, gnw):
-    """Normal sgn * V[:3, :3] R[:, ax] (facing the camera at (x, y, z)): fills gnw [3] = dL/dR[:, ax]
-    from g_normals[:, i, n] [3] -> sgn."""
+def normal_grad(V, R, pair, pc, g_normals, gnw):
+    """Normal sgn * V[:3, :3] R[:, ax] of a pair (`Pair`: i, n, ax), facing the camera at its camera-frame
+    centre pc (x, y, z): fills gnw [3] = dL/dR[:, ax] from g_normals[:, i, n] [3] -> sgn."""
+    i, n, ax = pair.i, pair.n, pair.ax
+    x, y, z = pc
     nx = V[0, 0] * R[0, ax] + V[0, 1] * R[1, ax] + V[0, 2] * R[2, ax]
     ny = V[1, 0] * R[0, ax] + V[1, 1] * R[1, ax] + V[1, 2] * R[2, ax]
     nz = V[2, 0] * R[0, ax] + V[2, 1] * R[1, ax] + V[2, 2] * R[2, ax]
@@ -353,25 +367,43 @@ def normal_grad(V, R, ax, x, y, z, g_normals, i, n, gnw):
 
 
 @njit(cache=True, inline="always")
-def add_view_and_mean_grads(V, R, scales, means, n, gpc, gMc, sgn, g_normals, i, ax, want_normal, gv, gm):
-    """p_c = V m + t, Mc = V R diag(s), normal = sgn V R[:, ax]: adds dL/dV[:3, :4] (row-major) to
-    gv [12] and dL/dm to gm [3], from gpc = dL/dp_c, gMc [3, 3], g_normals[:, i, n] [3]."""
+def add_mean_grads(V, gpc, gm):
+    """p_c = V m + t: adds dL/dm = V[:3, :3]^T gpc to gm [3] (gpc = dL/dp_c), pose row by pose row."""
+    for r in range(3):
+        for b in range(3):
+            gm[b] += V[r, b] * gpc[r]
+
+
+@njit(cache=True, inline="always")
+def add_view_grads(R, scales, means, n, gpc, gMc, gv):
+    """p_c = V m + t, Mc = V R diag(s) (m, s: row n of means, scales): adds dL/dV[:3, :4] (row-major) to gv
+    [12] from gpc = dL/dp_c and gMc [3, 3] = dL/dMc; for each entry, the term of p_c, then that of Mc."""
     for r in range(3):
         gv[r * 4 + 3] += gpc[r]
         for b in range(3):
-            gm[b] += V[r, b] * gpc[r]
             gv[r * 4 + b] += gpc[r] * means[n, b]
             acc = 0.0
             for c in range(3):
                 acc += gMc[r, c] * R[b, c] * scales[n, c]
             gv[r * 4 + b] += acc
-            if want_normal:
-                gv[r * 4 + b] += sgn * g_normals[r, i, n] * R[b, ax]
 
 
 @njit(cache=True, inline="always")
-def add_rot_scale_grads(V, R, scales, n, gMc, gnw, ax, gR, gs):
-    """Mc = V R diag(s): adds dL/dR to gR [3, 3] (with the normal's gnw on column ax) and dL/ds to gs [3]."""
+def add_normal_view_grads(R, pair, sgn, g_normals, gv):
+    """normal = sgn V[:3, :3] R[:, ax] of a pair (`Pair`: i, n, ax): adds its dL/dV[:3, :3] to gv [12] from
+    g_normals[:, i, n] [3]; after `add_view_grads`, each entry's last term (the order of one pass over
+    the entries adding all three)."""
+    i, n, ax = pair.i, pair.n, pair.ax
+    for r in range(3):
+        for b in range(3):
+            gv[r * 4 + b] += sgn * g_normals[r, i, n] * R[b, ax]
+
+
+@njit(cache=True, inline="always")
+def add_rot_scale_grads(V, R, scales, pair, gMc, gnw, gR, gs):
+    """Mc = V R diag(s) of a pair (`Pair`: n, ax; s: scales[n]): adds dL/dR to gR [3, 3] (with the normal's
+    gnw on column ax) and dL/ds to gs [3]."""
+    n, ax = pair.n, pair.ax
     for b in range(3):
         for c in range(3):
             gM = V[0, b] * gMc[0, c] + V[1, b] * gMc[1, c] + V[2, b] * gMc[2, c]
@@ -398,18 +430,20 @@ def quat_grad(gR, qw, qx, qy, qz, qinv, g_quats, n):
 
 
 @njit(cache=True, parallel=True)
-def project_bwd(means, quats, scales, viewmats, cam, width, height, eps2d, near, far, want_normal,
-                g_means2d, g_conics, g_depths, g_normals,
-                g_means, g_quats, g_scales, g_view_parts):
-    """Backward of `project_fwd` for every entry (culled ones included, as torch's graph). Upstream
-    gradients channel first (`reduce_isect_grad`'s layout): g_means2d [2,I,N], g_conics [3,I,N], g_depths
-    [I,N], g_normals [3,I,N] (or [3,I,0]). Fills g_means [N,3], g_quats [N,4], g_scales [N,3] and
-    g_view_parts [chunks, I, 12] (per-chunk partial dL/d viewmat[:3, :4], reduced in chunk order by the
-    caller)."""
+def project_bwd(splats, view, want_normal, upstream, grads):
+    """Backward of `project_fwd` for every entry (culled ones included, as torch's graph); splats (`Splats`)
+    and view (`View`) in float64. Upstream gradients (`ProjectedGrads`) channel first (`reduce_isect_grad`'s
+    layout): means2d [2,I,N], conics [3,I,N], depths [I,N], normals [3,I,N] (or [3,I,0]). Fills grads
+    (`SplatGrads`): means [N,3], quats [N,4], scales [N,3] and view_parts [chunks, I, 12] (per-chunk partial
+    dL/d viewmat[:3, :4], reduced in chunk order by the caller)."""
+    means, quats, scales = splats.means, splats.quats, splats.scales
+    viewmats, cam, eps2d, near, far = view.viewmats, view.cam, view.eps2d, view.near, view.far
+    g_means2d, g_conics, g_depths, g_normals = upstream.means2d, upstream.conics, upstream.depths, upstream.normals
+    g_means, g_quats, g_scales, g_view_parts = grads.means, grads.quats, grads.scales, grads.view_parts
     N = means.shape[0]
     I = viewmats.shape[0]
     fx, fy = cam[0], cam[1]
-    lxp, lxn, lyp, lyn = _clip_limits(cam, width, height)
+    lxp, lxn, lyp, lyn = _clip_limits(cam, view.width, view.height)
     n_chunks = g_view_parts.shape[0]
     for ch in prange(n_chunks):
         R = np.empty((3, 3))  # scratch, reused for every Gaussian of the chunk
@@ -435,6 +469,7 @@ def project_bwd(means, quats, scales, viewmats, cam, width, height, eps2d, near,
                 if not live[i, n - n0]:
                     continue
                 V = viewmats[i]
+                pair = Pair(i, n, ax)
                 x, y, z = camera_point(V, means, n)
                 in_depth = z >= near and z <= far
                 zs = z if in_depth else 1.0
@@ -442,17 +477,17 @@ def project_bwd(means, quats, scales, viewmats, cam, width, height, eps2d, near,
                 rtx, rty = x * inv_z, y * inv_z
                 tx = min(max(rtx, -lxn), lxp)
                 ty = min(max(rty, -lyn), lyp)
-                j00, j11 = fx * inv_z, fy * inv_z
-                c00, c11, c01 = _cov2d_rows(V, R, scales, n, j00, j11, tx, ty, eps2d, Mc, A0, A1)
+                ewa = Ewa(fx * inv_z, fy * inv_z, tx, ty, eps2d)
+                c00, c11, c01 = _cov2d_rows(V, R, scales, n, ewa, Mc, A0, A1)
                 det = c00 * c11 - c01 * c01
-                g00, g11, g01 = _conic_grad(g_conics[0, i, n], g_conics[1, i, n], g_conics[2, i, n], c00, c11, c01,
-                                            det, in_depth and det > 0)
+                g_cov = _conic_grad(g_conics[0, i, n], g_conics[1, i, n], g_conics[2, i, n], c00, c11, c01, det,
+                                    in_depth and det > 0)
                 # means2d = (fx x / zs + cx, fy y / zs + cy); depth = z
                 gx = g_means2d[0, i, n] * fx * inv_z
                 gy = g_means2d[1, i, n] * fy * inv_z
                 g_inv_z = g_means2d[0, i, n] * fx * x + g_means2d[1, i, n] * fy * y
                 gz = g_depths[i, n]
-                g_j00, g_j11, g_tx, g_ty = _cov2d_rows_grad(g00, g11, g01, A0, A1, Mc, j00, j11, tx, ty, gMc)
+                g_j00, g_j11, g_tx, g_ty = _cov2d_rows_grad(g_cov, A0, A1, Mc, ewa, gMc)
                 g_inv_z += fx * g_j00 + fy * g_j11
                 if rtx >= -lxn and rtx <= lxp:
                     gx += g_tx * inv_z
@@ -463,10 +498,13 @@ def project_bwd(means, quats, scales, viewmats, cam, width, height, eps2d, near,
                 if in_depth:
                     gz -= g_inv_z * inv_z * inv_z
                 gnw[:] = 0.0
-                sgn = normal_grad(V, R, ax, x, y, z, g_normals, i, n, gnw) if want_normal else 0.0
-                add_view_and_mean_grads(V, R, scales, means, n, (gx, gy, gz), gMc, sgn, g_normals, i, ax,
-                                         want_normal, g_view_parts[ch, i], gm)
-                add_rot_scale_grads(V, R, scales, n, gMc, gnw, ax, gR, gs)
+                sgn = normal_grad(V, R, pair, (x, y, z), g_normals, gnw) if want_normal else 0.0
+                gpc, gv = (gx, gy, gz), g_view_parts[ch, i]
+                add_mean_grads(V, gpc, gm)
+                add_view_grads(R, scales, means, n, gpc, gMc, gv)
+                if want_normal:
+                    add_normal_view_grads(R, pair, sgn, g_normals, gv)
+                add_rot_scale_grads(V, R, scales, pair, gMc, gnw, gR, gs)
             for b in range(3):
                 g_means[n, b] = gm[b]
                 g_scales[n, b] = gs[b]

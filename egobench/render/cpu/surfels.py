@@ -24,10 +24,11 @@ from numba import njit, prange
 
 from egobench.render import cpu as ck
 from egobench.render.cpu import (CHUNK, EXTENT_SIGMAS, FASTMATH, SIGMA_ROW, accumulate_features, add_feature_grads,
-                                 add_rot_scale_grads, add_view_and_mean_grads, bin_tile, camera_point, composite_pixel,
-                                 exponent_grad, feature_dot, finish_tile_fwd, normal_grad, quat_grad, quat_rotmat,
-                                 retire_stopped, state_rows, tile_state_bwd, tile_state_fwd, track_rows,
-                                 trim_rows_active, uncomposite_pixel)
+                                 add_mean_grads, add_normal_view_grads, add_rot_scale_grads, add_view_grads, bin_tile,
+                                 camera_point, composite_pixel, exponent_grad, feature_dot, finish_tile_fwd,
+                                 normal_grad, quat_grad, quat_rotmat, retire_stopped, state_rows, tile_state_bwd,
+                                 tile_state_fwd, track_rows, trim_rows_active, uncomposite_pixel)
+from egobench.render.cpu.args import Pair, SurfelIsectGrad, SurfelTableInputs
 
 
 FILTER_2D = 2.0  # 2D low-pass filter: exponent FILTER_2D |pixel - centre|^2 / 2 (gsplat's FILTER_INV_SQUARE)
@@ -57,10 +58,13 @@ def _ray_transform(V, R, scales, means, n, cam, M):
 
 
 @njit(cache=True, inline="always")
-def _surfel_centre(u0, u1, u2, v0, v1, v2, w0, w1, w2, z, near, far):
-    """Ray transform M (rows u, v, w) of a surfel at camera depth z -> projected centre (m0, m1), dual-conic
-    scale d (f = (1, 1, -1) / d; 1 where culled, as torch's substitute) and whether it is valid
-    (d != 0, near < z < far). Branch-free."""
+def _surfel_centre(u, v, w, z, near, far):
+    """Ray transform M (rows u, v, w: 3 floats each) of a surfel at camera depth z -> projected centre (m0,
+    m1), dual-conic scale d (f = (1, 1, -1) / d; 1 where culled, as torch's substitute) and whether it is
+    valid (d != 0, near < z < far). Branch-free."""
+    u0, u1, u2 = u
+    v0, v1, v2 = v
+    w0, w1, w2 = w
     d = w0 * w0 + w1 * w1 - w2 * w2
     valid = (d != 0) & (z > near) & (z < far)
     d_s = d if valid else 1.0
@@ -75,10 +79,14 @@ def _axis_column(v, g_in, g_rot, c, j, cam):
 
 
 @njit(cache=True, inline="always")
-def _project_chunk_2dgs(v, g_in, g_rot, L, cam, near, far, width, height, out):
+def _project_chunk_2dgs(v, g_in, g_rot, L, view, out):
     """One pose (v: `ck.view_rows`) and a chunk of surfels (`ck.gather_chunk`) -> out [14 CHUNK]: rows
     centre x, y, depth, radii x, y (0 where culled), then the ray transform M (9, row-major), as
-    `_ray_transform`, `_surfel_centre` and gsplat's AABB. Branch-free: the loop vectorizes."""
+    `_ray_transform`, `_surfel_centre` and gsplat's AABB. view: `View` (its camera, image size, near, far).
+    Branch-free: the loop vectorizes."""
+    cam = view.cam
+    near, far = view.near, view.far
+    width, height = view.width, view.height
     R_ = ck.ROW
     for jj in range(L):
         j = np.uint64(jj)
@@ -87,7 +95,7 @@ def _project_chunk_2dgs(v, g_in, g_rot, L, cam, near, far, width, height, out):
         u1, v1, w1 = _axis_column(v, g_in, g_rot, 1, j, cam)
         u2, v2 = cam[0] * x + cam[2] * z, cam[1] * y + cam[3] * z
         w2 = np.float64(z)
-        m0, m1, d_s, valid = _surfel_centre(u0, u1, u2, v0, v1, v2, w0, w1, w2, z, near, far)
+        m0, m1, d_s, valid = _surfel_centre((u0, u1, u2), (v0, v1, v2), (w0, w1, w2), z, near, far)
         h0 = m0 * m0 - (u0 * u0 + u1 * u1 - u2 * u2) / d_s
         h1 = m1 * m1 - (v0 * v0 + v1 * v1 - v2 * v2) / d_s
         rx = math.ceil(EXTENT_SIGMAS * math.sqrt(max(h0, 1e-4)))
@@ -122,31 +130,35 @@ def _scatter_chunk_2dgs(out, q0, L, means2d, depths, radii, tsl):
 
 
 @njit(cache=True, parallel=True)
-def project_fwd_2dgs(means, quats, scales, viewmats, cam, width, height, near, far,
-                     means2d, tsl, depths, radii, normals):
-    """means [N,3], quats [N,4], scales [N,3] (first two used), viewmats [I,4,4], cam (fx, fy, cx, cy)
-    -> fills means2d [I,N,2], tsl [I,N,9] (ray transform, row-major), depths [I,N], radii [I,N,2]
-    int32 (gsplat's AABB, 0 where culled), normals [I,N,3] (camera frame, facing the camera).
+def project_fwd_2dgs(splats, view, out):
+    """splats `Splats` (means [N,3], quats [N,4], scales [N,3]: first two used), view `View` (viewmats
+    [I,4,4], cam (fx, fy, cx, cy), width, height, near, far) -> fills out `ProjectedSurfels`: means2d
+    [I,N,2], tsl [I,N,9] (ray transform, row-major), depths [I,N], radii [I,N,2] int32 (gsplat's AABB, 0
+    where culled), normals [I,N,3] (camera frame, facing the camera).
     Per chunk of surfels: inputs gathered once, then per pose a vectorized loop (as `ck.project_fwd`)."""
+    means, viewmats = splats.means, view.viewmats
     N, I = means.shape[0], viewmats.shape[0]
-    m2f, tslf, depf = means2d.reshape(I * N * 2), tsl.reshape(I * N * 9), depths.reshape(I * N)
-    radf, nrmf = radii.reshape(I * N * 2), normals.reshape(I * N * 3)
+    m2f, tslf, depf = out.means2d.reshape(I * N * 2), out.tsl.reshape(I * N * 9), out.depths.reshape(I * N)
+    radf, nrmf = out.radii.reshape(I * N * 2), out.normals.reshape(I * N * 3)
     for ch in prange((N + CHUNK - 1) // CHUNK):
-        n0, L, g_in, g_rot, out = ck.chunk_scratch(ch, N, means.dtype, 12, 14)
-        ck.gather_chunk(means, quats, scales, n0, L, 2, np.empty((3, 3)), g_in, g_rot)
+        n0, L, g_in, g_rot, rows = ck.chunk_scratch(ch, N, means.dtype, 12, 14)
+        ck.gather_chunk(splats, n0, L, 2, np.empty((3, 3)), g_in, g_rot)
         for i in range(I):
             v = ck.view_rows(viewmats[i])
             q0 = np.uint64(i * N + n0)
-            _project_chunk_2dgs(v, g_in, g_rot, L, cam, near, far, width, height, out)
-            _scatter_chunk_2dgs(out, q0, L, m2f, depf, radf, tslf)
+            _project_chunk_2dgs(v, g_in, g_rot, L, view, rows)
+            _scatter_chunk_2dgs(rows, q0, L, m2f, depf, radf, tslf)
             ck.normals_chunk(v, g_in, g_rot, L, q0, nrmf)
 
 
 @njit(cache=True, inline="always")
-def _ray_transform_grad(M, valid, d_s, g_means2d, g_tsl, i, n, cam, gMc, gpc):
-    """dL/dM (from the rasterizer, g_tsl[:, i, n] [9], and from the centre, g_means2d[:, i, n] [2]) ->
-    gMc [3, 3] = dL/d(V R diag(s)) (third column 0: a surfel's normal axis has no scale) and
-    gpc [3] = dL/d mean_c (the depth's gradient is added by the caller)."""
+def _ray_transform_grad(M, centre, g_means2d, g_tsl, pair, cam, gMc, gpc):
+    """dL/dM of a pair (`Pair`: i, n; M: its ray transform, centre: `_surfel_centre`'s result) from the
+    rasterizer, g_tsl[:, i, n] [9], and from the centre, g_means2d[:, i, n] [2] -> gMc [3, 3] = dL/d(V R
+    diag(s)) (third column 0: a surfel's normal axis has no scale) and gpc [3] = dL/d mean_c (the depth's
+    gradient is added by the caller)."""
+    _, _, d_s, valid = centre
+    i, n = pair.i, pair.n
     s = (1.0, 1.0, -1.0)
     gq = np.empty(3)  # dL/dq, q = (w_M * s) / d: m_j = u_M^T q, v_M^T q
     P = 0.0
@@ -172,12 +184,16 @@ def _ray_transform_grad(M, valid, d_s, g_means2d, g_tsl, i, n, cam, gMc, gpc):
 
 
 @njit(cache=True, parallel=True)
-def project_bwd_2dgs(means, quats, scales, viewmats, cam, near, far, g_means2d, g_tsl, g_depths, g_normals,
-                     g_means, g_quats, g_scales, g_view_parts):
+def project_bwd_2dgs(splats, view, upstream, grads):
     """Backward of `project_fwd_2dgs` (every entry with an upstream gradient, culled ones as torch's
-    graph). Upstream gradients channel first: g_means2d [2,I,N], g_tsl [9,I,N], g_depths [I,N], g_normals
-    [3,I,N]. Fills g_means [N,3], g_quats [N,4], g_scales [N,3] and g_view_parts [chunks, I, 12]
-    (per-chunk partial dL/d viewmat[:3, :4], reduced in chunk order by the caller)."""
+    graph); splats (`Splats`) and view (`View`) in float64. Upstream gradients (`ProjectedSurfelGrads`)
+    channel first: means2d [2,I,N], tsl [9,I,N], depths [I,N], normals [3,I,N]. Fills grads (`SplatGrads`):
+    means [N,3], quats [N,4], scales [N,3] and view_parts [chunks, I, 12] (per-chunk partial dL/d
+    viewmat[:3, :4], reduced in chunk order by the caller)."""
+    means, quats, scales = splats.means, splats.quats, splats.scales
+    viewmats, cam, near, far = view.viewmats, view.cam, view.near, view.far
+    g_means2d, g_tsl, g_depths, g_normals = upstream.means2d, upstream.tsl, upstream.depths, upstream.normals
+    g_means, g_quats, g_scales, g_view_parts = grads.means, grads.quats, grads.scales, grads.view_parts
     N, I = means.shape[0], viewmats.shape[0]
     for ch in prange(g_view_parts.shape[0]):
         R = np.empty((3, 3))
@@ -201,16 +217,19 @@ def project_bwd_2dgs(means, quats, scales, viewmats, cam, near, far, g_means2d, 
                 if not live[i, n - n0]:
                     continue
                 V = viewmats[i]
+                pair = Pair(i, n, 2)
                 x, y, z = _ray_transform(V, R, scales, means, n, cam, M)
-                _, _, d_s, valid = _surfel_centre(M[0, 0], M[0, 1], M[0, 2], M[1, 0], M[1, 1], M[1, 2], M[2, 0],
-                                                  M[2, 1], M[2, 2], z, near, far)
-                _ray_transform_grad(M, valid, d_s, g_means2d, g_tsl, i, n, cam, gMc, gpc)
+                centre = _surfel_centre((M[0, 0], M[0, 1], M[0, 2]), (M[1, 0], M[1, 1], M[1, 2]),
+                                        (M[2, 0], M[2, 1], M[2, 2]), z, near, far)
+                _ray_transform_grad(M, centre, g_means2d, g_tsl, pair, cam, gMc, gpc)
                 gpc[2] += g_depths[i, n]
                 gnw[:] = 0.0
-                sgn = normal_grad(V, R, 2, x, y, z, g_normals, i, n, gnw)
-                add_view_and_mean_grads(V, R, scales, means, n, gpc, gMc, sgn, g_normals, i, 2, True,
-                                         g_view_parts[ch, i], gm)
-                add_rot_scale_grads(V, R, scales, n, gMc, gnw, 2, gR, gs)
+                sgn = normal_grad(V, R, pair, (x, y, z), g_normals, gnw)
+                gv = g_view_parts[ch, i]
+                add_mean_grads(V, gpc, gm)
+                add_view_grads(R, scales, means, n, gpc, gMc, gv)
+                add_normal_view_grads(R, pair, sgn, g_normals, gv)
+                add_rot_scale_grads(V, R, scales, pair, gMc, gnw, gR, gs)
             for b in range(3):
                 g_means[n, b] = gm[b]
                 g_scales[n, b] = gs[b]
@@ -257,11 +276,14 @@ BAND_ENLARGE = 1.01
 
 
 @njit(cache=True, inline="always")
-def _image_ellipse(U0, U1, U2, V0, V1, V2, W0, W1, W2, r2):
+def _image_ellipse(U, V, W, r2):
     """Image of the disc u^2 + v^2 <= r2 of a surfel from its dual conic H diag(r2, r2, -1) H^T (H: the
-    ray transform's rows U, V, W; float64) -> (centre cx, cy, Sxx, Syy, Sxy, ok): the ellipse
+    ray transform's rows U, V, W, 3 float64 each) -> (centre cx, cy, Sxx, Syy, Sxy, ok): the ellipse
     (p - c)^T S^-1 (p - c) <= 1; ok False (and zeros) where the disc crosses the camera plane (no
     bounded image). Branch-free."""
+    U0, U1, U2 = U
+    V0, V1, V2 = V
+    W0, W1, W2 = W
     d = r2 * (W0 * W0 + W1 * W1) - W2 * W2
     ok = (W2 > 0.0) & (d < 0.0)
     d = d if ok else -1.0
@@ -275,13 +297,16 @@ def _image_ellipse(U0, U1, U2, V0, V1, V2, W0, W1, W2, r2):
 
 
 @njit(cache=True, inline="always")
-def _gather_needed(means2d, tsl, log_opac, needed, i, n0, n1, rows, src, m2_rows, tsl_rows):
-    """The needed table rows g = i N + n, n in [n0, n1) -> their count L; rows [L] the row numbers and
+def _gather_needed(inputs, needed, i, n0, n1, rows, src):
+    """The needed table rows g = i N + n, n in [n0, n1) of `surfel_table`'s inputs (`SurfelTableInputs`:
+    means2d, tsl, log_opac, and m2_rows, tsl_rows, means2d and tsl as [I*N, ·] row views) -> their count
+    L; rows [L] the row numbers and
     src [13 CHUNK] (float64) their inputs: rows 0-8 the ray transform, 9-10 the projected centre,
     11 the exponent bound e = SIGMA_ROW + log o, 12 the log opacity log o. The ray-transform and centre
     rows are prefetched `ck.GATHER_AHEAD` rows ahead (`ck.needed_rows`): without it, the first load of
-    each row missed cache, half of `surfel_table`'s time in a 128 px training step. m2_rows, tsl_rows:
-    means2d and tsl as [I*N, ·] row views."""
+    each row missed cache, half of `surfel_table`'s time in a 128 px training step."""
+    means2d, tsl, log_opac = inputs.means2d, inputs.tsl, inputs.log_opac
+    m2_rows, tsl_rows = inputs.m2_rows, inputs.tsl_rows
     N = log_opac.shape[0]
     L = ck.needed_rows(needed, i * N + n0, i * N + n1, rows)
     for j in range(L):
@@ -306,9 +331,9 @@ def _surfel_rows(src, L, out):
     for jj in range(L):
         j = np.uint64(jj)
         e, mx, my = src[R_[11] + j], src[R_[9] + j], src[R_[10] + j]
-        cx, cy, sxx, syy, sxy, ok = _image_ellipse(src[j], src[R_[1] + j], src[R_[2] + j], src[R_[3] + j],
-                                                   src[R_[4] + j], src[R_[5] + j], src[R_[6] + j], src[R_[7] + j],
-                                                   src[R_[8] + j], 2.0 * e)
+        cx, cy, sxx, syy, sxy, ok = _image_ellipse((src[j], src[R_[1] + j], src[R_[2] + j]),
+                                                   (src[R_[3] + j], src[R_[4] + j], src[R_[5] + j]),
+                                                   (src[R_[6] + j], src[R_[7] + j], src[R_[8] + j]), 2.0 * e)
         ok = ok & (e > 0.0)
         out[j], out[R_[1] + j] = (cx if ok else mx), (cy if ok else my)
         out[R_[2] + j], out[R_[3] + j], out[R_[4] + j] = mx, -sxy, my
@@ -340,9 +365,9 @@ def surfel_table(means2d, tsl, log_opac, needed, tab):
         rows = np.empty(CHUNK, np.int64)
         src = np.empty(13 * CHUNK)
         out = np.empty(ck.TAB_COLS * CHUNK)
+        inputs = SurfelTableInputs(means2d, tsl, log_opac, m2_rows, tsl_rows)
         for i in range(I):
-            L = _gather_needed(means2d, tsl, log_opac, needed, i, ch * CHUNK, min(N, (ch + 1) * CHUNK), rows, src,
-                               m2_rows, tsl_rows)
+            L = _gather_needed(inputs, needed, i, ch * CHUNK, min(N, (ch + 1) * CHUNK), rows, src)
             _surfel_rows(src, L, out)
             for j in range(L):
                 for c in range(ck.TAB_COLS):
@@ -444,15 +469,18 @@ def _prefetch_surfel(tab, tsl_rows, feats, g):
 
 
 @njit(cache=True, parallel=True, fastmath=FASTMATH)
-def raster_fwd_2dgs(tsl, tab, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles_x,
-                    cw, kc, centres, out_feat, out_T, out_last, rows_hit):
-    """`composite.raster_fwd` for surfels: tsl [I, N, 9] ray transforms, tab [I*N, ck.TAB_COLS]
-    `surfel_table` (the rows each column group visits), feats [I*N, Cf] with the depth in channel
-    DEPTH_CH; out_feat [Iout, H, W, Cf + 1] gets sum w f and, in its last channel, the depth distortion
-    2 sum_k w_k (z_k W_k - A_k) (W_k, A_k: sums of w_j, w_j z_j over earlier j).
+def raster_fwd_2dgs(tables, tiles, consts, out, rows_hit):
+    """`composite.raster_fwd` for surfels (tiles: `Tiles`, consts: `Constants`, as there). tables
+    (`SurfelTables`): tsl [I, N, 9] ray transforms, tab [I*N, ck.TAB_COLS] `surfel_table` (the rows each
+    column group visits), feats [I*N, Cf] with the depth in channel DEPTH_CH; out (`Composite`): feat
+    [Iout, H, W, Cf + 1] gets sum w f and, in its last channel, the depth distortion 2 sum_k w_k (z_k W_k -
+    A_k) (W_k, A_k: sums of w_j, w_j z_j over earlier j); T and last as `composite.raster_fwd`'s.
     rows_hit [M, ts // cw, 2] int16 (zeros on entry): for each intersection and column group, the tile
     rows [first, last + 1) holding a pixel it was composited into (w > 0), or an empty range; the
     backward visits only those."""
+    tsl, tab, feats, kc = tables.tsl, tables.tab, tables.feats, consts.kc
+    flat_ids, bin_start, bins, pix_view, tile_size, tiles_x, cw = tiles.flat_ids, tiles.bin_start, tiles.bins, \
+        tiles.pix_view, tiles.tile_size, tiles.tiles_x, tiles.cw
     Iout, H, W = pix_view.shape
     N = tsl.shape[1]
     Cf = feats.shape[1]
@@ -464,9 +492,9 @@ def raster_fwd_2dgs(tsl, tab, feats, flat_ids, bin_start, bins, pix_view, tile_s
     tsl_rows = _tsl_rows(tsl)
     for jb in prange(bins.shape[0]):
         b = bins[jb]
-        i, o, x0, y0, x1, y1 = bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout)
-        T, acc, last, cxt, cyt, wbuf, sbuf, row_active, n_active = tile_state_fwd(pix_view, o, i, x0, y0, x1, y1,
-                                                                                   ts, cw, Cf + 1, kc, centres)
+        tile = bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout, cw)
+        x0, y0 = tile.x0, tile.y0
+        T, acc, last, cxt, cyt, wbuf, sbuf, row_active, n_active = tile_state_fwd(pix_view, tile, Cf + 1, consts)
         lxt, lyt, ox, oy = _tile_local(cxt, cyt, x0, y0, ts)
         cc = np.empty(9, kc.dtype)
         for k in range(bin_start[b], bin_start[b + 1]):
@@ -504,15 +532,19 @@ def raster_fwd_2dgs(tsl, tab, feats, flat_ids, bin_start, bins, pix_view, tile_s
                 if stopped:
                     n_active -= stopped
                     retire_stopped(row_active, sbuf, qra, qrb, q * cw, q * cw + 1, ts, cw)
-        finish_tile_fwd(pix_view, o, i, x0, y0, x1, y1, ts, cw, T, last, acc, out_feat, out_T, out_last)
+        finish_tile_fwd(pix_view, tile, T, last, acc, out)
 
 
 @njit(cache=True, inline="always")
-def _write_surfel_grad(isect_grad, k, ac, up_vp, tsl, gi, n, ox, oy, gmx, gmy, glo, gf, gz, Cf):
-    """Row k of isect_grad from dL/d cross coefficients ac [9] (C0, C1, C2): dL/d (centre x, y; ray
-    transform rows U, V, W; log opacity; features gf[:Cf], plus gz on the depth)."""
+def _write_surfel_grad(isect_grad, k, ac, up_vp, w_row, origin, sums, gf):
+    """Row k of isect_grad from dL/d cross coefficients ac [9] (C0, C1, C2; `_cross_coefs`' Up, Vp as up_vp,
+    its ray transform's row W as w_row, the tile centre (ox, oy) as origin) and the intersection's sums
+    (`SurfelIsectGrad`): dL/d (centre x, y; ray transform rows U, V, W; log opacity; features gf [Cf], plus
+    the sums' z on the depth)."""
     u0, u1, u2, v0, v1, v2 = up_vp
-    W0, W1, W2 = tsl[gi, n, 6], tsl[gi, n, 7], tsl[gi, n, 8]
+    W0, W1, W2 = w_row
+    ox, oy = origin
+    gmx, gmy, glo, gz = sums.mx, sums.my, sums.lo, sums.z
     # C0 = Up x Vp, C1 = W x Vp, C2 = Up x W: d(a x b).g / da = b x g, / db = g x a
     gu0 = v1 * ac[2] - v2 * ac[1] + W1 * ac[8] - W2 * ac[7]
     gu1 = v2 * ac[0] - v0 * ac[2] + W2 * ac[6] - W0 * ac[8]
@@ -527,18 +559,21 @@ def _write_surfel_grad(isect_grad, k, ac, up_vp, tsl, gi, n, ox, oy, gmx, gmy, g
     isect_grad[k, 2], isect_grad[k, 3], isect_grad[k, 4] = -gu0, -gu1, -gu2
     isect_grad[k, 5], isect_grad[k, 6], isect_grad[k, 7] = -gv0, -gv1, -gv2
     isect_grad[k, 8], isect_grad[k, 9], isect_grad[k, 10] = gw0, gw1, gw2
-    for c in range(Cf):
+    for c in range(gf.shape[0]):
         isect_grad[k, 12 + c] = gf[c] + (gz if c == DEPTH_CH else 0.0)
 
 
 @njit(cache=True, parallel=True, fastmath=FASTMATH)
-def raster_bwd_2dgs(tsl, tab, feats, flat_ids, bin_start, bins, pix_view, tile_size, tiles_x,
-                    cw, kc, centres, out_T, out_last, g_state, g_T, isect_grad, rows_hit):
-    """Back-to-front backward of `raster_fwd_2dgs` (tab: the forward's table). g_state [Iout, H, W, Cf + 2]:
-    dL/dF (Cf channels), 2 dL/d distortion, the forward's accumulated depth. isect_grad [M, 12 + Cf] per intersection:
+def raster_bwd_2dgs(tables, tiles, consts, px, isect_grad, rows_hit):
+    """Back-to-front backward of `raster_fwd_2dgs` (tables, tiles, consts: the forward's). px
+    (`BackwardPixels`): the forward's T and last, g_T, and g_feat [Iout, H, W, Cf + 2]: dL/dF (Cf channels),
+    2 dL/d distortion, the forward's accumulated depth. isect_grad [M, 12 + Cf] per intersection:
     dL/d centre x, y; ray transform (9, row-major); log opacity; features (zeros on entry). rows_hit: the
     forward's; the pixels outside those rows were not composited into, so their terms are zero, and an
     intersection without any row is skipped (41 % of them in a 128 px `ours_2dgs` step)."""
+    tsl, tab, feats, kc = tables.tsl, tables.tab, tables.feats, consts.kc
+    flat_ids, bin_start, bins, pix_view, tile_size, tiles_x, cw = tiles.flat_ids, tiles.bin_start, tiles.bins, \
+        tiles.pix_view, tiles.tile_size, tiles.tiles_x, tiles.cw
     Iout, H, W = pix_view.shape
     N = tsl.shape[1]
     Cf = feats.shape[1]
@@ -548,9 +583,10 @@ def raster_bwd_2dgs(tsl, tab, feats, flat_ids, bin_start, bins, pix_view, tile_s
     tsl_rows = _tsl_rows(tsl)
     for jb in prange(bins.shape[0]):
         b = bins[jb]
-        i, o, x0, y0, x1, y1 = bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout)
-        T, gTT, suffix, gF, last, cxt, cyt, ebuf, wbuf, _, k_end = tile_state_bwd(
-            pix_view, o, i, x0, y0, x1, y1, ts, cw, Cf + 2, kc, centres, out_T, out_last, g_T, g_state, bin_start[b])
+        tile = bin_tile(b, n_tiles, tiles_x, ts, W, H, Iout, cw)
+        x0, y0 = tile.x0, tile.y0
+        T, gTT, suffix, gF, last, cxt, cyt, ebuf, wbuf, _, k_end = tile_state_bwd(pix_view, tile, Cf + 2, consts, px,
+                                                                                  bin_start[b])
         gf = np.empty(Cf, kc.dtype)  # feature gradients only (gF's last two rows are distortion state)
         lxt, lyt, ox, oy = _tile_local(cxt, cyt, x0, y0, ts)
         w_after = np.zeros_like(T)  # sum of w_j over the later j
@@ -605,4 +641,5 @@ def raster_bwd_2dgs(tsl, tab, feats, flat_ids, bin_start, bins, pix_view, tile_s
                     glo -= G
                 add_feature_grads(gf, wbuf, gF, pa, pb, zero)
             ac[0], ac[1], ac[2], ac[3], ac[4], ac[5], ac[6], ac[7], ac[8] = a0, a1, a2, a3, a4, a5, a6, a7, a8
-            _write_surfel_grad(isect_grad, k, ac, up_vp, tsl, gi, n, ox, oy, gmx, gmy, glo, gf, gz, Cf)
+            _write_surfel_grad(isect_grad, k, ac, up_vp, (tsl[gi, n, 6], tsl[gi, n, 7], tsl[gi, n, 8]), (ox, oy),
+                               SurfelIsectGrad(gmx, gmy, glo, gz), gf)
