@@ -64,10 +64,10 @@ def open_run(run_dir, recording_dir, where: str) -> ViewRun:
     if run.spec.splat_mode != "3dgs":
         raise ValueError(f"{where}: method {run.spec.name!r} renders 2DGS surfels; the page renders 3DGS Gaussians "
                          "(use a 3DGS method's run, e.g. 'ours')")
-    if isinstance(recording_dir, Recording):
-        rec = recording_dir
-    else:
-        rec = load_recording(recording_dir, run.spec.calibration)
+    rec = recording_dir if isinstance(recording_dir, Recording) else load_recording(recording_dir, run.spec.calibration)
+    if rec.calibration != run.spec.calibration:
+        raise ValueError(f"{where}: method {run.spec.name!r} renders the {run.spec.calibration!r} stream, the recording "
+                         f"was loaded with {rec.calibration!r} (pass the recording folder instead)")
     return ViewRun(run, rec, run_maps(rec, run).vignette, method_normaliser(rec, run.spec),
                    RenderSettings.of(run.config, "cpu"))
 

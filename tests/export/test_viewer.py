@@ -82,6 +82,14 @@ def test_a_2dgs_run_is_refused_with_its_method_named(scene, tmp_path):
     assert not (tmp_path / PAGE).exists()
 
 
+def test_a_run_of_another_calibration_stream_is_refused(scene, tmp_path):
+    rec, runs, _page, _out = scene
+    train(rec, "ours", replace(preset_config("cpu").scaled_to(20), seed=0), tmp_path / "run", progress=False)
+    factory = replace(rec, calibration="factory")
+    with pytest.raises(ValueError, match="renders the 'online' stream, the recording was loaded with 'factory'"):
+        write_view(tmp_path / "run", factory, tmp_path / "view")
+
+
 def _psnr(a: np.ndarray, b: np.ndarray) -> float:
     mse = float(np.mean((a - b) ** 2))
     return math.inf if mse == 0 else -10.0 * math.log10(mse)
