@@ -96,10 +96,10 @@ def gaussians_payload(view: ViewRun) -> dict:
 
 def _formation_payload(view: ViewRun) -> dict:
     spec = view.run.spec
-    response = formation_model(spec).response
+    formation = formation_model(spec)
+    response, cfg = formation.response, formation.config
     if spec.formation and not isinstance(response, GammaResponse):
         raise ValueError(f"view: method {spec.name!r} uses a {type(response).__name__}; the page applies gamma responses")
-    cfg = formation_model(spec).config
     return {"enabled": bool(spec.formation), "scene_gamma": bool(spec.scene_gamma), "gamma": float(spec.response_gamma),
             "toe_linear": float(getattr(response, "toe_linear", 1e-5)), "vignette": bool(cfg.vignette),
             "exposure_gain": bool(cfg.exposure_gain), "clamp": bool(cfg.clamp)}
@@ -147,9 +147,7 @@ def write_view(run_dir, recording_dir, out_dir, *, compare=None) -> dict:
     view = open_run(run_dir, recording_dir, f"view {run_dir}")
     other = None
     if compare is not None:
-        other = open_run(compare, recording_dir if not isinstance(recording_dir, (str, Path)) else
-                         load_recording(recording_dir, load_trained_run(compare, "cpu", "view").spec.calibration),
-                         f"view {compare}")
+        other = open_run(compare, recording_dir, f"view {compare}")  # a folder: loaded in the run's own stream
         if other.run.camera != view.run.camera:
             raise ValueError(f"view: --compare {compare} was trained at {other.run.camera.width} px, {run_dir} at "
                              f"{view.run.camera.width} px; the page shows both at one camera")

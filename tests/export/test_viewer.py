@@ -3,6 +3,7 @@ it shows what egobench renders at a camera, through the formation model's exposu
 
 from __future__ import annotations
 
+import base64
 import json
 import math
 import re
@@ -43,8 +44,6 @@ def _payload(page_path) -> dict:
 
 
 def _floats(b64: str) -> np.ndarray:
-    import base64
-
     return np.frombuffer(base64.b64decode(b64), dtype="<f4")
 
 
