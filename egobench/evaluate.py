@@ -38,7 +38,7 @@ from egobench.geometry import so3_log
 from egobench.host import host_info
 from egobench.io_utils import atomic_path, check_written, git_commit, holding_run_folder, read_json, write_json
 from egobench.metrics import (
-    depth_mse_authors, depth_si_l1, lpips_alex, lpips_available, normal_cos_authors, normal_l1, psnr, ssim,
+    depth_mse_authors, depth_si_l1, erode_mask_authors, lpips_alex, lpips_available, normal_cos_authors, normal_l1, psnr, ssim,
 )
 from egobench.model.methods import get_method
 from egobench.model.predict import (
@@ -47,6 +47,10 @@ from egobench.model.predict import (
 )
 from egobench.train.checkpoint import TrainedRun, check_run_complete, load_trained_run, recording_for_run
 from egobench.train.normal_consistency import depth_normals
+
+#: the record's keys of the authors' geometry metrics (`egobench.report.paper_numbers` DEPTH, NORMAL); on an
+#: object capture they score the object's foreground, and the same keys with this suffix every surface in view
+DEPTH_KEY, NORMAL_KEY, ALL_SURFACES_SUFFIX = "depth_mse_authors", "normal_cos_authors", "_all"
 
 RUN_SCHEMA = "egobench.run/1"
 VIRTUAL_GAIN = 3.0  # paper teaser: re-render at 3x gain
@@ -290,6 +294,8 @@ def _run_record(held: _Held, per_image: list[dict], notes: dict, scene: str | No
         "metrics": {
             "psnr": mean_of("psnr"), "ssim": mean_of("ssim"), "lpips": mean_of("lpips"),
             "depth_mse_authors": mean_of("depth_mse_authors"), "normal_cos_authors": mean_of("normal_cos_authors"),
+            DEPTH_KEY + ALL_SURFACES_SUFFIX: mean_of(DEPTH_KEY + ALL_SURFACES_SUFFIX),
+            NORMAL_KEY + ALL_SURFACES_SUFFIX: mean_of(NORMAL_KEY + ALL_SURFACES_SUFFIX),
             "depth_si_l1": mean_of("depth_si_l1"), "normal_l1": mean_of("normal_l1"),
         },
         "notes": notes,
@@ -338,10 +344,7 @@ def _geometry(run: TrainedRun, geo_rec: Recording, frame: Frame, n: int, scale: 
     valid = in_view & (o.alpha[0, ..., 0].cpu() > 0.5)
     gt_d = None if d_path is None else resize_map(torch.from_numpy(np.load(d_path).astype(np.float32)), cam, "nearest")
     gt_n = None if n_path is None else resize_map(torch.from_numpy(np.load(n_path).astype(np.float32)), cam, "nearest")
-    if gt_d is not None:
-        out["depth_mse_authors"] = depth_mse_authors(o.depth[0, ..., 0].cpu(), gt_d, in_view & (gt_d > 0))
-    if gt_n is not None and o.normal is not None:
-        out["normal_cos_authors"] = normal_cos_authors(_authors_normal(o, run, cam), gt_n, in_view & (gt_n.norm(dim=-1) > 0.5))
+    out.update(_authors_geometry(o, run, cam, gt_d, gt_n, in_view, _foreground(geo_rec, gf, cam)))
     if not bool(valid.any()):  # the model is transparent everywhere here: egobench's own metrics have no pixel
         return {**out, "depth_si_l1": None, "normal_l1": None, "geometry_missing": True}
     if gt_d is not None:
@@ -349,6 +352,40 @@ def _geometry(run: TrainedRun, geo_rec: Recording, frame: Frame, n: int, scale: 
     if gt_n is not None and o.normal is not None:
         out["normal_l1"] = normal_l1(o.normal[0].cpu(), gt_n, valid)
     return out
+
+
+def _foreground(geo_rec: Recording, frame: Frame, cam) -> Tensor | None:
+    """The frame's ground-truth foreground [h, w] bool at the evaluation scale (an object capture's object
+    surfaces), or None where the recording has none."""
+    path = geo_rec.ground_truth_file("foreground", frame)
+    if path is None:
+        return None
+    return resize_map(torch.from_numpy(np.load(path).astype(np.float32)), cam, "nearest") > 0.5
+
+
+def _authors_geometry(o, run: TrainedRun, cam, gt_d, gt_n, in_view: Tensor, foreground: Tensor | None) -> dict:
+    """The authors' depth and normal errors: on the object's foreground where the recording has one (as the
+    authors score their DTC objects), and over every surface in view as ``*_all`` beside them (the only
+    score where there is no foreground)."""
+    out: dict[str, Any] = {}
+    regions = {"": in_view if foreground is None else in_view & foreground}
+    if foreground is not None:
+        regions[ALL_SURFACES_SUFFIX] = in_view
+    for suffix, region in regions.items():
+        optional = foreground is not None and suffix == ""  # the object may be small or out of view here
+        if gt_d is not None and _scorable(region & (gt_d > 0), optional):
+            out[DEPTH_KEY + suffix] = depth_mse_authors(o.depth[0, ..., 0].cpu(), gt_d, region & (gt_d > 0))
+        if gt_n is not None and o.normal is not None and _scorable(region & (gt_n.norm(dim=-1) > 0.5), optional):
+            out[NORMAL_KEY + suffix] = normal_cos_authors(_authors_normal(o, run, cam), gt_n,
+                                                          region & (gt_n.norm(dim=-1) > 0.5))
+    return out
+
+
+def _scorable(mask: Tensor, optional: bool) -> bool:
+    """Whether to score ``mask``: an optional region (an object's foreground) only where the authors' erosion
+    keeps a pixel of it (that frame then has no foreground score); any other always (the metric names an
+    empty one)."""
+    return not optional or bool(erode_mask_authors(mask).any())
 
 
 def _authors_normal(o, run: TrainedRun, cam) -> Tensor:

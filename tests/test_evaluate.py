@@ -47,7 +47,7 @@ def test_record_fields_and_psnr_on_saved_render(trained):
     assert set(out["train"]) == {"iterations", "time_s", "iters_per_s", "raster_time_share", "num_gaussians"}
     assert out["train"]["iterations"] == 30 and out["train"]["iters_per_s"] > 0
     assert set(out["metrics"]) == {"psnr", "ssim", "lpips", "depth_mse_authors", "normal_cos_authors",
-                                   "depth_si_l1", "normal_l1"}
+                                   "depth_si_l1", "normal_l1", "depth_mse_authors_all", "normal_cos_authors_all"}
     assert [e["frame"] for e in out["per_image"]] == [0, 8, 16]
     if out["metrics"]["lpips"] is None:
         assert out["notes"]["lpips"].startswith("not available")
@@ -120,6 +120,44 @@ def test_geometry_metrics_against_ground_truth(trained, tmp_path):
     no_gt = dataclasses.replace(rec, ground_truth=None)
     out2 = evaluate(no_gt, run, save_renders=False)
     assert out2["metrics"]["depth_si_l1"] is None and "geometry" in out2["notes"]
+
+
+def _with_foreground(rec, tmp_path, name: str, region) -> object:
+    """``rec`` with a copy of its ground truth plus a foreground mask per frame: ``region(mask)`` sets it."""
+    import shutil
+
+    gt = tmp_path / name
+    shutil.copytree(rec.ground_truth, gt)
+    (gt / "foreground").mkdir()
+    for f in sorted((gt / "depth").glob("*.npy")):
+        mask = np.zeros(np.load(f).shape, dtype=bool)
+        region(mask)
+        np.save(gt / "foreground" / f.name, mask)
+    return dataclasses.replace(rec, ground_truth=gt)
+
+
+def test_authors_geometry_on_the_foreground_with_all_surfaces_beside(trained, tmp_path):
+    """An object capture's ground truth carries a foreground: the authors' depth and normal scores are taken
+    there, and the same scores over every surface are kept as ``*_all`` (those of a recording without one)."""
+    rec, run = trained
+    plain = evaluate(rec, run, save_renders=False)["metrics"]
+    assert plain["depth_mse_authors_all"] is None and plain["normal_cos_authors_all"] is None
+
+    def everything(mask):
+        mask[:] = True
+
+    def left_half(mask):
+        mask[:, : mask.shape[1] // 2] = True
+
+    full = evaluate(_with_foreground(rec, tmp_path, "gt_full", everything), run, save_renders=False)["metrics"]
+    half = evaluate(_with_foreground(rec, tmp_path, "gt_half", left_half), run, save_renders=False)["metrics"]
+    for m in (full, half):  # every surface: the score of the recording without a foreground
+        assert m["depth_mse_authors_all"] == plain["depth_mse_authors"]
+        assert m["normal_cos_authors_all"] == plain["normal_cos_authors"]
+    assert full["depth_mse_authors"] == plain["depth_mse_authors"]  # the whole view is foreground
+    assert full["normal_cos_authors"] == plain["normal_cos_authors"]
+    assert half["depth_mse_authors"] != plain["depth_mse_authors"]  # half the view: another score
+    assert half["normal_cos_authors"] != plain["normal_cos_authors"]
 
 
 class _RunsCodeWhenUnpickled:

@@ -289,7 +289,8 @@ def _recast_setup(root: Path, info: dict, config, rec, gamma: float) -> tuple[_R
     raw_vignette = radial_vignette((cal_model.height, cal_model.width), 1.0 - dev.vignette_corner,
                                    dev.vignette_power, centre=(float(cal_model.params[1]), float(cal_model.params[2])))
     return _Recast(
-        scene=make_scene(config.kind, config.seed, sun_scale=config.sun_scale, grain=config.grain), trajectory=rec.trajectory, raw=raw, rect=rect,
+        scene=make_scene(config.kind, config.seed, sun_scale=config.sun_scale, grain=config.grain,
+                       variety=config.world_variety), trajectory=rec.trajectory, raw=raw, rect=rect,
         formation=FormationModel(FormationConfig.paper_trainer(gamma=gamma)),
         simulator=FormationModel(FormationConfig.ground_truth(gamma=gamma)), raw_vignette=raw_vignette,
         noise=PoissonGaussianNoise(dev.noise.full_well_e, dev.noise.read_noise_e) if config.noise else None,

@@ -18,18 +18,23 @@ from typing import Mapping
 #: records and results.csv, never printed beside the paper's numbers.
 PSNR, SSIM, LPIPS, DEPTH, NORMAL = "psnr", "ssim", "lpips", "depth_mse_authors", "normal_cos_authors"
 OWN_DEPTH, OWN_NORMAL = "depth_si_l1", "normal_l1"
+#: On an object capture with a ground-truth foreground, DEPTH and NORMAL score the object's surfaces (as the
+#: authors score their DTC objects); these score every surface in view (egobench.evaluate's ``*_all``).
+DEPTH_ALL, NORMAL_ALL = DEPTH + "_all", NORMAL + "_all"
 
 #: Display name of a metric and whether larger is better.
 METRIC_LABELS: Mapping[str, str] = MappingProxyType(
     {PSNR: "PSNR", SSIM: "SSIM", LPIPS: "LPIPS", DEPTH: "Depth", NORMAL: "Normal",
-     OWN_DEPTH: "Depth SI-L1 (m)", OWN_NORMAL: "Normal L1"}
+     OWN_DEPTH: "Depth SI-L1 (m)", OWN_NORMAL: "Normal L1", DEPTH_ALL: "Depth, all surfaces",
+     NORMAL_ALL: "Normal, all surfaces"}
 )
 HIGHER_IS_BETTER: Mapping[str, bool] = MappingProxyType(
-    {PSNR: True, SSIM: True, LPIPS: False, DEPTH: False, NORMAL: False, OWN_DEPTH: False, OWN_NORMAL: False}
+    {PSNR: True, SSIM: True, LPIPS: False, DEPTH: False, NORMAL: False, OWN_DEPTH: False, OWN_NORMAL: False,
+     DEPTH_ALL: False, NORMAL_ALL: False}
 )
 #: Decimal places used when printing a metric (the paper's precision).
 METRIC_DECIMALS: Mapping[str, int] = MappingProxyType(
-    {PSNR: 2, SSIM: 3, LPIPS: 4, DEPTH: 4, NORMAL: 4, OWN_DEPTH: 4, OWN_NORMAL: 4})
+    {PSNR: 2, SSIM: 3, LPIPS: 4, DEPTH: 4, NORMAL: 4, OWN_DEPTH: 4, OWN_NORMAL: 4, DEPTH_ALL: 4, NORMAL_ALL: 4})
 
 @dataclass(frozen=True)
 class PaperTable:

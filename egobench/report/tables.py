@@ -32,7 +32,7 @@ from egobench.model.methods import get_method
 
 RUN_SCHEMA = "egobench.run/1"
 #: Metrics a record may carry (None = not measured).
-METRICS = (pn.PSNR, pn.SSIM, pn.LPIPS, pn.DEPTH, pn.NORMAL, pn.OWN_DEPTH, pn.OWN_NORMAL)
+METRICS = (pn.PSNR, pn.SSIM, pn.LPIPS, pn.DEPTH, pn.NORMAL, pn.OWN_DEPTH, pn.OWN_NORMAL, pn.DEPTH_ALL, pn.NORMAL_ALL)
 #: Reference method of each compared method in the gains table (default: ``ours``).
 GAIN_REFERENCE = {"2dgs_no_motion_sampling": "ours_2dgs"}
 #: Table of each group in egobench.model.methods' row labels ("aria", "dtc", "quest3").

@@ -70,6 +70,7 @@ class SimConfig:
     exposure_metadata_error: float = 0.0  # recorded exposure = true x (1 + error) on the affected frames (signed)
     exposure_metadata_fraction: float = 0.0  # fraction of frames whose exposure metadata is wrong
     grain: float = 0.0  # fractal albedo grain on every surface, 0.5 m down to 4 mm, 1/f amplitude spectrum (egobench.sim.world.grain_factor): relative amplitude in [0, 1]
+    world_variety: float = 0.0  # 0: every seed the kind's one world, jittered; up to 1: each seed another world, its layout, materials and lights redrawn (egobench.sim.world.variety)
     sun_scale: float = 1.0  # sun illuminance x this (outdoor scenes; 1 = 60 klux against a 4 klux sky): the scene's sun-to-shade dynamic range
     noise: bool = True  # shot + read noise on
     full_well_e: float | None = None  # electrons at saturation; None = device
@@ -306,6 +307,7 @@ def _check_effects(cfg: SimConfig) -> None:
     _check_number(cfg, "noise_std_factor", 0, strict_lo=True)
     _check_number(cfg, "sun_scale", 0.0)
     _check_number(cfg, "grain", 0.0, 1.0)
+    _check_number(cfg, "world_variety", 0.0, 1.0)
     _check_number(cfg, "exposure_metadata_fraction", 0.0, 1.0)
     _check_number(cfg, "full_well_e", 0, strict_lo=True, allow_none=True)
     _check_number(cfg, "read_noise_e", 0, allow_none=True)

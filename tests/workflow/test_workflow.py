@@ -49,24 +49,53 @@ def test_schema_enums_match_the_package():
     assert schema["properties"]["scenes"]["items"]["properties"]["kind"]["enum"] == list(SCENE_KINDS)
 
 
-@pytest.mark.parametrize("name", ["config.yaml", "paper.yaml", "ci.yaml", "paper_smoke.yaml"])
+@pytest.mark.parametrize("name", ["config.yaml", "confirmatory_1.yaml", "paper.yaml", "ci.yaml", "paper_smoke.yaml"])
 def test_shipped_configs_are_valid(name):
     suite = wc.load_suite(REPO / "config" / name)
     assert suite.runs() and len(set(suite.runs())) == len(suite.runs())
 
 
-def test_default_suite_covers_every_table_row():
+T1_METHODS = {"splatfacto", "on_the_move", "ours", "no_viba", "no_motion_sampling", "no_scene_gamma"}
+T2_METHODS = {"ours", "no_motion_sampling", "no_viba", "no_scene_gamma", "splatfacto", "ours_2dgs",
+              "2dgs_no_motion_sampling"}
+T3_METHODS = {"ours", "no_viba", "no_motion_sampling"}
+
+
+def _methods_by_kind(suite) -> dict[str, set[str]]:
+    by_kind: dict[str, set[str]] = {}
+    for s in suite.scenes.values():
+        by_kind.setdefault(s.kind, set()).update(s.methods)
+    return by_kind
+
+
+def test_default_suite_is_protocol_2():
+    """docs/protocol-2.md's design: 6 + 6 + 3 + 2 worlds, every Table 1 row on every Table 1 scene, the paper's
+    scene each stands for, one fresh training seed per scene and a second on the first outdoor and indoor one."""
     suite = wc.load_suite(REPO / "config" / "config.yaml")
-    by_kind = {s.kind: set(s.methods) for s in suite.scenes.values()}
-    t1 = {"splatfacto", "on_the_move", "ours", "no_viba", "no_motion_sampling", "no_scene_gamma"}
-    assert by_kind["outdoor"] == t1 and by_kind["indoor"] == t1
-    assert by_kind["object"] == {"ours", "no_motion_sampling", "no_viba", "no_scene_gamma", "splatfacto",
-                                 "ours_2dgs", "2dgs_no_motion_sampling"}
-    assert by_kind["quest3"] == {"ours", "no_viba", "no_motion_sampling"}
-    # the protocol's design (docs/protocol.md): the same five fresh seeds for every row, fresh recordings
+    assert _methods_by_kind(suite) == {"outdoor": T1_METHODS, "indoor": T1_METHODS, "object": T2_METHODS,
+                                       "quest3": T3_METHODS}
+    kinds = [s.kind for s in suite.scenes.values()]
+    assert (kinds.count("outdoor"), kinds.count("indoor"), kinds.count("object"), kinds.count("quest3")) == (6, 6, 3, 2)
+    from egobench.report import paper_numbers as pn
+
+    assert [s.paper_scene for s in suite.scenes.values() if s.kind == "outdoor"] == list(pn.TABLE1_OUTDOOR_SCENES)
+    assert [s.paper_scene for s in suite.scenes.values() if s.kind == "indoor"] == list(pn.TABLE1_INDOOR_SCENES)
+    assert all(set(s.methods) == set(suite.scenes[s.name].methods) for s in suite.scenes.values())
+    for s in suite.scenes.values():
+        expected = {1732, 508} if s.name in ("outdoor_0", "indoor_0") else {1732}
+        assert all(set(s.seeds_of(m)) == expected for m in s.methods), s.name
+    sim_seeds = [s.sim_seed for s in suite.scenes.values()]
+    assert len(set(sim_seeds)) == 17 and not set(sim_seeds) & {2718, 2818, 2845, 9045}  # fresh, none of run 1's
+    assert len(suite.runs()) == 12 * 6 + 3 * 7 + 2 * 3 + 2 * 6
+
+
+def test_confirmatory_1_config_is_run_1():
+    """config/confirmatory_1.yaml keeps run 1's design (docs/protocol.md): the same five seeds for every row."""
+    suite = wc.load_suite(REPO / "config" / "confirmatory_1.yaml")
+    assert _methods_by_kind(suite) == {"outdoor": T1_METHODS, "indoor": T1_METHODS, "object": T2_METHODS,
+                                       "quest3": T3_METHODS}
     confirmatory = {3141, 5926, 5358, 9793, 2384}
     assert len(suite.runs()) == (6 + 6 + 7 + 3) * 5
-    assert all(seed in confirmatory for _, _, seed in suite.runs())
     seeds = {(s, m): {seed for s2, m2, seed in suite.runs() if (s2, m2) == (s, m)} for s, m, _ in suite.runs()}
     assert all(v == confirmatory for v in seeds.values())
     assert {s.name: s.sim_seed for s in suite.scenes.values()} == {
@@ -254,7 +283,7 @@ def test_parsing_the_workflow_loads_no_torch_scipy_or_matplotlib(tmp_path):
     "edit, key",
     [
         (lambda c: c["scenes"][1].update(kind="underwater"), "config.scenes[1].kind"),
-        (lambda c: c["scenes"][2]["methods"].append("instant_ngp"), "config.scenes[2].methods[7]"),
+        (lambda c: c["scenes"][12]["methods"].append("instant_ngp"), "config.scenes[12].methods[7]"),
         (lambda c: c["defaults"].update(iteratons=5), "config.defaults.iteratons"),
     ],
 )

@@ -186,8 +186,11 @@ def capture_raw_frame(setup: CaptureSetup, run: CaptureRun, k: int, partial: Pat
                     irradiance_raw=irr, image_raw_01=raw_f)
 
 
-def truth_depth_normal(setup: CaptureSetup, read_start_true_ns: int, exposure_true_s: float) -> tuple[Tensor, Tensor]:
-    """Online rectified camera: depth z [h, w] float64 (m, 0 = none), normals [h, w, 3] (camera frame, 0 = none).
+def truth_depth_normal(setup: CaptureSetup, read_start_true_ns: int, exposure_true_s: float
+                       ) -> tuple[Tensor, Tensor, Tensor | None]:
+    """Online rectified camera: depth z [h, w] float64 (m, 0 = none), normals [h, w, 3] (camera frame, 0 = none),
+    and where the scene has a `Scene.foreground_box`, the foreground [h, w] bool (the surface point in the box;
+    else None).
 
     Each pixel is cast from the true pose at its own mid-exposure time (its raw source row's)."""
     rays = setup.truth_rays
@@ -208,7 +211,20 @@ def truth_depth_normal(setup: CaptureSetup, read_start_true_ns: int, exposure_tr
     depth_map[gt_valid] = z
     normal_map = torch.zeros(gt_valid.shape + (3,), dtype=torch.float64)
     normal_map[gt_valid] = n_cam
-    return depth_map, normal_map
+    return depth_map, normal_map, _foreground(setup.scene, Tp[:, :3, 3], d_world / norm, t_hit, is_hit, gt_valid)
+
+
+def _foreground(scene, origins: Tensor, dirs: Tensor, t_hit: Tensor, is_hit: Tensor, valid: Tensor) -> Tensor | None:
+    """[h, w] bool: the pixels whose surface point lies in the scene's foreground box (None without one)."""
+    if scene.foreground_box is None:
+        return None
+    lo, hi = (torch.tensor(v, dtype=torch.float64) for v in scene.foreground_box)
+    t = torch.where(is_hit, t_hit.to(torch.float64), torch.zeros_like(t_hit, dtype=torch.float64))
+    p = origins.to(torch.float64) + t[:, None] * dirs.to(torch.float64)
+    inside = is_hit & ((p >= lo) & (p <= hi)).all(dim=-1)
+    out = torch.zeros(valid.shape, dtype=torch.bool)
+    out[valid] = inside
+    return out
 
 
 def _write_ground_truth(setup: CaptureSetup, frame: RawFrame, partial: Path) -> None:
@@ -217,9 +233,13 @@ def _write_ground_truth(setup: CaptureSetup, frame: RawFrame, partial: Path) -> 
     rect_online = setup.rigs["online"][0]
     gt_irr = rect_online.warp(frame.irradiance_raw).clamp(0, FLOAT16_MAX)
     np.save(partial / "ground_truth" / "radiance" / f"{k:05d}.npy", gt_irr.to(torch.float16).numpy())
-    depth_map, normal_map = truth_depth_normal(setup, frame.read_start_true_ns, frame.exposure.exposure_true_s)
+    depth_map, normal_map, foreground = truth_depth_normal(setup, frame.read_start_true_ns,
+                                                           frame.exposure.exposure_true_s)
     np.save(partial / "ground_truth" / "depth" / f"{k:05d}.npy", depth_map.to(torch.float16).numpy())
     np.save(partial / "ground_truth" / "normal" / f"{k:05d}.npy", normal_map.to(torch.float16).numpy())
+    if foreground is not None:  # an object capture: the surfaces Table 2's geometry is scored on
+        (partial / "ground_truth" / "foreground").mkdir(exist_ok=True)
+        np.save(partial / "ground_truth" / "foreground" / f"{k:05d}.npy", foreground.numpy())
 
 
 def visible_semidense(setup: CaptureSetup, t_ns: int) -> Tensor:

@@ -216,7 +216,8 @@ def build_capture_setup(config: SimConfig) -> CaptureSetup:
     dev = get_device(config.device_name)
     compute = config.compute_torch_device()
     cals = make_calibrations(config)
-    scene = make_scene(config.kind, config.seed, sun_scale=config.sun_scale, grain=config.grain)
+    scene = make_scene(config.kind, config.seed, sun_scale=config.sun_scale, grain=config.grain,
+                       variety=config.world_variety)
     trajectory = _device_motion(config, dev, scene)
     clocks = _frame_clocks(config, dev, trajectory, cals.true)
     rigs = {name: rectification_rig(cal, config.rectified_size, config.focal_ratio())

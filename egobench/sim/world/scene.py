@@ -56,6 +56,9 @@ class Scene:
     seed: int = 0  # the seed the scene was built from
     chunk_rays: int = 32768  # rays per internal chunk (bounds memory: ~chunk x primitives x 8 floats)
     grain: float = 0.0  # amplitude of a fractal albedo grain on every surface (see `grain_factor`); 0 = none
+    # world box (min xyz, max xyz) of the captured object(s) of an object capture: the ground truth's foreground
+    # mask (the surfaces the authors' Table 2 geometry is scored on); None: the scene has no foreground
+    foreground_box: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
     _packs: dict = field(default_factory=dict, repr=False)
 
     def __post_init__(self) -> None:

@@ -11,7 +11,7 @@ from egobench.sim.world.scene import Scene
 from egobench.sim.world.scenes.common import jitter, room_shell
 
 
-def build(rng: np.random.Generator, seed: int) -> Scene:
+def build(rng: np.random.Generator, seed: int, spread: float = 1.0) -> Scene:
     """A DTC-like object capture: a mug, a printed box and a ball on a table in an evenly lit lab."""
     s = lambda k: int(rng.integers(0, 2 ** 31 - 1)) + k  # noqa: E731
     M = {
@@ -40,10 +40,10 @@ def build(rng: np.random.Generator, seed: int) -> Scene:
         for dy in (-0.35, 0.35):
             P.append(Cylinder((dx, dy, (table_top - 0.04) / 2), (0, 0, 1), 0.025, (table_top - 0.04) / 2, "table"))
     P.append(axis_rect((0, 0, table_top + 0.0005), "+z", (0.6, 0.45), "mat"))
-    mx, my = 0.08 + jitter(rng, 0.02), 0.02 + jitter(rng, 0.02)
+    mx, my = 0.08 + jitter(rng, 0.02 * spread), 0.02 + jitter(rng, 0.02 * spread)
     P.append(Cylinder((mx, my, table_top + 0.05), (0, 0, 1), 0.042, 0.05, "mug"))
     P.append(yaw_box((mx + 0.055, my, table_top + 0.05), (0.018, 0.012, 0.06), "mug"))  # handle
-    P.append(yaw_box((-0.12, 0.05, table_top + 0.09), (0.09, 0.05, 0.18), "package", yaw_deg=20 + jitter(rng, 15)))
+    P.append(yaw_box((-0.12, 0.05, table_top + 0.09), (0.09, 0.05, 0.18), "package", yaw_deg=20 + jitter(rng, 15 * spread)))
     P.append(Sphere((0.03, -0.12, table_top + 0.045), 0.045, "ball"))
     lamp_xy = [(-1.0, -1.0), (1.0, -1.0), (-1.0, 1.0), (1.0, 1.0)]
     for (x, y) in lamp_xy:
@@ -51,6 +51,8 @@ def build(rng: np.random.Generator, seed: int) -> Scene:
     lights: list[Light] = [AmbientLight(250.0)]
     lights += [PointLight((x, y, 2.9), 300.0, rgb=(1.0, 1.0, 1.0)) for (x, y) in lamp_xy]
     targets = np.array([[0.0, 0.0, table_top + 0.06]])
+    # the objects: everything standing on the mat, 2 mm above it and up (the mat and the table are background)
+    foreground = ((-0.3, -0.225, table_top + 0.002), (0.3, 0.225, table_top + 0.5))
     return Scene("object", P, M, lights, WalkRegion("ring", (0.0, 0.0), radius_min_m=1.1, radius_max_m=1.4,
                                                     eye_height_m=1.5), targets,
-                 ((-3.0, -3.0, 0.0), (3.0, 3.0, 3.0)), seed)
+                 ((-3.0, -3.0, 0.0), (3.0, 3.0, 3.0)), seed, foreground_box=foreground)

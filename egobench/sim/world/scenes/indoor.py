@@ -11,7 +11,7 @@ from egobench.sim.world.scene import Scene
 from egobench.sim.world.scenes.common import bookshelf, jitter, palette, room_shell
 
 
-def build(rng: np.random.Generator, seed: int) -> Scene:
+def build(rng: np.random.Generator, seed: int, spread: float = 1.0) -> Scene:
     """A library-like room: shelves of books, posters, a table, a bright window, ~150-300 lux."""
     s = lambda k: int(rng.integers(0, 2 ** 31 - 1)) + k  # noqa: E731
     covers = palette(rng, 6, 0.08, 0.7)
@@ -37,19 +37,19 @@ def build(rng: np.random.Generator, seed: int) -> Scene:
     room_shell(P, size, "floor", "wall", "ceiling")
     # shelves along the north and west walls
     for k in range(3):
-        bookshelf(P, -3.0 + 2.2 * k + jitter(rng, 0.1), 3.48, 180.0, 2.0, "shelf", "books")
-    bookshelf(P, -4.48, -1.2 + jitter(rng, 0.2), -90.0, 2.4, "shelf", "books")
+        bookshelf(P, -3.0 + 2.2 * k + jitter(rng, 0.1 * spread), 3.48, 180.0, 2.0, "shelf", "books")
+    bookshelf(P, -4.48, -1.2 + jitter(rng, 0.2 * spread), -90.0, 2.4, "shelf", "books")
     # posters and a notice board on the south wall; a window on the east wall
     P.append(axis_rect((-2.5, -3.49, 1.6), "+y", (0.8, 1.1), "poster1"))
-    P.append(axis_rect((-1.2 + jitter(rng, 0.2), -3.49, 1.5), "+y", (0.7, 0.9), "poster2"))
+    P.append(axis_rect((-1.2 + jitter(rng, 0.2 * spread), -3.49, 1.5), "+y", (0.7, 0.9), "poster2"))
     P.append(axis_rect((1.5, -3.49, 1.5), "+y", (1.8, 1.0), "board"))
-    P.append(axis_rect((4.49, 0.3 + jitter(rng, 0.3), 1.55), "-x", (2.0, 1.4), "window"))
+    P.append(axis_rect((4.49, 0.3 + jitter(rng, 0.3 * spread), 1.55), "-x", (2.0, 1.4), "window"))
     # a reading table, chairs, a rug, ceiling lamps
     P.append(axis_rect((0.3, 0.2, 0.004), "+z", (3.0, 2.0), "rug"))
-    P.append(yaw_box((2.6, -1.9, 0.74), (1.6, 0.8, 0.04), "table", yaw_deg=jitter(rng, 10)))
+    P.append(yaw_box((2.6, -1.9, 0.74), (1.6, 0.8, 0.04), "table", yaw_deg=jitter(rng, 10 * spread)))
     for dx in (-0.7, 0.7):
         P.append(Cylinder((2.6 + dx, -1.9, 0.36), (0, 0, 1), 0.03, 0.36, "metal"))
-        P.append(yaw_box((2.6 + dx, -1.2, 0.45), (0.45, 0.45, 0.05), "shelf", yaw_deg=jitter(rng, 20)))
+        P.append(yaw_box((2.6 + dx, -1.2, 0.45), (0.45, 0.45, 0.05), "shelf", yaw_deg=jitter(rng, 20 * spread)))
     lamp_xy = [(-2.0, 0.0), (1.5, 0.0), (1.5, -2.0)]
     for (x, y) in lamp_xy:
         P.append(Cylinder((x, y, 2.86), (0, 0, 1), 0.25, 0.03, "lamp"))

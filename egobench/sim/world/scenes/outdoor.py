@@ -13,7 +13,7 @@ from egobench.sim.world.scene import Scene
 from egobench.sim.world.scenes.common import jitter
 
 
-def build(rng: np.random.Generator, seed: int) -> Scene:
+def build(rng: np.random.Generator, seed: int, spread: float = 1.0) -> Scene:
     """A sunlit street corner / patio: brick and plaster facades, shop signs, poles, tables, awning."""
     s = lambda k: int(rng.integers(0, 2 ** 31 - 1)) + k  # noqa: E731 - texture seeds
     M = {
@@ -36,34 +36,34 @@ def build(rng: np.random.Generator, seed: int) -> Scene:
     P.append(axis_rect((0, -9.0, 0.002), "+z", (60.0, 6.0), "asphalt"))
     # north facade (bricks) with a shop front and signs; west facade (plaster); a south-west building
     P.append(yaw_box((0, 7.5, 5.0), (24.0, 1.0, 10.0), "bricks"))
-    P.append(axis_rect((jitter(rng, 1.0) - 2.0, 6.99, 1.5), "-y", (5.0, 2.6), "shopfront"))
+    P.append(axis_rect((jitter(rng, 1.0 * spread) - 2.0, 6.99, 1.5), "-y", (5.0, 2.6), "shopfront"))
     P.append(axis_rect((-2.0, 6.96, 3.4), "-y", (4.0, 0.7), "sign1"))
-    P.append(axis_rect((4.5 + jitter(rng, 0.5), 6.98, 2.6), "-y", (2.2, 1.4), "menu"))
+    P.append(axis_rect((4.5 + jitter(rng, 0.5 * spread), 6.98, 2.6), "-y", (2.2, 1.4), "menu"))
     P.append(yaw_box((-9.5, 0.0, 4.0), (1.0, 16.0, 8.0), "plaster"))
-    P.append(axis_rect((-8.99, -1.0 + jitter(rng, 0.5), 2.8), "+x", (3.0, 0.6), "sign2"))
+    P.append(axis_rect((-8.99, -1.0 + jitter(rng, 0.5 * spread), 2.8), "+x", (3.0, 0.6), "sign2"))
     P.append(axis_rect((-8.99, 2.5, 1.4), "+x", (1.2, 1.6), "menu"))
     P.append(yaw_box((-3.0, -12.5, 6.0), (14.0, 1.0, 12.0), "bricks"))
     # awning over the shop front (casts a shadow band)
     P.append(Rect((-2.0, 5.9, 3.0), (1.0, 0.0, 0.0), (0.0, 0.8, 0.6), 3.0, 1.1, "awning"))
     # poles with signs
     for k, (x, y) in enumerate([(3.5, -3.2), (-5.5, 3.8), (6.5, 3.0)]):
-        x, y = x + jitter(rng, 0.3), y + jitter(rng, 0.3)
+        x, y = x + jitter(rng, 0.3 * spread), y + jitter(rng, 0.3 * spread)
         P.append(Cylinder((x, y, 1.5), (0, 0, 1), 0.045, 1.5, "metal"))
         P.append(Rect((x, y, 2.55 + 0.1 * k), (1.0, 0.3 * (k - 1), 0.0), (0, 0, 1), 0.45, 0.3, "sign1" if k % 2 else "sign2"))
     # bistro tables with chairs, and planters
     for (x, y) in [(2.0, 4.0), (-1.5, 4.3), (5.0, 5.2), (-6.0, -4.0)]:
-        x, y = x + jitter(rng, 0.3), y + jitter(rng, 0.3)
+        x, y = x + jitter(rng, 0.3 * spread), y + jitter(rng, 0.3 * spread)
         P.append(Cylinder((x, y, 0.74), (0, 0, 1), 0.4, 0.02, "wood"))
         P.append(Cylinder((x, y, 0.37), (0, 0, 1), 0.04, 0.36, "metal"))
-        P.append(yaw_box((x + 0.65, y, 0.45), (0.42, 0.42, 0.06), "wood", yaw_deg=jitter(rng, 30)))
-        P.append(yaw_box((x - 0.65, y, 0.45), (0.42, 0.42, 0.06), "wood", yaw_deg=jitter(rng, 30)))
+        P.append(yaw_box((x + 0.65, y, 0.45), (0.42, 0.42, 0.06), "wood", yaw_deg=jitter(rng, 30 * spread)))
+        P.append(yaw_box((x - 0.65, y, 0.45), (0.42, 0.42, 0.06), "wood", yaw_deg=jitter(rng, 30 * spread)))
     for (x, y) in [(-7.5, -2.5), (-7.5, 1.0), (7.0, -2.0)]:
         P.append(yaw_box((x, y, 0.35), (0.9, 0.9, 0.7), "stone"))
         P.append(Sphere((x, y, 0.9), 0.45, "planter"))
     for x in (-3.0, -1.0, 1.0, 3.0):
         P.append(Sphere((x, -5.5, 0.35), 0.25, "stone"))
     # sun from the south-west, 50 deg elevation: facades and the awning cast long shadows
-    az, el = math.radians(225.0 + jitter(rng, 10.0)), math.radians(50.0)
+    az, el = math.radians(225.0 + jitter(rng, 10.0 * spread)), math.radians(50.0)
     lights: list[Light] = [
         Sun((math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)), 60000.0),
         SkyDome(4000.0, ground_albedo=0.25),

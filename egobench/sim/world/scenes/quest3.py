@@ -11,7 +11,7 @@ from egobench.sim.world.scene import Scene
 from egobench.sim.world.scenes.common import bookshelf, jitter, palette, room_shell
 
 
-def build(rng: np.random.Generator, seed: int) -> Scene:
+def build(rng: np.random.Generator, seed: int, spread: float = 1.0) -> Scene:
     """A living room (Quest 3 captures): sofa, coffee table, TV, rug, bookshelf, window, lamps."""
     s = lambda k: int(rng.integers(0, 2 ** 31 - 1)) + k  # noqa: E731
     covers = palette(rng, 5, 0.1, 0.7)
@@ -42,11 +42,11 @@ def build(rng: np.random.Generator, seed: int) -> Scene:
     P.append(yaw_box((0.0, -2.3, 0.22), (2.2, 0.9, 0.44), "fabric"))
     P.append(yaw_box((0.0, -2.65, 0.65), (2.2, 0.2, 0.5), "fabric"))
     for dx in (-0.6, 0.6):
-        P.append(yaw_box((dx + jitter(rng, 0.1), -2.35, 0.52), (0.5, 0.5, 0.16), "cushion", yaw_deg=jitter(rng, 8)))
+        P.append(yaw_box((dx + jitter(rng, 0.1 * spread), -2.35, 0.52), (0.5, 0.5, 0.16), "cushion", yaw_deg=jitter(rng, 8 * spread)))
     P.append(axis_rect((0.0, -0.9, 0.004), "+z", (2.6, 1.8), "rug"))
     P.append(yaw_box((0.0, -1.0, 0.42), (1.1, 0.6, 0.04), "wood"))
     P.append(yaw_box((0.0, -1.0, 0.2), (1.0, 0.5, 0.02), "wood"))
-    P.append(yaw_box((0.15, -1.0, 0.445), (0.28, 0.21, 0.01), "magazine", yaw_deg=15 + jitter(rng, 10)))
+    P.append(yaw_box((0.15, -1.0, 0.445), (0.28, 0.21, 0.01), "magazine", yaw_deg=15 + jitter(rng, 10 * spread)))
     P.append(yaw_box((0.0, 2.7, 1.3), (1.4, 0.06, 0.8), "tv"))
     P.append(axis_rect((0.0, 2.665, 1.3), "-y", (1.3, 0.72), "screen"))
     P.append(yaw_box((0.0, 2.5, 0.3), (2.0, 0.45, 0.6), "wood"))
