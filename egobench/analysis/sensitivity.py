@@ -54,7 +54,8 @@ import pandas as pd
 
 from egobench.report import paper_numbers as pn
 from egobench.io_utils import atomic_path, read_json
-from egobench.report.tables import GROUPS, RunRecord, ci95, identical_by_construction, load_records, method_label
+from egobench.report.gains import ci95, identical_by_construction
+from egobench.report.records import GROUPS, RunRecord, load_records, method_label
 
 OUTPUT_FILES = ("sensitivity.csv", "prediction.csv", "sensitivity.png", "sensitivity.pdf")
 REFERENCE = "ours"

@@ -37,7 +37,8 @@ from egobench.data.reader import add_input_arguments, load_recording  # noqa: E4
 from egobench.report import paper_numbers as pn  # noqa: E402
 from egobench.report.outputs import FIGURE_FILES, FIGURES  # noqa: E402
 from egobench.io_utils import atomic_path  # noqa: E402
-from egobench.report.tables import GROUPS, RunRecord, gains_frame, load_records, method_label  # noqa: E402
+from egobench.report.gains import gains_frame  # noqa: E402
+from egobench.report.records import GROUPS, RunRecord, load_records, method_label  # noqa: E402
 from egobench.sim.figures import motion_displacement_figure  # noqa: E402
 
 OUTPUT_FILES = FIGURE_FILES  # every file `make_plots` writes (egobench.report.outputs)

@@ -9,9 +9,12 @@ booktabs LaTeX, written atomically):
   block (same columns, matched through the record's ``paper_scene``),
 - ``table4``: dataset statistics, ours beside the paper's,
 - ``gains``: mean PSNR change of each ablation/baseline relative to its reference (``ours``;
-  ``ours_2dgs`` for the 2D-GS ablation), ours (mean and std over seeds) versus the paper's.
+  ``ours_2dgs`` for the 2D-GS ablation), ours (mean and interval over seeds or scenes) versus the paper's
+  (`egobench.report.gains`).
 
-``egobench tables --records R1.json R2.json ... --out-dir DIR``
+The records are read by `egobench.report.records`.
+
+``egobench tables --records R1.json R2.json ... --out-dir DIR [--unit auto|seed|scene]``
 """
 
 from __future__ import annotations
@@ -25,175 +28,15 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 import pandas as pd
 
+from egobench.io_utils import atomic_path
 from egobench.report import paper_numbers as pn
+from egobench.report.gains import UNITS, counts_line, gains_frame, inference_unit
 from egobench.report.outputs import TABLE_FILES
-from egobench.io_utils import atomic_path, read_json
-from egobench.model.methods import get_method
+from egobench.report.records import GROUPS, NUM_FRAMES_KEY, RunRecord, load_records, method_label, records_frame
 
-RUN_SCHEMA = "egobench.run/1"
-#: Metrics a record may carry (None = not measured).
-METRICS = (pn.PSNR, pn.SSIM, pn.LPIPS, pn.DEPTH, pn.NORMAL, pn.OWN_DEPTH, pn.OWN_NORMAL, pn.DEPTH_ALL, pn.NORMAL_ALL)
-#: Reference method of each compared method in the gains table (default: ``ours``).
-GAIN_REFERENCE = {"2dgs_no_motion_sampling": "ours_2dgs"}
-#: Table of each group in egobench.model.methods' row labels ("aria", "dtc", "quest3").
-LABEL_TABLE = {"table1_outdoor": "aria", "table1_indoor": "aria", "table2": "dtc", "table3": "quest3"}
-#: Table groups: name -> (scene kind, paper table): the one place that says which paper table a
-#: simulated scene kind is compared with.
-GROUPS = {
-    "table1_outdoor": ("outdoor", pn.TABLE1_OUTDOOR),
-    "table1_indoor": ("indoor", pn.TABLE1_INDOOR),
-    "table2": ("object", pn.TABLE2),
-    "table3": ("quest3", pn.TABLE3),
-}
-#: Keys of ``recording_stats`` read for Table 4 and the head-speed plot.
-NUM_FRAMES_KEY = "num_frames"
-HEAD_SPEED_KEY = "head_angular_speed_deg_s_p50"  # median head angular speed of the recording, deg/s
 OUTPUT_FILES = TABLE_FILES  # every file `write_tables` produces (egobench.report.outputs)
 OURS_BLOCK = "egobench"
 PAPER_BLOCK = "paper"
-
-
-def method_label(method: str, group: str | None = None) -> str:
-    """The paper's row label of a method (egobench/model/methods.py), or its key if unregistered."""
-    try:
-        spec = get_method(method)
-    except (ImportError, ValueError):
-        return method
-    return spec.label_for(LABEL_TABLE[group]) if group in LABEL_TABLE else spec.label
-
-
-# --------------------------------------------------------------------------------------------
-# Records
-
-
-@dataclass(frozen=True)
-class RunRecord:
-    """The fields of one run record that tables and plots use."""
-
-    path: Path  # where the record was read from (for error messages and locating renders only)
-    scene: str  # our scene name, e.g. "outdoor_0"
-    scene_kind: str  # outdoor | indoor | object | quest3 ("unknown" when the record has none)
-    paper_scene: str | None  # the paper's scene column this scene stands for
-    method: str  # method key (egobench/model/methods.py)
-    seed: int
-    metrics: dict[str, float | None]  # METRICS: psnr, ssim, lpips, the authors' depth/normal, egobench's own
-    train: dict[str, Any] = field(default_factory=dict)  # iterations, time_s, iters_per_s, ...
-    recording_stats: dict[str, Any] = field(default_factory=dict)  # num_frames, head speed, ...
-    raw: dict[str, Any] = field(default_factory=dict, repr=False)  # the whole record
-
-    @property
-    def run_dir(self) -> Path:
-        return self.path.parent
-
-    @property
-    def head_speed_deg_s(self) -> float | None:
-        """Median head angular speed of the recording (deg/s), if the record carries it."""
-        value = self.recording_stats.get(HEAD_SPEED_KEY)
-        if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value):
-            return float(value)
-        return None
-
-
-def _require(rec: dict, key: str, kind: type | tuple, path: Path) -> Any:
-    if key not in rec:
-        raise ValueError(f"{path}: run record lacks field {key!r} (schema {RUN_SCHEMA})")
-    value = rec[key]
-    if not isinstance(value, kind) or isinstance(value, bool) and kind is not bool:
-        raise ValueError(f"{path}: field {key!r} is {value!r}; expected {getattr(kind, '__name__', kind)}")
-    return value
-
-
-def parse_record(rec: dict, path: str | Path = "<record>") -> RunRecord:
-    """Validate one record (a parsed eval.json) and return its table fields."""
-    path = Path(path)
-    if not isinstance(rec, dict):
-        raise ValueError(f"{path}: a run record is a JSON object, got {type(rec).__name__}")
-    schema = rec.get("schema")
-    if schema != RUN_SCHEMA:
-        raise ValueError(f"{path}: field 'schema' is {schema!r}; expected {RUN_SCHEMA!r}")
-    scene = _require(rec, "scene", str, path)
-    scene_kind = rec.get("scene_kind") or "unknown"  # real recordings may have none: in results.csv only
-    if not isinstance(scene_kind, str):
-        raise ValueError(f"{path}: field 'scene_kind' is {scene_kind!r}; expected a string or null")
-    method = _require(rec, "method", str, path)
-    seed = _require(rec, "seed", int, path)
-    paper_scene = rec.get("paper_scene")
-    if paper_scene is not None and not isinstance(paper_scene, str):
-        raise ValueError(f"{path}: field 'paper_scene' is {paper_scene!r}; expected a string or null")
-    metrics_in = _require(rec, "metrics", dict, path)
-    metrics: dict[str, float | None] = {}
-    for key in METRICS:
-        value = metrics_in.get(key)
-        if value is None:
-            metrics[key] = None
-            continue
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            raise ValueError(f"{path}: field 'metrics.{key}' is {value!r}; expected a finite number or null")
-        metrics[key] = float(value)
-    if metrics[pn.PSNR] is None:
-        raise ValueError(f"{path}: field 'metrics.psnr' is null; every run record must carry a PSNR")
-    train = rec.get("train") or {}
-    stats = rec.get("recording_stats") or {}
-    if not isinstance(train, dict) or not isinstance(stats, dict):
-        raise ValueError(f"{path}: fields 'train' and 'recording_stats' must be JSON objects")
-    return RunRecord(path, scene, scene_kind, paper_scene, method, seed, metrics, train, stats, rec)
-
-
-def find_record_files(paths: Iterable[str | Path]) -> list[Path]:
-    """Expand folders to the eval.json files below them (sorted); files are kept as given."""
-    out: list[Path] = []
-    for p in map(Path, paths):
-        if p.is_dir():
-            out.extend(sorted(p.rglob("eval.json")))
-        elif p.is_file():
-            out.append(p)
-        else:
-            raise FileNotFoundError(f"{p}: run record (eval.json) or folder not found")
-    return out
-
-
-def load_records(paths: Iterable[str | Path]) -> list[RunRecord]:
-    """Read and validate run records; duplicates of (scene, method, seed) are an error."""
-    records = [parse_record(read_json(p), p) for p in find_record_files(paths)]
-    seen: dict[tuple[str, str, int], Path] = {}
-    for r in records:
-        key = (r.scene, r.method, r.seed)
-        if key in seen:
-            raise ValueError(f"{r.path}: duplicate run record for scene {r.scene!r}, method {r.method!r}, "
-                             f"seed {r.seed} (also in {seen[key]})")
-        seen[key] = r.path
-    return records
-
-
-def records_frame(records: Sequence[RunRecord]) -> pd.DataFrame:
-    """The combined results: one row per record."""
-    rows = []
-    for r in records:
-        row: dict[str, Any] = {
-            "scene": r.scene,
-            "scene_kind": r.scene_kind,
-            "paper_scene": r.paper_scene,
-            "device": r.raw.get("device"),
-            "method": r.method,
-            "seed": r.seed,
-            "calibration": r.raw.get("calibration"),
-        }
-        row.update({k: r.metrics[k] for k in METRICS})
-        for k in ("iterations", "time_s", "iters_per_s", "raster_time_share", "num_gaussians"):
-            row[f"train_{k}"] = r.train.get(k)
-        row["num_frames"] = r.recording_stats.get(NUM_FRAMES_KEY)
-        # the model's resolved wavelength on the held-out frames (egobench.analysis.fidelity); older records lack it
-        row["resolved_wavelength_px"] = (r.raw.get("fidelity") or {}).get("resolved_wavelength_px")
-        row["head_speed_deg_s_p50"] = r.head_speed_deg_s
-        host = ((r.raw.get("host") or {}).get("train") or {})  # where the training arithmetic ran
-        row.update({f"train_{k}": host.get(k) for k in ("cpu_model", "kernel_target", "torch_cpu_capability")})
-        row["train_versions"] = " ".join(f"{k}={v}" for k, v in (host.get("versions") or {}).items()) or None
-        row["config_hash"] = r.raw.get("config_hash")
-        row["git_commit"] = r.raw.get("git_commit")
-        row["record"] = str(r.path)
-        rows.append(row)
-    columns = list(rows[0]) if rows else ["scene", "scene_kind", "paper_scene", "method", "seed", *METRICS]
-    return pd.DataFrame(rows, columns=columns)
 
 
 # --------------------------------------------------------------------------------------------
@@ -326,27 +169,55 @@ def build_per_scene_table(records: Sequence[RunRecord], group: str) -> ShapedTab
     unmatched = sorted({s for s, ps in scene_cols if s and (not ps or ps.lower() not in paper.columns)})
     if unmatched:
         notes.append("no paper column for: " + ", ".join(unmatched))
+    if len(scene_cols) > 1 and scene_cols[0][0]:  # several scenes: their mean, as the paper's last column
+        groups.append(MEAN_COLUMN)
+        _add_scene_means(ours_rows, paper_rows, recs, paper, [ps for _, ps in scene_cols], metrics)
+        notes.append(f"{MEAN_COLUMN}: egobench, the mean over the scenes of each scene's mean over its seeds "
+                     "(std over the scenes); the paper, the mean over the columns shown")
     return _assemble(group, paper, groups, metrics, ours_rows, paper_rows, notes, per_group=False)
 
 
-def build_aggregate_table(records: Sequence[RunRecord], group: str) -> ShapedTable:
-    """Tables 2 and 3: one column (mean over our scenes of that kind) beside the paper's."""
+#: the column of Table 1 that holds the mean over its scenes
+MEAN_COLUMN = "mean"
+
+
+def _add_scene_means(ours_rows: dict, paper_rows: dict, recs: Sequence[RunRecord], paper: pn.PaperTable,
+                     paper_scenes: list[str | None], metrics: list[str]) -> None:
+    """Append the mean-over-scenes cells to every row: ours over the scenes' seed means, the paper's over
+    ``paper_scenes``."""
+    for m in ours_rows:
+        mine = [r for r in recs if r.method == m]
+        ours_rows[m].extend(_stats(list(per_scene_mean(mine, k).values())) for k in metrics)
+    for m in paper_rows:
+        for k in metrics:
+            vals = [paper.value(m, ps, k) for ps in paper_scenes if ps]
+            vals = [v for v in vals if v is not None]
+            paper_rows[m].append(Cell(float(np.mean(vals)), None, len(vals)) if vals else Cell())
+
+
+def build_aggregate_table(records: Sequence[RunRecord], group: str, unit: str = "seed") -> ShapedTable:
+    """Tables 2 and 3: one column (mean over our scenes of that kind) beside the paper's. ``unit`` "seed":
+    std over the seeds of the mean over scenes; "scene": std over the scenes of each scene's seed mean."""
     kind, paper = GROUPS[group]
     recs = [r for r in records if r.scene_kind == kind]
-    metrics = table_metrics(paper)
+    metrics = table_metrics(paper) + _all_surface_metrics(group, recs)
     scenes = sorted({r.scene for r in recs})
-    notes = [f"egobench: mean over {len(scenes)} scene(s) of kind {kind!r}: {', '.join(scenes) or 'none'}; "
-             "std over seeds of the scene mean"]
-    ours_rows: dict[str, list[Cell]] = {}
-    for m in sorted({r.method for r in recs}):
-        cells = []
-        for k in metrics:
-            per_seed = _per_seed_scene_mean([r for r in recs if r.method == m], k)
-            cells.append(_stats(list(per_seed.values())))
-        ours_rows[m] = cells
+    spread = "std over seeds of the scene mean" if unit == "seed" else "std over scenes of each scene's seed mean"
+    notes = [f"egobench: mean over {len(scenes)} scene(s) of kind {kind!r}: {', '.join(scenes) or 'none'}; {spread}"]
+    per_unit = _per_seed_scene_mean if unit == "seed" else per_scene_mean
+    ours_rows = {m: [_stats(list(per_unit([r for r in recs if r.method == m], k).values())) for k in metrics]
+                 for m in sorted({r.method for r in recs})}
     paper_rows = {m: [Cell(paper.value(m, paper.columns[0], k), None, 1) for k in metrics] for m in paper.methods}
     label = f"{kind} ({len(scenes)} scene{'s' if len(scenes) != 1 else ''}) / {paper.columns[0]}"
-    return _assemble(group, paper, [label], metrics, ours_rows, paper_rows, notes, per_group=group == "table2")
+    return _assemble(group, paper, [label], metrics, ours_rows, paper_rows, notes, per_group=group == "table2",
+                     spread=unit)
+
+
+def _all_surface_metrics(group: str, recs: Sequence[RunRecord]) -> list[str]:
+    """Table 2's geometry over every surface in view, beside the foreground's, where the records have it."""
+    if group != "table2":
+        return []
+    return [k for k in (pn.DEPTH_ALL, pn.NORMAL_ALL) if any(r.metrics.get(k) is not None for r in recs)]
 
 
 def _per_seed_scene_mean(recs: Sequence[RunRecord], metric: str) -> dict[int, float]:
@@ -359,8 +230,19 @@ def _per_seed_scene_mean(recs: Sequence[RunRecord], metric: str) -> dict[int, fl
     return out
 
 
-def _assemble(group, paper, groups, metrics, ours_rows, paper_rows, notes, per_group) -> ShapedTable:
-    ours = Block(OURS_BLOCK, "egobench (this run; mean $\\pm$ std over seeds)", _row_groups(paper, ours_rows), ours_rows)
+def per_scene_mean(recs: Sequence[RunRecord], metric: str) -> dict[str, float]:
+    """scene -> mean over its seeds of the metric (seeds without a value are skipped)."""
+    out: dict[str, float] = {}
+    for scene in sorted({r.scene for r in recs}):
+        vals = [r.metrics[metric] for r in recs if r.scene == scene and r.metrics[metric] is not None]
+        if vals:
+            out[scene] = float(np.mean(vals))
+    return out
+
+
+def _assemble(group, paper, groups, metrics, ours_rows, paper_rows, notes, per_group, spread="seed") -> ShapedTable:
+    title = f"egobench (this run; mean $\\pm$ std over {spread}s)"
+    ours = Block(OURS_BLOCK, title, _row_groups(paper, ours_rows), ours_rows)
     ours.row_groups = [[m for m in g if m in ours_rows] for g in ours.row_groups]
     ours.row_groups = [g for g in ours.row_groups if g]
     theirs = Block(PAPER_BLOCK, f"paper (Lv et al. 2025, \\texttt{{{latex_escape(paper.label)}}})", [list(g) for g in paper.row_groups], paper_rows)
@@ -369,155 +251,6 @@ def _assemble(group, paper, groups, metrics, ours_rows, paper_rows, notes, per_g
         mark_best(b, len(metric_per_col), metric_per_col, per_group)
     return ShapedTable(group, paper.caption, f"tab:egobench_{group}", groups, metrics, [ours, theirs], notes)
 
-
-# --------------------------------------------------------------------------------------------
-# Gains and Table 4
-
-
-def ci95(values: Sequence[float]) -> tuple[float | None, float | None]:
-    """Two-sided 95 % t-interval of the mean of ``values`` (seed-level paired differences); (None,
-    None) below two values."""
-    n = len(values)
-    if n < 2:
-        return None, None
-    from scipy.stats import t
-
-    mean, sem = float(np.mean(values)), float(np.std(values, ddof=1)) / math.sqrt(n)
-    half = float(t.ppf(0.975, n - 1)) * sem
-    return mean - half, mean + half
-
-
-def identical_by_construction(method: str, pairs: Sequence[tuple[RunRecord, RunRecord]]) -> str:
-    """Why ``method`` cannot differ from its reference on these runs ('' when it can): a motion-sampling
-    ablation whose reference rendered every frame with one pose sample, at training and evaluation, is
-    the same computation. Detected from the records, never assumed: every paired PSNR must be equal too."""
-    if not pairs or any(a.metrics[pn.PSNR] != b.metrics[pn.PSNR] for a, b in pairs):
-        return ""
-    if "no_motion_sampling" in method:
-        one_sample = all((b.raw.get("eval") or {}).get("pose_samples_mean") == 1.0
-                         and all(e.get("pose_samples", 1) == 1 for e in b.raw.get("per_image", [])) for _, b in pairs)
-        if one_sample:
-            return ("identical by construction: every held-out frame of the reference has one rolling-shutter "
-                    "pose sample (motion sampling never switches on at this motion and resolution)")
-    return "identical results: every paired PSNR is equal (this ablation changes nothing on these runs)"
-
-
-def _paired(recs: Sequence[RunRecord], method: str, ref: str) -> list[tuple[RunRecord, RunRecord]]:
-    """(method run, reference run) on the same scene and seed (the same recording)."""
-    ref_by = {(r.scene, r.seed): r for r in recs if r.method == ref}
-    return sorted(((r, ref_by[(r.scene, r.seed)]) for r in recs if r.method == method and (r.scene, r.seed) in ref_by),
-                  key=lambda p: (p[0].scene, p[0].seed))
-
-
-def gains_frame(records: Sequence[RunRecord]) -> pd.DataFrame:
-    """Mean PSNR change of each method relative to its reference, ours versus the paper's.
-
-    Only methods run on scenes of the table's kind are listed. Ours: the paired difference
-    PSNR(method) - PSNR(reference) on the same scene and seed (the same recording); for every seed
-    the mean over scenes, then the mean, sample std and 95 % t-interval over seeds. A method that
-    cannot differ from its reference on these runs (`identical_by_construction`) carries the reason
-    instead of a Δ. Paper: the mean difference over the paper columns our scenes stand for
-    (``paper_matched``) and over all of the paper table's columns (``paper_all``).
-    """
-    rows = []
-    for group, (kind, paper) in GROUPS.items():
-        recs = [r for r in records if r.scene_kind == kind]
-        run_methods = {r.method for r in recs}
-        methods = [m for m in paper.methods if m in run_methods] + sorted(run_methods - set(paper.methods))
-        for m in methods:
-            ref = GAIN_REFERENCE.get(m, "ours")
-            if m == ref or m == "ours":
-                continue
-            pairs = _paired(recs, m, ref)
-            per_seed: dict[int, list[float]] = {}
-            for a, b in pairs:
-                per_seed.setdefault(a.seed, []).append(a.metrics[pn.PSNR] - b.metrics[pn.PSNR])
-            seed_means = [float(np.mean(v)) for _, v in sorted(per_seed.items())]
-            cell = _stats(seed_means)
-            low, high = ci95(seed_means)
-            identical = identical_by_construction(m, pairs)
-            rows.append({
-                "group": group, "method": m, "reference": ref, "n_scenes": len({a.scene for a, _ in pairs}),
-                "n_seeds": cell.n,
-                "delta_psnr_mean": None if identical else cell.mean,
-                "delta_psnr_std": None if identical else cell.std,
-                "delta_psnr_ci95_low": None if identical else low,
-                "delta_psnr_ci95_high": None if identical else high,
-                "identical": identical,
-                "paper_delta_psnr_matched": (matched := _paper_delta(paper, m, ref, _matched_columns(recs, kind, paper))),
-                "paper_delta_psnr_all": _paper_delta(paper, m, ref, paper.columns),
-                "p_one_sided": None if identical else p_in_direction(seed_means, matched),
-            })
-    return with_reproduction_columns(pd.DataFrame(rows))
-
-
-def p_in_direction(seed_means: Sequence[float], paper_delta: float | None) -> float | None:
-    """One-sided paired t-test p over the seeds, against 'no difference', in the paper's direction
-    (None below two seeds or without a paper Δ)."""
-    n = len(seed_means)
-    if n < 2 or paper_delta is None or paper_delta == 0:
-        return None
-    from scipy.stats import t
-
-    sd = float(np.std(seed_means, ddof=1))
-    if sd == 0:
-        return 0.0 if np.sign(np.mean(seed_means)) == np.sign(paper_delta) else 1.0
-    tstat = float(np.mean(seed_means)) / (sd / math.sqrt(n)) * float(np.sign(paper_delta))
-    return float(t.sf(tstat, n - 1))
-
-
-def holm(p_values: Sequence[float | None]) -> list[float | None]:
-    """Holm's step-down adjusted p-values (None stays None and does not count towards m)."""
-    idx = [i for i, p in enumerate(p_values) if p is not None and not pd.isna(p)]
-    order = sorted(idx, key=lambda i: p_values[i])
-    out: list[float | None] = [None] * len(p_values)
-    running = 0.0
-    for rank, i in enumerate(order):
-        running = max(running, min(1.0, (len(order) - rank) * float(p_values[i])))
-        out[i] = running
-    return out
-
-
-#: The three counts a reproduction reports (docs: README "Results"), from `gains_frame`'s columns.
-COUNT_COLUMNS = {"sign_and_ci": "the paper's sign with the 95 % interval excluding zero",
-                 "survives_holm": "one-sided paired t-test in the paper's direction, Holm-adjusted p < 0.05 over all rows",
-                 "magnitude_match": "the paper's Δ inside our interval, or our Δ within a factor 2 of it"}
-
-
-def with_reproduction_columns(df: pd.DataFrame, alpha: float = 0.05) -> pd.DataFrame:
-    """Per row: Holm-adjusted p, whether the sign (with its interval), the Holm test and the magnitude
-    reproduce, and our Δ over the paper's (matched scenes)."""
-    if df.empty:
-        return df
-    df = df.copy()
-    df["p_holm"] = holm(list(df["p_one_sided"]))
-    paper, low, high, ours = (df[c].astype(float) for c in ("paper_delta_psnr_matched", "delta_psnr_ci95_low",
-                                                            "delta_psnr_ci95_high", "delta_psnr_mean"))
-    df["ratio_to_paper"] = ours / paper
-    df["paper_in_ci"] = (low <= paper) & (paper <= high)
-    df["sign_and_ci"] = ((paper < 0) & (high < 0)) | ((paper > 0) & (low > 0))
-    df["survives_holm"] = df["p_holm"].astype(float) < alpha
-    df["magnitude_match"] = df["paper_in_ci"] | ((df["ratio_to_paper"] >= 0.5) & (df["ratio_to_paper"] <= 2.0))
-    return df
-
-
-def reproduction_counts(gains: pd.DataFrame) -> dict[str, int]:
-    """The three counts over the rows of ``gains`` (and the number of rows)."""
-    return {"rows": int(len(gains)),
-            **{c: int(gains[c].fillna(False).astype(bool).sum()) if c in gains else 0 for c in COUNT_COLUMNS}}
-
-
-def _matched_columns(recs: Sequence[RunRecord], kind: str, paper: pn.PaperTable) -> list[str]:
-    """The paper columns our scenes stand for (object and Quest 3: all of the table's)."""
-    if kind in ("object", "quest3") and recs:
-        return list(paper.columns)
-    return sorted({(r.paper_scene or "").lower() for r in recs} & set(paper.columns))
-
-
-def _paper_delta(paper: pn.PaperTable, method: str, ref: str, cols) -> float | None:
-    d = [paper.value(method, c, pn.PSNR) - paper.value(ref, c, pn.PSNR) for c in cols
-         if paper.value(method, c, pn.PSNR) is not None and paper.value(ref, c, pn.PSNR) is not None]
-    return round(float(np.mean(d)), 6) if d else None
 
 
 def table4_frame(records: Sequence[RunRecord]) -> pd.DataFrame:
@@ -629,12 +362,13 @@ def _num(value: Any, decimals: int, signed: bool = False) -> str:
 
 
 def gains_to_latex(df: pd.DataFrame) -> str:
+    units = _units_header(df)
     lines = _latex_head(
         "Mean PSNR change (dB) relative to the reference method on the same recordings: egobench (mean "
-        "over seeds, 95\\,\\% interval over seeds) versus the paper (same scenes / all of the table's scenes).",
+        f"over {units}, 95\\,\\% interval over {units}) versus the paper (same scenes / all of the table's scenes).",
         "llcccc",
     ) + [
-        "table & method (vs.\\ reference) & seeds & egobench $\\Delta$PSNR & paper (matched) & paper (all) \\\\",
+        f"table & method (vs.\\ reference) & {units} & egobench $\\Delta$PSNR & paper (matched) & paper (all) \\\\",
         "\\midrule",
     ]
     prev = None
@@ -645,7 +379,8 @@ def gains_to_latex(df: pd.DataFrame) -> str:
         method = latex_escape(method_label(r["method"], r["group"]))
         ref = latex_escape(method_label(r["reference"], r["group"]))
         lines.append(
-            f"{latex_escape(r['group'])} & {method} (vs.\\ {ref}) & {int(r['n_seeds'])} & {_gain_cell(r)} & "
+            f"{latex_escape(r['group'])} & {method} (vs.\\ {ref}) & {int(r.get('n_units', r['n_seeds']))} & "
+            f"{_gain_cell(r)} & "
             f"{_num(r['paper_delta_psnr_matched'], 2, True)} & {_num(r['paper_delta_psnr_all'], 2, True)} \\\\"
         )
     lines += ["\\bottomrule", "\\end{tabular}", "\\par\\footnotesize " + latex_escape("O" + counts_line(df)[1:]) + ".",
@@ -653,8 +388,14 @@ def gains_to_latex(df: pd.DataFrame) -> str:
     return "\n".join(lines)
 
 
+def _units_header(df: pd.DataFrame) -> str:
+    """The gains table's count column: the unit of inference (seeds or scenes)."""
+    unit = df["unit"].iloc[0] if "unit" in df and len(df) else "seed"
+    return f"{unit}s"
+
+
 def _gain_cell(r: pd.Series) -> str:
-    """Our Δ with its seed interval, or the reason it is not a measurement."""
+    """Our Δ with its interval over the units, or the reason it is not a measurement."""
     if isinstance(r.get("identical"), str) and r["identical"]:
         return "\\emph{" + latex_escape(r["identical"].split(":")[0]) + "}"
     ours = _num(r["delta_psnr_mean"], 2, True)
@@ -662,7 +403,7 @@ def _gain_cell(r: pd.Series) -> str:
     if low is not None and not pd.isna(low):
         ours += f"\\,{{\\scriptsize[{low:+.2f}, {high:+.2f}]}}"
     else:
-        ours += "\\,{\\scriptsize(1 seed)}"
+        ours += f"\\,{{\\scriptsize(1 {r.get('unit', 'seed')})}}"
     return ours
 
 
@@ -697,21 +438,23 @@ def _write_csv(path: Path, df: pd.DataFrame) -> Path:
     return path
 
 
-def build_tables(records: Sequence[RunRecord]) -> dict[str, ShapedTable]:
-    """The four paper-shaped tables (Table 1 as two blocks)."""
+def build_tables(records: Sequence[RunRecord], unit: str = "auto") -> dict[str, ShapedTable]:
+    """The four paper-shaped tables (Table 1 as two blocks); ``unit`` as `gains.inference_unit`."""
+    unit = inference_unit(records, unit)
     return {
         "table1_outdoor": build_per_scene_table(records, "table1_outdoor"),
         "table1_indoor": build_per_scene_table(records, "table1_indoor"),
-        "table2": build_aggregate_table(records, "table2"),
-        "table3": build_aggregate_table(records, "table3"),
+        "table2": build_aggregate_table(records, "table2", unit),
+        "table3": build_aggregate_table(records, "table3", unit),
     }
 
 
-def write_tables(records: Sequence[RunRecord], out_dir: str | Path) -> list[Path]:
-    """Write every file in OUTPUT_FILES into out_dir (atomically); return their paths."""
+def write_tables(records: Sequence[RunRecord], out_dir: str | Path, unit: str = "auto") -> list[Path]:
+    """Write every file in OUTPUT_FILES into out_dir (atomically); return their paths. ``unit``: the unit of
+    inference of the gains and of Tables 2 and 3 (`gains.inference_unit`)."""
     out = Path(out_dir)
     written = [_write_csv(out / "results.csv", records_frame(records))]
-    tables = build_tables(records)
+    tables = build_tables(records, unit)
     for name, t in tables.items():
         written.append(_write_csv(out / f"{name}.csv", shaped_to_frame(t)))
         written.append(_write_text(out / f"{name}.tex", shaped_to_latex([t], t.caption, t.label)))
@@ -720,17 +463,9 @@ def write_tables(records: Sequence[RunRecord], out_dir: str | Path) -> list[Path
         "Aria scene dataset (Table 1): egobench beside the paper", "tab:egobench_table1")))
     t4 = table4_frame(records)
     written += [_write_csv(out / "table4.csv", t4), _write_text(out / "table4.tex", table4_to_latex(t4))]
-    g = gains_frame(records)
+    g = gains_frame(records, unit)
     written += [_write_csv(out / "gains.csv", g), _write_text(out / "gains.tex", gains_to_latex(g))]
     return written
-
-
-def counts_line(gains: pd.DataFrame) -> str:
-    """'of N rows: a with the paper's sign ..., b survive Holm, c match in magnitude'."""
-    c = reproduction_counts(gains)
-    return (f"of {c['rows']} rows: {c['sign_and_ci']} with the paper's sign and the 95 % interval excluding zero, "
-            f"{c['survives_holm']} survive Holm (one-sided, alpha 0.05), {c['magnitude_match']} with the paper's "
-            "delta inside the interval or within a factor 2")
 
 
 # --------------------------------------------------------------------------------------------
@@ -741,13 +476,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--records", nargs="+", required=True, metavar="EVAL_JSON",
                         help="run records (eval.json) or folders searched for eval.json")
     parser.add_argument("--out-dir", required=True, help="folder for the CSV and LaTeX tables")
+    parser.add_argument("--unit", choices=UNITS, default="auto",
+                        help="unit of inference of the gains and Tables 2-3: training seeds on one recording per "
+                             "kind, or scenes (auto: scenes when every kind has two or more)")
 
 
 def run(args: argparse.Namespace) -> int:
     records = load_records(args.records)
     if not records:
         raise ValueError("--records: no eval.json run records found")
-    written = write_tables(records, args.out_dir)
+    written = write_tables(records, args.out_dir, args.unit)
     print(f"egobench tables: {len(records)} records -> {len(written)} files in {args.out_dir}")
     print(f"egobench tables: {counts_line(pd.read_csv(Path(args.out_dir) / 'gains.csv'))}")
     return 0

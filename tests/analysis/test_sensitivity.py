@@ -18,7 +18,8 @@ from egobench.analysis import sensitivity as sens
 from egobench.workflow import sensitivity as sw
 from egobench.workflow import config as wc
 from egobench.cli import main
-from egobench.report.tables import ci95, load_records
+from egobench.report.gains import ci95
+from egobench.report.records import load_records
 
 REPO = Path(__file__).resolve().parents[2]
 

@@ -35,6 +35,7 @@ LIGHT_MODULES = {
     "egobench/analysis/sensitivity.py": "imported by the Snakefile's parse (its output names): no torch, scipy or "
                                         "matplotlib at import",
     "egobench/report/tables.py": "imported by the Snakefile's parse (through analysis/sensitivity.py): no scipy at import",
+    "egobench/report/gains.py": "imported by the Snakefile's parse (through analysis/sensitivity.py): no scipy at import",
     "egobench/sim/config.py": "imported by the Snakefile's parse (the scene kinds): no torch at import",
     "egobench/sim/devices.py": "imported by the Snakefile's parse (through sim/config.py): no torch at import",
     "egobench/render/__init__.py": "the backend is chosen per call: the CPU kernels load numba, gsplat needs CUDA",

@@ -13,7 +13,7 @@ import pytest
 from egobench import cli
 from egobench.report import compare
 
-COMMITTED = Path(__file__).resolve().parents[2] / "results" / "default" / "tables"
+COMMITTED = Path(__file__).resolve().parents[2] / "results" / "confirmatory_1" / "tables"  # run 1's
 
 
 @pytest.fixture

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from egobench.report import plots as P
-from egobench.report import tables as T
+from egobench.report import records as Rec
 from egobench.cli import main as cli_main
 from tests.helpers import write_records
 
@@ -81,7 +81,7 @@ def _bar_heights_px(img: np.ndarray, rgb: tuple[int, int, int]) -> list[int]:
 
 
 def test_all_figures_written_with_placeholders(tmp_path):
-    records = T.load_records(_records(tmp_path, with_speed=False))
+    records = Rec.load_records(_records(tmp_path, with_speed=False))
     written = P.make_plots(records, tmp_path / "fig")
     assert sorted(p.name for p in written) == sorted(P.OUTPUT_FILES)
     assert sorted(p.name for p in (tmp_path / "fig").iterdir()) == sorted(P.OUTPUT_FILES)  # no temp files
@@ -131,7 +131,7 @@ def test_figures_from_renders(tmp_path):
     factor = {"ours": 1.0, "no_viba": 0.8, "no_motion_sampling": 0.6, "splatfacto": 0.4}
     for p in paths:
         _png(p.parent / "renders" / "00008.png", gt * factor[json.loads(p.read_text())["method"]])
-    records = T.load_records(paths)
+    records = Rec.load_records(paths)
     P.make_plots(records, tmp_path / "fig", qualitative_scene="out_a")
     notes = json.loads((tmp_path / "fig" / "notes.json").read_text())
     assert notes["qualitative"].startswith("ok: scene out_a, frame 8")  # frame 8 has its input saved
@@ -164,7 +164,7 @@ def test_figures_from_renders(tmp_path):
 def test_pngs_are_deterministic(tmp_path):
     paths = _records(tmp_path)
     _add_renders(paths)
-    records = T.load_records(paths)
+    records = Rec.load_records(paths)
     P.make_plots(records, tmp_path / "a")
     P.make_plots(records, tmp_path / "b")
     for name in ("gains.png", "qualitative.png", "gains.pdf"):
@@ -192,7 +192,7 @@ def test_mismatched_render_size_is_an_error(tmp_path):
     bad = next(p for p in paths if json.loads(p.read_text())["method"] == "no_viba")
     _png(bad.parent / "renders" / "00008.png", np.zeros((16, 16, 3)))
     with pytest.raises(ValueError, match="frame 8"):
-        P.qualitative_figure(T.load_records(paths), "out_a")
+        P.qualitative_figure(Rec.load_records(paths), "out_a")
 
 
 def test_ground_truth_without_saved_input_needs_the_recording(tmp_path):
@@ -201,7 +201,7 @@ def test_ground_truth_without_saved_input_needs_the_recording(tmp_path):
     for p in tmp_path.rglob("*beside_input.png"):
         p.unlink()
     with pytest.raises(ValueError, match="field 'recording'"):
-        P.qualitative_figure(T.load_records(paths), "out_a")
+        P.qualitative_figure(Rec.load_records(paths), "out_a")
 
 
 def test_cli_plots(tmp_path):
@@ -210,7 +210,7 @@ def test_cli_plots(tmp_path):
     out = tmp_path / "fig"
     assert cli_main(["plots", "--records", str(tmp_path / "runs"), "--out-dir", str(out)]) == 0
     # the CLI writes what make_plots writes for the same records (the figures are deterministic)
-    P.make_plots(T.load_records(paths), tmp_path / "direct")
+    P.make_plots(Rec.load_records(paths), tmp_path / "direct")
     for name in P.OUTPUT_FILES:
         assert (out / name).read_bytes() == (tmp_path / "direct" / name).read_bytes(), name
     assert json.loads((out / "notes.json").read_text())["qualitative"].startswith("ok: scene out_a")

@@ -12,6 +12,8 @@ import pandas as pd
 import pytest
 
 from egobench.report import paper_numbers as pn
+from egobench.report import gains as G
+from egobench.report import records as Rec
 from egobench.report import tables as T
 from egobench.cli import main as cli_main
 from tests.helpers import write_records
@@ -62,7 +64,7 @@ def suite_records() -> list[dict]:
 @pytest.fixture
 def built(tmp_path):
     paths = write_records(tmp_path / "runs", suite_records())
-    records = T.load_records([tmp_path / "runs"])
+    records = Rec.load_records([tmp_path / "runs"])
     out = tmp_path / "tables"
     T.write_tables(records, out)
     return records, out
@@ -86,7 +88,12 @@ def test_table1_shape_values_and_paper_block(built):
     assert list(ours.index) == ["splatfacto", "on_the_move", "ours", "no_viba", "no_motion_sampling", "no_scene_gamma"]
     assert list(paper.index) == list(pn.TABLE1_OUTDOOR.methods)
     cols = [c for c in df.columns if c.endswith(" PSNR")]
-    assert cols == ["out_a (bike shop) PSNR", "out_b (garden) PSNR"]
+    assert cols == ["out_a (bike shop) PSNR", "out_b (garden) PSNR", "mean PSNR"]
+    # the mean over the scenes of each scene's seed mean (26 and 24), std over the scenes; the paper's over its
+    # columns shown (bike shop and garden)
+    assert ours.loc["ours", "mean PSNR"] == pytest.approx(25.0)
+    assert ours.loc["ours", "mean PSNR std"] == pytest.approx(2 ** 0.5)
+    assert paper.loc["ours", "mean PSNR"] == pytest.approx((29.98 + 24.00) / 2)
     # Mean and sample std over seeds: ours on out_a = 25 + {0,1,2}.
     assert ours.loc["ours", "out_a (bike shop) PSNR"] == pytest.approx(26.0)
     assert ours.loc["ours", "out_a (bike shop) PSNR std"] == pytest.approx(1.0)
@@ -172,7 +179,7 @@ def test_table4_beside_paper(built):
 
 def test_no_runs_of_a_kind_still_shows_the_paper(tmp_path):
     recs = [make_record("o", "outdoor", "ours", 0, 25.0, paper_scene="bike shop")]
-    records = T.load_records(write_records(tmp_path, recs))
+    records = Rec.load_records(write_records(tmp_path, recs))
     t = T.build_per_scene_table(records, "table1_indoor")
     assert t.groups == list(pn.TABLE1_INDOOR.columns)
     assert not t.blocks[0].rows and t.notes
@@ -194,7 +201,7 @@ def test_bad_records_name_file_and_field(tmp_path, mutate, field):
     mutate(rec)
     (path,) = write_records(tmp_path, [rec])
     with pytest.raises(ValueError, match=re.escape(field)) as exc:
-        T.load_records([path])
+        Rec.load_records([path])
     assert str(path) in str(exc.value)
 
 
@@ -202,12 +209,12 @@ def test_nan_and_duplicates_rejected(tmp_path):
     p = tmp_path / "eval.json"
     p.write_text(json.dumps(make_record("s", "outdoor", "ours", 0, 25.0)).replace("25.0", "NaN"))
     with pytest.raises(ValueError, match="metrics.psnr"):
-        T.load_records([p])
+        Rec.load_records([p])
     dup = write_records(tmp_path / "d", [make_record("s", "outdoor", "ours", 0, 25.0)] * 2)
     with pytest.raises(ValueError, match="duplicate"):
-        T.load_records(dup)
+        Rec.load_records(dup)
     with pytest.raises(FileNotFoundError, match="missing.json"):
-        T.load_records([tmp_path / "missing.json"])
+        Rec.load_records([tmp_path / "missing.json"])
 
 
 def test_cli_writes_tables(tmp_path):
@@ -284,7 +291,7 @@ def test_table4_transcription(paper_tex):
 def test_record_without_kind_only_in_results(tmp_path):
     recs = [make_record("o", "outdoor", "ours", 0, 25.0, paper_scene="bike shop"),
             make_record("real", None, "ours", 0, 21.0)]
-    records = T.load_records(write_records(tmp_path / "r", recs))
+    records = Rec.load_records(write_records(tmp_path / "r", recs))
     T.write_tables(records, tmp_path / "t")
     results = pd.read_csv(tmp_path / "t" / "results.csv")
     assert sorted(results["scene_kind"]) == ["outdoor", "unknown"]
@@ -300,12 +307,12 @@ def test_gains_carry_a_paired_95_percent_interval_over_seeds():
     for seed, delta in enumerate((-1.0, -2.0, -3.0)):
         recs.append(make_record("out_a", "outdoor", "ours", seed, 25.0 + seed))
         recs.append(make_record("out_a", "outdoor", "no_viba", seed, 25.0 + seed + delta))
-    g = T.gains_frame([T.parse_record(r) for r in recs]).set_index("method").loc["no_viba"]
+    g = G.gains_frame([Rec.parse_record(r) for r in recs]).set_index("method").loc["no_viba"]
     half = 4.302652729911275 * 1.0 / math.sqrt(3)
     assert g["delta_psnr_mean"] == pytest.approx(-2.0) and g["delta_psnr_std"] == pytest.approx(1.0)
     assert g["delta_psnr_ci95_low"] == pytest.approx(-2.0 - half) and g["delta_psnr_ci95_high"] == pytest.approx(-2.0 + half)
-    assert g["identical"] == "" and T.ci95([0.5]) == (None, None)
-    assert "[-4.48, +0.48]" in T.gains_to_latex(T.gains_frame([T.parse_record(r) for r in recs]))
+    assert g["identical"] == "" and G.ci95([0.5]) == (None, None)
+    assert "[-4.48, +0.48]" in T.gains_to_latex(G.gains_frame([Rec.parse_record(r) for r in recs]))
 
 
 def test_a_row_identical_by_construction_is_named_not_measured():
@@ -318,19 +325,19 @@ def test_a_row_identical_by_construction_is_named_not_measured():
         ours["eval"] = {"pose_samples_mean": float(np.mean(samples))}
         return [ours, make_record("out_a", "outdoor", "no_motion_sampling", seed, psnr_ablation)]
 
-    same = [T.parse_record(r) for s in range(3) for r in pair(s, [1, 1, 1], 25.0)]
-    row = T.gains_frame(same).set_index("method").loc["no_motion_sampling"]
+    same = [Rec.parse_record(r) for s in range(3) for r in pair(s, [1, 1, 1], 25.0)]
+    row = G.gains_frame(same).set_index("method").loc["no_motion_sampling"]
     assert row["identical"].startswith("identical by construction") and pd.isna(row["delta_psnr_mean"])
-    assert "\\emph{identical by construction}" in T.gains_to_latex(T.gains_frame(same))
-    active = [T.parse_record(r) for s in range(3) for r in pair(s, [1, 3, 2], 24.5)]
-    row = T.gains_frame(active).set_index("method").loc["no_motion_sampling"]
+    assert "\\emph{identical by construction}" in T.gains_to_latex(G.gains_frame(same))
+    active = [Rec.parse_record(r) for s in range(3) for r in pair(s, [1, 3, 2], 24.5)]
+    row = G.gains_frame(active).set_index("method").loc["no_motion_sampling"]
     assert row["identical"] == "" and row["delta_psnr_mean"] == pytest.approx(-0.5)
 
 
 def test_holm_matches_a_hand_computation():
     # p = (0.01, 0.04, 0.03, None, 0.005): sorted 0.005, 0.01, 0.03, 0.04 with m = 4 ->
     # 4 x 0.005 = 0.02, 3 x 0.01 = 0.03, 2 x 0.03 = 0.06, max(0.06, 1 x 0.04) = 0.06 (step-down monotone)
-    adj = T.holm([0.01, 0.04, 0.03, None, 0.005])
+    adj = G.holm([0.01, 0.04, 0.03, None, 0.005])
     assert adj[3] is None
     assert adj[4] == pytest.approx(0.02) and adj[0] == pytest.approx(0.03)
     assert adj[2] == pytest.approx(0.06) and adj[1] == pytest.approx(0.06)
@@ -340,9 +347,9 @@ def test_p_in_the_papers_direction_is_scipys_one_sided_t_test():
     from scipy.stats import ttest_1samp
 
     seeds = [-1.2, -0.4, -0.9, 0.1]
-    assert T.p_in_direction(seeds, -0.5) == pytest.approx(ttest_1samp(seeds, 0.0, alternative="less").pvalue)
-    assert T.p_in_direction(seeds, +0.5) == pytest.approx(ttest_1samp(seeds, 0.0, alternative="greater").pvalue)
-    assert T.p_in_direction([-1.0], -0.5) is None and T.p_in_direction(seeds, None) is None
+    assert G.p_in_direction(seeds, -0.5) == pytest.approx(ttest_1samp(seeds, 0.0, alternative="less").pvalue)
+    assert G.p_in_direction(seeds, +0.5) == pytest.approx(ttest_1samp(seeds, 0.0, alternative="greater").pvalue)
+    assert G.p_in_direction([-1.0], -0.5) is None and G.p_in_direction(seeds, None) is None
 
 
 def test_reproduction_columns_and_counts():
@@ -350,13 +357,13 @@ def test_reproduction_columns_and_counts():
         "delta_psnr_mean": [-1.0, -0.2, -3.0, 0.5], "delta_psnr_ci95_low": [-1.5, -0.6, -3.5, 0.1],
         "delta_psnr_ci95_high": [-0.5, 0.2, -2.5, 0.9], "paper_delta_psnr_matched": [-1.2, -0.5, -1.0, -0.4],
         "p_one_sided": [0.001, 0.2, 0.0001, 0.99]})
-    out = T.with_reproduction_columns(df)
+    out = G.with_reproduction_columns(df)
     assert list(out["sign_and_ci"]) == [True, False, True, False]
     assert list(out["paper_in_ci"]) == [True, True, False, False]
     # ratio 3.0 (row 3) is outside a factor 2, and the paper's -1.0 is outside [-3.5, -2.5]
     assert list(out["magnitude_match"]) == [True, True, False, False]
     assert list(out["survives_holm"]) == [True, False, True, False]  # 4 x 0.0001, 3 x 0.001; 2 x 0.2
-    assert T.reproduction_counts(out) == {"rows": 4, "sign_and_ci": 2, "survives_holm": 2, "magnitude_match": 2}
+    assert G.reproduction_counts(out) == {"rows": 4, "sign_and_ci": 2, "survives_holm": 2, "magnitude_match": 2}
 
 
 def test_lpips_is_in_every_table_with_the_papers_cells_empty_where_it_has_none(tmp_path):
@@ -364,7 +371,7 @@ def test_lpips_is_in_every_table_with_the_papers_cells_empty_where_it_has_none(t
     for i, r in enumerate(recs):
         r["metrics"]["lpips"] = 0.1 + 0.01 * (i % 3)
     write_records(tmp_path / "runs", recs)
-    T.write_tables(T.load_records([tmp_path / "runs"]), tmp_path / "tables")
+    T.write_tables(Rec.load_records([tmp_path / "runs"]), tmp_path / "tables")
     for name in ("table1_outdoor", "table1_indoor", "table2", "table3"):
         df = pd.read_csv(tmp_path / "tables" / f"{name}.csv")
         cols = [c for c in df.columns if c.endswith(" LPIPS")]
@@ -376,3 +383,57 @@ def test_lpips_is_in_every_table_with_the_papers_cells_empty_where_it_has_none(t
     t3 = pd.read_csv(tmp_path / "tables" / "table3.csv").set_index(["block", "method"])
     col = [c for c in t3.columns if c.endswith(" LPIPS")][0]
     assert t3.loc[(T.PAPER_BLOCK, "ours"), col] == pn.TABLE3.value("ours", pn.QUEST_COLUMN, pn.LPIPS)
+
+
+def _scene_unit_records() -> list:
+    """Three outdoor scenes; no_viba - ours = -1 and -2 dB on out_a's two seeds, -0.5 on out_b, -1.0 on out_c."""
+    recs = []
+    for scene, ps, deltas in (("out_a", "bike shop", {0: -1.0, 1: -2.0}), ("out_b", "steakhouse patio", {0: -0.5}),
+                              ("out_c", "garden", {0: -1.0})):
+        for seed, d in deltas.items():
+            recs.append(make_record(scene, "outdoor", "ours", seed, 25.0 + seed, paper_scene=ps))
+            recs.append(make_record(scene, "outdoor", "no_viba", seed, 25.0 + seed + d, paper_scene=ps))
+    return [Rec.parse_record(r) for r in recs]
+
+
+def test_gains_over_scenes_average_a_scenes_seeds_first():
+    """Scenes as the unit: a scene's seeds averaged first (-1.5, -0.5, -1.0), then the t-interval over the three
+    scenes (2 degrees of freedom); the seed spread from the scene with two seeds; the paper's per-scene range."""
+    recs = _scene_unit_records()
+    assert G.inference_unit(recs) == "scene"
+    g = G.gains_frame(recs).set_index("method").loc["no_viba"]
+    assert (g.unit, g.n_units, g.n_scenes, g.n_seeds) == ("scene", 3, 3, 2)
+    assert g.delta_psnr_mean == pytest.approx(-1.0) and g.delta_psnr_std == pytest.approx(0.5)
+    half = 4.302652729911275 * 0.5 / 3 ** 0.5  # t(0.975, 2)
+    assert (g.delta_psnr_ci95_low, g.delta_psnr_ci95_high) == pytest.approx((-1.0 - half, -1.0 + half))
+    assert g.seed_sd == pytest.approx(0.5 ** 0.5)  # sd of (-1, -2)
+    assert g.p_one_sided == pytest.approx(0.037089, abs=1e-5)  # t = -3.464 with 2 df, one-sided
+    # the paper: no_viba - ours on bike shop, steakhouse patio and garden = -2.30, -1.35, -1.42
+    assert (g.paper_delta_psnr_min, g.paper_delta_psnr_max) == pytest.approx((-2.30, -1.35))
+    assert g.paper_delta_psnr_matched == pytest.approx((-2.30 - 1.35 - 1.42) / 3)
+    assert bool(g.ci_overlaps_paper_range) and g.paper_range_position == "above"
+    # the same records with the seed as the unit: per seed the mean over the scenes it has
+    s = G.gains_frame(recs, unit="seed").set_index("method").loc["no_viba"]
+    assert s.unit == "seed" and s.n_units == 2
+    assert s.delta_psnr_mean == pytest.approx(((-1.0 - 0.5 - 1.0) / 3 + -2.0) / 2)
+
+
+def test_the_unit_is_named_and_chosen_from_the_design():
+    recs = _scene_unit_records()
+    one_scene = [r for r in recs if r.scene == "out_a"]
+    assert G.inference_unit(one_scene) == "seed"  # one recording per kind: run 1's design
+    with pytest.raises(ValueError, match="unit: expected one of"):
+        G.inference_unit(recs, "frame")
+
+
+def test_tables_2_and_3_spread_over_scenes_or_seeds(built):
+    """obj_a and obj_b: ours = 28 + offset (0, 2) + seed (0, 1). Over scenes: the scene means 28.5 and 30.5;
+    over seeds: the seeds' means over the scenes, 29 and 30."""
+    records, _ = built
+    by_scene = T.build_aggregate_table(records, "table2", "scene")
+    by_seed = T.build_aggregate_table(records, "table2", "seed")
+    ours_scene = by_scene.blocks[0].rows["ours"][0]
+    ours_seed = by_seed.blocks[0].rows["ours"][0]
+    assert (ours_scene.mean, ours_scene.std, ours_scene.n) == pytest.approx((29.5, 2 ** 0.5, 2))
+    assert (ours_seed.mean, ours_seed.std, ours_seed.n) == pytest.approx((29.5, 0.5 ** 0.5, 2))
+    assert "std over scenes" in by_scene.blocks[0].title and "std over seeds" in by_seed.blocks[0].title
