@@ -347,9 +347,9 @@ def _geometry(run: TrainedRun, geo_rec: Recording, frame: Frame, n: int, scale: 
     out.update(_authors_geometry(o, run, cam, gt_d, gt_n, in_view, _foreground(geo_rec, gf, cam)))
     if not bool(valid.any()):  # the model is transparent everywhere here: egobench's own metrics have no pixel
         return {**out, "depth_si_l1": None, "normal_l1": None, "geometry_missing": True}
-    if gt_d is not None:
+    if gt_d is not None and bool((valid & (gt_d > 0)).any()):  # a view of the sky alone has no surface
         out["depth_si_l1"] = depth_si_l1(o.depth[0, ..., 0].cpu(), gt_d, valid)
-    if gt_n is not None and o.normal is not None:
+    if gt_n is not None and o.normal is not None and bool((valid & (gt_n.norm(dim=-1) > 0.5)).any()):
         out["normal_l1"] = normal_l1(o.normal[0].cpu(), gt_n, valid)
     return out
 
@@ -371,21 +371,19 @@ def _authors_geometry(o, run: TrainedRun, cam, gt_d, gt_n, in_view: Tensor, fore
     regions = {"": in_view if foreground is None else in_view & foreground}
     if foreground is not None:
         regions[ALL_SURFACES_SUFFIX] = in_view
-    for suffix, region in regions.items():
-        optional = foreground is not None and suffix == ""  # the object may be small or out of view here
-        if gt_d is not None and _scorable(region & (gt_d > 0), optional):
+    for suffix, region in regions.items():  # a region the authors' erosion empties has no score in this frame
+        if gt_d is not None and _scorable(region & (gt_d > 0)):
             out[DEPTH_KEY + suffix] = depth_mse_authors(o.depth[0, ..., 0].cpu(), gt_d, region & (gt_d > 0))
-        if gt_n is not None and o.normal is not None and _scorable(region & (gt_n.norm(dim=-1) > 0.5), optional):
+        if gt_n is not None and o.normal is not None and _scorable(region & (gt_n.norm(dim=-1) > 0.5)):
             out[NORMAL_KEY + suffix] = normal_cos_authors(_authors_normal(o, run, cam), gt_n,
                                                           region & (gt_n.norm(dim=-1) > 0.5))
     return out
 
 
-def _scorable(mask: Tensor, optional: bool) -> bool:
-    """Whether to score ``mask``: an optional region (an object's foreground) only where the authors' erosion
-    keeps a pixel of it (that frame then has no foreground score); any other always (the metric names an
-    empty one)."""
-    return not optional or bool(erode_mask_authors(mask).any())
+def _scorable(mask: Tensor) -> bool:
+    """Whether the authors' eroded ``mask`` keeps a pixel: a frame that sees no surface (an outdoor view of the
+    sky alone) or none of the object has no geometry score there; the run's means are over the frames that do."""
+    return bool(erode_mask_authors(mask).any())
 
 
 def _authors_normal(o, run: TrainedRun, cam) -> Tensor:

@@ -160,6 +160,27 @@ def test_authors_geometry_on_the_foreground_with_all_surfaces_beside(trained, tm
     assert half["normal_cos_authors"] != plain["normal_cos_authors"]
 
 
+def test_a_frame_that_sees_no_surface_has_no_geometry_score(trained, tmp_path):
+    """A held-out frame whose ground truth has no surface (a view of the sky alone) has no authors' depth or
+    normal score; the run's means are those of the other frames, and every other metric is unchanged."""
+    import shutil
+
+    rec, run = trained
+    plain = evaluate(rec, run, save_renders=False)
+    gt = tmp_path / "gt_sky"
+    shutil.copytree(rec.ground_truth, gt)
+    sky = plain["per_image"][0]["frame"]
+    for kind in ("depth", "normal"):
+        f = gt / kind / f"{sky:05d}.npy"
+        np.save(f, np.zeros_like(np.load(f)))
+    out = evaluate(dataclasses.replace(rec, ground_truth=gt), run, save_renders=False)
+    first, rest = out["per_image"][0], out["per_image"][1:]
+    assert "depth_mse_authors" not in first and "normal_cos_authors" not in first
+    assert first["psnr"] == plain["per_image"][0]["psnr"]
+    assert out["metrics"]["depth_mse_authors"] == pytest.approx(np.mean([e["depth_mse_authors"] for e in rest]))
+    assert out["metrics"]["psnr"] == plain["metrics"]["psnr"]
+
+
 class _RunsCodeWhenUnpickled:
     """Unpickling this calls Path.touch(marker): a checkpoint that would execute code when loaded."""
 
