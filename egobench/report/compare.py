@@ -7,8 +7,9 @@ is a multiple (`TRAVEL_FACTOR`) of the reference's own seed spread:
 
 - a run's metric: ``TRAVEL_FACTOR`` x the pooled seed sd of that metric over the reference's (scene, method)
   cells (the root of the mean per-cell variance);
-- a row's Δ PSNR (gains.csv): ``TRAVEL_FACTOR`` x the pooled standard error of the rows' Δ (the root of the
-  mean of delta_psnr_std^2 / n_seeds).
+- a row's Δ PSNR (gains.csv): ``TRAVEL_FACTOR`` x the pooled standard error a seed redraw gives the rows' Δ
+  (`row_standard_error`: seeds as the unit, the root of the mean of delta_psnr_std^2 / n_seeds; scenes as the
+  unit, the pooled within-scene seed sd over sqrt(scenes)).
 
 `TRAVEL_FACTOR` = 6 is the largest move measured between two CPU vendors in seed-spread units (an Intel Xeon
 regeneration against the committed AMD Zen 5 run: 0.98 dB on one run, 0.41 dB on one row; pooled seed sd
@@ -108,8 +109,7 @@ def compare_rows(ref: pd.DataFrame, new: pd.DataFrame, factor: float = TRAVEL_FA
     need = ROW_KEY + ["delta_psnr_mean", "delta_psnr_std", "n_seeds"]
     _check_columns(ref, need, "reference gains.csv")
     _check_columns(new, ROW_KEY + ["delta_psnr_mean"], "gains.csv")
-    se2 = (ref["delta_psnr_std"] ** 2 / ref["n_seeds"]).dropna()
-    tol = factor * float(np.sqrt(se2.mean()))
+    tol = factor * row_standard_error(ref)
     both = ref.merge(new, on=ROW_KEY, suffixes=("_ref", "_new"))
     out = both[ROW_KEY].copy()
     out["reference"], out["regenerated"] = both["delta_psnr_mean_ref"], both["delta_psnr_mean_new"]
@@ -120,6 +120,20 @@ def compare_rows(ref: pd.DataFrame, new: pd.DataFrame, factor: float = TRAVEL_FA
              for v in VERDICTS if f"{v}_ref" in both and f"{v}_new" in both]
     out["verdicts_changed"] = ["; ".join(x for x in parts if x) for parts in zip(*flips)] if flips else ""
     return out
+
+
+def row_standard_error(gains: pd.DataFrame) -> float:
+    """The root mean square over the rows of the standard error a seed redraw gives a row's Δ. Seeds as the unit
+    (run 1): the row's sd over its seeds / sqrt(seeds). Scenes as the unit (``unit`` "scene", run 2): another
+    machine redraws the training noise on every scene, not the scenes, so the pooled within-scene seed sd
+    (``seed_sd``) / sqrt(scenes); the sd over the scenes would allow the scene-to-scene spread."""
+    if "unit" in gains and (gains["unit"] == "scene").all() and gains.get("seed_sd") is not None \
+            and gains["seed_sd"].notna().any():
+        se2 = float((gains["seed_sd"].dropna() ** 2).mean()) / gains["n_units"]
+    else:
+        units = gains["n_units"] if "n_units" in gains else gains["n_seeds"]
+        se2 = (gains["delta_psnr_std"] ** 2 / units).dropna()
+    return float(np.sqrt(se2.mean()))
 
 
 def unmatched(ref: pd.DataFrame, new: pd.DataFrame, key: list[str]) -> tuple[int, int]:

@@ -49,6 +49,18 @@ def test_the_tolerance_is_six_times_the_pooled_seed_spread():
     assert rows.within.tolist() == [True, False]
 
 
+def test_over_scenes_the_row_tolerance_is_the_seed_spread_not_the_scene_spread():
+    """Scenes as the unit: seed sds 0.3 and 0.4 pool to 0.125 (variance); over 6 and 2 scenes the rows' SEs are
+    0.125 / 6 and 0.125 / 2, whose mean is 1/24 (sd 0.204); the scene sd (2 dB) does not enter."""
+    gains = pd.DataFrame({"group": ["g", "g"], "method": ["x", "y"], "unit": ["scene", "scene"],
+                          "delta_psnr_mean": [-1.0, -2.0], "delta_psnr_std": [2.0, 2.0], "n_seeds": [2, 1],
+                          "n_units": [6, 2], "seed_sd": [0.3, 0.4]})
+    expected = 6 * np.sqrt((0.125 / 6 + 0.125 / 2) / 2)
+    assert compare.row_standard_error(gains) * 6 == pytest.approx(expected)
+    rows = compare.compare_rows(gains, gains.assign(delta_psnr_mean=[-1.0 - 1.2, -2.0 - 1.3]))
+    assert rows.tolerance.iloc[0] == pytest.approx(expected) and rows.within.tolist() == [True, False]
+
+
 def test_the_cross_vendor_regenerations_extremes_are_within_and_a_planted_difference_is_not(suite, capsys):
     """The largest moves an Intel Xeon regeneration showed against the committed (AMD Zen 5) tables, one run
     25.95 -> 24.97 dB and one row -2.08 -> -2.49 dB, are within tolerance; a run 1.5 dB off and a row 0.6 dB off
