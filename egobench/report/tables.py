@@ -220,24 +220,24 @@ def _all_surface_metrics(group: str, recs: Sequence[RunRecord]) -> list[str]:
     return [k for k in (pn.DEPTH_ALL, pn.NORMAL_ALL) if any(r.metrics.get(k) is not None for r in recs)]
 
 
+def _means_by(recs: Sequence[RunRecord], metric: str, key) -> dict:
+    """key(record) -> the mean of the metric over the records with that key (records without a value skipped)."""
+    out: dict = {}
+    for k in sorted({key(r) for r in recs}):
+        vals = [r.metrics[metric] for r in recs if key(r) == k and r.metrics[metric] is not None]
+        if vals:
+            out[k] = float(np.mean(vals))
+    return out
+
+
 def _per_seed_scene_mean(recs: Sequence[RunRecord], metric: str) -> dict[int, float]:
     """seed -> mean over scenes of the metric (scenes without a value are skipped)."""
-    out: dict[int, float] = {}
-    for seed in sorted({r.seed for r in recs}):
-        vals = [r.metrics[metric] for r in recs if r.seed == seed and r.metrics[metric] is not None]
-        if vals:
-            out[seed] = float(np.mean(vals))
-    return out
+    return _means_by(recs, metric, lambda r: r.seed)
 
 
 def per_scene_mean(recs: Sequence[RunRecord], metric: str) -> dict[str, float]:
     """scene -> mean over its seeds of the metric (seeds without a value are skipped)."""
-    out: dict[str, float] = {}
-    for scene in sorted({r.scene for r in recs}):
-        vals = [r.metrics[metric] for r in recs if r.scene == scene and r.metrics[metric] is not None]
-        if vals:
-            out[scene] = float(np.mean(vals))
-    return out
+    return _means_by(recs, metric, lambda r: r.scene)
 
 
 def _assemble(group, paper, groups, metrics, ours_rows, paper_rows, notes, per_group, spread="seed") -> ShapedTable:
