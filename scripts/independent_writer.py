@@ -94,6 +94,7 @@ class Config:
     exposure_error: float = 1.0
     exposure_fraction: float = 0.0
     time_offset_s: float = 0.0
+    motion: str = "both"  # the head's motion: "both", "rotation" (no translation) or "translation" (no rotation)
 
     @property
     def focal_px(self) -> float:
@@ -197,9 +198,22 @@ def build_scene(seed: int) -> dict:
             "grid": rng.uniform(0.35, 0.8, n), "grid_offset": rng.uniform(0, 1, (n, 2))}
 
 
-def head_motion(seed: int) -> dict:
+def head_motion(seed: int, kind: str = "both") -> dict:
     """Seeded sinusoids of the head, per channel (amplitudes, frequencies Hz, phases rad): position
-    x, y, z (m, about (3, 2.5, 1.6)), yaw (about ``yaw0``), pitch and roll (rad)."""
+    x, y, z (m, about (3, 2.5, 1.6)), yaw (about ``yaw0``), pitch and roll (rad). ``kind`` "rotation" zeroes
+    the translation's amplitudes, "translation" the rotation's (the same draws either way)."""
+    motion = _head_sinusoids(seed)
+    if kind == "rotation":
+        motion["pos_amp"] = np.zeros_like(motion["pos_amp"])
+    elif kind == "translation":
+        for k in ("yaw", "pitch", "roll"):
+            motion[k] = (np.zeros_like(motion[k][0]), *motion[k][1:])
+    elif kind != "both":
+        raise ValueError(f"head motion: expected 'both', 'rotation' or 'translation', got {kind!r}")
+    return motion
+
+
+def _head_sinusoids(seed: int) -> dict:
     rng = np.random.default_rng([seed, 1])
 
     def phases(shape):
@@ -505,7 +519,7 @@ def truth_record(c: Config, clock: dict) -> dict:
 
 def _write_all(root: Path, c: Config) -> None:
     """Every file of the recording under ``root`` (a fresh folder)."""
-    scene, motion, clock = build_scene(c.seed), head_motion(c.seed), frame_clock(c)
+    scene, motion, clock = build_scene(c.seed), head_motion(c.seed, c.motion), frame_clock(c)
     stream, mps = root / stream_name(c), root / "mps" / "slam"
     for d in (stream / "images", stream / "sparse_depth", mps):
         d.mkdir(parents=True)
@@ -571,6 +585,8 @@ def parse_args(argv: list[str] | None) -> tuple[Path, Config]:
         attr = name.replace("-", "_")
         p.add_argument(f"--{name}", type=kind, default=getattr(defaults, attr),
                        help=f"{helptext} (default {getattr(defaults, attr)})")
+    p.add_argument("--motion", choices=("both", "rotation", "translation"), default=defaults.motion,
+                   help="the head's motion: rotation and translation, or one of them alone (default both)")
     args = p.parse_args(argv)
     c = Config(**{k: v for k, v in vars(args).items() if k != "out"})
     try:
