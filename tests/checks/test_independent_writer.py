@@ -140,3 +140,15 @@ def test_the_writer_is_deterministic_for_a_seed(tmp_path):
     files = sorted(p.relative_to(tmp_path / "a") for p in (tmp_path / "a").rglob("*") if p.is_file())
     assert len(files) > 10
     assert all((tmp_path / "a" / p).read_bytes() == (tmp_path / "b" / p).read_bytes() for p in files)
+
+
+def test_the_head_can_rotate_or_translate_alone():
+    """--motion rotation keeps the device at one place, --motion translation keeps its orientation; both
+    share the draws of the full motion (the same seed moves the same channels)."""
+    w = writer
+    t = w.T0_NS + np.arange(0, 3_000_000_000, 50_000_000)
+    full, rot, trans = (w.device_poses(w.head_motion(7, kind), t) for kind in ("both", "rotation", "translation"))
+    assert np.ptp(rot[:, :3, 3], axis=0).max() < 1e-12 and np.ptp(trans[:, :3, :3], axis=0).max() < 1e-12
+    assert np.allclose(rot[:, :3, :3], full[:, :3, :3]) and np.allclose(trans[:, :3, 3], full[:, :3, 3])
+    with pytest.raises(ValueError, match="head motion"):
+        w.head_motion(7, "spin")
