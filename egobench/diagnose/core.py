@@ -425,7 +425,7 @@ def diagnose_residuals(
             records, se = trained_run_records(data, testable, int(cfg.placebo_draws), int(cfg.placebo_seed) + rnd)
             for result, record in records:
                 merge_record(result, record)
-            mark_untestable_on_trained_run(testable)
+            mark_untestable_on_trained_run(testable, data)
             testable = [r for r in testable if r.testable]  # (white balance and noise are not identifiable on a trained run)
             if rnd == 1:
                 round1_se = {**se, **geometric_standard_errors(testable)}

@@ -48,10 +48,13 @@ def trained_run_records(data: ResidualData, results: list[CauseResult], draws: i
     return records, se
 
 
-def mark_untestable_on_trained_run(results: list[CauseResult]) -> None:
-    """Mark the causes a trained run cannot show not testable (in place; `Effect.trained_run_untestable`)."""
+def mark_untestable_on_trained_run(results: list[CauseResult], data: ResidualData | None = None) -> None:
+    """Mark the causes a trained run cannot show not testable (in place): those it never can
+    (`Effect.trained_run_untestable`), and those this run's ``data`` cannot (`Cause.untestable_on_trained_run`)."""
     for r in results:
         reason = EFFECTS[r.name].trained_run_untestable if r.name in EFFECTS else None
+        if reason is None and data is not None and r.name in CAUSES:
+            reason = CAUSES[r.name].untestable_on_trained_run(data)
         if reason is not None and r.testable:
             r.testable, r.reason = False, reason
 

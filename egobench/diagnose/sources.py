@@ -383,6 +383,7 @@ def run_source(recording_dir: str | Path, run_dir: str | Path, max_frames: int |
     maps, k_of, formation = run_maps(rec, run), method_normaliser(rec, spec), formation_model(spec)
     settings = RenderSettings.of(run.config)
     counts = sample_counts(rec, frames, spec, run.config.max_pose_samples, run.config.sample_rule, 1.0)
+    trained_counts = np.array(counts, dtype=np.int64)  # as in its training: the same rule at the same size
     if pose_samples is not None:
         if int(pose_samples) != pose_samples or pose_samples < 1:
             raise ValueError(f"pose_samples: expected a positive integer, got {pose_samples!r}")
@@ -407,4 +408,5 @@ def run_source(recording_dir: str | Path, run_dir: str | Path, max_frames: int |
                       spec.calibration, meta)
     ctx.render_alpha = np.stack(coverage)
     ctx.train_view_count = np.stack(views)
+    ctx.model_pose_samples = trained_counts
     return Sources(np.stack(measured), pred, ctx, meta["source"])

@@ -14,6 +14,11 @@ from egobench.residual.estimation import GeometricCause, ResidualData, velocity_
 from egobench.residual.signatures import frame_t_test
 
 
+#: On a trained run the readout is testable when at least this share of the fitted frames were trained with two or
+#: more rolling-shutter pose samples (`ReadoutCause.untestable_on_trained_run`).
+MIN_SHUTTER_FRAME_SHARE = 0.5
+
+
 class ReadoutCause(GeometricCause):
     """Rolling-shutter readout wrong: the time shift grows linearly with row time R(u).
 
@@ -61,6 +66,21 @@ class ReadoutCause(GeometricCause):
         out["fit_a_b"] = [float(theta[0]), float(theta[1])]
         return out
 
+
+    def untestable_on_trained_run(self, data):
+        """A run trained at one pose sample a frame renders no rolling shutter there (the released sampling rule
+        below about a pixel of row shear): its scene absorbed part of the shear, and a readout error cannot be
+        told from that. Testable when at least `MIN_SHUTTER_FRAME_SHARE` of the fitted frames were trained with
+        two or more samples (results/diagnosis/README.md, 2026-12-05)."""
+        n = data.ctx.model_pose_samples
+        if n is None or not len(data.frames):
+            return None
+        share = float(np.mean(np.asarray(n)[data.frames] >= 2))
+        if share >= MIN_SHUTTER_FRAME_SHARE:
+            return None
+        return (f"the run renders no rolling shutter on {100 * (1 - share):.0f} % of the frames (one pose sample "
+                "each: the sampling rule below about a pixel of row shear), so a readout error cannot be told "
+                "from the shear its scene absorbed")
 
     def trained_placebos(self, result, evidence):
         """On a trained run: the velocity placebo, and wrong row times (`row_time_placebo`)."""

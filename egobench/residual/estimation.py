@@ -351,6 +351,11 @@ class Cause:
         from that frame's own fit_mask [H, W] pixels only (fitted frames' joint-fit values unused)."""
         raise NotImplementedError  # pragma: no cover
 
+    def untestable_on_trained_run(self, data: ResidualData) -> str | None:
+        """Why a trained run cannot show this cause in ``data`` (None: it can). Checked after the placebos,
+        beside `Effect.trained_run_untestable` (`diagnose.placebo.mark_untestable_on_trained_run`)."""
+        return None
+
     def trained_placebos(self, result: CauseResult, evidence) -> list:
         """The placebos this cause must beat on a trained run, as records the diagnosis merges in order
         (`egobench.residual.calibration`: ``evidence`` is its `TrainedRunEvidence`); none by default."""

@@ -47,6 +47,7 @@ class DiagnosisContext:
     noise_reference: np.ndarray | None = None  # [F, H, W, 3] one draw of the ASSUMED noise through the same capture pipeline (noisy prediction - prediction, display); calibrates the noise test for resampling/quantisation
     render_alpha: np.ndarray | None = None  # [F, H, W] a trained model's accumulated opacity (its coverage of each pixel); None: not a trained run
     train_view_count: np.ndarray | None = None  # [F, H, W] training frames whose image holds each pixel's rendered surface (`coverage.training_view_count`); None: not a trained run
+    model_pose_samples: np.ndarray | None = None  # [F] rolling-shutter pose samples a trained model rendered each frame with in its training (its sampling rule; 1: no rolling shutter); None: not a trained run
     holdout_every: int = 8  # every n-th frame (by index) is held out for the gain measurement
     quantisation_level: float = LEVEL  # display step of the measured images (1/255 for 8-bit)
     meta: dict = field(default_factory=dict)  # free-form provenance (recording, source of the prediction)
@@ -74,6 +75,8 @@ class DiagnosisContext:
             self.render_alpha = shape("render_alpha", (n_frames, height, width)).astype(np.float32)
         if self.train_view_count is not None:
             self.train_view_count = shape("train_view_count", (n_frames, height, width)).astype(np.float32)
+        if self.model_pose_samples is not None:
+            self.model_pose_samples = shape("model_pose_samples", (n_frames,)).astype(np.int64)
         if self.noise_reference is not None:
             self.noise_reference = shape("noise_reference", (n_frames, height, width, 3)).astype(np.float64)
         for name in ("noise_shot", "noise_read"):

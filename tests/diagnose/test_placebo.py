@@ -142,3 +142,24 @@ def test_mark_untestable_on_trained_run_uses_the_effect_reason():
         else:
             assert (r.testable, r.reason) == (True, "own")
     assert (already.testable, already.reason) == (False, "too few cells")  # an untestable result keeps its reason
+
+
+@pytest.mark.parametrize("samples, testable", [([1] * FRAMES, False), ([1] * 5 + [2] * 4, False),
+                                               ([1] * 4 + [3] * 5, True), ([8] * FRAMES, True)])
+def test_the_readout_needs_a_run_that_renders_the_rolling_shutter(data, samples, testable):
+    """A run trained at one pose sample on most frames carries no rolling shutter there: its readout is not testable
+    (with the reason), every other cause is untouched; a run that sampled at least half of the frames keeps it."""
+    ctx = data.ctx
+    try:
+        ctx.model_pose_samples = np.array(samples)
+        results = [CauseResult(name, "geometric", True) for name in ("readout", "time_offset", "exposure_blur")]
+        mark_untestable_on_trained_run(results, data)
+        readout, *others = results
+        assert readout.testable is testable and all(r.testable for r in others)
+        assert testable or "no rolling shutter" in readout.reason
+        ctx.model_pose_samples = None  # not a trained run's context: nothing to say
+        fresh = [CauseResult("readout", "geometric", True)]
+        mark_untestable_on_trained_run(fresh, data)
+        assert fresh[0].testable
+    finally:
+        ctx.model_pose_samples = None
