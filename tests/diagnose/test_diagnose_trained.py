@@ -294,16 +294,20 @@ def test_badly_fitted_trained_run_through_the_cli_says_reconstruction_error_domi
     assert record["verdict"] == RECONSTRUCTION_ERROR and record["named"] == []
     assert me["dominates"] and me["held_out_psnr_db"] < 25 and me["model_error_over_noise_db"] > 10
     # identifiability, before any name: every cause has its round-1 record; white balance and noise cannot be shown
-    # by a trained run, with the effect's own reason; readout can, with its smallest testable size
+    # by a trained run, with the effect's own reason; the time offset can, with its smallest testable size; the
+    # readout only where the run rendered the rolling shutter (two or more pose samples on half the frames)
     first = {c["name"]: c for c in record["rounds"][0]}
     assert set(first) == set(EFFECTS)
     for name in ("white_balance", "noise"):
         assert not first[name]["testable"] and first[name]["reason"] == EFFECTS[name].trained_run_untestable
-    assert first["readout"]["testable"] and me["smallest_testable"]["readout"]
+    assert first["time_offset"]["testable"] and me["smallest_testable"]["time_offset"]
+    src = run_source(rec, out / "run", progress=False)
+    shutter = float(np.mean(src.context.model_pose_samples >= 2)) >= 0.5
+    assert first["readout"]["testable"] == shutter
+    assert shutter or "no rolling shutter" in first["readout"]["reason"]
     # the report says so before its ranking
     text = (out / "report.md").read_text()
     assert text.index("## Identifiability on this recording") < text.index("## Ranking")
-    src = run_source(rec, out / "run", progress=False)
     assert diagnose_residuals(src.measured, src.predicted, src.context).verdict not in (NO_DISCREPANCY, RECONSTRUCTION_ERROR)
 
 
