@@ -1,0 +1,72 @@
+"""scripts/independent_sweep.py: the tally of the diagnosis on the independent writer's recordings (what counts as
+named, wrong, geometric, flagged), from a case's truth.json and diagnosis.json."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+
+SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "independent_sweep.py"
+
+
+def _load():
+    spec = importlib.util.spec_from_file_location("independent_sweep", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+sweep = _load()
+
+
+def _case(tmp_path: Path, name: str, altered: list[int], named: list[dict]) -> Path:
+    case = tmp_path / name
+    (case / "rec").mkdir(parents=True)
+    (case / "diag").mkdir()
+    (case / "rec" / "truth.json").write_text(json.dumps({"effects": {"exposure_altered_frames": altered}}))
+    (case / "diag" / "diagnosis.json").write_text(json.dumps({"named": named, "psnr_gain_db": 0.1}))
+    return case
+
+
+def test_a_case_row_counts_names_flags_and_estimates(tmp_path):
+    records = _case(tmp_path, "records", [3, 9, 17, 30], [
+        {"name": "exposure_metadata", "params": {"flagged_frames": [3, 9, 12]}},
+        {"name": "readout", "params": {"readout_s_estimated": 0.0125}}])
+    row = sweep.case_row("exposure_metadata", 401, records, {})
+    assert row["expected_named"] and not row["wrong_first"] and row["geometric_named"]
+    assert (row["flagged_altered"], row["flagged_wrong"]) == (2, 1)
+    assert row["readout_s_estimated"] == 0.0125
+    null = sweep.case_row("null", 101, _case(tmp_path, "null", [], [{"name": "readout", "params": {}}]), {})
+    assert null["wrong_first"] and null["geometric_named"] and not null["expected_named"]
+    quiet = sweep.case_row("null", 102, _case(tmp_path, "quiet", [], []), {})
+    assert not quiet["named"] and not quiet["wrong_first"]
+
+
+def test_the_summary_applies_the_issues_criteria():
+    rows = [
+        {"effect": "readout", "named": "readout", "expected_named": True, "wrong_first": False,
+         "geometric_named": True, "readout_s_estimated": 0.0149},  # within 25 % of the true 12 ms
+        {"effect": "readout", "named": "readout", "expected_named": True, "wrong_first": False,
+         "geometric_named": True, "readout_s_estimated": 0.0151},  # 25.8 % off
+        {"effect": "readout", "named": "", "expected_named": False, "wrong_first": False,
+         "geometric_named": False, "readout_s_estimated": None},
+        {"effect": "exposure_metadata", "named": "exposure_metadata", "expected_named": True, "wrong_first": False,
+         "geometric_named": False, "altered_frames": "1 2 3 4", "flagged_altered": 2, "flagged_wrong": 2},
+        {"effect": "exposure_metadata", "named": "exposure_metadata", "expected_named": True, "wrong_first": False,
+         "geometric_named": False, "altered_frames": "1 2 3 4", "flagged_altered": 2, "flagged_wrong": 3},
+    ]
+    s = sweep.summary(rows)
+    assert s["readout"] == {"cases": 3, "nothing_named": 1, "expected_named": 2, "wrong_first_name": 0,
+                            "geometric_named": 2, "estimate_within_25pct": 1}
+    assert s["exposure_metadata"]["half_altered_flagged_and_at_most_2_wrong"] == 1
+    assert set(s) == {"readout", "exposure_metadata"}
+
+
+@pytest.mark.parametrize("effect", sorted(sweep.CASES))
+def test_every_effect_has_its_seeds_and_flags(effect):
+    flags, expected, seeds = sweep.CASES[effect]
+    assert len(seeds) == (20 if effect == "null" else 10)
+    assert (expected is None) == (effect == "null") and (flags(0) == []) == (effect == "null")
