@@ -38,7 +38,8 @@ from egobench.geometry import so3_log
 from egobench.host import host_info
 from egobench.io_utils import atomic_path, check_written, git_commit, holding_run_folder, read_json, write_json
 from egobench.metrics import (
-    depth_mse_authors, depth_si_l1, erode_mask_authors, lpips_alex, lpips_available, normal_cos_authors, normal_l1, psnr, ssim,
+    depth_mse_authors, depth_si_l1, erode_mask_authors, lpips_alex, lpips_available, normal_cos_authors, normal_l1,
+    psnr, ssim,
 )
 from egobench.model.methods import get_method
 from egobench.model.predict import (
@@ -293,7 +294,7 @@ def _run_record(held: _Held, per_image: list[dict], notes: dict, scene: str | No
         },
         "metrics": {
             "psnr": mean_of("psnr"), "ssim": mean_of("ssim"), "lpips": mean_of("lpips"),
-            "depth_mse_authors": mean_of("depth_mse_authors"), "normal_cos_authors": mean_of("normal_cos_authors"),
+            DEPTH_KEY: mean_of(DEPTH_KEY), NORMAL_KEY: mean_of(NORMAL_KEY),
             DEPTH_KEY + ALL_SURFACES_SUFFIX: mean_of(DEPTH_KEY + ALL_SURFACES_SUFFIX),
             NORMAL_KEY + ALL_SURFACES_SUFFIX: mean_of(NORMAL_KEY + ALL_SURFACES_SUFFIX),
             "depth_si_l1": mean_of("depth_si_l1"), "normal_l1": mean_of("normal_l1"),
@@ -371,12 +372,12 @@ def _authors_geometry(o, run: TrainedRun, cam, gt_d, gt_n, in_view: Tensor, fore
     regions = {"": in_view if foreground is None else in_view & foreground}
     if foreground is not None:
         regions[ALL_SURFACES_SUFFIX] = in_view
+    depth = None if gt_d is None else (o.depth[0, ..., 0].cpu(), gt_d, gt_d > 0)
+    normal = None if gt_n is None or o.normal is None else (_authors_normal(o, run, cam), gt_n, gt_n.norm(dim=-1) > 0.5)
     for suffix, region in regions.items():  # a region the authors' erosion empties has no score in this frame
-        if gt_d is not None and _scorable(region & (gt_d > 0)):
-            out[DEPTH_KEY + suffix] = depth_mse_authors(o.depth[0, ..., 0].cpu(), gt_d, region & (gt_d > 0))
-        if gt_n is not None and o.normal is not None and _scorable(region & (gt_n.norm(dim=-1) > 0.5)):
-            out[NORMAL_KEY + suffix] = normal_cos_authors(_authors_normal(o, run, cam), gt_n,
-                                                          region & (gt_n.norm(dim=-1) > 0.5))
+        for key, metric, maps in ((DEPTH_KEY, depth_mse_authors, depth), (NORMAL_KEY, normal_cos_authors, normal)):
+            if maps is not None and _scorable(mask := region & maps[2]):
+                out[key + suffix] = metric(maps[0], maps[1], mask)
     return out
 
 

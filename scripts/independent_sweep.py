@@ -127,8 +127,7 @@ def main(argv: list[str] | None = None) -> int:
     with ThreadPoolExecutor(max(1, args.jobs)) as pool:
         rows = list(pool.map(lambda es: run_case(args.out, *es), todo))
     with open(args.out / "cases.csv", "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=sorted({k for r in rows for k in r}, key=lambda k: list(rows[0]).index(k)
-                                                  if k in rows[0] else 99))
+        w = csv.DictWriter(fh, fieldnames=list(dict.fromkeys(k for r in rows for k in r)))  # first-seen order
         w.writeheader()
         w.writerows(rows)
     (args.out / "summary.json").write_text(json.dumps(summary(rows), indent=1) + "\n")

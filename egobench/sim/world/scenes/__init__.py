@@ -11,7 +11,7 @@ from egobench.sim.world.lighting import Sun
 from egobench.sim.world.primitives import SCENE_KINDS, SceneKind
 from egobench.sim.world.scene import Scene
 from egobench.sim.world.scenes import dtc_object, indoor, outdoor, quest3
-from egobench.sim.world.variety import check_amount, layout_spread, vary_content_and_light
+from egobench.sim.world.variety import layout_spread, vary_content_and_light
 
 #: scene kind -> its builder ``(rng, seed, spread) -> Scene`` (``spread``: the factor on its layout jitter) (one module per kind; a new kind is a module and a line here)
 BUILDERS = {"outdoor": outdoor.build, "indoor": indoor.build, "object": dtc_object.build, "quest3": quest3.build}
@@ -33,7 +33,6 @@ def make_scene(kind: SceneKind, seed: int = 0, sun_scale: float = 1.0, grain: fl
         raise ValueError(f"make_scene: seed must be an integer, got {seed!r}")
     if not (math.isfinite(sun_scale) and sun_scale >= 0):
         raise ValueError(f"make_scene: sun_scale must be a finite number >= 0, got {sun_scale!r}")
-    variety = check_amount(variety)
     rng = np.random.default_rng([int(seed), SCENE_KINDS.index(kind)])
     scene = BUILDERS[kind](rng, int(seed), layout_spread(variety))
     scene = vary_content_and_light(scene, np.random.default_rng([int(seed), SCENE_KINDS.index(kind), 1]), variety)
