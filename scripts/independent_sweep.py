@@ -1,14 +1,15 @@
 """The diagnosis on recordings egobench did not write: hidden-effect cases from scripts/independent_writer.py,
 'ours' trained on each, `egobench diagnose` on the trained run, the verdicts tallied.
 
-    python scripts/independent_sweep.py --out DIR [--jobs 2] [--only EFFECT] [--limit N]
+    python scripts/independent_sweep.py --out DIR [--jobs 2] [--only EFFECT] [--limit N] [--seed-set K]
 
 The cases are fixed here, before any is run (the design: results/diagnosis/README.md, "2026-12-05: the
 diagnosis on an independent writer's recordings"): 20 nulls and 10 seeds of each hidden effect, at the
 conditions of issue 72 (64 px, 48 frames, fixed 1 ms exposure and gain 1, a flat stated vignette, a stated
 readout of 8 ms; 'ours' with `--preset cpu --iterations 800`). Each case lives in DIR/cases/<case>/ (rec/,
 run/, diag/) and every stage is skipped when its output exists: an interrupted sweep resumes. DIR/cases.csv
-holds one row per case and DIR/summary.json the rates the issue asks for.
+holds one row per case and DIR/summary.json the rates the issue asks for. ``--seed-set 2`` writes fresh
+recordings: each effect's next block of seeds (nulls 121-140, vignette 211-220, ...).
 """
 
 from __future__ import annotations
@@ -50,9 +51,16 @@ def _run(cmd: list[str], log: Path) -> float:
     return time.perf_counter() - t0
 
 
-def run_case(out: Path, effect: str, seed: int) -> dict:
+def seeds_of(effect: str, seed_set: int = 1) -> range:
+    """The writer seeds of ``effect`` in seed set 1 (`CASES`) or a later set, each the next block of as many."""
+    seeds = CASES[effect][2]
+    shift = (int(seed_set) - 1) * len(seeds)
+    return range(seeds.start + shift, seeds.stop + shift)
+
+
+def run_case(out: Path, effect: str, seed: int, seed_set: int = 1) -> dict:
     """Write, train and diagnose one case (each stage skipped when done); its row of cases.csv."""
-    flags, _, seeds = CASES[effect]
+    flags, seeds = CASES[effect][0], seeds_of(effect, seed_set)
     case = out / "cases" / f"{effect}_{seed}"
     case.mkdir(parents=True, exist_ok=True)
     rec, run, diag = case / "rec", case / "run", case / "diag"
@@ -121,11 +129,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--jobs", type=int, default=2, help="cases run side by side (each on one thread)")
     ap.add_argument("--only", choices=sorted(CASES), help="run only this effect's cases")
     ap.add_argument("--limit", type=int, default=0, help="at most N cases of each effect (0: all)")
+    ap.add_argument("--seed-set", type=int, default=1,
+                    help="1: the seeds of CASES; k > 1: the k-th block of as many seeds after them (fresh recordings)")
     args = ap.parse_args(argv)
-    todo = [(e, s) for e, (_, _, seeds) in CASES.items() if args.only in (None, e)
-            for k, s in enumerate(seeds) if not args.limit or k < args.limit]
+    if args.seed_set < 1:
+        ap.error(f"--seed-set: expected an integer >= 1, got {args.seed_set}")
+    todo = [(e, s) for e in CASES if args.only in (None, e)
+            for k, s in enumerate(seeds_of(e, args.seed_set)) if not args.limit or k < args.limit]
     with ThreadPoolExecutor(max(1, args.jobs)) as pool:
-        rows = list(pool.map(lambda es: run_case(args.out, *es), todo))
+        rows = list(pool.map(lambda es: run_case(args.out, *es, seed_set=args.seed_set), todo))
     with open(args.out / "cases.csv", "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=list(dict.fromkeys(k for r in rows for k in r)))  # first-seen order
         w.writeheader()

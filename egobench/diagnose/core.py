@@ -8,11 +8,12 @@ Protocol (docs/diagnosis.md):
    (8-bit images hold ~10^5 pixels, so a tiny but real mismatch is always "significant"; the
    floor states what is worth modelling). Score = effect_rms x min(1, -log10(p_adj) / 10); a cause
    that contains another (readout contains time offset) outranks it when both are significant.
-3. The top significant mean-affecting cause is named, its estimate applied to every frame
-   (held-out frames: per-frame parameters come from their even-checkerboard pixels), and the
-   held-out PSNR gain is measured on the odd-checkerboard pixels of the held-out frames. On a trained
-   run, a cause with one parameter per frame (`Cause.frame_local`) is scored instead on the odd pixels
-   of every frame, each frame's parameter from its own even pixels (`_within_frame_gain`).
+3. The top significant mean-affecting cause is named when its extension gains on what it was not fitted on
+   (`egobench.diagnose.gain`): its estimate is applied to every frame (held-out frames: per-frame parameters
+   come from their even-checkerboard pixels) and the PSNR gain is measured on the odd-checkerboard pixels of
+   the held-out frames; it must be positive and, on a trained run, positive beyond the run's own spread of
+   it over those frames. On a trained run, a cause with one parameter per frame (`Cause.frame_local`) is
+   scored instead on the odd pixels of every frame, each frame's parameter from its own even pixels.
 4. Repeat until nothing mean-affecting is significant (at most max_causes); noise is named
    only then, because any unmodelled mean effect inflates the residual variance.
 Nothing named in round 1 -> "no significant discrepancy".
@@ -27,6 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from egobench.diagnose.estimators import CAUSES, variance_model_cause
+from egobench.diagnose.gain import gain_placebo_test, refusal
 from egobench.diagnose.placebo import mark_untestable_on_trained_run, trained_run_records
 from egobench.diagnose.power import geometric_standard_errors, smallest_testable
 from egobench.effects import EFFECTS
@@ -52,9 +54,8 @@ class DiagnosisConfig:
     causes: tuple[str, ...] = tuple(CAUSES)  # the library to test (effect names)
     border_px: int = 2  # image border excluded from fits and scores (warps sample outside there)
     # --- a trained run's renders (--source run): the null includes the model's own error (calibration.py)
-    trained_run: bool = False  # calibrate photometric statistics with placebos; gain floor; model-error verdict
+    trained_run: bool = False  # calibrate statistics with placebos; gain beyond its spread; model-error verdict
     placebo_draws: int = 4999  # frame-label shuffles of the exposure placebos (smallest p: 1 / (draws + 1))
-    gain_floor_db: float = 0.05  # trained run: a cause is named only if it improves held-out PSNR by more
     placebo_seed: int = 0  # seeds the placebo shuffles
 
     def validate(self) -> "DiagnosisConfig":
@@ -268,11 +269,12 @@ def _name_mean_cause(testable: list[CauseResult], rnd: int, measured: np.ndarray
                      ) -> tuple[NamedCause, np.ndarray] | None:
     """The best significant mean-affecting cause -> (NamedCause, extended prediction), or None.
 
-    On a trained run (cfg.trained_run) the top candidate is named only if its extension improves the
-    held-out PSNR by more than cfg.gain_floor_db. When it does not, the strongest structure in the
-    residual is the model's own error, and a weaker candidate fitted beside it is not trusted either
-    (measured: a hidden time offset that the run absorbed let a vignette through at +0.06 dB), so the
-    round names nothing; every candidate is marked not significant with the reason."""
+    The top candidate is named only if its extension gains on what it was not fitted on (`gain.refusal`: a
+    positive gain on every path; on a trained run one that beats its placebo extensions, `gain_placebo_test`).
+    When it does not, the strongest structure in the residual is the model's own error, and a weaker
+    candidate fitted beside it is not trusted either (measured: a hidden time offset that the run absorbed let
+    a vignette through at +0.06 dB), so the round names nothing; every candidate is marked not significant
+    with the reason."""
     F = measured.shape[0]
     candidates = sorted((r for r in testable if r.significant and CAUSES[r.name].mean_affecting),
                         key=lambda r: -r.score)
@@ -282,30 +284,28 @@ def _name_mean_cause(testable: list[CauseResult], rnd: int, measured: np.ndarray
     cause = CAUSES[top.name]
     new = cause.apply(current, top, ctx, np.arange(F), measured=measured, fit_mask=split.fit_mask)
     gain = score(new) - score(current)
-    deciding, scored_on = gain, "held-out PSNR"
-    if cfg.trained_run and cause.frame_local and ctx.held_out.any():
-        deciding, scored_on = _within_frame_gain(cause, top, measured, current, ctx, split), "within-frame PSNR"
+    frame_local = bool(cfg.trained_run and cause.frame_local and ctx.held_out.any())
+    deciding, scored_on, test = gain, "held-out PSNR", None
+    if frame_local:
+        within = cause.apply_within_frames(current, top, ctx, measured, split.fit_mask)
+        deciding = psnr(within, measured, split.eval_mask) - psnr(current, measured, split.eval_mask)
+        scored_on = "within-frame PSNR"
         top.params["held_out_gain_db"], top.params["within_frame_gain_db"] = gain, deciding
-    if not cfg.trained_run or deciding > cfg.gain_floor_db:
+    elif cfg.trained_run and gain > 0:
+        test = gain_placebo_test(cause, top, ctx, current, new, measured, split.eval_idx, split.eval_mask,
+                                 int(cfg.placebo_seed) + 1000 * rnd)
+        top.params.update(test.to_params())
+    reason = cause.nothing_to_name(top) or refusal(deciding, test, cfg.alpha, scored_on)
+    if reason is None:
         return NamedCause(top.name, rnd, top.p_adjusted, top.effect_rms, top.params, gain), new
-    top.reason = (f"{scored_on} gain {deciding:+.3f} dB <= {cfg.gain_floor_db} dB "
-                  "(DiagnosisConfig.gain_floor_db): not named")
+    top.reason = reason
     top.params["held_out_gain_db"] = gain
     for r in candidates[1:]:
-        r.reason = (f"not named: {top.name}, ranked above it, does not improve held-out frames, so the residual's "
-                    "strongest structure is the model's own error")
+        r.reason = (f"not named: {top.name}, ranked above it, does not improve what it was not fitted on, so the "
+                    "residual's strongest structure is the model's own error")
     for r in candidates:
         r.significant, r.score = False, 0.0
     return None
-
-
-def _within_frame_gain(cause, result: CauseResult, measured: np.ndarray, current: np.ndarray,
-                       ctx: DiagnosisContext, split: _Split) -> float:
-    """PSNR gain (dB) of a frame_local cause on the odd-checkerboard pixels of every frame, each frame's
-    parameter estimated from its own even-checkerboard pixels (results/diagnosis/README.md, run 3): one number per
-    frame cannot generalise to other frames, so held-out frames alone score which frames it hit."""
-    within = cause.apply_within_frames(current, result, ctx, measured, split.fit_mask)
-    return psnr(within, measured, split.eval_mask) - psnr(current, measured, split.eval_mask)
 
 
 def contained_causes(name: str) -> set[str]:

@@ -103,8 +103,10 @@ def model_error_markdown(me: dict, config) -> list[str]:
              f"shuffles; response: per-frame scale vs permuted exposure metadata; vignette: frames as units and "
              f"wrong-centre placebos; timing: permuted velocity fields, readout also wrong row times; white balance: "
              f"not identifiable, absorbed "
-             f"into the scene colours), held-out gain > {config.gain_floor_db} dB (a cause with one parameter "
-             f"per frame, exposure metadata: on every frame's odd pixels, each frame's scale from its even ones)", "",
+             f"into the scene colours), a held-out gain positive beyond its spread over the held-out frames (one-sided "
+             f"t-test at alpha; a cause with one parameter "
+             f"per frame, exposure metadata: a positive gain on every frame's odd pixels, each frame's scale from its even "
+             f"ones)", "",
              "| cause | smallest effect testable on this run (of what training left in the residual) "
              "| smallest hidden effect testable (over the retention of a trained sweep, `--retention`) |",
              "|---|---|---|"]

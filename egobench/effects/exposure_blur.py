@@ -23,6 +23,7 @@ class ExposureBlurCause(GeometricCause):
 
     name = "exposure_blur"
     one_sided = True
+    axial, placebo_turns_deg = True, (60.0, 120.0)  # a blur along v is one along -v
     n_sub = 9  # sub-samples over the exposure when re-rendering by warps
 
     def regressors(self, data):

@@ -16,7 +16,8 @@ from egobench.residual.signatures import decode, robust_sd
 #: deviations of the model's frame-to-frame error, and beyond FLAG_MIN_LOG. The floor is the largest
 #: single-frame scale that model error alone gave on the trained sweeps' cases without a metadata error
 #: (outdoor, 64 px, 800 iterations: 14 % on one frame of one null, all others <= 11 %; results/diagnosis/README.md):
-#: single frames of a trained model can render that much too dark or bright.
+#: single frames of a trained model can render that much too dark or bright. It applies where the exposure
+#: varies; at a fixed record the floor is the run's own (`fixed_record_floor`).
 FLAG_SIGMAS, FLAG_MIN_LOG = 4.0, math.log(1.15)
 
 
@@ -93,20 +94,54 @@ FIXED_RECORD_SHARE, FIXED_RECORD_LOG = 0.5, 1e-3
 
 def recorded_glitch_flags(a: np.ndarray, b: np.ndarray, recorded_log: np.ndarray) -> np.ndarray:
     """At a FIXED exposure and gain: frames [n] (capture order) whose recorded log exposure x gain [n]
-    is off the record's median by at least FLAG_MIN_LOG while the scales of both halves (a, b: log
-    measured / predicted) jump the other way against their view neighbours (`view_contrast`) by at
-    least GLITCH_FOLLOW of it and FLAG_MIN_LOG (what model error alone does to single frames): the
-    image did not follow the record, so the record is wrong. A poorly fitted run's frame-to-frame
-    error hides a 25 % error from the bulk test (hard sweep: 4 robust sds = 31 %); the record's own
-    departure cannot hide. With an exposure that varies (auto-exposure), a record's change says nothing
-    by itself, and neighbouring wrong records shift every contrast: no frame is flagged this way."""
+    departs from the record's median while the scales of both halves (a, b: log measured / predicted) jump
+    the other way against their neighbours at the fixed record (`fixed_record_contrast`): by at least
+    GLITCH_FOLLOW of the departure (nearer "the image did not follow the record" than "it did") and by at
+    least the run's own floor (`fixed_record_floor`), and the departure itself at least that floor. The image
+    did not follow the record, so the record is wrong. A poorly fitted run's frame-to-frame error hides a 25 %
+    error from the bulk test (hard sweep: 4 robust sds = 31 %); the record's own departure cannot hide.
+    With an exposure that varies (auto-exposure), a record's change says nothing by itself, and neighbouring
+    wrong records shift every contrast: no frame is flagged this way."""
     x = np.asarray(recorded_log, float)
     dx = x - np.median(x)
     if not record_is_fixed(x):
         return np.zeros(x.size, dtype=bool)
-    ca, cb = view_contrast(a), view_contrast(b)
-    need = np.maximum(GLITCH_FOLLOW * np.abs(dx), FLAG_MIN_LOG)
-    return (np.abs(dx) >= FLAG_MIN_LOG) & (ca * dx < 0) & (cb * dx < 0) & (np.abs(ca) >= need) & (np.abs(cb) >= need)
+    at_fixed = np.abs(dx) <= FIXED_RECORD_LOG
+    floor = fixed_record_floor(a, b, at_fixed)
+    ca, cb = fixed_record_contrast(a, at_fixed), fixed_record_contrast(b, at_fixed)
+    need = np.maximum(GLITCH_FOLLOW * np.abs(dx), floor)
+    return (~at_fixed & (np.abs(dx) >= floor) & (ca * dx < 0) & (cb * dx < 0)
+            & (np.abs(ca) >= need) & (np.abs(cb) >= need))
+
+
+def _neighbours_at_fixed(i: int, at_fixed: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """The k nearest frames before and after frame i whose record is at the fixed value."""
+    idx = np.flatnonzero(at_fixed)
+    return idx[idx < i][-k:], idx[idx > i][:k]
+
+
+def fixed_record_contrast(scale_log: np.ndarray, at_fixed: np.ndarray, k: int = VIEW_NEIGHBOURS) -> np.ndarray:
+    """`view_contrast` against the k nearest frames on each side whose record is at the fixed value (mask
+    ``at_fixed`` [n]): wrong records cluster (a quarter of the frames: runs of two to four), and a frame's
+    neighbours with wrong records of their own would take its contrast away."""
+    out = np.zeros(scale_log.size)
+    for i in range(scale_log.size):
+        sides = [scale_log[i] - np.median(scale_log[nb]) for nb in _neighbours_at_fixed(i, at_fixed, k) if nb.size]
+        if sides and (all(c > 0 for c in sides) or all(c < 0 for c in sides)):
+            out[i] = min(sides, key=abs)
+    return out
+
+
+def fixed_record_floor(a: np.ndarray, b: np.ndarray, at_fixed: np.ndarray, k: int = VIEW_NEIGHBOURS) -> float:
+    """The run's own floor for a wrong record at a fixed exposure (log scale): FLAG_SIGMAS x the larger of the
+    halves' robust sds of the frame-to-frame error, measured on the frames whose record is at the fixed value
+    as each one's deviation from the median of its k neighbours there on both sides. Those frames' records
+    agree, so what moves them against their neighbours is the model's error (and noise), not the metadata."""
+    def spread(scale_log: np.ndarray) -> float:
+        dev = [scale_log[i] - np.median(scale_log[np.concatenate(_neighbours_at_fixed(i, at_fixed, k))])
+               for i in np.flatnonzero(at_fixed)]
+        return robust_sd(np.asarray(dev)) if len(dev) >= 4 else math.inf
+    return FLAG_SIGMAS * max(spread(a), spread(b))
 
 
 def record_is_fixed(recorded_log: np.ndarray) -> bool:
@@ -119,15 +154,17 @@ def record_is_fixed(recorded_log: np.ndarray) -> bool:
 def where_a_fixed_record_departs(flags: np.ndarray, a: np.ndarray, b: np.ndarray,
                                  recorded_log: np.ndarray) -> np.ndarray:
     """Flags [n] kept at a FIXED record (`record_is_fixed`): only frames whose own recorded log
-    exposure x gain departs from the median by at least FLAG_MIN_LOG while both halves' log scales
-    (a, b [n], centred) go the other way. At a fixed exposure setting a frame that brightens while its
-    record stays is the light (flicker) or the model's error; no image can show that record wrong.
-    An exposure that varies keeps every flag."""
+    exposure x gain departs from the median by at least the run's floor (`fixed_record_floor`) while both
+    halves' log scales (a, b [n], centred) go the other way. At a fixed exposure setting a frame that
+    brightens while its record stays is the light (flicker) or the model's error; no image can show that
+    record wrong. An exposure that varies keeps every flag."""
     x = np.asarray(recorded_log, float)
     if not record_is_fixed(x):
         return flags
     dx = x - np.median(x)
-    return flags & (np.abs(dx) >= FLAG_MIN_LOG) & (a * dx < 0) & (b * dx < 0)
+    at_fixed = np.abs(dx) <= FIXED_RECORD_LOG
+    floor = fixed_record_floor(a, b, at_fixed)
+    return flags & ~at_fixed & (np.abs(dx) >= floor) & (a * dx < 0) & (b * dx < 0)
 
 
 def record_aware_flags(flags: np.ndarray, a: np.ndarray, b: np.ndarray, recorded_log: np.ndarray | None
@@ -174,6 +211,11 @@ class ExposureMetadataCause(Cause):
         res.plot = {"frame": [int(data.ctx.frame_index[fr]) for fr in data.frames], "scale": scale.tolist(),
                     "flagged": res.params["flagged_frames"], "xlabel": "frame", "ylabel": "measured / predicted (linear)"}
         return res
+
+    def nothing_to_name(self, result):
+        if not result.params.get("flagged_frames"):
+            return "no frame flagged: no record to correct, so nothing is named"
+        return None
 
     def apply(self, predicted, result, ctx, frames, measured=None, fit_mask=None):
         """Each fitted frame's scale; a frame not fitted (held out) gets its own scale from the fit pixels,
@@ -315,13 +357,17 @@ def exposure_split_half(fit: PhotometricFit, cells: Cells, draws: int, rng: np.r
     p_corr = p
     if frames.size == 0:
         p = 1.0
+    rec = None if recorded_log is None else np.asarray(recorded_log, float)[ok]
+    fixed_floor = (fixed_record_floor(a, b, np.abs(rec - np.median(rec)) <= FIXED_RECORD_LOG)
+                   if rec is not None and record_is_fixed(rec) else None)
     return {"testable": True, "p": p, "p_placebo_corr": p_corr, "corr": observed,
             "placebo_corr_q99": float(np.quantile(placebo, 0.99)),
             "flag_threshold_log": threshold, "frames_flagged_in_both_halves": frames.tolist(),
             "frames_off_but_not_a_gain": not_gain.tolist(), "frames_off_with_their_view_neighbours": view_shared.tolist(),
             "frames_where_the_record_jumps_alone": np.flatnonzero(ok)[glitch].tolist(),
             "frames_off_at_an_unchanged_fixed_record": np.flatnonzero(ok)[unchanged].tolist(),
-            "robust_sd": threshold / FLAG_SIGMAS, "n_frames": int(a.size)}
+            "fixed_record_floor_log": fixed_floor,
+            "robust_sd": (threshold if fixed_floor is None else fixed_floor) / FLAG_SIGMAS, "n_frames": int(a.size)}
 
 
 def _metadata_estimate_from_split(r: CauseResult, flagged: list[int]) -> None:
@@ -366,9 +412,9 @@ class ExposureMetadata(Effect):
     trained_placebo = "photometric"
     identifiability = (
         "only when the recorded exposure x gain varies or some frames are wrong against the others; a "
-        "model-error floor of 15 % on single frames applies on trained runs; at a fixed exposure x gain, "
-        "only on frames whose own record departs (a frame that brightens at an unchanged record is light "
-        "or model error)")
+        "model-error floor of 15 % on single frames applies on trained runs with an exposure that varies; at a "
+        "fixed exposure x gain, only on frames whose own record departs (a frame that brightens at an unchanged "
+        "record is light or model error), beyond the run's own frame-to-frame error at the fixed record")
     trained_magnitudes = (0.25,)
     in_trained_sweep = True
     on_adt = True
@@ -392,7 +438,10 @@ class ExposureMetadata(Effect):
         return affected
 
     def smallest_testable(self, d, se, ctx):
-        return {"exposure_relative_error": math.exp(max(FLAG_SIGMAS * se, FLAG_MIN_LOG)) - 1.0}
+        """At a fixed record the run's own floor (`fixed_record_floor`: se is a quarter of it) decides a flag;
+        with an exposure that varies, the bulk test's threshold with its floor FLAG_MIN_LOG."""
+        floor = FLAG_SIGMAS * se if record_is_fixed(ctx.log_exposure_gain) else max(FLAG_SIGMAS * se, FLAG_MIN_LOG)
+        return {"exposure_relative_error": math.exp(floor) - 1.0}
 
     def plot_signature(self, ax, plot):
         ax.plot(plot["frame"], plot["scale"], "o-")

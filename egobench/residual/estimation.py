@@ -28,13 +28,14 @@ from __future__ import annotations
 import copy
 import math
 from dataclasses import dataclass, field
+from dataclasses import replace as dc_replace
 
 import cv2
 import numpy as np
 
 from egobench.residual.signatures import (LEVEL, DiagnosisContext, block_sum, decode, encode, encode_slope, erode,
                                           frame_t_test, gradients, hessian, partial_f_test, radial_coordinates, robust_sd,
-                                          warp, weighted_lstsq)
+                                          tile_shuffled, warp, weighted_lstsq)
 
 #: Display range used for fits: darker pixels are dominated by noise/quantisation in log
 #: space, brighter ones may be clipped.
@@ -351,6 +352,18 @@ class Cause:
         from that frame's own fit_mask [H, W] pixels only (fitted frames' joint-fit values unused)."""
         raise NotImplementedError  # pragma: no cover
 
+    def gain_placebo(self, predicted: np.ndarray, extended: np.ndarray, result: CauseResult, ctx: DiagnosisContext,
+                     frames: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """A placebo of the extension ``extended`` [f, H, W, 3] of ``predicted`` (frames: positions in ctx): the
+        same change with its tiles shuffled within each frame (`signatures.tile_shuffled`). Its gain is what a
+        change of this size and make-up earns where it does not follow the residual (`egobench.diagnose.gain`)."""
+        return np.clip(predicted + tile_shuffled(extended - predicted, rng), 0.0, 1.0)
+
+    def nothing_to_name(self, result: CauseResult) -> str | None:
+        """Why a significant ``result`` changes nothing worth a name (None: it may be named if it gains;
+        `egobench.diagnose.gain`). Exposure metadata that flags no frame corrects no record."""
+        return None
+
     def untestable_on_trained_run(self, data: ResidualData) -> str | None:
         """Why a trained run cannot show this cause in ``data`` (None: it can). Checked after the placebos,
         beside `Effect.trained_run_untestable` (`diagnose.placebo.mark_untestable_on_trained_run`)."""
@@ -416,6 +429,12 @@ class GeometricCause(Cause):
 
     kind = "geometric"
     needs_velocity = True
+    #: The signature depends on the motion's axis only, not its sign (a blur along v is one along -v).
+    axial = False
+    #: Turns of the velocity field for the gain placebos (degrees, drawn uniformly; an axial cause also turned
+    #: by a further 180 at random): a signed shift is opposed or orthogonal to its motion from 90 to 270, an
+    #: axial one at least 60 from its axis from 60 to 120.
+    placebo_turns_deg = (90.0, 270.0)
     n_params = 1
     one_sided = False
 
@@ -455,6 +474,25 @@ class GeometricCause(Cause):
     def apply(self, predicted, result, ctx, frames, measured=None, fit_mask=None):
         out, _ = self.warp_prediction(predicted, result.internal["theta"], ctx, frames)
         return np.clip(out, 0.0, 1.0)
+
+    def gain_placebo(self, predicted, extended, result, ctx, frames, rng):
+        """A motion-driven cause: the same estimate applied along each frame's own image velocity turned by a
+        random angle away from its motion (`placebo_turns_deg`): a field of the frame's own magnitudes and
+        make-up that does not follow its motion. Model error tied to edges but not to the frame's motion
+        direction earns such a placebo the same gain; a timing error only the true motion. (Another frame's
+        field is no placebo: neighbouring frames move alike.)"""
+        v = ctx.pixel_velocity_px_s
+        if not self.needs_velocity or v is None:
+            return super().gain_placebo(predicted, extended, result, ctx, frames, rng)
+        frames = np.asarray(frames)
+        lo, hi = self.placebo_turns_deg
+        angle = np.deg2rad(rng.uniform(lo, hi, frames.size) + 180.0 * rng.integers(0, 2, frames.size) * self.axial)
+        c, s = np.cos(angle)[:, None, None], np.sin(angle)[:, None, None]
+        vf = v[frames].astype(np.float64)
+        vp = v.copy()
+        vp[frames, ..., 0] = c * vf[..., 0] - s * vf[..., 1]
+        vp[frames, ..., 1] = s * vf[..., 0] + c * vf[..., 1]
+        return self.apply(predicted, result, dc_replace(ctx, pixel_velocity_px_s=vp), frames)
 
     def fit(self, data: ResidualData) -> CauseResult:
         if self.needs_velocity and data.velocity is None:

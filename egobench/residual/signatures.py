@@ -335,6 +335,28 @@ def holm(p_values: list[float]) -> list[float]:
     return adjusted.tolist()
 
 
+#: Tiles per image side whose contents a placebo extension shuffles (`tile_shuffled`).
+PLACEBO_TILE_GRID = 8
+
+
+def tile_shuffled(delta: np.ndarray, rng: np.random.Generator, grid: int = PLACEBO_TILE_GRID) -> np.ndarray:
+    """A change of the prediction delta [f, H, W, C] with the contents of its grid x grid tiles permuted within
+    each frame (the rows and columns past the last whole tile stay): the same values, so the same mean and the
+    same squared size, at places unrelated to where the residual lies."""
+    f, H, W, C = delta.shape
+    th, tw = H // grid, W // grid
+    out = delta.copy()
+    if th == 0 or tw == 0:
+        return out
+    blocks = (delta[:, :grid * th, :grid * tw].reshape(f, grid, th, grid, tw, C)
+              .transpose(0, 1, 3, 2, 4, 5).reshape(f, grid * grid, th, tw, C))
+    for i in range(f):  # few frames
+        blocks[i] = blocks[i][rng.permutation(grid * grid)]
+    out[:, :grid * th, :grid * tw] = (blocks.reshape(f, grid, grid, th, tw, C).transpose(0, 1, 3, 2, 4, 5)
+                                      .reshape(f, grid * th, grid * tw, C))
+    return out
+
+
 def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
     """Mean over frames of PSNR (peak 1) between a, b [F, H, W, 3] on mask [F, H, W] (or [H, W])."""
     mask = np.broadcast_to(mask, a.shape[:3])

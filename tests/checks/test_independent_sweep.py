@@ -70,3 +70,6 @@ def test_every_effect_has_its_seeds_and_flags(effect):
     flags, expected, seeds = sweep.CASES[effect]
     assert len(seeds) == (20 if effect == "null" else 10)
     assert (expected is None) == (effect == "null") and (flags(0) == []) == (effect == "null")
+    # a later seed set is the next block of as many seeds, disjoint from the first
+    again = sweep.seeds_of(effect, 2)
+    assert len(again) == len(seeds) and again.start == seeds.stop and sweep.seeds_of(effect, 1) == seeds

@@ -1,0 +1,91 @@
+"""The gain a cause must earn to be named (`egobench.diagnose.gain`) and the placebo extensions behind it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from egobench.diagnose.estimators import CAUSES
+from egobench.diagnose.gain import GAIN_PLACEBOS, GainTest, gain_placebo_test, per_frame_gains, refusal
+from egobench.diagnose.synthetic import make_case
+from egobench.residual.estimation import CauseResult
+from egobench.residual.signatures import checkerboard, tile_shuffled
+
+
+def test_tile_shuffle_keeps_each_frames_values_and_moves_them():
+    rng = np.random.default_rng(0)
+    delta = rng.normal(size=(3, 35, 34, 3))  # 8 x 8 tiles of 4 x 4 px, and a remainder that stays
+    out = tile_shuffled(delta, np.random.default_rng(1))
+    for f in range(3):
+        assert np.allclose(np.sort(out[f].ravel()), np.sort(delta[f].ravel()))
+    assert np.array_equal(out[:, 32:], delta[:, 32:]) and np.array_equal(out[:, :, 32:], delta[:, :, 32:])
+    assert not np.array_equal(out, delta)
+    tile = delta[0, 4:8, 8:12]  # a tile lands whole somewhere in its own frame
+    assert any(np.array_equal(out[0, 4 * i:4 * i + 4, 4 * j:4 * j + 4], tile) for i in range(8) for j in range(8))
+
+
+def _stack(seed: int, f: int = 4, size: int = 32):
+    rng = np.random.default_rng(seed)
+    current = rng.uniform(0.2, 0.8, (f, size, size, 3))
+    v, u = np.mgrid[0:size, 0:size]
+    blob = np.exp(-((u - 9.0) ** 2 + (v - 22.0) ** 2) / (2 * 5.0**2))[None, :, :, None]
+    return current, 0.1 * blob * np.ones((f, 1, 1, 3)), rng
+
+
+def test_an_extension_that_follows_the_residual_beats_its_shuffled_placebos():
+    """measured = current + a blob: extending by that blob gains far more than the blob moved around (p at its
+    floor 1 / 500); extending by an unrelated blob of the same size loses, and is refused."""
+    current, blob, rng = _stack(0)
+    measured = np.clip(current + blob + rng.normal(0, 0.01, current.shape), 0, 1)
+    mask = checkerboard(32, 32, 1)
+    idx = np.arange(4)
+    vignette = CAUSES["vignette"]  # the default placebo: tiles shuffled
+    res = CauseResult("vignette", "photometric", True)
+    good = gain_placebo_test(vignette, res, None, current, current + blob, measured, idx, mask, seed=0)
+    assert good.gain_db > 1.0 and good.p_value == pytest.approx(1 / (GAIN_PLACEBOS + 1))
+    assert good.placebo_n == GAIN_PLACEBOS and good.placebo_mean_db < good.gain_db
+    assert refusal(good.gain_db, good, 0.01, "held-out PSNR") is None
+    wrong = current + np.flip(blob, axis=(1, 2))
+    bad = gain_placebo_test(vignette, res, None, current, wrong, measured, idx, mask, seed=0)
+    assert bad.gain_db < 0 and "is not positive" in refusal(bad.gain_db, bad, 0.01, "held-out PSNR")
+    assert per_frame_gains(current + blob, current, measured, idx, mask).mean() == pytest.approx(good.gain_db)
+
+
+def test_a_small_positive_gain_that_placebos_also_earn_is_refused():
+    """A change that any of its shuffles would earn as well (measured = current + a constant) is no cause."""
+    current, blob, rng = _stack(1)
+    measured = np.clip(current + 0.02, 0, 1)
+    test = gain_placebo_test(CAUSES["vignette"], CauseResult("vignette", "photometric", True), None, current,
+                             current + 0.3 * blob, measured, np.arange(4), checkerboard(32, 32, 1), seed=3)
+    assert test.gain_db > 0 and test.p_value > 0.05
+    assert "does not beat the gains of its" in refusal(test.gain_db, test, 0.01, "held-out PSNR")
+    assert refusal(0.1, None, 0.01, "within-frame PSNR") is None  # no placebo: a positive gain suffices
+    assert refusal(0.1, GainTest(0.1, 0.5, 0.1, 9), 0.01, "x").startswith("x gain +0.1000 dB does not beat")
+
+
+@pytest.mark.parametrize("name", ["time_offset", "exposure_blur"])
+def test_a_motion_placebo_turns_each_frames_own_velocity_away_from_its_motion(name):
+    """Same speeds, turned: 90-270 deg for a signed shift (time offset), 60-120 deg off the axis for a blur."""
+    case = make_case(None, seed=4, n_frames=9, speed_px_s=(250.0, 600.0))
+    cause = CAUSES[name]
+    seen = {}
+
+    def spy(predicted, result, ctx, frames, **_k):
+        seen["v"] = ctx.pixel_velocity_px_s[frames]
+        return predicted
+
+    inst = type(cause)()  # an instance whose apply reports the field it was given
+    inst.apply = spy
+    frames = np.array([0, 3, 5])
+    v = case.context.pixel_velocity_px_s[frames].astype(np.float64)
+    for seed in range(20):
+        inst.gain_placebo(case.predicted[frames], case.predicted[frames], None, case.context, frames,
+                          np.random.default_rng(seed))
+        vp = seen["v"].astype(np.float64)
+        assert np.allclose(np.linalg.norm(vp, axis=-1), np.linalg.norm(v, axis=-1), rtol=1e-4, atol=1e-3)
+        moving = np.linalg.norm(v, axis=-1) > 1.0
+        cos = np.sum(vp * v, axis=-1)[moving] / (np.linalg.norm(v, axis=-1)[moving] ** 2)
+        if name == "time_offset":
+            assert cos.max() <= 1e-3  # opposed or orthogonal: never along the motion
+        else:
+            assert np.abs(cos).max() <= 0.5 + 1e-3  # at least 60 deg off the motion's axis
