@@ -29,6 +29,9 @@ WRITER = REPO / "scripts" / "independent_writer.py"
 STATED_READOUT_S = 0.008
 GEOMETRIC = {"readout", "time_offset", "exposure_blur", "distortion"}
 
+#: effect -> (the key of its size in the report's smallest-testable table, the hidden size in that unit)
+HIDDEN_SIZE = {"vignette": ("corner_attenuation", 0.40), "readout": ("readout_relative_error", 0.5),
+               "exposure_metadata": ("exposure_relative_error", 0.25), "time_offset": ("time_offset_error_s", 0.003)}
 #: effect -> (writer flags of seed index i, the cause that should be named, the seeds)
 CASES = {
     "null": (lambda i: [], None, range(101, 121)),
@@ -97,8 +100,18 @@ def case_row(effect: str, seed: int, case: Path, times: dict) -> dict:
         "time_offset_s": params.get("time_offset", {}).get("time_offset_s"),
         "flagged_frames": " ".join(map(str, flagged)), "altered_frames": " ".join(map(str, altered)),
         "flagged_altered": len(set(flagged) & set(altered)), "flagged_wrong": len(set(flagged) - set(altered)),
-        "psnr_gain_db": d.get("psnr_gain_db"), **times,
+        "psnr_gain_db": d.get("psnr_gain_db"), **smallest_testable_of(effect, d), **times,
     }
+
+
+def smallest_testable_of(effect: str, d: dict) -> dict:
+    """The run's smallest testable size of the hidden effect (the report's table, None where it gives none) and
+    whether the hidden size is at least twice it (the issue's power claim: such an effect is named)."""
+    if effect not in HIDDEN_SIZE:
+        return {}
+    key, hidden = HIDDEN_SIZE[effect]
+    s = (d.get("model_error") or {}).get("smallest_testable", {}).get(effect, {}).get(key)
+    return {"smallest_testable": s, "at_least_twice_testable": s is not None and hidden >= 2 * s}
 
 
 def summary(rows: list[dict]) -> dict:
@@ -112,6 +125,10 @@ def summary(rows: list[dict]) -> dict:
              "expected_named": sum(r["expected_named"] for r in rs),
              "wrong_first_name": sum(r["wrong_first"] for r in rs if r["named"]),
              "geometric_named": sum(r["geometric_named"] for r in rs)}
+        if effect in HIDDEN_SIZE:
+            eligible = [r for r in rs if r.get("at_least_twice_testable")]
+            s["at_least_twice_testable"] = len(eligible)
+            s["named_where_at_least_twice_testable"] = sum(r["expected_named"] for r in eligible)
         if effect == "readout":
             true = STATED_READOUT_S * 1.5
             s["estimate_within_25pct"] = sum(r["readout_s_estimated"] is not None

@@ -60,7 +60,8 @@ def test_the_summary_applies_the_issues_criteria():
     ]
     s = sweep.summary(rows)
     assert s["readout"] == {"cases": 3, "nothing_named": 1, "expected_named": 2, "wrong_first_name": 0,
-                            "geometric_named": 2, "estimate_within_25pct": 1}
+                            "geometric_named": 2, "estimate_within_25pct": 1, "at_least_twice_testable": 0,
+                            "named_where_at_least_twice_testable": 0}
     assert s["exposure_metadata"]["half_altered_flagged_and_at_most_2_wrong"] == 1
     assert set(s) == {"readout", "exposure_metadata"}
 
@@ -73,3 +74,17 @@ def test_every_effect_has_its_seeds_and_flags(effect):
     # a later seed set is the next block of as many seeds, disjoint from the first
     again = sweep.seeds_of(effect, 2)
     assert len(again) == len(seeds) and again.start == seeds.stop and sweep.seeds_of(effect, 1) == seeds
+
+
+def test_the_power_tally_counts_cases_whose_hidden_size_is_at_least_twice_the_runs_smallest_testable():
+    d = {"model_error": {"smallest_testable": {"time_offset": {"time_offset_error_s": 0.001}}}}
+    assert sweep.smallest_testable_of("time_offset", d) == {"smallest_testable": 0.001, "at_least_twice_testable": True}
+    d["model_error"]["smallest_testable"]["time_offset"]["time_offset_error_s"] = 0.002
+    assert sweep.smallest_testable_of("time_offset", d)["at_least_twice_testable"] is False
+    assert sweep.smallest_testable_of("readout", d) == {"smallest_testable": None, "at_least_twice_testable": False}
+    assert sweep.smallest_testable_of("null", d) == {}
+    rows = [{"effect": "time_offset", "named": n, "expected_named": bool(n), "wrong_first": False,
+             "geometric_named": bool(n), "at_least_twice_testable": t} for n, t in
+            (("time_offset", True), ("", True), ("", False))]
+    s = sweep.summary(rows)["time_offset"]
+    assert s["at_least_twice_testable"] == 2 and s["named_where_at_least_twice_testable"] == 1
