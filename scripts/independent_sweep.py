@@ -97,7 +97,7 @@ def case_row(effect: str, seed: int, case: Path, times: dict) -> dict:
         "wrong_first": bool(named) and named[0] != expected,
         "geometric_named": bool(GEOMETRIC & set(named)),
         "readout_s_estimated": params.get("readout", {}).get("readout_s_estimated"),
-        "time_offset_s": params.get("time_offset", {}).get("time_offset_s"),
+        "time_offset_s": params.get("time_offset", {}).get("time_offset_error_s"),
         "flagged_frames": " ".join(map(str, flagged)), "altered_frames": " ".join(map(str, altered)),
         "flagged_altered": len(set(flagged) & set(altered)), "flagged_wrong": len(set(flagged) - set(altered)),
         "psnr_gain_db": d.get("psnr_gain_db"), **smallest_testable_of(effect, d), **times,

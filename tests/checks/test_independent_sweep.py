@@ -34,11 +34,12 @@ def _case(tmp_path: Path, name: str, altered: list[int], named: list[dict]) -> P
 def test_a_case_row_counts_names_flags_and_estimates(tmp_path):
     records = _case(tmp_path, "records", [3, 9, 17, 30], [
         {"name": "exposure_metadata", "params": {"flagged_frames": [3, 9, 12]}},
-        {"name": "readout", "params": {"readout_s_estimated": 0.0125}}])
+        {"name": "readout", "params": {"readout_s_estimated": 0.0125}},
+        {"name": "time_offset", "params": {"time_offset_error_s": 0.0021}}])
     row = sweep.case_row("exposure_metadata", 401, records, {})
     assert row["expected_named"] and not row["wrong_first"] and row["geometric_named"]
     assert (row["flagged_altered"], row["flagged_wrong"]) == (2, 1)
-    assert row["readout_s_estimated"] == 0.0125
+    assert row["readout_s_estimated"] == 0.0125 and row["time_offset_s"] == 0.0021
     null = sweep.case_row("null", 101, _case(tmp_path, "null", [], [{"name": "readout", "params": {}}]), {})
     assert null["wrong_first"] and null["geometric_named"] and not null["expected_named"]
     quiet = sweep.case_row("null", 102, _case(tmp_path, "quiet", [], []), {})
