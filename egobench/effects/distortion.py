@@ -9,7 +9,7 @@ import numpy as np
 
 from egobench.effects.base import Effect
 from egobench.residual.calibration import PLACEBO_CENTRE_OFFSETS, PlaceboRecord, beat_placebos
-from egobench.residual.estimation import GeometricCause, ResidualData
+from egobench.residual.estimation import GeometricCause, ResidualData, velocity_term
 from egobench.residual.signatures import distortion_profile, frame_t_test, radial_coordinates
 
 
@@ -29,6 +29,12 @@ class DistortionCause(GeometricCause):
         d = self._profile(data.ctx, H, W)
         gx, gy = data.grad
         return [-(gx * d[None, :, :, 0:1] + gy * d[None, :, :, 1:2])]
+
+    def nuisance_regressors(self, data):
+        """The image motion's shift signature (the time offset's), where the frames move: a lens displaces every
+        frame alike, while a radial pattern that follows each frame's motion (walking forward: the flow
+        expands about a point near the principal point) is timing or the model's own error, not a lens."""
+        return [] if data.velocity is None else [velocity_term(data)]
 
     def displacement(self, theta, ctx, frames, shape):
         d = self._profile(ctx, shape[1], shape[2])

@@ -19,6 +19,26 @@ from egobench.residual.signatures import frame_t_test
 MIN_SHUTTER_FRAME_SHARE = 0.5
 
 
+def shutter_frame_share(data: ResidualData) -> float | None:
+    """The share of the fitted frames a trained run rendered with two or more pose samples (its rolling shutter),
+    or None where the prediction is no trained run's (`DiagnosisContext.model_pose_samples` unset)."""
+    n = data.ctx.model_pose_samples
+    if n is None or not len(data.frames):
+        return None
+    return float(np.mean(np.asarray(n)[data.frames] >= 2))
+
+
+def unrendered_shear(data: ResidualData) -> tuple[list[np.ndarray], list]:
+    """The row shear a trained run leaves where it renders no rolling shutter (`shutter_frame_share` below
+    `MIN_SHUTTER_FRAME_SHARE`): the readout's row-slope signature as a regressor and as a velocity polynomial,
+    a nuisance of the causes it contains; empty lists where the run renders its shutter."""
+    share = shutter_frame_share(data)
+    if share is None or share >= MIN_SHUTTER_FRAME_SHARE:
+        return [], []
+    rows = (data.ctx.row_time_ratio - 0.5)[None, :, :, None]
+    return [velocity_term(data) * rows], [velocity_term_basis(data, rows)]
+
+
 class ReadoutCause(GeometricCause):
     """Rolling-shutter readout wrong: the time shift grows linearly with row time R(u).
 
@@ -72,11 +92,8 @@ class ReadoutCause(GeometricCause):
         below about a pixel of row shear): its scene absorbed part of the shear, and a readout error cannot be
         told from that. Testable when at least `MIN_SHUTTER_FRAME_SHARE` of the fitted frames were trained with
         two or more samples (results/diagnosis/README.md, 2026-12-05)."""
-        n = data.ctx.model_pose_samples
-        if n is None or not len(data.frames):
-            return None
-        share = float(np.mean(np.asarray(n)[data.frames] >= 2))
-        if share >= MIN_SHUTTER_FRAME_SHARE:
+        share = shutter_frame_share(data)
+        if share is None or share >= MIN_SHUTTER_FRAME_SHARE:
             return None
         return (f"the run renders no rolling shutter on {100 * (1 - share):.0f} % of the frames (one pose sample "
                 "each: the sampling rule below about a pixel of row shear), so a readout error cannot be told "

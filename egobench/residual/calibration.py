@@ -241,6 +241,7 @@ def velocity_tables(cause, data: ResidualData, t_real: float, j: int, one_sided:
     basis = cause.velocity_basis(data)
     if basis is None:
         return None
+    basis = basis + cause.nuisance_basis(data)
     tables = PermutedVelocitySlopes(basis, data.velocity, data.p, data.r, data.usable)
     est, info = tables.slopes(np.arange(data.frames.size))
     t_same = frame_t_test(est[:, j], info[:, j], one_sided=one_sided).t

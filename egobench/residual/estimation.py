@@ -501,7 +501,7 @@ class GeometricCause(Cause):
         est, info = self.first_order(data)
         j = self.tested_index
         test = frame_t_test(est[:, j], info[:, j], one_sided=self.one_sided)
-        theta0 = self.initial_theta(est, info)
+        theta0 = self.initial_theta(est[:, :self.n_params], info[:, :self.n_params])
         theta = self.refine(data, theta0)
         res = CauseResult(self.name, self.kind, True, statistic=test.t, statistic_kind=f"t({test.df})",
                           p_value=test.p_value, internal={"theta": theta, "theta_first_order": theta0,
@@ -514,8 +514,18 @@ class GeometricCause(Cause):
         return res
 
     def first_order(self, data: ResidualData) -> tuple[np.ndarray, np.ndarray]:
-        """Per-frame least-squares slopes of the residual on the signature regressors -> (est [f, k], info [f, k])."""
-        return frame_slopes(self.regressors(data), data.p, data.r, data.usable)
+        """Per-frame least-squares slopes of the residual on the signature regressors and the nuisance ones after
+        them -> (est [f, k], info [f, k]; the cause's own in the first n_params columns)."""
+        return frame_slopes(self.regressors(data) + self.nuisance_regressors(data), data.p, data.r, data.usable)
+
+    def nuisance_regressors(self, data: ResidualData) -> list[np.ndarray]:
+        """Signatures fitted beside the cause's own and never tested or applied: structure this run leaves in the
+        residual that the cause's signature would otherwise take up (none by default)."""
+        return []
+
+    def nuisance_basis(self, data: ResidualData) -> list:
+        """`nuisance_regressors` as velocity polynomials (`velocity_basis`), for the velocity placebos' tables."""
+        return []
 
     tested_index = 0
 

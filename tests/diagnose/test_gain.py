@@ -89,3 +89,56 @@ def test_a_motion_placebo_turns_each_frames_own_velocity_away_from_its_motion(na
             assert cos.max() <= 1e-3  # opposed or orthogonal: never along the motion
         else:
             assert np.abs(cos).max() <= 0.5 + 1e-3  # at least 60 deg off the motion's axis
+
+
+def test_a_shift_is_tested_beside_the_shear_a_run_without_rolling_shutter_leaves():
+    """A run that rendered one pose sample a frame leaves the readout's row shear in its residual; the time
+    offset, which the readout contains, is then fitted beside that shear (a nuisance, never tested or applied):
+    a residual that is pure shear gives no shift, while the shift alone would take up part of it."""
+    import dataclasses
+
+    from egobench.effects.readout import unrendered_shear
+    from egobench.residual.estimation import ResidualData, velocity_term
+
+    case = make_case(None, seed=5, n_frames=16, speed_px_s=(250.0, 600.0))
+    ctx = case.context
+    rows = np.broadcast_to(np.linspace(0.0, 1.0, 48)[:, None], (48, 48))
+    ctx = dataclasses.replace(ctx, row_time_ratio=np.ascontiguousarray(rows ** 2))  # rows read unevenly: shear and shift correlate
+    probe = ResidualData(case.measured, case.predicted, ctx, np.arange(16))
+    shear = (velocity_term(probe) * (ctx.row_time_ratio - 0.5)[None, :, :, None]) * 0.004
+    measured = np.clip(case.predicted + shear, 0, 1)
+    offset = CAUSES["time_offset"]
+    for samples, leaks in ((np.ones(16, int), False), (np.full(16, 4), True)):
+        data = ResidualData(measured, case.predicted, dataclasses.replace(ctx, model_pose_samples=samples), np.arange(16))
+        assert (len(unrendered_shear(data)[0]) == 1) != leaks
+        est, info = offset.first_order(data)
+        t = est[:, 0].mean() / (est[:, 0].std(ddof=1) / 4.0)
+        assert (abs(t) > 4.0) == leaks, t
+
+
+def test_a_radial_flow_that_follows_the_motion_is_not_taken_for_a_lens():
+    """Walking forward, a time offset moves every pixel along a flow that expands about a point near the
+    principal point, which a k0 error's radial displacement resembles. Distortion is fitted beside the
+    motion's shift signature: the flow's residual gives it nothing, while the radial term alone takes it up."""
+    import dataclasses
+
+    from egobench.residual.estimation import ResidualData, frame_slopes, velocity_term
+
+    case = make_case(None, seed=6, n_frames=16)
+    ctx = case.context
+    v, u = np.mgrid[0:48, 0:48].astype(np.float32)
+    cx, cy = ctx.principal_point
+    speed = np.linspace(0.5, 1.5, 16, dtype=np.float32)[:, None, None, None]  # each frame its own pace
+    flow = np.stack([u - cx, v - cy], -1)[None] * 8.0 * speed  # px/s, expanding
+    ctx = dataclasses.replace(ctx, pixel_velocity_px_s=np.ascontiguousarray(flow))
+    probe = ResidualData(case.measured, case.predicted, ctx, np.arange(16))
+    measured = np.clip(case.predicted + 0.003 * velocity_term(probe), 0, 1)  # a 3 ms offset along the flow
+    data = ResidualData(measured, case.predicted, ctx, np.arange(16))
+    lens = CAUSES["distortion"]
+
+    def t(est):
+        return est.mean() / (est.std(ddof=1) / 4.0)
+
+    alone, _ = frame_slopes(lens.regressors(data), data.p, data.r, data.usable)
+    beside, _ = lens.first_order(data)
+    assert abs(t(alone[:, 0])) > 4.0 and abs(t(beside[:, 0])) < 3.0, (t(alone[:, 0]), t(beside[:, 0]))
