@@ -11,9 +11,10 @@ Protocol (docs/diagnosis.md):
 3. The top significant mean-affecting cause is named when its extension gains on what it was not fitted on
    (`egobench.diagnose.gain`): its estimate is applied to every frame (held-out frames: per-frame parameters
    come from their even-checkerboard pixels) and the PSNR gain is measured on the odd-checkerboard pixels of
-   the held-out frames; it must be positive and, on a trained run, positive beyond the run's own spread of
-   it over those frames. On a trained run, a cause with one parameter per frame (`Cause.frame_local`) is
-   scored instead on the odd pixels of every frame, each frame's parameter from its own even pixels.
+   the held-out frames; it must be positive and, on a trained run, beat the gains of the cause's own placebo
+   extensions of those frames. On a trained run, a cause with one parameter per frame (`Cause.frame_local`)
+   is scored instead on the odd pixels of every frame, each frame's parameter from its own even pixels,
+   against `gain.FRAME_LOCAL_GAIN_FLOOR_DB`.
 4. Repeat until nothing mean-affecting is significant (at most max_causes); noise is named
    only then, because any unmodelled mean effect inflates the residual variance.
 Nothing named in round 1 -> "no significant discrepancy".
@@ -28,7 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from egobench.diagnose.estimators import CAUSES, variance_model_cause
-from egobench.diagnose.gain import gain_placebo_test, refusal
+from egobench.diagnose.gain import FRAME_LOCAL_GAIN_FLOOR_DB, gain_placebo_test, refusal
 from egobench.diagnose.placebo import mark_untestable_on_trained_run, trained_run_records
 from egobench.diagnose.power import geometric_standard_errors, smallest_testable
 from egobench.effects import EFFECTS
@@ -295,7 +296,8 @@ def _name_mean_cause(testable: list[CauseResult], rnd: int, measured: np.ndarray
         test = gain_placebo_test(cause, top, ctx, current, new, measured, split.eval_idx, split.eval_mask,
                                  int(cfg.placebo_seed) + 1000 * rnd)
         top.params.update(test.to_params())
-    reason = cause.nothing_to_name(top) or refusal(deciding, test, cfg.alpha, scored_on)
+    reason = cause.nothing_to_name(top) or refusal(deciding, test, cfg.alpha, scored_on,
+                                                   FRAME_LOCAL_GAIN_FLOOR_DB if frame_local else 0.0)
     if reason is None:
         return NamedCause(top.name, rnd, top.p_adjusted, top.effect_rms, top.params, gain), new
     top.reason = reason

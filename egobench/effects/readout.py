@@ -10,7 +10,7 @@ import numpy as np
 
 from egobench.effects.base import Effect
 from egobench.residual.calibration import PlaceboRecord, beat_placebos, velocity_placebo
-from egobench.residual.estimation import GeometricCause, ResidualData, velocity_term, velocity_term_basis
+from egobench.residual.estimation import GeometricCause, ResidualData, frame_slopes, velocity_term, velocity_term_basis
 from egobench.residual.signatures import frame_t_test
 
 
@@ -28,15 +28,27 @@ def shutter_frame_share(data: ResidualData) -> float | None:
     return float(np.mean(np.asarray(n)[data.frames] >= 2))
 
 
-def unrendered_shear(data: ResidualData) -> tuple[list[np.ndarray], list]:
-    """The row shear a trained run leaves where it renders no rolling shutter (`shutter_frame_share` below
-    `MIN_SHUTTER_FRAME_SHARE`): the readout's row-slope signature as a regressor and as a velocity polynomial,
-    a nuisance of the causes it contains; empty lists where the run renders its shutter."""
-    share = shutter_frame_share(data)
-    if share is None or share >= MIN_SHUTTER_FRAME_SHARE:
+def rendered_row_time(row_time_ratio: np.ndarray, n: int) -> np.ndarray:
+    """The row-time ratio a run renders each pixel at with n rolling-shutter pose samples [H, W]: sample
+    round(R (n - 1)) (`motion_sampling.pixel_pose_index`) at its bracket centre (k + 0.5) / n
+    (`motion_sampling.sample_times_ns`); one sample renders every row at the centre, 1/2."""
+    r = np.clip(np.asarray(row_time_ratio, dtype=np.float64), 0.0, 1.0)
+    return (np.round(r * (n - 1)) + 0.5) / n
+
+
+def staircase_shear(data: ResidualData) -> tuple[list[np.ndarray], list]:
+    """The row shear a trained run leaves in its residual where its staircase of pose samples departs from
+    the true row times: velocity term x (R - rendered R) per frame, with the pose samples each frame was
+    trained with (`DiagnosisContext.model_pose_samples`; one sample: the whole readout's shear), as a regressor
+    and as a fixed column of the velocity placebos' tables (the run's own shear follows the frame's true
+    motion, not a placebo's); empty lists where the prediction is no trained run's."""
+    n = data.ctx.model_pose_samples
+    if n is None or data.velocity is None:
         return [], []
-    rows = (data.ctx.row_time_ratio - 0.5)[None, :, :, None]
-    return [velocity_term(data) * rows], [velocity_term_basis(data, rows)]
+    R = np.asarray(data.ctx.row_time_ratio, dtype=np.float64)
+    gap = np.stack([R - rendered_row_time(R, int(k)) for k in np.asarray(n)[data.frames]])[..., None]
+    column = velocity_term(data) * gap.astype(np.float32)
+    return [column], [[(column, 0, 0)]]
 
 
 class ReadoutCause(GeometricCause):
@@ -57,6 +69,16 @@ class ReadoutCause(GeometricCause):
 
     def velocity_basis(self, data):
         return [velocity_term_basis(data), velocity_term_basis(data, (data.ctx.row_time_ratio - 0.5)[None, :, :, None])]
+
+    def nuisance_regressors(self, data):
+        """On a trained run, the shear of its own staircase of pose samples (`staircase_shear`): a run rendered
+        with N samples shows a readout about 1/N short, which is the model's sampling, not the device's readout
+        (egobench's confirmatory runs named it once nothing else refused it). A frame rendered with one sample
+        has no readout term left beside it and drops out of the test."""
+        return staircase_shear(data)[0]
+
+    def nuisance_basis(self, data):
+        return staircase_shear(data)[1]
 
     def displacement(self, theta, ctx, frames, shape):
         dt = theta[0] + theta[1] * (ctx.row_time_ratio - 0.5)
@@ -145,9 +167,10 @@ def row_time_placebo(cause: GeometricCause, data: ResidualData) -> PlaceboRecord
     only with the true rows. p = the larger of the rank p (1 + exceed) / (1 + n) when a placebo is as
     strong and the Student-t tail of |t| (`beat_placebos`) against the placebos' |t| (as the distortion's radial placebo)."""
     j = cause.tested_index
+    nuisance = cause.nuisance_regressors(data)  # the run's own shear, at its true row times
 
     def t_of(d):
-        est, info = cause.first_order(d)
+        est, info = frame_slopes(cause.regressors(d) + nuisance, d.p, d.r, d.usable)
         return frame_t_test(est[:, j], info[:, j]).t
 
     data.share_derivatives()

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from egobench.effects.base import Effect
-from egobench.effects.readout import unrendered_shear
+from egobench.effects.readout import staircase_shear
 from egobench.residual.calibration import velocity_placebo
 from egobench.residual.estimation import GeometricCause, velocity_term, velocity_term_basis
 
@@ -22,13 +22,13 @@ class TimeOffsetCause(GeometricCause):
         return [velocity_term_basis(data)]
 
     def nuisance_regressors(self, data):
-        """Where the run renders no rolling shutter, the shear it leaves (`readout.unrendered_shear`) is fitted
-        beside the shift: it is the readout's untestable extra term, and a time offset tested without it took
-        up part of that shear (two readout recordings of the independent writer: -0.45 ms)."""
-        return unrendered_shear(data)[0]
+        """On a trained run, the shear its own staircase of pose samples leaves (`readout.staircase_shear`; one
+        sample: the whole readout's): a time offset tested without it took up part of that shear (two readout
+        recordings of the independent writer: -0.45 ms)."""
+        return staircase_shear(data)[0]
 
     def nuisance_basis(self, data):
-        return unrendered_shear(data)[1]
+        return staircase_shear(data)[1]
 
     def displacement(self, theta, ctx, frames, shape):
         return [(1.0, ctx.pixel_velocity_px_s[frames].astype(np.float64) * theta[0])]

@@ -60,6 +60,7 @@ def test_a_small_positive_gain_that_placebos_also_earn_is_refused():
     assert test.gain_db > 0 and test.p_value > 0.05
     assert "does not beat the gains of its" in refusal(test.gain_db, test, 0.01, "held-out PSNR")
     assert refusal(0.1, None, 0.01, "within-frame PSNR") is None  # no placebo: a positive gain suffices
+    assert "FRAME_LOCAL_GAIN_FLOOR_DB" in refusal(0.04, None, 0.01, "within-frame PSNR", 0.05)  # or its floor
     assert refusal(0.1, GainTest(0.1, 0.5, 0.1, 9), 0.01, "x").startswith("x gain +0.1000 dB does not beat")
 
 
@@ -91,29 +92,46 @@ def test_a_motion_placebo_turns_each_frames_own_velocity_away_from_its_motion(na
             assert np.abs(cos).max() <= 0.5 + 1e-3  # at least 60 deg off the motion's axis
 
 
-def test_a_shift_is_tested_beside_the_shear_a_run_without_rolling_shutter_leaves():
-    """A run that rendered one pose sample a frame leaves the readout's row shear in its residual; the time
-    offset, which the readout contains, is then fitted beside that shear (a nuisance, never tested or applied):
-    a residual that is pure shear gives no shift, while the shift alone would take up part of it."""
+def test_timing_causes_are_tested_beside_the_shear_the_runs_own_staircase_leaves():
+    """A trained run renders each frame with N pose samples, a staircase of row times; the residual then holds
+    the shear between the true row times and that staircase (one sample: the whole readout's). The time offset
+    and the readout are fitted beside it (a nuisance, never tested or applied): that shear alone gives neither a
+    shift nor a readout error, whatever N, while the same fits without it take it up; a real offset or readout
+    error on top of it is still found."""
     import dataclasses
 
-    from egobench.effects.readout import unrendered_shear
-    from egobench.residual.estimation import ResidualData, velocity_term
+    from egobench.effects.readout import rendered_row_time, staircase_shear
+    from egobench.residual.estimation import ResidualData, frame_slopes, velocity_term
 
     case = make_case(None, seed=5, n_frames=16, speed_px_s=(250.0, 600.0))
-    ctx = case.context
-    rows = np.broadcast_to(np.linspace(0.0, 1.0, 48)[:, None], (48, 48))
-    ctx = dataclasses.replace(ctx, row_time_ratio=np.ascontiguousarray(rows ** 2))  # rows read unevenly: shear and shift correlate
+    R = np.ascontiguousarray(np.broadcast_to(np.linspace(0.0, 1.0, 48)[:, None] ** 1.5, (48, 48)))  # rows read unevenly
+    ctx = dataclasses.replace(case.context, row_time_ratio=R)
     probe = ResidualData(case.measured, case.predicted, ctx, np.arange(16))
-    shear = (velocity_term(probe) * (ctx.row_time_ratio - 0.5)[None, :, :, None]) * 0.004
-    measured = np.clip(case.predicted + shear, 0, 1)
-    offset = CAUSES["time_offset"]
-    for samples, leaks in ((np.ones(16, int), False), (np.full(16, 4), True)):
+    x = velocity_term(probe)
+
+    def t(cause, measured, samples, beside=True):
         data = ResidualData(measured, case.predicted, dataclasses.replace(ctx, model_pose_samples=samples), np.arange(16))
-        assert (len(unrendered_shear(data)[0]) == 1) != leaks
-        est, info = offset.first_order(data)
-        t = est[:, 0].mean() / (est[:, 0].std(ddof=1) / 4.0)
-        assert (abs(t) > 4.0) == leaks, t
+        xs = CAUSES[cause].regressors(data) + (CAUSES[cause].nuisance_regressors(data) if beside else [])
+        est, info = frame_slopes(xs, data.p, data.r, data.usable)
+        j = CAUSES[cause].tested_index
+        keep = info[:, j] > 0
+        return est[keep, j].mean() / (est[keep, j].std(ddof=1) / np.sqrt(keep.sum()))
+
+    for n in (1, 4):
+        samples = np.full(16, n)
+        if n == 4:
+            samples[:2] = 1  # a few one-sample frames drop out of the readout's test
+        gap = np.stack([R - rendered_row_time(R, int(k)) for k in samples])[..., None]
+        run_shear = np.clip(case.measured + 0.006 * x * gap, 0, 1)  # an 8 ms readout, stated right
+        data = ResidualData(run_shear, case.predicted, dataclasses.replace(ctx, model_pose_samples=samples), np.arange(16))
+        assert len(staircase_shear(data)[0]) == 1
+        assert abs(t("time_offset", run_shear, samples)) < 3.0 < abs(t("time_offset", run_shear, samples, beside=False))
+        offset = np.clip(run_shear + 0.002 * x, 0, 1)
+        assert t("time_offset", offset, samples) > 5.0
+        if n == 4:
+            assert abs(t("readout", run_shear, samples)) < 3.0 < abs(t("readout", run_shear, samples, beside=False))
+            longer = np.clip(run_shear + 0.003 * x * (R - 0.5)[None, :, :, None], 0, 1)
+            assert t("readout", longer, samples) > 5.0
 
 
 def test_a_radial_flow_that_follows_the_motion_is_not_taken_for_a_lens():
