@@ -7,8 +7,9 @@ decision is taken from the run itself, not from a constant calibrated on other s
   that changes frames one by one (exposure metadata) changes at least one (`Cause.nothing_to_name`);
 * a trained run, a cause with one estimate for all frames (time offset, readout, vignette, ...): the gain on
   the held-out frames beats the gains of the cause's own placebo extensions of those frames
-  (`Cause.gain_placebo`: the same estimate along each frame's image motion turned away from its direction for a motion-driven cause, the
-  same change with its tiles shuffled for any other), a one-sided rank p below the diagnosis's alpha. A
+  (`Cause.gain_placebo`: the same estimate along each frame's image motion turned away from its direction
+  for a motion-driven cause, the same change with its tiles shuffled for any other), a one-sided rank p
+  below the diagnosis's alpha. A
   placebo has the size and make-up of the real extension, so what a change of that size earns on this
   run's residual by chance (its model error included) is the floor, whatever the run's size or quality;
 * a trained run, a cause with one parameter per frame (`Cause.frame_local`): scored on every frame's odd
@@ -37,12 +38,16 @@ FRAME_LOCAL_GAIN_FLOOR_DB = 0.05
 GAIN_PLACEBOS = 499
 
 
+def per_frame_psnr(images: np.ndarray, measured: np.ndarray, idx: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """PSNR (dB) of ``images`` against ``measured`` [F, H, W, 3] in each frame of ``idx`` on ``mask`` [H, W]."""
+    return np.array([psnr(images[i:i + 1], measured[i:i + 1], mask) for i in np.asarray(idx).tolist()])
+
+
 def per_frame_gains(new: np.ndarray, current: np.ndarray, measured: np.ndarray, idx: np.ndarray,
                     mask: np.ndarray) -> np.ndarray:
     """PSNR gain (dB) of ``new`` over ``current`` against ``measured`` [F, H, W, 3] in each frame of ``idx`` on
     ``mask`` [H, W] -> [len(idx)]; their mean is the scored gain (`signatures.psnr` averages frames' PSNR)."""
-    return np.array([psnr(new[i:i + 1], measured[i:i + 1], mask) - psnr(current[i:i + 1], measured[i:i + 1], mask)
-                     for i in np.asarray(idx).tolist()])
+    return per_frame_psnr(new, measured, idx, mask) - per_frame_psnr(current, measured, idx, mask)
 
 
 @dataclass
@@ -67,12 +72,13 @@ def gain_placebo_test(cause: Cause, result: CauseResult, ctx: DiagnosisContext, 
     idx = np.asarray(idx)
     pred, ext, meas = current[idx], extended[idx], measured[idx]
     local = np.arange(idx.size)
-    real = float(per_frame_gains(ext, pred, meas, local, mask).mean())
+    before = per_frame_psnr(pred, meas, local, mask)  # once: every draw scores against the same prediction
+    real = float((per_frame_psnr(ext, meas, local, mask) - before).mean())
     rng = np.random.default_rng(seed)
 
     def draw(_k: int) -> float:
         placebo = cause.gain_placebo(pred, ext, result, ctx, idx, rng)
-        return float(per_frame_gains(placebo, pred, meas, local, mask).mean())
+        return float((per_frame_psnr(placebo, meas, local, mask) - before).mean())
 
     p, _, gains = sequential_rank_p(real, draw, one_sided=True, stop=PLACEBO_STOP, n_max=GAIN_PLACEBOS)
     return GainTest(real, p, float(np.mean(gains)), len(gains))
@@ -93,4 +99,5 @@ def refusal(gain_db: float, test: GainTest | None, alpha: float, scored_on: str,
     return None
 
 
-__all__ = ["FRAME_LOCAL_GAIN_FLOOR_DB", "GAIN_PLACEBOS", "GainTest", "gain_placebo_test", "per_frame_gains", "refusal"]
+__all__ = ["FRAME_LOCAL_GAIN_FLOOR_DB", "GAIN_PLACEBOS", "GainTest", "gain_placebo_test", "per_frame_gains",
+           "per_frame_psnr", "refusal"]

@@ -66,7 +66,7 @@ class ExposureBlurCause(GeometricCause):
             return self._untestable("no per-pixel image velocity in the context")
         shift = ReadoutCause()
         est, info = shift.first_order(data)
-        theta_shift = shift.refine(data, shift.initial_theta(est[:, :shift.n_params], info[:, :shift.n_params]))
+        theta_shift = shift.refine(data, shift.initial_theta(est, info))
         p_shift, inside = shift.warp_prediction(data.p, theta_shift, data.ctx, data.frames)
         res = super().fit(data.with_prediction(np.clip(p_shift, 0.0, 1.0), inside))
         if res.testable:

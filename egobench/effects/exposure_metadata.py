@@ -102,11 +102,9 @@ def recorded_glitch_flags(a: np.ndarray, b: np.ndarray, recorded_log: np.ndarray
     error from the bulk test (hard sweep: 4 robust sds = 31 %); the record's own departure cannot hide.
     With an exposure that varies (auto-exposure), a record's change says nothing by itself, and neighbouring
     wrong records shift every contrast: no frame is flagged this way."""
-    x = np.asarray(recorded_log, float)
-    dx = x - np.median(x)
-    if not record_is_fixed(x):
-        return np.zeros(x.size, dtype=bool)
-    at_fixed = np.abs(dx) <= FIXED_RECORD_LOG
+    if not record_is_fixed(recorded_log):
+        return np.zeros(np.size(recorded_log), dtype=bool)
+    dx, at_fixed = record_departures(recorded_log)
     floor = fixed_record_floor(a, b, at_fixed)
     ca, cb = fixed_record_contrast(a, at_fixed), fixed_record_contrast(b, at_fixed)
     need = np.maximum(GLITCH_FOLLOW * np.abs(dx), floor)
@@ -144,11 +142,19 @@ def fixed_record_floor(a: np.ndarray, b: np.ndarray, at_fixed: np.ndarray, k: in
     return FLAG_SIGMAS * max(spread(a), spread(b))
 
 
+def record_departures(recorded_log: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A record of log exposure x gain [n] -> (each frame's departure from the record's median [n], whether the
+    frame records that median, within FIXED_RECORD_LOG [n])."""
+    x = np.asarray(recorded_log, float)
+    dx = x - np.median(x) if x.size else x
+    return dx, np.abs(dx) <= FIXED_RECORD_LOG
+
+
 def record_is_fixed(recorded_log: np.ndarray) -> bool:
     """Whether a record of log exposure x gain [n] is fixed: at least FIXED_RECORD_SHARE of the
     frames record its median (within FIXED_RECORD_LOG)."""
-    x = np.asarray(recorded_log, float)
-    return bool(x.size) and float(np.mean(np.abs(x - np.median(x)) <= FIXED_RECORD_LOG)) >= FIXED_RECORD_SHARE
+    at_fixed = record_departures(recorded_log)[1]
+    return bool(at_fixed.size) and float(np.mean(at_fixed)) >= FIXED_RECORD_SHARE
 
 
 def where_a_fixed_record_departs(flags: np.ndarray, a: np.ndarray, b: np.ndarray,
@@ -158,11 +164,9 @@ def where_a_fixed_record_departs(flags: np.ndarray, a: np.ndarray, b: np.ndarray
     halves' log scales (a, b [n], centred) go the other way. At a fixed exposure setting a frame that
     brightens while its record stays is the light (flicker) or the model's error; no image can show that
     record wrong. An exposure that varies keeps every flag."""
-    x = np.asarray(recorded_log, float)
-    if not record_is_fixed(x):
+    if not record_is_fixed(recorded_log):
         return flags
-    dx = x - np.median(x)
-    at_fixed = np.abs(dx) <= FIXED_RECORD_LOG
+    dx, at_fixed = record_departures(recorded_log)
     floor = fixed_record_floor(a, b, at_fixed)
     return flags & ~at_fixed & (np.abs(dx) >= floor) & (a * dx < 0) & (b * dx < 0)
 
@@ -358,7 +362,7 @@ def exposure_split_half(fit: PhotometricFit, cells: Cells, draws: int, rng: np.r
     if frames.size == 0:
         p = 1.0
     rec = None if recorded_log is None else np.asarray(recorded_log, float)[ok]
-    fixed_floor = (fixed_record_floor(a, b, np.abs(rec - np.median(rec)) <= FIXED_RECORD_LOG)
+    fixed_floor = (fixed_record_floor(a, b, record_departures(rec)[1])
                    if rec is not None and record_is_fixed(rec) else None)
     return {"testable": True, "p": p, "p_placebo_corr": p_corr, "corr": observed,
             "placebo_corr_q99": float(np.quantile(placebo, 0.99)),

@@ -10,7 +10,7 @@ import numpy as np
 
 from egobench.effects.base import Effect
 from egobench.residual.calibration import PlaceboRecord, beat_placebos, velocity_placebo
-from egobench.residual.estimation import GeometricCause, ResidualData, frame_slopes, velocity_term, velocity_term_basis
+from egobench.residual.estimation import GeometricCause, ResidualData, velocity_term, velocity_term_basis
 from egobench.residual.signatures import frame_t_test
 
 
@@ -36,19 +36,18 @@ def rendered_row_time(row_time_ratio: np.ndarray, n: int) -> np.ndarray:
     return (np.round(r * (n - 1)) + 0.5) / n
 
 
-def staircase_shear(data: ResidualData) -> tuple[list[np.ndarray], list]:
+def staircase_shear(data: ResidualData) -> list[np.ndarray]:
     """The row shear a trained run leaves in its residual where its staircase of pose samples departs from
     the true row times: velocity term x (R - rendered R) per frame, with the pose samples each frame was
-    trained with (`DiagnosisContext.model_pose_samples`; one sample: the whole readout's shear), as a regressor
-    and as a fixed column of the velocity placebos' tables (the run's own shear follows the frame's true
-    motion, not a placebo's); empty lists where the prediction is no trained run's."""
+    trained with (`DiagnosisContext.model_pose_samples`; one sample: the whole readout's shear), as a one-regressor
+    list (a fixed column of the velocity placebos' tables, `GeometricCause.nuisance_basis`); empty where the
+    prediction is no trained run's."""
     n = data.ctx.model_pose_samples
     if n is None or data.velocity is None:
-        return [], []
+        return []
     R = np.asarray(data.ctx.row_time_ratio, dtype=np.float64)
     gap = np.stack([R - rendered_row_time(R, int(k)) for k in np.asarray(n)[data.frames]])[..., None]
-    column = velocity_term(data) * gap.astype(np.float32)
-    return [column], [[(column, 0, 0)]]
+    return [velocity_term(data) * gap.astype(np.float32)]
 
 
 class ReadoutCause(GeometricCause):
@@ -75,10 +74,7 @@ class ReadoutCause(GeometricCause):
         with N samples shows a readout about 1/N short, which is the model's sampling, not the device's readout
         (egobench's confirmatory runs named it once nothing else refused it). A frame rendered with one sample
         has no readout term left beside it and drops out of the test."""
-        return staircase_shear(data)[0]
-
-    def nuisance_basis(self, data):
-        return staircase_shear(data)[1]
+        return staircase_shear(data)
 
     def displacement(self, theta, ctx, frames, shape):
         dt = theta[0] + theta[1] * (ctx.row_time_ratio - 0.5)
@@ -170,7 +166,7 @@ def row_time_placebo(cause: GeometricCause, data: ResidualData) -> PlaceboRecord
     nuisance = cause.nuisance_regressors(data)  # the run's own shear, at its true row times
 
     def t_of(d):
-        est, info = frame_slopes(cause.regressors(d) + nuisance, d.p, d.r, d.usable)
+        est, info = cause.first_order(d, nuisance)
         return frame_t_test(est[:, j], info[:, j]).t
 
     data.share_derivatives()

@@ -25,10 +25,7 @@ class TimeOffsetCause(GeometricCause):
         """On a trained run, the shear its own staircase of pose samples leaves (`readout.staircase_shear`; one
         sample: the whole readout's): a time offset tested without it took up part of that shear (two readout
         recordings of the independent writer: -0.45 ms)."""
-        return staircase_shear(data)[0]
-
-    def nuisance_basis(self, data):
-        return staircase_shear(data)[1]
+        return staircase_shear(data)
 
     def displacement(self, theta, ctx, frames, shape):
         return [(1.0, ctx.pixel_velocity_px_s[frames].astype(np.float64) * theta[0])]

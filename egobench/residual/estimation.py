@@ -501,7 +501,7 @@ class GeometricCause(Cause):
         est, info = self.first_order(data)
         j = self.tested_index
         test = frame_t_test(est[:, j], info[:, j], one_sided=self.one_sided)
-        theta0 = self.initial_theta(est[:, :self.n_params], info[:, :self.n_params])
+        theta0 = self.initial_theta(est, info)
         theta = self.refine(data, theta0)
         res = CauseResult(self.name, self.kind, True, statistic=test.t, statistic_kind=f"t({test.df})",
                           p_value=test.p_value, internal={"theta": theta, "theta_first_order": theta0,
@@ -513,10 +513,13 @@ class GeometricCause(Cause):
         res.plot = self.plot_data(data, est, info, theta)
         return res
 
-    def first_order(self, data: ResidualData) -> tuple[np.ndarray, np.ndarray]:
+    def first_order(self, data: ResidualData, nuisance: list[np.ndarray] | None = None
+                    ) -> tuple[np.ndarray, np.ndarray]:
         """Per-frame least-squares slopes of the residual on the signature regressors and the nuisance ones after
-        them -> (est [f, k], info [f, k]; the cause's own in the first n_params columns)."""
-        return frame_slopes(self.regressors(data) + self.nuisance_regressors(data), data.p, data.r, data.usable)
+        them (default: `nuisance_regressors` of ``data``; a placebo passes the true data's) -> (est [f, k],
+        info [f, k]; the cause's own in the first n_params columns)."""
+        nuisance = self.nuisance_regressors(data) if nuisance is None else nuisance
+        return frame_slopes(self.regressors(data) + nuisance, data.p, data.r, data.usable)
 
     def nuisance_regressors(self, data: ResidualData) -> list[np.ndarray]:
         """Signatures fitted beside the cause's own and never tested or applied: structure this run leaves in the
@@ -524,12 +527,16 @@ class GeometricCause(Cause):
         return []
 
     def nuisance_basis(self, data: ResidualData) -> list:
-        """`nuisance_regressors` as velocity polynomials (`velocity_basis`), for the velocity placebos' tables."""
-        return []
+        """`nuisance_regressors` in the velocity placebos' tables (`velocity_basis`): fixed columns, since the
+        structure a run leaves follows the frame's true motion, not a placebo's."""
+        return [[(x, 0, 0)] for x in self.nuisance_regressors(data)]
 
     tested_index = 0
 
     def initial_theta(self, est: np.ndarray, info: np.ndarray) -> np.ndarray:
+        """The pooled first-order estimate of the cause's own parameters (the first n_params columns of
+        `first_order`; the nuisance columns after them are not the cause's)."""
+        est, info = est[:, :self.n_params], info[:, :self.n_params]
         w = info / np.maximum(info.sum(axis=0, keepdims=True), 1e-300)
         return np.sum(w * est, axis=0)
 

@@ -124,7 +124,7 @@ def test_timing_causes_are_tested_beside_the_shear_the_runs_own_staircase_leaves
         gap = np.stack([R - rendered_row_time(R, int(k)) for k in samples])[..., None]
         run_shear = np.clip(case.measured + 0.006 * x * gap, 0, 1)  # an 8 ms readout, stated right
         data = ResidualData(run_shear, case.predicted, dataclasses.replace(ctx, model_pose_samples=samples), np.arange(16))
-        assert len(staircase_shear(data)[0]) == 1
+        assert len(staircase_shear(data)) == 1
         assert abs(t("time_offset", run_shear, samples)) < 3.0 < abs(t("time_offset", run_shear, samples, beside=False))
         offset = np.clip(run_shear + 0.002 * x, 0, 1)
         assert t("time_offset", offset, samples) > 5.0
