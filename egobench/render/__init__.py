@@ -127,7 +127,7 @@ def _check_poses(T_world_camera: Tensor, means: Tensor) -> Tensor:
     return T.to(device=means.device, dtype=means.dtype)
 
 
-def _viewmats(T_world_camera: Tensor) -> Tensor:
+def world_to_camera(T_world_camera: Tensor) -> Tensor:
     """Camera-to-world [B, 4, 4] -> world-to-camera [B, 4, 4] (rigid inverse, differentiable)."""
     R = T_world_camera[:, :3, :3]
     t = T_world_camera[:, :3, 3]
@@ -182,7 +182,7 @@ def render(
 
     if n == 0:
         return _empty_output(B if pixel_pose_index is None else 1, H, W, means, background, mode, want_normal)
-    viewmats = _viewmats(T)
+    viewmats = world_to_camera(T)
     if chosen == "gsplat":
         from egobench.render import gsplat_backend
 

@@ -43,6 +43,7 @@ from egobench.model.shading import KEY, radius2_of, shading
 from egobench.render import resolve_backend
 from egobench.render.finite import all_finite
 from egobench.train.checkpoint import checkpoint_matches, resumable_checkpoint, write_checkpoint
+from egobench.train import cpu_step
 from egobench.train.config import TrainConfig
 from egobench.train.data import TrainingData, image_to_float, prepare_data
 from egobench.train.losses import twodgs_regularisers
@@ -86,20 +87,25 @@ class StepContext:
     row_time_ratio: Tensor  # [H, W] R(u): pixel-pose indices are built on the device
     shading_r2: Tensor | None = None  # [H, W] normalised r^2 of the learnable shading (learn_shading), else None
     pose_samples: PoseSampleCache = field(default_factory=PoseSampleCache)  # the frames' trajectory samples
+    compiled: bool = False  # each step is `cpu_step.frame_step` (else autograd through `render`)
 
 
-def step_context(data: TrainingData, config: TrainConfig, device: torch.device) -> StepContext:
-    """Move the maps to the device; a valid mask that is empty at the training resolution is a named error."""
+def step_context(data: TrainingData, config: TrainConfig, device: torch.device, step: str = "auto") -> StepContext:
+    """Move the maps to the device; a valid mask that is empty at the training resolution is a named error.
+    ``step``: "auto" takes the compiled step (`cpu_step`) where it applies, "autograd" never does."""
     mask = data.maps.mask.to(device)[..., None].float()
     n_mask = float(mask.sum()) * 3
     mask3 = mask.expand(-1, -1, 3).contiguous()
     if n_mask == 0:
         raise ValueError(f"recording {data.recording.root}: the valid-pixel mask is empty at the training resolution")
+    formation = formation_model(data.spec)
+    compiled = step == "auto" and cpu_step.unsupported_reason(
+        data.spec, resolve_backend(config.backend, device), formation, config.learn_shading) is None
     return StepContext(data=data, config=config, settings=RenderSettings.of(config, device),
-                       formation=formation_model(data.spec), mask3=mask3, n_mask=n_mask,
+                       formation=formation, mask3=mask3, n_mask=n_mask,
                        vignette=data.maps.vignette.to(device), k=data.k.to(device),
                        row_time_ratio=data.maps.row_time_ratio.to(device),
-                       shading_r2=_shading_r2(data, config, device))
+                       shading_r2=_shading_r2(data, config, device), compiled=compiled)
 
 
 def _shading_r2(data: TrainingData, config: TrainConfig, device: torch.device) -> Tensor | None:
@@ -124,13 +130,19 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
+def _poses(state: TrainState, ctx: StepContext, it: int, fi: int) -> tuple[Tensor, Tensor | None]:
+    """Training frame ``fi``'s poses [M, K, 4, 4] and pixel pose index at iteration ``it``."""
+    data, spec = ctx.data, ctx.data.spec
+    warm = it >= ctx.config.motion_warmup_iter
+    return frame_poses(data.recording, data.frames[fi], spec, data.n_samples[fi] if warm else 1,
+                       ctx.row_time_ratio, **state.frame_trainables(fi),
+                       n_exposure_samples=spec.render_exposure_samples if warm else 1, cache=ctx.pose_samples)
+
+
 def _forward(state: TrainState, ctx: StepContext, it: int, fi: int) -> tuple[Tensor, list, float]:
     """Render training frame ``fi`` and return (loss, render outputs, forward render seconds)."""
     data, config, spec = ctx.data, ctx.config, ctx.data.spec
-    warm = it >= config.motion_warmup_iter
-    poses, ppi = frame_poses(data.recording, data.frames[fi], spec, data.n_samples[fi] if warm else 1,
-                             ctx.row_time_ratio, **state.frame_trainables(fi),
-                             n_exposure_samples=spec.render_exposure_samples if warm else 1, cache=ctx.pose_samples)
+    poses, ppi = _poses(state, ctx, it, fi)
     g = gaussians_from_params(state.params)
     _sync(ctx.settings.device)
     t0 = time.perf_counter()
@@ -168,15 +180,39 @@ def _backward(loss: Tensor, outs: list, device: torch.device) -> float:
     return (time.perf_counter() - min(hook_t)) if hook_t else 0.0
 
 
+def _autograd_step(state: TrainState, ctx: StepContext, it: int, fi: int) -> tuple[Tensor, list, float, float]:
+    """Loss and gradients through `render` and torch's autograd -> (loss, densification carriers (means2d
+    with .grad, radii), forward and backward render seconds)."""
+    loss, outs, t_fwd = _forward(state, ctx, it, fi)
+    t_bwd = _backward(loss, outs, ctx.settings.device)
+    carriers = [(o.means2d, o.radii) for o in outs
+                if o.means2d is not None and o.means2d.grad is not None and o.radii is not None]
+    return loss, carriers, t_fwd, t_bwd
+
+
+def _compiled_step(state: TrainState, ctx: StepContext, it: int, fi: int) -> tuple[Tensor, list, float, float]:
+    """`_autograd_step`'s results from `cpu_step.frame_step` (no autograd graph)."""
+    poses, ppi = _poses(state, ctx, it, fi)
+    data, config = ctx.data, ctx.config
+    dtype = state.params["means"].dtype
+    gt = image_to_float(data.images[fi])
+    target = cpu_step.frame_target(gt, ctx.mask3, ctx.k[fi], _vignette(state, ctx), ctx.n_mask, config.ssim_lambda,
+                                   dtype)
+    bg = torch.tensor(ctx.settings.background, dtype=dtype)
+    out = cpu_step.frame_step(gaussians_from_params(state.params), data.camera, poses[0], ppi, data.spec,
+                              ctx.formation, target, bg)
+    _check_finite(it, [("rendered rgb", out.rgb), ("loss", out.loss)])
+    return out.loss, out.carriers, out.render_fwd_s, out.render_bwd_s
+
+
 def train_step(state: TrainState, ctx: StepContext, it: int) -> None:
     """One iteration: forward, backward, densification statistics, optimiser steps, refinement."""
     t0 = time.perf_counter()
-    loss, outs, t_fwd = _forward(state, ctx, it, state.next_frame())
-    t_bwd = _backward(loss, outs, ctx.settings.device)
+    loss, carriers, t_fwd, t_bwd = (_compiled_step if ctx.compiled else _autograd_step)(state, ctx, it,
+                                                                                         state.next_frame())
     cam = ctx.data.camera
-    for o in outs:
-        if o.means2d is not None and o.means2d.grad is not None and o.radii is not None:
-            state.densifier.accumulate(state.params, it, o.means2d, o.radii, cam.width, cam.height)
+    for means2d, radii in carriers:
+        state.densifier.accumulate(state.params, it, means2d, radii, cam.width, cam.height)
     _check_finite(it, [(f"gradient of {name}", state.params[name].grad) for name in GAUSSIAN_PARAMS])
     state.step_optimisers(it)
     if len(state.params["means"]) == 0:
@@ -238,8 +274,8 @@ def train(recording_dir, method: str, config: TrainConfig, out_dir, *, resume: b
     say_dropped(data.recording, "train")
     device = torch.device(config.device)
     state = new_state(data, config, device)
-    ctx = step_context(data, config, device)
     backend = _warn_backend(device, config)
+    ctx = step_context(data, config, device, cpu_step.requested_step())
     if resume == "auto":
         resume = checkpoint_matches(ckpt_path, method, config)
     if resume:

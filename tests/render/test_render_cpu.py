@@ -278,14 +278,14 @@ def test_band_rows_hold_every_visible_pixel(dtype):
     test would not exercise it)."""
     import numpy as np
 
-    from egobench.render import _viewmats, cpu_backend, cpu as ck
+    from egobench.render import world_to_camera, cpu_backend, cpu as ck
 
     ts, cw, n_checked, n_cut = 16, ck.column_group(16), 0, 0
     for seed in range(3):
         g = edge_case_scene(seed, dtype)
         lo = torch.nn.functional.logsigmoid(g.opacity_logits).numpy()
         m2, con, dep, _, rad = cpu_backend._Project.apply(
-            g.means, g.quats, g.scales, _viewmats(pose(0.03, -0.02)[None].to(dtype)),
+            g.means, g.quats, g.scales, world_to_camera(pose(0.03, -0.02)[None].to(dtype)),
             torch.sigmoid(g.opacity_logits).detach(), cpu_backend.camera_array(CAM), CAM.width, CAM.height, False)
         m2, con, rad = m2.numpy(), con.numpy(), rad.numpy()
         tab = np.empty((m2.shape[1], ck.TAB_COLS), m2.dtype)
@@ -624,11 +624,11 @@ def test_needed_rows_lists_the_needed_rows_of_a_range_in_order():
 def test_tables_fill_only_the_rows_needed(mode):
     """The Gaussian / surfel table fills the rows `rows_needed` marks, each exactly as a full table,
     and leaves the others as they were."""
-    from egobench.render import _viewmats, cpu_backend, cpu_backend_2dgs, cpu as ck
+    from egobench.render import world_to_camera, cpu_backend, cpu_backend_2dgs, cpu as ck
     from egobench.render.cpu import surfels
 
     g = edge_case_scene(5)
-    Ts = _viewmats(torch.stack([pose(0.0, 0.03 * k, (0.01 * k, 0, 0)) for k in range(3)]))
+    Ts = world_to_camera(torch.stack([pose(0.0, 0.03 * k, (0.01 * k, 0, 0)) for k in range(3)]))
     lo = torch.nn.functional.logsigmoid(g.opacity_logits).numpy()
     if mode == "3dgs":
         m2, con, _, _, rad = cpu_backend._Project.apply(g.means, g.quats, g.scales, Ts, torch.sigmoid(g.opacity_logits),

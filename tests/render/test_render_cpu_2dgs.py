@@ -184,7 +184,7 @@ def test_2dgs_pixel_bound_holds_every_visible_pixel():
 
     from egobench.render import cpu_backend, cpu_backend_2dgs, cpu as ck
     from egobench.render.cpu import surfels
-    from egobench.render import _viewmats
+    from egobench.render import world_to_camera
 
     ts, n_checked, n_whole, n_cut = 16, 0, 0, 0
     cw, surfel_band_rows = ck.column_group(ts), surfels._surfel_band_rows
@@ -192,7 +192,7 @@ def test_2dgs_pixel_bound_holds_every_visible_pixel():
         g = surfel_scene(seed)
         lo = torch.nn.functional.logsigmoid(g.opacity_logits).numpy()
         m2, tsl, dep, _, rad = cpu_backend_2dgs._Project2DGS.apply(
-            g.means, g.quats, g.scales, _viewmats(pose(0.04, -0.03, (0.02, -0.01, 0.05))[None]),
+            g.means, g.quats, g.scales, world_to_camera(pose(0.04, -0.03, (0.02, -0.01, 0.05))[None]),
             cpu_backend.camera_array(CAM), CAM.width, CAM.height)
         m2, tsl = m2.numpy(), tsl.numpy()
         tab = np.empty((m2.shape[1], ck.TAB_COLS), m2.dtype)

@@ -256,22 +256,35 @@ def test_fits_a_known_scene(toy, tmp_path):
     assert rec0.iterations == 1
 
 
-def test_nan_guard_names_iteration_and_quantity(toy, tmp_path, monkeypatch):
+@pytest.mark.parametrize("step", ["autograd", "auto"])
+def test_nan_guard_names_iteration_and_quantity(toy, tmp_path, monkeypatch, step):
+    """A rendered image that turns NaN at the fourth iteration is named, on both training paths (autograd
+    through `render`; the compiled step's own render)."""
     import egobench.render as R
+    from egobench.train import cpu_step
 
-    real = R.render
     calls = {"n": 0}
+
+    def poison(rgb):
+        calls["n"] += 1
+        return rgb * float("nan") if calls["n"] == 4 else rgb
 
     def poisoned(*args, **kwargs):
         out = real(*args, **kwargs)
-        calls["n"] += 1
-        if calls["n"] == 4:
-            out.rgb = out.rgb * float("nan")
+        out.rgb = poison(out.rgb)
         return out
 
+    def poisoned_compiled(*args, **kwargs):
+        rgb, rendered = real_compiled(*args, **kwargs)
+        return poison(rgb), rendered
+
+    real, real_compiled = R.render, cpu_step._render
     monkeypatch.setattr(R, "render", poisoned)
+    monkeypatch.setattr(cpu_step, "_render", poisoned_compiled)
+    monkeypatch.setenv(cpu_step.STEP_ENV, step)
     with pytest.raises(TrainingDiverged, match="iteration 3: rendered rgb is not finite"):
         train(toy, "no_motion_sampling", TrainConfig(iterations=10), tmp_path / "nan", progress=False)
+    assert calls["n"] == 4
 
 
 def test_on_the_move_corrects_a_displaced_frame(toy, tmp_path):
