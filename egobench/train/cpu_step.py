@@ -4,7 +4,7 @@ kernels, with no autograd graph (issue 67; docs/cpu-rasterizer.md, "The compiled
 The autograd path of `egobench.train.loop` runs the same kernels behind torch's custom Functions: the
 projection, the rasterizer, the alpha-depth pass, the exposure and the photometric loss each an autograd
 node, with the render's input checks, pose matrices and the Functions' wrappers between them (~4 ms of a
-19 ms step at 128 px on one thread). Here the forward calls the kernels in order, keeps what the backward
+19 ms step at 128 px on one thread; results/speed/README.md, 2026-12-05). Here the forward calls the kernels in order, keeps what the backward
 reads, and the backward calls their backwards in reverse with each upstream gradient in the layout the
 next kernel reads: the per-intersection gradients stay channel first from the rasterizer to the
 projection, the rendered depth and alpha are not formed (the photometric loss reads neither), and the
@@ -12,15 +12,16 @@ parameters' gradients are written straight into ``.grad``. The autograd path sta
 what a GPU and every other method run); tests/train/test_cpu_step.py checks values and gradients against
 it.
 
-What it covers (`unsupported_reason` names what it does not): 3DGS on the compiled CPU backend, float32
-or float64, one exposure sample, poses the run does not optimise, no learnt lens shading, and the
-trainer's formation (the gamma exposure of `egobench.model.gamma_exposure`, or a clamp for methods
-without formation). That is every 3DGS method of the paper's tables but 3DGS-on-the-move.
+What it covers (`unsupported_reason` names what it does not): 3DGS and 2DGS on the compiled CPU backend
+(the render: `egobench.train.cpu_render`), float32 or float64, one exposure sample, poses the run does not
+optimise, no learnt lens shading, the trainer's formation (the gamma exposure of
+`egobench.model.gamma_exposure`, or a clamp for methods without formation), and 2DGS's normal consistency and
+distortion (`egobench.train.losses`'s schedule). That is every method of the paper's tables but
+3DGS-on-the-move.
 """
 
 from __future__ import annotations
 
-import math
 import os
 import time
 from dataclasses import dataclass
@@ -29,15 +30,17 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from egobench.metrics import SSIM_SIGMA, SSIM_WINDOW, gaussian_taps
 from egobench.model.formation import FormationModel, GammaResponse
 from egobench.model.gamma_exposure import Exposed, ExposureCurve, _expose_bwd, _expose_fwd
 from egobench.model.methods import MethodSpec
 from egobench.render import cpu_backend as cb
-from egobench.render.cpu_backend import ck
-from egobench.metrics import SSIM_SIGMA, SSIM_WINDOW, gaussian_taps
-from egobench.render import world_to_camera
 from egobench.render import kernel_build
+from egobench.render.cpu_backend import ck
 from egobench.render.types import Gaussians
+from egobench.train.config import TrainConfig
+from egobench.train.cpu_render import PixelGrads, Rendered, activations, render_bwd, render_fwd
+from egobench.train.normal_consistency import RenderedMaps, nc_backward_arrays, nc_forward_arrays, rays_of
 from egobench.train.photometric import _loss_and_grad
 
 #: environment variable: "autograd" trains through torch's autograd even where the compiled step applies
@@ -59,8 +62,6 @@ def unsupported_reason(spec: MethodSpec, backend: str, formation, learn_shading:
     """Why the compiled step cannot train this run (None: it can); the autograd path trains it then."""
     if backend != "cpu":
         return f"the rasterizer backend is {backend!r}, not the compiled CPU backend"
-    if spec.splat_mode != "3dgs":
-        return f"splat mode {spec.splat_mode!r} (the compiled step renders 3DGS)"
     if spec.pose_optimisation or spec.render_exposure_samples != 1:
         return "the method optimises poses or averages exposure samples"
     if learn_shading:
@@ -115,112 +116,6 @@ def frame_target(gt: Tensor, mask3: Tensor, k: Tensor, vignette: Tensor, n_mask:
 
 
 @dataclass
-class _Splats:
-    """The Gaussians as the kernels read them (views of the parameters, no copies where the dtype allows):
-    means, quats, linear scales, log-opacity and colours; ``scales`` and ``log_sigmoid`` (torch) are kept for
-    the activations' backwards."""
-
-    means: np.ndarray
-    quats: np.ndarray
-    scales: np.ndarray
-    log_opac: np.ndarray
-    opac: np.ndarray
-    colors: np.ndarray
-    scales_t: Tensor
-    logits_t: Tensor
-    log_sigmoid_buffer: Tensor
-
-
-def _splats(g: Gaussians) -> _Splats:
-    """The activations the render applies (exp of the log-scales, log-sigmoid of the opacity logits), in
-    torch's ops, so that the values are the autograd path's bits."""
-    scales = torch.exp(g.log_scales.detach())
-    logits = g.opacity_logits.detach()
-    log_opac, buffer = torch.ops.aten.log_sigmoid_forward(logits)
-    np_of = cb.contiguous_numpy
-    return _Splats(np_of(g.means), np_of(g.quats), scales.numpy(), log_opac.numpy(), log_opac.exp().numpy(),
-                   np_of(g.colors), scales, logits, buffer)
-
-
-@dataclass
-class _Rendered:
-    """What the forward keeps for the backward."""
-
-    viewmats: np.ndarray
-    m2: np.ndarray  # [I, N, 2] projected centres, gsplat's pixels
-    radii: np.ndarray  # [I, N, 2] int32
-    setup: object  # `cpu_backend.RasterSetup`
-    tab: np.ndarray
-    pix_view: np.ndarray
-    out_T: np.ndarray
-    out_last: np.ndarray
-    rows_hit: np.ndarray
-
-
-def _render(sp: _Splats, camera, poses: Tensor, ppi: Tensor | None) -> tuple[np.ndarray, _Rendered]:
-    """`render_cpu`'s forward without autograd: poses [K, 4, 4] camera-to-world -> the summed colour
-    [H, W, 3] (no background) and what the backward reads."""
-    H, W, dt = camera.height, camera.width, sp.means.dtype
-    viewmats = cb.contiguous_numpy(world_to_camera(poses.to(torch.from_numpy(sp.means).dtype)))
-    I, N = viewmats.shape[0], sp.means.shape[0]
-    m2, con = np.empty((I, N, 2), dt), np.empty((I, N, 3), dt)
-    dep, rad, nrm = np.empty((I, N), dt), np.empty((I, N, 2), np.int32), np.zeros((I, 0, 3), dt)
-    ck.project_fwd(ck.Splats(sp.means, sp.quats, sp.scales), sp.opac,
-                   cb.view_args(viewmats, cb.camera_array(camera), W, H), False, ck.Projected(m2, con, dep, rad, nrm))
-    m2 -= cb.GSPLAT_PIXEL_OFFSET  # egobench's pixels and back, as the autograd path's carrier does (same bits)
-    m2 += m2.dtype.type(cb.GSPLAT_PIXEL_OFFSET)
-    ts = cb.DEFAULT_TILE
-    pix_view, bin_needed = cb.pixel_views(ppi, I, H, W, ts)
-    from_np = torch.from_numpy
-    st = cb.raster_setup(m2, from_np(rad), from_np(dep), from_np(sp.colors), from_np(nrm), pix_view, bin_needed, ts)
-    out_feat = np.zeros((1, H, W, st.feats.shape[1]), dt)
-    out_T, out_last = np.zeros((1, H, W), dt), np.zeros((1, H, W), np.int32)
-    tab = cb.table_buffer(I * N, dt)
-    ck.gaussian_table(m2, con, rad, sp.log_opac, st.needed, tab)
-    rows_hit = cb.rows_hit_buffer(st.flat_ids.shape[0], ts, st.cw)
-    ck.raster_fwd(ck.Tables(tab, st.feats), st.tiles(pix_view, ts), st.constants(),
-                  ck.Composite(out_feat, out_T, out_last), rows_hit)
-    rgb = np.ascontiguousarray(out_feat[0, ..., :ck.DEPTH_CH])
-    return rgb, _Rendered(viewmats, m2, rad, st, tab, pix_view, out_T, out_last, rows_hit)
-
-
-def _render_backward(g: Gaussians, sp: _Splats, camera, r: _Rendered, g_rgb: np.ndarray,
-                     g_T: np.ndarray) -> Tensor:
-    """d loss / d (summed colour [H, W, 3], transmittance [H, W]) -> every Gaussian parameter's ``.grad``;
-    returns d loss / d means2d [I, N, 2] (the densification carrier's gradient)."""
-    import numba
-
-    st, (I, N) = r.setup, r.m2.shape[:2]
-    Cf, dt = st.feats.shape[1], sp.means.dtype
-    gF = np.empty(r.out_T.shape + (Cf,), dt)
-    P = r.out_T.size
-    ck.pack_pixel_grads(gF.reshape(P, Cf), g_rgb.reshape(P, 3), np.empty((0, 1), dt), np.empty((0, 3), dt),
-                        np.empty((0,), dt), np.empty((0, 0), dt))
-    isect = np.zeros((st.flat_ids.shape[0], 6 + Cf), st.kc.dtype)
-    ck.raster_bwd(ck.Tables(r.tab, st.feats), st.tiles(r.pix_view, cb.DEFAULT_TILE), st.constants(),
-                  ck.BackwardPixels(r.out_T, r.out_last, gF, g_T.reshape(r.out_T.shape)), isect, r.rows_hit)
-    per = np.empty((isect.shape[1], I * N), dt)  # channel first: [C, I x N]
-    ck.reduce_isect_grad(isect, st.flat_ids, st.flat_ids.shape[0], per, np.zeros((0, 2)), numba.get_num_threads())
-    per = per.reshape(-1, I, N)
-    g_colors = np.empty((N, 3), dt)
-    ck.ordered_sum(per[6:9], g_colors)
-    gm, gq, gs = np.empty((N, 3)), np.empty((N, 4)), np.empty((N, 3))
-    gv_parts = np.zeros((max(1, math.ceil(N / ck.CHUNK)), I, 12))
-    wide = ck.Splats(*(a.astype(np.float64) for a in (sp.means, sp.quats, sp.scales)))
-    view = cb.view_args(r.viewmats.astype(np.float64), cb.camera_array(camera), camera.width, camera.height)
-    ck.project_bwd(wide, view, False, ck.ProjectedGrads(per[0:2], per[2:5], per[9], np.zeros((3, I, 0), dt)),
-                   ck.SplatGrads(gm, gq, gs, gv_parts))
-    tdt = torch.from_numpy(sp.means[:0]).dtype
-    g.means.grad = torch.from_numpy(gm).to(tdt)
-    g.quats.grad = torch.from_numpy(gq).to(tdt)
-    g.log_scales.grad = torch.from_numpy(gs).to(tdt) * sp.scales_t
-    g_logop = torch.from_numpy(per[5]).sum(0)
-    g.opacity_logits.grad = torch.ops.aten.log_sigmoid_backward(g_logop, sp.logits_t, sp.log_sigmoid_buffer)
-    g.colors.grad = torch.from_numpy(g_colors)
-    return torch.from_numpy(per[0:2]).permute(1, 2, 0)
-
-
-@dataclass
 class _Formed:
     """The predicted image [P, 3] and its partials by the scene colour (the exposure's ``dx``; for a clamp,
     1 inside [0, 1] and 0 outside)."""
@@ -259,16 +154,89 @@ def _taps(dtype: np.dtype) -> np.ndarray:
                          torch.device("cpu")).numpy()
 
 
+@dataclass
+class SurfelTerms:
+    """2DGS's regularisers at one step (`egobench.train.losses.twodgs_regularisers`): their weights (0: off
+    at this iteration) and what the normal consistency reads: the valid mask [H, W] (a view), its count
+    as the torch oracle divides by it, and the camera's rays [H, W, 3] float64."""
+
+    normal_lambda: float
+    dist_lambda: float
+    mask: np.ndarray
+    mask_count: float
+    rays: np.ndarray
+
+
+def surfel_terms(config: TrainConfig, it: int, mask3: Tensor, camera) -> SurfelTerms:
+    """The `SurfelTerms` of iteration ``it`` (mask3 [H, W, 3], the trainer's valid mask)."""
+    mask = mask3[..., 0]
+    on_n = config.normal_lambda > 0 and it >= config.normal_start_iter
+    on_d = config.dist_lambda > 0 and it >= config.dist_start_iter
+    return SurfelTerms(config.normal_lambda if on_n else 0.0, config.dist_lambda if on_d else 0.0,
+                       mask.numpy(), float(mask.sum().clamp_min(1)), rays_of(camera))
+
+
+def _normal_consistency(r: Rendered, terms: SurfelTerms, px: PixelGrads, tdt: torch.dtype) -> Tensor:
+    """The normal consistency of the rendered depth (normalised by alpha, `ck.alpha_depth`) and normals,
+    weighted by ``terms.normal_lambda`` -> the weighted term; its gradients join ``px`` (the summed depth's
+    and the transmittance's through the alpha-depth backward, the normals')."""
+    H, W = r.out_T.shape[1:]
+    d, t = np.ascontiguousarray(r.out_feat[0, ..., ck.DEPTH_CH]).reshape(-1), r.out_T.reshape(-1)
+    alpha, depth = np.empty_like(t), np.empty_like(t)
+    one, floor = t.dtype.type(1.0), t.dtype.type(cb.ALPHA_MIN)
+    ck.alpha_depth(d, t, one, floor, alpha, depth)
+    maps = RenderedMaps(depth.reshape(H, W), r.out_feat[0, ..., ck.DEPTH_CH + 1:ck.DEPTH_CH + 4],
+                        alpha.reshape(H, W), terms.mask)
+    value, inputs = nc_forward_arrays(maps, terms.rays, terms.mask_count)
+    g = float(torch.ones((), dtype=tdt) * terms.normal_lambda)  # autograd's upstream gradient: 1 x lambda
+    g_depth, g_normal = nc_backward_arrays(inputs, terms.rays, g, t.dtype, t.dtype)
+    g_sum, g_trans = np.empty_like(alpha), np.empty_like(alpha)
+    ck.alpha_depth_grad(d, alpha, np.empty((0,), t.dtype), g_depth.reshape(-1), floor, g_sum, g_trans)
+    px.depth, px.normal = g_sum.reshape(-1, 1), g_normal.reshape(-1, 3)
+    px.T = g_trans.reshape(px.T.shape) + px.T if px.T.any() else g_trans.reshape(px.T.shape)
+    return terms.normal_lambda * torch.tensor(value, dtype=tdt)
+
+
+def _distortion(r: Rendered, terms: SurfelTerms, px: PixelGrads, tdt: torch.dtype) -> Tensor:
+    """The mean depth distortion weighted by ``terms.dist_lambda`` -> the weighted term; its gradient
+    (lambda / pixels at every pixel, as autograd's mean backward computes it) into ``px.dist``."""
+    dist = torch.from_numpy(r.out_feat)[..., -1][..., None]  # the autograd path's view of the distortion map
+    P = r.out_T.size
+    px.dist = ((torch.ones((), dtype=tdt) * terms.dist_lambda).expand(P) / P).numpy()
+    return terms.dist_lambda * dist.mean()
+
+
+def _surfel_loss(loss: Tensor, r: Rendered, terms: SurfelTerms, px: PixelGrads) -> Tensor:
+    """The photometric ``loss`` plus 2DGS's regularisers, summed as `twodgs_regularisers` sums them."""
+    total = torch.zeros((), dtype=loss.dtype)
+    if terms.normal_lambda > 0:
+        total = total + _normal_consistency(r, terms, px, loss.dtype)
+    if terms.dist_lambda > 0:
+        total = total + _distortion(r, terms, px, loss.dtype)
+    return loss + total
+
+
+def _pixel_grads(g_rgb: np.ndarray, out_T: np.ndarray, bg: np.ndarray) -> PixelGrads:
+    """The photometric loss's per-pixel gradients: the colour's, and the transmittance's through the
+    background (rgb + T bg; zeros for a black one)."""
+    dt = g_rgb.dtype
+    g_T = (g_rgb * bg).sum(-1).reshape(out_T.shape) if bg.any() else np.zeros(out_T.shape, dt)
+    return PixelGrads(g_rgb, np.empty((0, 1), dt), np.empty((0, 3), dt), np.empty((0,), dt), g_T)
+
+
 def frame_step(g: Gaussians, camera, poses: Tensor, ppi: Tensor | None, spec: MethodSpec, formation,
-               target: FrameTarget, background: Tensor) -> StepOutput:
+               target: FrameTarget, background: Tensor, terms: SurfelTerms | None = None) -> StepOutput:
     """One training frame through the compiled kernels: the loss, and every Gaussian parameter's gradient
     written into its ``.grad`` (replacing any). poses [K, 4, 4] camera-to-world (K rolling-shutter samples
-    gathered by ``ppi`` [H, W], or one pose and ``ppi`` None); background [3] in scene colour."""
-    kernel_build.ensure_built(g.means.dtype, "3dgs")
+    gathered by ``ppi`` [H, W], or one pose and ``ppi`` None); background [3] in scene colour; ``terms``:
+    2DGS's regularisers (2DGS only)."""
+    surfels = spec.splat_mode == "2dgs"
+    kernel_build.ensure_built(g.means.dtype, spec.splat_mode)
     t0 = time.perf_counter()
     cb.set_threads()  # for every kernel below (`raster_setup` sets them again)
-    sp = _splats(g)
-    rgb, rendered = _render(sp, camera, poses, ppi)
+    a = activations(g)
+    rendered = render_fwd(a, camera, poses, ppi, surfels)
+    rgb = np.ascontiguousarray(rendered.out_feat[0, ..., :ck.DEPTH_CH])
     bg = background.to(g.means.dtype).numpy()
     if bg.any():  # rgb + T bg, as `composite_output`
         rgb += rendered.out_T[0, ..., None] * bg
@@ -277,12 +245,12 @@ def frame_step(g: Gaussians, camera, poses: Tensor, ppi: Tensor | None, spec: Me
     H, W = camera.height, camera.width
     value, g_pred = _loss_and_grad(formed.pred.reshape(H, W * 3), target.gt_rows, target.mask_rows, 3,
                                    target.n_mask, target.ssim_lambda, _taps(formed.pred.dtype))
-    g_rgb = _formation_backward(formed, g_pred.reshape(-1, 3))
-    t1 = time.perf_counter()
-    g_T = (g_rgb * bg).sum(-1) if bg.any() else np.zeros(rendered.out_T.shape, g_rgb.dtype)
-    g_m2 = _render_backward(g, sp, camera, rendered, g_rgb, g_T)
-    carrier = torch.from_numpy(rendered.m2)  # the values are unread: densification reads the gradient
-    carrier.grad = g_m2
-    radii = cb.radius_max(torch.from_numpy(rendered.radii))
     loss = torch.tensor(value, dtype=g.means.dtype)
+    px = _pixel_grads(_formation_backward(formed, g_pred.reshape(-1, 3)), rendered.out_T, bg)
+    if surfels:
+        loss = _surfel_loss(loss, rendered, terms, px)
+    t1 = time.perf_counter()
+    carrier = torch.from_numpy(rendered.m2)  # its values are unread: densification reads its gradient
+    carrier.grad = render_bwd(g, a, camera, rendered, px)
+    radii = cb.radius_max(torch.from_numpy(rendered.radii))
     return StepOutput(loss, torch.from_numpy(rgb), [(carrier, radii)], t_fwd, time.perf_counter() - t1)

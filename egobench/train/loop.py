@@ -199,8 +199,9 @@ def _compiled_step(state: TrainState, ctx: StepContext, it: int, fi: int) -> tup
     target = cpu_step.frame_target(gt, ctx.mask3, ctx.k[fi], _vignette(state, ctx), ctx.n_mask, config.ssim_lambda,
                                    dtype)
     bg = torch.tensor(ctx.settings.background, dtype=dtype)
+    terms = cpu_step.surfel_terms(config, it, ctx.mask3, data.camera) if data.spec.splat_mode == "2dgs" else None
     out = cpu_step.frame_step(gaussians_from_params(state.params), data.camera, poses[0], ppi, data.spec,
-                              ctx.formation, target, bg)
+                              ctx.formation, target, bg, terms)
     _check_finite(it, [("rendered rgb", out.rgb), ("loss", out.loss)])
     return out.loss, out.carriers, out.render_fwd_s, out.render_bwd_s
 

@@ -192,27 +192,47 @@ def _rays(fx: float, fy: float, cx: float, cy: float, width: int, height: int) -
     return cam.unproject(cam.pixel_grid(dtype=torch.float64))
 
 
+def nc_forward_arrays(maps: RenderedMaps, rays: np.ndarray, mask_count: float) -> tuple[float, NCInputs]:
+    """The compiled forward on arrays (maps as they come, strided views too; rays [H, W, 3] float64) -> (the
+    value, in float64; what `nc_backward_arrays` reads)."""
+    H, W = maps.depth.shape
+    inputs = NCInputs(np.empty((H, W, 3)), np.empty((H, W, 3)), np.empty((H, W)))
+    start_kernel_pool()
+    _nc_inputs(maps, rays, mask_count, inputs)
+    return _nc_forward(*inputs), inputs
+
+
+def nc_backward_arrays(inputs: NCInputs, rays: np.ndarray, g: float, depth_dtype, normal_dtype):
+    """The compiled backward for upstream gradient g -> (d/d depth [H, W], d/d normal [H, W, 3]) in the given
+    dtypes (float64 sums, stored rounded)."""
+    g_depth, g_normal = np.empty(inputs.wts.shape, depth_dtype), np.empty(inputs.N.shape, normal_dtype)
+    _nc_backward(inputs.P, rays, inputs.N, inputs.wts, g, g_depth, g_normal)
+    return g_depth, g_normal
+
+
+def rays_of(camera: Pinhole) -> np.ndarray:
+    """`_rays` of the camera as an array (shared between calls: read only)."""
+    return contiguous_numpy(_rays(camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height))
+
+
 class _NormalConsistencyCPU(torch.autograd.Function):
     """`normal_consistency_torch` with compiled kernels (float64 inside): (depth, normal, alpha, mask, rays,
     mask count); gradients of depth and normal in their own dtypes."""
 
     @staticmethod
     def forward(ctx, depth, normal, alpha, mask, rays, mask_count):
-        H, W = depth.shape
-        P, N, wts = np.empty((H, W, 3)), np.empty((H, W, 3)), np.empty((H, W))
-        d, n, rays_np = contiguous_numpy(depth), normal.detach().numpy(), contiguous_numpy(rays)
         # the normal and the mask as they come (training: channel views), strided: no copies
-        start_kernel_pool()
-        _nc_inputs(RenderedMaps(d, n, contiguous_numpy(alpha), mask.detach().numpy()), rays_np, mask_count,
-                   NCInputs(P, N, wts))
-        ctx.arrs, ctx.dtypes = (P, N, wts, rays_np), (d.dtype, n.dtype)
-        return torch.tensor(_nc_forward(P, N, wts), dtype=depth.dtype)
+        maps = RenderedMaps(contiguous_numpy(depth), normal.detach().numpy(), contiguous_numpy(alpha),
+                            mask.detach().numpy())
+        rays_np = contiguous_numpy(rays)
+        value, inputs = nc_forward_arrays(maps, rays_np, mask_count)
+        ctx.arrs, ctx.dtypes = (inputs, rays_np), (maps.depth.dtype, maps.normal.dtype)
+        return torch.tensor(value, dtype=depth.dtype)
 
     @staticmethod
     def backward(ctx, g):
-        P, N, wts, rays = ctx.arrs
-        g_depth, g_normal = np.empty(wts.shape, ctx.dtypes[0]), np.empty(N.shape, ctx.dtypes[1])
-        _nc_backward(P, rays, N, wts, float(g), g_depth, g_normal)  # float64 sums, stored rounded to the dtypes
+        inputs, rays = ctx.arrs
+        g_depth, g_normal = nc_backward_arrays(inputs, rays, float(g), *ctx.dtypes)
         return torch.from_numpy(g_depth), torch.from_numpy(g_normal), None, None, None, None
 
 

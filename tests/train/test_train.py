@@ -275,12 +275,13 @@ def test_nan_guard_names_iteration_and_quantity(toy, tmp_path, monkeypatch, step
         return out
 
     def poisoned_compiled(*args, **kwargs):
-        rgb, rendered = real_compiled(*args, **kwargs)
-        return poison(rgb), rendered
+        rendered = real_compiled(*args, **kwargs)
+        rendered.out_feat = poison(rendered.out_feat)
+        return rendered
 
-    real, real_compiled = R.render, cpu_step._render
+    real, real_compiled = R.render, cpu_step.render_fwd
     monkeypatch.setattr(R, "render", poisoned)
-    monkeypatch.setattr(cpu_step, "_render", poisoned_compiled)
+    monkeypatch.setattr(cpu_step, "render_fwd", poisoned_compiled)
     monkeypatch.setenv(cpu_step.STEP_ENV, step)
     with pytest.raises(TrainingDiverged, match="iteration 3: rendered rgb is not finite"):
         train(toy, "no_motion_sampling", TrainConfig(iterations=10), tmp_path / "nan", progress=False)
