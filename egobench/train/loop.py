@@ -11,7 +11,9 @@ Timing method (``raster_time_share`` in train.json): wall time inside `render()`
 the rasterizer's share of the backward pass, measured from the moment autograd reaches the
 render output (a tensor hook on ``rgb``) to the end of ``loss.backward()``; everything upstream
 of the rasterizer in the graph (pose exponentials, parameter activations) is tiny and is counted
-as raster time. Divided by the total wall time of the iterations.
+as raster time. Divided by the total wall time of the iterations. Where the compiled training step
+(`egobench.train.cpu_step`, the autograd path's bits, much less glue) runs a step, the share is that
+step's render forward plus its render backward (train.json's ``train.step`` says which ran).
 """
 
 from __future__ import annotations
@@ -296,7 +298,7 @@ def train(recording_dir, method: str, config: TrainConfig, out_dir, *, resume: b
         bar.close()
         state.iteration = max(end_it, start_it)
         write_checkpoint(ckpt_path, _checkpoint_state(state, method, config, data, device))
-    return _result(state, data, config, method, Path(out_dir), backend, sharing or None)
+    return _result(state, data, config, method, Path(out_dir), backend, sharing or None, ctx.compiled)
 
 
 def _probing_cores(backend: str, iterating: bool):
@@ -317,7 +319,7 @@ def _drop_stale_records(out_dir: Path) -> None:
 
 
 def _result(state: TrainState, data: TrainingData, config: TrainConfig, method: str, out_dir: Path,
-            backend: str, core_sharing: dict | None) -> TrainResult:
+            backend: str, core_sharing: dict | None, compiled_step: bool) -> TrainResult:
     """The run's result; train.json is written only for a finished run (the workflow's output).
     ``core_sharing``: `_probing_cores`' record of this process's iterations (None: not probed)."""
     ts, its = state.timing["time_s"], state.timing["iterations_timed"]
@@ -327,7 +329,7 @@ def _result(state: TrainState, data: TrainingData, config: TrainConfig, method: 
         raster_time_share=(state.timing["render_fwd_s"] + state.timing["render_bwd_s"]) / ts if ts > 0 else 0.0,
         final_loss=state.last_loss,
     )
-    result.record = train_record(result, state, data, config, method, backend, core_sharing)
+    result.record = train_record(result, state, data, config, method, backend, core_sharing, compiled_step)
     if result.record["complete"]:
         write_json(out_dir / "train.json", result.record)
     return result

@@ -25,11 +25,17 @@ if TYPE_CHECKING:  # pragma: no cover
 TRAIN_SCHEMA = "egobench.train/1"
 
 
+#: how `raster_time_share` is timed, by the step that ran
+_TIMING = {False: "render() wall time + backward from the rgb hook to the end of loss.backward(), over iteration wall time",
+           True: "the compiled step's render forward + its render backward (egobench.train.cpu_render), over iteration wall time"}
+
+
 def train_record(result: "TrainResult", state: TrainState, data: TrainingData, config: TrainConfig,
-                 method: str, backend: str, core_sharing: dict | None) -> dict:
+                 method: str, backend: str, core_sharing: dict | None, compiled_step: bool = False) -> dict:
     """The train.json record of a run (``complete`` once every iteration has run). ``core_sharing``: the
     probes around this process's iterations (`egobench.core_sharing.bracket`; a resumed run: its last
-    segment's; None where the kernels ran on one thread, not on the CPU, or no iteration ran)."""
+    segment's; None where the kernels ran on one thread, not on the CPU, or no iteration ran).
+    ``compiled_step``: the steps ran through `egobench.train.cpu_step` (else through autograd)."""
     spec, rec, cam = data.spec, data.recording, data.camera
     ns = np.asarray(data.n_samples)
     return {
@@ -42,8 +48,8 @@ def train_record(result: "TrainResult", state: TrainState, data: TrainingData, c
             "iterations": result.iterations, "time_s": result.time_s, "iters_per_s": result.iters_per_s,
             "raster_time_share": result.raster_time_share, "num_gaussians": result.num_gaussians,
             "render_forward_s": state.timing["render_fwd_s"], "render_backward_s": state.timing["render_bwd_s"],
-            "timing_method": "render() wall time + backward from the rgb hook to the end of loss.backward(), over iteration wall time",
-            "device": config.device, "backend": backend,
+            "timing_method": _TIMING[compiled_step],
+            "device": config.device, "backend": backend, "step": "compiled" if compiled_step else "autograd",
             "final_loss": result.final_loss if math.isfinite(result.final_loss) else None,
             "image_store": _image_store_stats(data, config),
             "core_sharing": core_sharing,

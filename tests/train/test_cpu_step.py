@@ -106,11 +106,13 @@ def test_a_step_agrees_with_the_torch_rasterizer(plane, method, it):
 @pytest.mark.parametrize("method", ["ours", "ours_2dgs"])
 def test_a_run_is_the_autograd_runs_parameters(plane, tmp_path, monkeypatch, method):
     """30 iterations with densification (and 2DGS's regularisers from their iterations): the compiled run's
-    parameters are the autograd run's, bit for bit, and a second compiled run repeats them."""
+    parameters are the autograd run's, bit for bit, and a second compiled run repeats them; train.json says
+    which step ran."""
     runs = {}
     for name, step in (("autograd", "autograd"), ("compiled", "auto"), ("again", "auto")):
         monkeypatch.setenv(cpu_step.STEP_ENV, step)
-        train(plane, method, CFG, tmp_path / name, progress=False)
+        result = train(plane, method, CFG, tmp_path / name, progress=False)
+        assert result.record["train"]["step"] == ("autograd" if step == "autograd" else "compiled")
         runs[name] = torch.load(tmp_path / name / "checkpoint.pt", weights_only=True)["params"]
     assert len(runs["compiled"]["means"]) != 1500  # densification changed the count
     for key, value in runs["autograd"].items():
