@@ -316,13 +316,22 @@ def contained_causes(name: str) -> set[str]:
     return set(CAUSES[name].nests) | {other for other, c in CAUSES.items() if name in c.nested_in}
 
 
-def _note_containing_causes(cause: NamedCause, testable: list[CauseResult]) -> None:
-    """A named cause that a more general one contains (time offset in readout) is also explained by
-    that one when its extra term is not significant: say so in the named cause's params ("or")."""
-    alternatives = [{"cause": r.name, "p_adjusted": r.p_adjusted,
-                     "note": f"{r.name} contains {cause.name}; its extra term is not significant here, so "
-                             f"{r.name} would explain the same residual"}
-                    for r in testable if cause.name in contained_causes(r.name) and not r.significant]
+def _note_containing_causes(cause: NamedCause, results: list[CauseResult]) -> None:
+    """A named cause that a more general one contains (time offset in readout) is also explained by that one
+    when the container's extra term is not significant, or when the container cannot be tested on this run:
+    say so in the named cause's params ("or"). Measured: a readout 40 % longer than stated moves the centre
+    row half the difference later than the model's timing, and a run that renders one pose sample a frame
+    (its readout untestable) names that shift as a time offset (results/diagnosis/README.md, 2026-12-05,
+    the hard sweeps rerun)."""
+    alternatives = []
+    for r in results:
+        if cause.name not in contained_causes(r.name) or (r.testable and r.significant):
+            continue
+        why = ("its extra term is not significant here" if r.testable
+               else f"it cannot be tested on this run ({r.reason})")
+        alternatives.append({"cause": r.name, "p_adjusted": r.p_adjusted if r.testable else None,
+                             "note": f"{r.name} contains {cause.name}; {why}, so {r.name} would explain the "
+                                     "same residual"})
     if alternatives:
         cause.params["or"] = alternatives
 
@@ -436,7 +445,7 @@ def diagnose_residuals(
         picked = _name_mean_cause(testable, rnd, measured, current, ctx, split, cfg, score)
         if picked is not None:
             cause, current = picked
-            _note_containing_causes(cause, testable)
+            _note_containing_causes(cause, results)
             named.append(cause)
             continue
         noise = _name_noise(testable, rnd, measured, current, ctx, split, cfg)

@@ -153,8 +153,7 @@ def markdown(d: Diagnosis, title: str) -> str:
             gain = f"{n.psnr_gain_db:+.2f} dB" if n.nll_gain_nats_per_px is None else f"NLL {n.nll_gain_nats_per_px:+.3f} nats/px"
             lines.append(f"| {n.round} | {n.name} | {n.p_adjusted:.2g} | {n.effect_rms * LEVELS:.2f} | {_summary(n.params)} | {gain} |")
         lines.append("")
-        lines += [f"- {n.name}, or {a['cause']} (p_adj {a['p_adjusted']:.2g}): {a['note']}"
-                  for n in d.named for a in n.params.get("or", [])]
+        lines += [f"- {n.name}, or {a['cause']} ({_or_p(a)}): {a['note']}" for n in d.named for a in n.params.get("or", [])]
     lines += ["## Ranking (round 1)", "", "| cause | statistic | p | p_adj (Holm) | effect (levels) | significant | estimate |",
               "|---|---|---|---|---|---|---|"]
     for r in d.ranking:
@@ -209,3 +208,9 @@ def write_report(out_dir: str | Path, d: Diagnosis, measured: np.ndarray, predic
     for r in (d.rounds[0] if d.rounds else []):
         signature_plot(out / "figures" / f"signature_{r.name}.png", r)
     return record
+
+
+def _or_p(alternative: dict) -> str:
+    """A containing cause's p_adj as the report prints it ("untested" where it could not be tested)."""
+    p = alternative.get("p_adjusted")
+    return "untested" if p is None else f"p_adj {p:.2g}"

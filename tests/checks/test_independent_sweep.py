@@ -44,6 +44,12 @@ def test_a_case_row_counts_names_flags_and_estimates(tmp_path):
     assert null["wrong_first"] and null["geometric_named"] and not null["expected_named"]
     quiet = sweep.case_row("null", 102, _case(tmp_path, "quiet", [], []), {})
     assert not quiet["named"] and not quiet["wrong_first"]
+    # a time offset named with the (untestable) readout as its "or" on a readout case: contained, not wrong
+    offset = [{"name": "time_offset", "params": {"or": [{"cause": "readout", "p_adjusted": None, "note": ""}]}}]
+    contained = sweep.case_row("readout", 301, _case(tmp_path, "contained", [], offset), {})
+    assert contained["contained_first"] and not contained["wrong_first"]
+    elsewhere = sweep.case_row("time_offset", 501, _case(tmp_path, "offset", [], offset), {})
+    assert not elsewhere["contained_first"] and not elsewhere["wrong_first"] and elsewhere["expected_named"]
 
 
 def test_the_summary_applies_the_issues_criteria():
@@ -61,7 +67,7 @@ def test_the_summary_applies_the_issues_criteria():
     ]
     s = sweep.summary(rows)
     assert s["readout"] == {"cases": 3, "nothing_named": 1, "expected_named": 2, "wrong_first_name": 0,
-                            "geometric_named": 2, "estimate_within_25pct": 1, "at_least_twice_testable": 0,
+                            "contained_first_name": 0, "geometric_named": 2, "estimate_within_25pct": 1, "at_least_twice_testable": 0,
                             "named_where_at_least_twice_testable": 0}
     assert s["exposure_metadata"]["half_altered_flagged_and_at_most_2_wrong"] == 1
     assert set(s) == {"readout", "exposure_metadata"}

@@ -549,6 +549,12 @@ def test_a_contained_cause_is_named_with_its_container_and_scored_apart_from_wro
 
     assert [a["cause"] for a in named(False).params["or"]] == ["readout"]
     assert "or" not in named(True).params
+    # a container that cannot be tested on the run cannot be excluded either: it is an "or" too
+    untested = NamedCause("time_offset", 1, 1e-3, 0.004, {"time_offset_error_s": 0.0008}, 0.04)
+    _note_containing_causes(untested, [CauseResult("readout", "geometric", False, reason="one pose sample a frame"),
+                                       CauseResult("distortion", "geometric", False, reason="no points")])
+    (alt,) = untested.params["or"]
+    assert alt["cause"] == "readout" and alt["p_adjusted"] is None and "one pose sample a frame" in alt["note"]
 
     def row(effect, cause):
         record = {"verdict": cause.name, "named": [cause.__dict__], "model_error": {}}
@@ -560,6 +566,8 @@ def test_a_contained_cause_is_named_with_its_container_and_scored_apart_from_wro
     assert r["wrong_name"] and not r["contained_name"]
     r = row("vignette", named(False))
     assert r["wrong_name"] and not r["contained_name"]
+    r = row("readout", untested)
+    assert r["contained_name"] and not r["wrong_name"]
 
 
 def test_retention_is_the_round_one_estimate_over_the_truth_as_deviations_from_nominal():
