@@ -4,13 +4,13 @@ kernels, with no autograd graph (issue 67; docs/cpu-rasterizer.md, "The compiled
 The autograd path of `egobench.train.loop` runs the same kernels behind torch's custom Functions: the
 projection, the rasterizer, the alpha-depth pass, the exposure and the photometric loss each an autograd
 node, with the render's input checks, pose matrices and the Functions' wrappers between them (~4 ms of a
-19 ms step at 128 px on one thread; results/speed/README.md, 2026-12-05). Here the forward calls the kernels in order, keeps what the backward
-reads, and the backward calls their backwards in reverse with each upstream gradient in the layout the
-next kernel reads: the per-intersection gradients stay channel first from the rasterizer to the
-projection, the rendered depth and alpha are not formed (the photometric loss reads neither), and the
-parameters' gradients are written straight into ``.grad``. The autograd path stays the oracle (it is
-what a GPU and every other method run); tests/train/test_cpu_step.py checks values and gradients against
-it.
+19 ms step at 128 px on one thread; results/speed/README.md, 2026-12-05). Here the forward calls the kernels
+in order, keeps what the backward reads, and the backward calls their backwards in reverse with each
+upstream gradient in the layout the next kernel reads: the per-intersection gradients stay channel first
+from the rasterizer to the projection, the rendered depth and alpha are formed only where 2DGS's normal
+consistency reads them, and the parameters' gradients are written straight into ``.grad``. The autograd
+path stays the oracle (it is what a GPU and every other method run); tests/train/test_cpu_step.py checks
+values and gradients against it: the same bits.
 
 What it covers (`unsupported_reason` names what it does not): 3DGS and 2DGS on the compiled CPU backend
 (the render: `egobench.train.cpu_render`), float32 or float64, one exposure sample, poses the run does not
