@@ -96,12 +96,14 @@ def case_row(effect: str, seed: int, case: Path, times: dict) -> dict:
     expected = CASES[effect][1]
     altered = [int(k) for k in truth["effects"]["exposure_altered_frames"]]
     flagged = params.get("exposure_metadata", {}).get("flagged_frames", [])
+    other_first = bool(named) and named[0] != expected
+    contained = other_first and expected in _or_causes(d["named"][0])
     return {
         "effect": effect, "seed": seed, "named": " ".join(named), "first": named[0] if named else "",
         "expected_named": bool(expected) and expected in named,
         # a first name the hidden effect contains, with it as its "or" (time offset for a readout error), counts apart
-        "contained_first": bool(named) and named[0] != expected and expected in _or_causes(d["named"][0]),
-        "wrong_first": bool(named) and named[0] != expected and expected not in _or_causes(d["named"][0]),
+        "contained_first": other_first and contained,
+        "wrong_first": other_first and not contained,
         "geometric_named": bool(GEOMETRIC & set(named)),
         "readout_s_estimated": params.get("readout", {}).get("readout_s_estimated"),
         "time_offset_s": params.get("time_offset", {}).get("time_offset_error_s"),

@@ -77,7 +77,7 @@ def render_fwd(a: Activations, camera, poses: Tensor, ppi: Tensor | None, surfel
     """`render_cpu`'s (``surfels``: `render_cpu_2dgs`'s) forward: poses [K, 4, 4] camera-to-world, K pose
     samples gathered by ``ppi`` [H, W] (or one pose and None) -> `Rendered`."""
     H, W, dt = camera.height, camera.width, a.means.dtype
-    viewmats = cb.contiguous_numpy(world_to_camera(poses.to(torch.from_numpy(a.means[:0]).dtype)))
+    viewmats = cb.contiguous_numpy(world_to_camera(poses.to(a.scales_t.dtype)))
     I, N = viewmats.shape[0], a.means.shape[0]
     m2, dep, rad = np.empty((I, N, 2), dt), np.empty((I, N), dt), np.empty((I, N, 2), np.int32)
     view, splats = cb.view_args(viewmats, cb.camera_array(camera), W, H), ck.Splats(a.means, a.quats, a.scales)

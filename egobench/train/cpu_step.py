@@ -57,8 +57,7 @@ def requested_step() -> str:
     return value
 
 
-def unsupported_reason(spec: MethodSpec, backend: str, formation, learn_shading: bool,
-                       dtype: torch.dtype = torch.float32) -> str | None:
+def unsupported_reason(spec: MethodSpec, backend: str, formation, learn_shading: bool) -> str | None:
     """Why the compiled step cannot train this run (None: it can); the autograd path trains it then."""
     if backend != "cpu":
         return f"the rasterizer backend is {backend!r}, not the compiled CPU backend"
@@ -66,8 +65,6 @@ def unsupported_reason(spec: MethodSpec, backend: str, formation, learn_shading:
         return "the method optimises poses or averages exposure samples"
     if learn_shading:
         return "the run learns a lens shading"
-    if dtype not in (torch.float32, torch.float64):
-        return f"dtype {dtype}"
     if spec.formation and not _gamma_formation(formation):
         return "the formation is not the trainer's gamma exposure (exposure, vignette, no white balance)"
     return None
@@ -80,15 +77,54 @@ def _gamma_formation(formation) -> bool:
 
 
 @dataclass
+class RunInputs:
+    """What every compiled step of a run reads unchanged, prepared once (`run_inputs`): the valid mask as
+    rows [H, W * 3] in the parameters' dtype and as a map [H, W] (a view), its counts as the photometric loss
+    (valid pixels x 3) and the normal consistency (valid pixels, at least 1) divide by them, the loss's SSIM
+    weight and blur taps, the background [3], and for 2DGS the camera's rays [H, W, 3] and the regularisers'
+    weights and first iterations (`egobench.train.losses.twodgs_regularisers`'s schedule)."""
+
+    mask_rows: np.ndarray
+    mask: np.ndarray
+    n_mask: float
+    mask_count: float
+    ssim_lambda: float
+    taps: np.ndarray
+    background: np.ndarray
+    rays: np.ndarray | None = None
+    normal: tuple[float, int] = (0.0, 0)  # (weight, first iteration)
+    dist: tuple[float, int] = (0.0, 0)
+
+    def weights(self, it: int) -> tuple[float, float]:
+        """The normal consistency's and the distortion's weights at iteration ``it`` (0: off)."""
+        return tuple(w if w > 0 and it >= start else 0.0 for w, start in (self.normal, self.dist))
+
+
+def run_inputs(mask3: Tensor, n_mask: float, config: TrainConfig, camera, surfels: bool,
+               dtype: torch.dtype = torch.float32) -> RunInputs:
+    """`RunInputs` of a run: mask3 [H, W, 3] (0/1) and n_mask (its sum) as the trainer holds them."""
+    H, W, C = mask3.shape
+    if H < SSIM_WINDOW or W < SSIM_WINDOW:
+        raise ValueError(f"training images must be at least {SSIM_WINDOW}x{SSIM_WINDOW} for SSIM, got {W}x{H}")
+    mask = mask3[..., 0]
+    taps = gaussian_taps(SSIM_WINDOW, float(SSIM_SIGMA), dtype, torch.device("cpu")).numpy()
+    run = RunInputs(mask3.to(dtype).reshape(H, W * C).contiguous().numpy(), mask.numpy(), float(n_mask),
+                    float(mask.sum().clamp_min(1)), float(config.ssim_lambda), taps,
+                    torch.tensor(config.background, dtype=dtype).numpy())
+    if surfels:
+        run.rays = rays_of(camera)
+        run.normal = (float(config.normal_lambda), config.normal_start_iter)
+        run.dist = (float(config.dist_lambda), config.dist_start_iter)
+    return run
+
+
+@dataclass
 class FrameTarget:
-    """What one training frame is compared with, as the kernels read it: the captured image and the valid
-    mask as rows [H, W * 3] in the parameters' dtype, and the exposure scale k V per pixel [H * W]."""
+    """What one training frame is compared with, as the kernels read it: the captured image as rows
+    [H, W * 3] in the parameters' dtype and the exposure scale k V per pixel [H * W]."""
 
     gt_rows: np.ndarray
-    mask_rows: np.ndarray
     scale: np.ndarray
-    n_mask: float
-    ssim_lambda: float
 
 
 @dataclass
@@ -104,15 +140,12 @@ class StepOutput:
     render_bwd_s: float
 
 
-def frame_target(gt: Tensor, mask3: Tensor, k: Tensor, vignette: Tensor, n_mask: float, ssim_lambda: float,
-                 dtype: torch.dtype) -> FrameTarget:
-    """The kernels' view of a frame: gt [H, W, 3] in 0..1, mask3 [H, W, 3], k (0-d), vignette [H, W]."""
+def frame_target(gt: Tensor, k: Tensor, vignette: Tensor, dtype: torch.dtype) -> FrameTarget:
+    """The kernels' view of a frame: gt [H, W, 3] in 0..1, k (0-d), vignette [H, W]."""
     H, W, C = gt.shape
-    if H < SSIM_WINDOW or W < SSIM_WINDOW:
-        raise ValueError(f"training images must be at least {SSIM_WINDOW}x{SSIM_WINDOW} for SSIM, got {W}x{H}")
-    rows = [t.detach().to(dtype).reshape(H, W * C).contiguous().numpy() for t in (gt, mask3)]
+    rows = gt.detach().to(dtype).reshape(H, W * C).contiguous().numpy()
     scale = (k.to(dtype) * vignette.to(dtype)).reshape(H * W).contiguous().numpy()  # the formation's k x V
-    return FrameTarget(rows[0], rows[1], scale, float(n_mask), float(ssim_lambda))
+    return FrameTarget(rows, scale)
 
 
 @dataclass
@@ -149,36 +182,9 @@ def _formation_backward(f: _Formed, g_pred: np.ndarray) -> np.ndarray:
     return g_x
 
 
-def _taps(dtype: np.dtype) -> np.ndarray:
-    return gaussian_taps(SSIM_WINDOW, float(SSIM_SIGMA), torch.from_numpy(np.empty(0, dtype)).dtype,
-                         torch.device("cpu")).numpy()
-
-
-@dataclass
-class SurfelTerms:
-    """2DGS's regularisers at one step (`egobench.train.losses.twodgs_regularisers`): their weights (0: off
-    at this iteration) and what the normal consistency reads: the valid mask [H, W] (a view), its count
-    as the torch oracle divides by it, and the camera's rays [H, W, 3] float64."""
-
-    normal_lambda: float
-    dist_lambda: float
-    mask: np.ndarray
-    mask_count: float
-    rays: np.ndarray
-
-
-def surfel_terms(config: TrainConfig, it: int, mask3: Tensor, camera) -> SurfelTerms:
-    """The `SurfelTerms` of iteration ``it`` (mask3 [H, W, 3], the trainer's valid mask)."""
-    mask = mask3[..., 0]
-    on_n = config.normal_lambda > 0 and it >= config.normal_start_iter
-    on_d = config.dist_lambda > 0 and it >= config.dist_start_iter
-    return SurfelTerms(config.normal_lambda if on_n else 0.0, config.dist_lambda if on_d else 0.0,
-                       mask.numpy(), float(mask.sum().clamp_min(1)), rays_of(camera))
-
-
-def _normal_consistency(r: Rendered, terms: SurfelTerms, px: PixelGrads, tdt: torch.dtype) -> Tensor:
+def _normal_consistency(r: Rendered, run: RunInputs, weight: float, px: PixelGrads, tdt: torch.dtype) -> Tensor:
     """The normal consistency of the rendered depth (normalised by alpha, `ck.alpha_depth`) and normals,
-    weighted by ``terms.normal_lambda`` -> the weighted term; its gradients join ``px`` (the summed depth's
+    times ``weight`` -> the weighted term; its gradients join ``px`` (the summed depth's
     and the transmittance's through the alpha-depth backward, the normals')."""
     H, W = r.out_T.shape[1:]
     d, t = np.ascontiguousarray(r.out_feat[0, ..., ck.DEPTH_CH]).reshape(-1), r.out_T.reshape(-1)
@@ -186,33 +192,35 @@ def _normal_consistency(r: Rendered, terms: SurfelTerms, px: PixelGrads, tdt: to
     one, floor = t.dtype.type(1.0), t.dtype.type(cb.ALPHA_MIN)
     ck.alpha_depth(d, t, one, floor, alpha, depth)
     maps = RenderedMaps(depth.reshape(H, W), r.out_feat[0, ..., ck.DEPTH_CH + 1:ck.DEPTH_CH + 4],
-                        alpha.reshape(H, W), terms.mask)
-    value, inputs = nc_forward_arrays(maps, terms.rays, terms.mask_count)
-    g = float(torch.ones((), dtype=tdt) * terms.normal_lambda)  # autograd's upstream gradient: 1 x lambda
-    g_depth, g_normal = nc_backward_arrays(inputs, terms.rays, g, t.dtype, t.dtype)
+                        alpha.reshape(H, W), run.mask)
+    value, inputs = nc_forward_arrays(maps, run.rays, run.mask_count)
+    g = float(torch.ones((), dtype=tdt) * weight)  # autograd's upstream gradient: 1 x lambda
+    g_depth, g_normal = nc_backward_arrays(inputs, run.rays, g, t.dtype, t.dtype)
     g_sum, g_trans = np.empty_like(alpha), np.empty_like(alpha)
     ck.alpha_depth_grad(d, alpha, np.empty((0,), t.dtype), g_depth.reshape(-1), floor, g_sum, g_trans)
     px.depth, px.normal = g_sum.reshape(-1, 1), g_normal.reshape(-1, 3)
     px.T = g_trans.reshape(px.T.shape) + px.T if px.T.any() else g_trans.reshape(px.T.shape)
-    return terms.normal_lambda * torch.tensor(value, dtype=tdt)
+    return weight * torch.tensor(value, dtype=tdt)
 
 
-def _distortion(r: Rendered, terms: SurfelTerms, px: PixelGrads, tdt: torch.dtype) -> Tensor:
-    """The mean depth distortion weighted by ``terms.dist_lambda`` -> the weighted term; its gradient
+def _distortion(r: Rendered, weight: float, px: PixelGrads, tdt: torch.dtype) -> Tensor:
+    """The mean depth distortion times ``weight`` -> the weighted term; its gradient
     (lambda / pixels at every pixel, as autograd's mean backward computes it) into ``px.dist``."""
     dist = torch.from_numpy(r.out_feat)[..., -1][..., None]  # the autograd path's view of the distortion map
     P = r.out_T.size
-    px.dist = ((torch.ones((), dtype=tdt) * terms.dist_lambda).expand(P) / P).numpy()
-    return terms.dist_lambda * dist.mean()
+    px.dist = ((torch.ones((), dtype=tdt) * weight).expand(P) / P).numpy()
+    return weight * dist.mean()
 
 
-def _surfel_loss(loss: Tensor, r: Rendered, terms: SurfelTerms, px: PixelGrads) -> Tensor:
-    """The photometric ``loss`` plus 2DGS's regularisers, summed as `twodgs_regularisers` sums them."""
+def _surfel_loss(loss: Tensor, r: Rendered, run: RunInputs, it: int, px: PixelGrads) -> Tensor:
+    """The photometric ``loss`` plus 2DGS's regularisers at iteration ``it``, summed as `twodgs_regularisers`
+    sums them."""
     total = torch.zeros((), dtype=loss.dtype)
-    if terms.normal_lambda > 0:
-        total = total + _normal_consistency(r, terms, px, loss.dtype)
-    if terms.dist_lambda > 0:
-        total = total + _distortion(r, terms, px, loss.dtype)
+    normal, dist = run.weights(it)
+    if normal > 0:
+        total = total + _normal_consistency(r, run, normal, px, loss.dtype)
+    if dist > 0:
+        total = total + _distortion(r, dist, px, loss.dtype)
     return loss + total
 
 
@@ -225,30 +233,32 @@ def _pixel_grads(g_rgb: np.ndarray, out_T: np.ndarray, bg: np.ndarray) -> PixelG
 
 
 def frame_step(g: Gaussians, camera, poses: Tensor, ppi: Tensor | None, spec: MethodSpec, formation,
-               target: FrameTarget, background: Tensor, terms: SurfelTerms | None = None) -> StepOutput:
-    """One training frame through the compiled kernels: the loss, and every Gaussian parameter's gradient
-    written into its ``.grad`` (replacing any). poses [K, 4, 4] camera-to-world (K rolling-shutter samples
-    gathered by ``ppi`` [H, W], or one pose and ``ppi`` None); background [3] in scene colour; ``terms``:
-    2DGS's regularisers (2DGS only)."""
+               run: RunInputs, target: FrameTarget, it: int) -> StepOutput:
+    """One training frame at iteration ``it`` through the compiled kernels: the loss, and every Gaussian
+    parameter's gradient written into its ``.grad`` (replacing any). poses [K, 4, 4] camera-to-world (K
+    rolling-shutter samples gathered by ``ppi`` [H, W], or one pose and ``ppi`` None)."""
     surfels = spec.splat_mode == "2dgs"
+    if run.taps.dtype != cb.contiguous_numpy(g.means).dtype:
+        raise ValueError(f"frame_step: the run inputs are {run.taps.dtype}, the Gaussians {g.means.dtype}; "
+                         "build them with run_inputs(..., dtype=) of the parameters")
     kernel_build.ensure_built(g.means.dtype, spec.splat_mode)
     t0 = time.perf_counter()
     cb.set_threads()  # for every kernel below (`raster_setup` sets them again)
     a = activations(g)
     rendered = render_fwd(a, camera, poses, ppi, surfels)
     rgb = np.ascontiguousarray(rendered.out_feat[0, ..., :ck.DEPTH_CH])
-    bg = background.to(g.means.dtype).numpy()
+    bg = run.background
     if bg.any():  # rgb + T bg, as `composite_output`
         rgb += rendered.out_T[0, ..., None] * bg
     t_fwd = time.perf_counter() - t0
     formed = _form(rgb, spec, formation, target.scale)
     H, W = camera.height, camera.width
-    value, g_pred = _loss_and_grad(formed.pred.reshape(H, W * 3), target.gt_rows, target.mask_rows, 3,
-                                   target.n_mask, target.ssim_lambda, _taps(formed.pred.dtype))
+    value, g_pred = _loss_and_grad(formed.pred.reshape(H, W * 3), target.gt_rows, run.mask_rows, 3, run.n_mask,
+                                   run.ssim_lambda, run.taps)
     loss = torch.tensor(value, dtype=g.means.dtype)
     px = _pixel_grads(_formation_backward(formed, g_pred.reshape(-1, 3)), rendered.out_T, bg)
     if surfels:
-        loss = _surfel_loss(loss, rendered, terms, px)
+        loss = _surfel_loss(loss, rendered, run, it, px)
     t1 = time.perf_counter()
     carrier = torch.from_numpy(rendered.m2)  # its values are unread: densification reads its gradient
     carrier.grad = render_bwd(g, a, camera, rendered, px)

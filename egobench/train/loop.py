@@ -44,8 +44,8 @@ from egobench.model.predict import (
 from egobench.model.shading import KEY, radius2_of, shading
 from egobench.render import resolve_backend
 from egobench.render.finite import all_finite
-from egobench.train.checkpoint import checkpoint_matches, resumable_checkpoint, write_checkpoint
 from egobench.train import cpu_step
+from egobench.train.checkpoint import checkpoint_matches, resumable_checkpoint, write_checkpoint
 from egobench.train.config import TrainConfig
 from egobench.train.data import TrainingData, image_to_float, prepare_data
 from egobench.train.losses import twodgs_regularisers
@@ -89,12 +89,19 @@ class StepContext:
     row_time_ratio: Tensor  # [H, W] R(u): pixel-pose indices are built on the device
     shading_r2: Tensor | None = None  # [H, W] normalised r^2 of the learnable shading (learn_shading), else None
     pose_samples: PoseSampleCache = field(default_factory=PoseSampleCache)  # the frames' trajectory samples
-    compiled: bool = False  # each step is `cpu_step.frame_step` (else autograd through `render`)
+    compiled_inputs: cpu_step.RunInputs | None = None  # what `cpu_step.frame_step` reads every step, or None
+
+    @property
+    def compiled(self) -> bool:
+        """Each step is `cpu_step.frame_step` (else autograd through `render`)."""
+        return self.compiled_inputs is not None
 
 
-def step_context(data: TrainingData, config: TrainConfig, device: torch.device, step: str = "auto") -> StepContext:
+def step_context(data: TrainingData, config: TrainConfig, device: torch.device, step: str = "auto",
+                 dtype: torch.dtype = torch.float32) -> StepContext:
     """Move the maps to the device; a valid mask that is empty at the training resolution is a named error.
-    ``step``: "auto" takes the compiled step (`cpu_step`) where it applies, "autograd" never does."""
+    ``step``: "auto" takes the compiled step (`cpu_step`) where it applies, "autograd" never does; ``dtype``:
+    the Gaussian parameters' (what the compiled step's run inputs are held in)."""
     mask = data.maps.mask.to(device)[..., None].float()
     n_mask = float(mask.sum()) * 3
     mask3 = mask.expand(-1, -1, 3).contiguous()
@@ -103,11 +110,13 @@ def step_context(data: TrainingData, config: TrainConfig, device: torch.device, 
     formation = formation_model(data.spec)
     compiled = step == "auto" and cpu_step.unsupported_reason(
         data.spec, resolve_backend(config.backend, device), formation, config.learn_shading) is None
+    inputs = (cpu_step.run_inputs(mask3, n_mask, config, data.camera, data.spec.splat_mode == "2dgs", dtype)
+              if compiled else None)
     return StepContext(data=data, config=config, settings=RenderSettings.of(config, device),
                        formation=formation, mask3=mask3, n_mask=n_mask,
                        vignette=data.maps.vignette.to(device), k=data.k.to(device),
                        row_time_ratio=data.maps.row_time_ratio.to(device),
-                       shading_r2=_shading_r2(data, config, device), compiled=compiled)
+                       shading_r2=_shading_r2(data, config, device), compiled_inputs=inputs)
 
 
 def _shading_r2(data: TrainingData, config: TrainConfig, device: torch.device) -> Tensor | None:
@@ -195,15 +204,11 @@ def _autograd_step(state: TrainState, ctx: StepContext, it: int, fi: int) -> tup
 def _compiled_step(state: TrainState, ctx: StepContext, it: int, fi: int) -> tuple[Tensor, list, float, float]:
     """`_autograd_step`'s results from `cpu_step.frame_step` (no autograd graph)."""
     poses, ppi = _poses(state, ctx, it, fi)
-    data, config = ctx.data, ctx.config
-    dtype = state.params["means"].dtype
-    gt = image_to_float(data.images[fi])
-    target = cpu_step.frame_target(gt, ctx.mask3, ctx.k[fi], _vignette(state, ctx), ctx.n_mask, config.ssim_lambda,
-                                   dtype)
-    bg = torch.tensor(ctx.settings.background, dtype=dtype)
-    terms = cpu_step.surfel_terms(config, it, ctx.mask3, data.camera) if data.spec.splat_mode == "2dgs" else None
+    data = ctx.data
+    target = cpu_step.frame_target(image_to_float(data.images[fi]), ctx.k[fi], _vignette(state, ctx),
+                                   state.params["means"].dtype)
     out = cpu_step.frame_step(gaussians_from_params(state.params), data.camera, poses[0], ppi, data.spec,
-                              ctx.formation, target, bg, terms)
+                              ctx.formation, ctx.compiled_inputs, target, it)
     _check_finite(it, [("rendered rgb", out.rgb), ("loss", out.loss)])
     return out.loss, out.carriers, out.render_fwd_s, out.render_bwd_s
 

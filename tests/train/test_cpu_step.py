@@ -91,7 +91,7 @@ def test_a_step_agrees_with_the_torch_rasterizer(plane, method, it):
         state = new_state(data, config, torch.device("cpu"))
         for p in state.params.values():
             p.data = p.data.double()
-        ctx = loop.step_context(data, config, torch.device("cpu"))
+        ctx = loop.step_context(data, config, torch.device("cpu"), dtype=torch.float64)
         take = loop._compiled_step if ctx.compiled else loop._autograd_step
         loss, _, _, _ = take(state, ctx, it, state.next_frame())
         out[name] = (float(loss.detach()), {k: v.grad for k, v in state.params.items()}, ctx.compiled)
