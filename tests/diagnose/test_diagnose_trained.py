@@ -981,6 +981,34 @@ def test_wrong_records_in_runs_are_flagged_against_frames_at_the_fixed_record_be
     assert fixed_record_floor(a, b, record == 0) > math.log(1.25) and not recorded_glitch_flags(a, b, record).any()
 
 
+def test_a_wrong_record_absorbed_in_one_half_of_its_frames_is_flagged_from_the_whole_frame():
+    """A run absorbs a wrong record where the content was seen only in the altered frames, so the error can
+    show in one half of a frame alone. The flag reads the frame's whole scale against the whole scale's own
+    frame-to-frame floor, and needs one half to show at least GLITCH_FOLLOW of the departure: a change that
+    both halves follow part-way (a response error) is still no wrong record."""
+    from egobench.effects.exposure_metadata import GLITCH_FOLLOW, fixed_record_floor, recorded_glitch_flags
+
+    rng = np.random.default_rng(11)
+    wrong = [4, 5, 17, 29, 30, 41]
+    record = np.zeros(48)
+    record[wrong] = math.log(1.25)
+    err = rng.normal(0, 0.01, 48)  # the whole frame's error
+    lopsided = rng.normal(0, 0.06, 48)  # the halves disagree by more: part of a frame fitted worse
+    absorbed = np.isin(np.arange(48), wrong[::2])  # these frames' left halves absorbed the record entirely
+    a = err + lopsided - np.where(absorbed, 0.0, record)
+    b = err - lopsided - record
+    assert np.flatnonzero(recorded_glitch_flags(a, b, record)).tolist() == wrong
+    assert fixed_record_floor(a, b, record == 0) < 4 * 0.02  # from the whole scale, not a half's 0.06
+    # both halves follow the change part-way (slope -0.3 < GLITCH_FOLLOW; halves that disagree by 0.06 would
+    # let one of them reach it by chance, a limit of the one-half rule): not a wrong record
+    near = rng.normal(0, 0.01, 48)
+    assert GLITCH_FOLLOW > 0.3 and not recorded_glitch_flags(err + near - 0.3 * record, err - near - 0.3 * record,
+                                                              record).any()
+    # a whole frame that moves less than the run's own floor: nothing flagged
+    noisy = rng.normal(0, 0.1, 48)
+    assert not recorded_glitch_flags(noisy - 0.5 * record, noisy - 0.5 * record, record)[wrong].all()
+
+
 def _record_off(case, frames: list[int], error: float):
     """A metadata error on ``frames`` of a fixed-exposure case: their record is (1 + error) x the true
     one, and the model, which trusts it, renders them (1 + error) x brighter -> (predicted, context)."""
