@@ -23,7 +23,7 @@ from egobench.render.cpu_backend import set_threads
 
 
 class ExposureCurve(NamedTuple):
-    """What `_expose_fwd` computes: decode (bool: decode x before scaling), clamp (bool: clip the result to
+    """What `expose_fwd` computes: decode (bool: decode x before scaling), clamp (bool: clip the result to
     [0, 1]), and the toed gamma curve: gamma (float, the exponent), y0 (float, the display value where the toe
     ends), x0 (float, the linear value where it ends; y0 = x0 ** (1 / gamma))."""
 
@@ -35,7 +35,7 @@ class ExposureCurve(NamedTuple):
 
 
 class Exposed(NamedTuple):
-    """What `_expose_fwd` writes, each [P, 3] in x's dtype: out (the exposed colour), dx and ds (the partials
+    """What `expose_fwd` writes, each [P, 3] in x's dtype: out (the exposed colour), dx and ds (the partials
     of each output by its own x and by the pixel's s)."""
 
     out: np.ndarray
@@ -53,7 +53,7 @@ def _encode(z, gamma, x0, slope):
 
 
 @njit(cache=True, parallel=True)
-def _expose_fwd(x, s, r, curve, exposed):
+def expose_fwd(x, s, r, curve, exposed):
     """x [P, 3], s [P] (scale >= 0), curve (`ExposureCurve`) -> exposed (`Exposed`): out [P, 3] and the
     partials dx, ds [P, 3] of each output by its own x and by the pixel's s (zero where the clamp cuts). The
     toe: linear values below x0, display values below y0 = x0 ** (1 / gamma), on the line of slope y0 / x0.
@@ -88,7 +88,7 @@ def _expose_fwd(x, s, r, curve, exposed):
 
 
 @njit(cache=True, parallel=True)
-def _expose_bwd(g, dx, ds, g_x, g_s):
+def expose_bwd(g, dx, ds, g_x, g_s):
     """g [P, 3] -> g_x = g dx [P, 3], g_s [P] = sum over channels of g ds."""
     for p in prange(g.shape[0]):
         acc = 0.0
@@ -108,7 +108,7 @@ class _GammaExposeCPU(torch.autograd.Function):
         y0 = toe_linear ** (1.0 / gamma)
         out, dx, ds = (np.empty_like(x_np) for _ in range(3))
         set_threads()
-        _expose_fwd(x_np, s_np, r_np, ExposureCurve(decode, clamp, gamma, y0, toe_linear), Exposed(out, dx, ds))
+        expose_fwd(x_np, s_np, r_np, ExposureCurve(decode, clamp, gamma, y0, toe_linear), Exposed(out, dx, ds))
         ctx.partials, ctx.s_shape = (dx, ds), s.shape
         return torch.from_numpy(out).view(H, W, 3)
 
@@ -117,7 +117,7 @@ class _GammaExposeCPU(torch.autograd.Function):
         dx, ds = ctx.partials
         H, W, _ = g.shape
         g_x, g_s = np.empty_like(dx), np.empty(dx.shape[0], dtype=dx.dtype)
-        _expose_bwd(g.contiguous().view(H * W, 3).numpy(), dx, ds, g_x, g_s)
+        expose_bwd(g.contiguous().view(H * W, 3).numpy(), dx, ds, g_x, g_s)
         g_scale = None
         if ctx.needs_input_grad[1]:
             g_scale = torch.from_numpy(g_s).view(H, W, 1).sum_to_size(ctx.s_shape)

@@ -34,6 +34,7 @@ except Exception as _exc:  # ImportError (numba missing), llvmlite load failure
 else:
     _LOAD_ERROR = None
     from egobench.render import cpu_backend_2dgs  # it imports this module back (as `cb`)
+    from egobench.render.cpu import surfels as k2
 
 #: gsplat 1.5.3 projection constants (as torch_backend)
 EPS2D, NEAR_PLANE, FAR_PLANE = 0.3, 0.01, 1e10
@@ -169,6 +170,59 @@ def rows_hit_buffer(n_intersections: int, tile_size: int, cw: int) -> np.ndarray
     return np.zeros((n_intersections, tile_size // cw, 2), dtype=np.int16)
 
 
+@dataclass
+class Composited:
+    """What the compositing forward (`composite_fwd`) keeps for its backward: the table of the needed rows, the
+    summed features [Iout, H, W, C] (2DGS: the distortion last), the transmittance and last index [Iout, H, W],
+    the rows each intersection was composited into, and 2DGS's ray transforms [I, N, 9] (3DGS: None)."""
+
+    tab: np.ndarray
+    out_feat: np.ndarray
+    out_T: np.ndarray
+    out_last: np.ndarray
+    rows_hit: np.ndarray
+    tsl: np.ndarray | None = None
+
+
+def composite_fwd(st: RasterSetup, pix_view: np.ndarray, tile_size: int, m2: np.ndarray, log_opac: np.ndarray, *,
+                  conics: np.ndarray | None = None, radii: np.ndarray | None = None,
+                  tsl: np.ndarray | None = None) -> Composited:
+    """The compositing forward of 3DGS (``conics`` [I, N, 3], ``radii`` [I, N, 2]) or 2DGS (``tsl``): the table of
+    the rows some intersection reads, then front-to-back compositing. m2 [I, N, 2]: gsplat's pixels. The one
+    home of this kernel sequence: the autograd Functions and the compiled training step both call it."""
+    Iout, H, W = pix_view.shape
+    Cf = st.feats.shape[1]
+    out_feat = np.zeros((Iout, H, W, Cf + (1 if tsl is not None else 0)), dtype=m2.dtype)
+    out_T = np.zeros((Iout, H, W), dtype=m2.dtype)
+    out_last = np.zeros((Iout, H, W), dtype=np.int32)
+    rows_hit = rows_hit_buffer(st.flat_ids.shape[0], tile_size, st.cw)
+    set_threads()
+    tab = table_buffer(m2.shape[0] * m2.shape[1], m2.dtype)
+    tiles, composite = st.tiles(pix_view, tile_size), ck.Composite(out_feat, out_T, out_last)
+    if tsl is not None:
+        k2.surfel_table(m2, tsl, log_opac, st.needed, tab)
+        k2.raster_fwd_2dgs(ck.SurfelTables(tsl, tab, st.feats), tiles, st.constants(), composite, rows_hit)
+    else:
+        ck.gaussian_table(m2, conics, radii, log_opac, st.needed, tab)
+        ck.raster_fwd(ck.Tables(tab, st.feats), tiles, st.constants(), composite, rows_hit)
+    return Composited(tab, out_feat, out_T, out_last, rows_hit, tsl)
+
+
+def composite_bwd(c: Composited, st: RasterSetup, pix_view: np.ndarray, tile_size: int, g_state: np.ndarray,
+                  g_T: np.ndarray) -> np.ndarray:
+    """The compositing backward: per-pixel gradients g_state [Iout, H, W, n] (`pixel_grads`) and of the
+    transmittance g_T [Iout, H, W] -> per-intersection gradient rows [M, 6 + Cf] (2DGS: [M, 12 + Cf])."""
+    surfels = c.tsl is not None
+    isect = np.zeros((st.flat_ids.shape[0], (12 if surfels else 6) + st.feats.shape[1]), st.kc.dtype)
+    set_threads()
+    tiles, pixels = st.tiles(pix_view, tile_size), ck.BackwardPixels(c.out_T, c.out_last, g_state, g_T)
+    if surfels:
+        k2.raster_bwd_2dgs(ck.SurfelTables(c.tsl, c.tab, st.feats), tiles, st.constants(), pixels, isect, c.rows_hit)
+    else:
+        ck.raster_bwd(ck.Tables(c.tab, st.feats), tiles, st.constants(), pixels, isect, c.rows_hit)
+    return isect
+
+
 def reduce_intersections(isect: np.ndarray, flat_ids: np.ndarray, I: int, N: int, dt: torch.dtype,
                          absgrad_holder: list | None) -> Tensor:
     """Per-intersection gradient rows [M, C] -> per (image, Gaussian) sums [I, N, C] (intersection
@@ -272,37 +326,23 @@ class _Rasterize(torch.autograd.Function):
     def forward(ctx, means2d, conics, log_opac, colors, depths, normals, radii, pix_view, bin_needed, tile_size,
                 absgrad_target):
         I, N = depths.shape
-        Iout, H, W = pix_view.shape
         m2 = gsplat_pixels(means2d)
         st = raster_setup(m2, radii, depths, colors, normals, pix_view, bin_needed, tile_size)
-        Cf = st.feats.shape[1]
-        out_feat = np.zeros((Iout, H, W, Cf), dtype=m2.dtype)
-        out_T = np.zeros((Iout, H, W), dtype=m2.dtype)
-        out_last = np.zeros((Iout, H, W), dtype=np.int32)
-        set_threads()
-        tab = table_buffer(I * N, m2.dtype)
-        ck.gaussian_table(m2, contiguous_numpy(conics), contiguous_numpy(radii), contiguous_numpy(log_opac),
-                          st.needed, tab)
-        rows_hit = rows_hit_buffer(st.flat_ids.shape[0], tile_size, st.cw)
-        ck.raster_fwd(ck.Tables(tab, st.feats), st.tiles(pix_view, tile_size), st.constants(),
-                      ck.Composite(out_feat, out_T, out_last), rows_hit)
-        ctx.state = (tab, st, pix_view, tile_size, out_T, out_last, rows_hit, absgrad_target)
+        c = composite_fwd(st, pix_view, tile_size, m2, contiguous_numpy(log_opac), conics=contiguous_numpy(conics),
+                          radii=contiguous_numpy(radii))
+        ctx.state = (c, st, pix_view, tile_size, absgrad_target)
         ctx.has_normals = bool(normals.shape[1])
         ctx.shapes = (I, N, colors.dtype)
         ctx.set_materialize_grads(False)  # unused outputs: zeros written here, not allocated by autograd
-        return (*feature_outputs(out_feat), torch.from_numpy(out_T))
+        return (*feature_outputs(c.out_feat), torch.from_numpy(c.out_T))
 
     @staticmethod
     def backward(ctx, g_rgb, g_depth, g_normal, g_T):
-        tab, st, pix_view, ts, out_T, out_last, rows_hit, ab = ctx.state
+        c, st, pix_view, ts, ab = ctx.state
         I, N, dt = ctx.shapes
-        Cf = st.feats.shape[1]
-        gF = pixel_grads(Cf, out_T, g_rgb, g_depth, g_normal)
-        gT = np.zeros(out_T.shape, out_T.dtype) if g_T is None else contiguous_numpy(g_T)
-        isect = np.zeros((st.flat_ids.shape[0], 6 + Cf), st.kc.dtype)
-        set_threads()
-        ck.raster_bwd(ck.Tables(tab, st.feats), st.tiles(pix_view, ts), st.constants(),
-                      ck.BackwardPixels(out_T, out_last, gF, gT), isect, rows_hit)
+        gF = pixel_grads(st.feats.shape[1], c.out_T, g_rgb, g_depth, g_normal)
+        gT = np.zeros(c.out_T.shape, c.out_T.dtype) if g_T is None else contiguous_numpy(g_T)
+        isect = composite_bwd(c, st, pix_view, ts, gF, gT)
         per = reduce_intersections(isect, st.flat_ids, I, N, dt, ab)
         g_normals = per[..., 10:13] if ctx.has_normals else None
         return (per[..., 0:2], per[..., 2:5], per[..., 5].sum(0), pose_sums(per, 6, 9), per[..., 9],

@@ -77,48 +77,34 @@ class _Rasterize2DGS(torch.autograd.Function):
     def forward(ctx, means2d, tsl, log_opac, colors, depths, normals, radii, pix_view, bin_needed, tile_size,
                 absgrad_target, carrier):
         I, N = depths.shape
-        Iout, H, W = pix_view.shape
         m2 = cb.gsplat_pixels(means2d)
         st = cb.raster_setup(m2, radii, depths, colors, normals, pix_view, bin_needed, tile_size)
-        tsl_np, lo = cb.contiguous_numpy(tsl), cb.contiguous_numpy(log_opac)
-        Cf = st.feats.shape[1]
-        out_feat = np.zeros((Iout, H, W, Cf + 1), dtype=m2.dtype)  # + distortion
-        out_T = np.zeros((Iout, H, W), dtype=m2.dtype)
-        out_last = np.zeros((Iout, H, W), dtype=np.int32)
-        rows_hit = cb.rows_hit_buffer(st.flat_ids.shape[0], tile_size, st.cw)
-        cb.set_threads()
-        tab = cb.table_buffer(I * N, m2.dtype)
-        k2.surfel_table(m2, tsl_np, lo, st.needed, tab)
-        k2.raster_fwd_2dgs(ck.SurfelTables(tsl_np, tab, st.feats), st.tiles(pix_view, tile_size), st.constants(),
-                           ck.Composite(out_feat, out_T, out_last), rows_hit)
-        ctx.state = (tsl_np, tab, st, pix_view, tile_size, out_feat, out_T, out_last, rows_hit, absgrad_target)
+        c = cb.composite_fwd(st, pix_view, tile_size, m2, cb.contiguous_numpy(log_opac), tsl=cb.contiguous_numpy(tsl))
+        ctx.state = (c, st, pix_view, tile_size, absgrad_target)
         ctx.shapes = (I, N, colors.dtype)
         ctx.set_materialize_grads(False)  # unused outputs: zeros written here, not allocated by autograd
-        feat = torch.from_numpy(out_feat)
-        return (*cb.feature_outputs(out_feat[..., :Cf]), torch.from_numpy(out_T), feat[..., Cf])
+        Cf, feat = st.feats.shape[1], torch.from_numpy(c.out_feat)
+        return (*cb.feature_outputs(c.out_feat[..., :Cf]), torch.from_numpy(c.out_T), feat[..., Cf])
 
     @staticmethod
     def backward(ctx, g_rgb, g_depth, g_normal, g_T, g_dist):
-        tsl_np, tab, st, pix_view, ts, out_feat, out_T, out_last, rows_hit, ab = ctx.state
+        c, st, pix_view, ts, ab = ctx.state
         I, N, dt = ctx.shapes
         Cf = st.feats.shape[1]
-        g_state = cb.pixel_grads(Cf + 2, out_T, g_rgb, g_depth, g_normal, g_dist, out_feat)  # + 2 dL/d dist, depth
-        gT = np.zeros(out_T.shape, out_T.dtype) if g_T is None else cb.contiguous_numpy(g_T)
-        isect = np.zeros((st.flat_ids.shape[0], 12 + Cf), st.kc.dtype)
-        cb.set_threads()
-        k2.raster_bwd_2dgs(ck.SurfelTables(tsl_np, tab, st.feats), st.tiles(pix_view, ts), st.constants(),
-                           ck.BackwardPixels(out_T, out_last, g_state, gT), isect, rows_hit)
+        g_state = cb.pixel_grads(Cf + 2, c.out_T, g_rgb, g_depth, g_normal, g_dist, c.out_feat)  # + 2 dL/d dist, depth
+        gT = np.zeros(c.out_T.shape, c.out_T.dtype) if g_T is None else cb.contiguous_numpy(g_T)
+        isect = cb.composite_bwd(c, st, pix_view, ts, g_state, gT)
         per = cb.reduce_intersections(isect, st.flat_ids, I, N, dt, ab)
-        c = 12  # features: colour, depth, normal
+        f0 = 12  # the features' first channel: colour, depth, normal
         g_carrier = None
         if ctx.needs_input_grad[11]:  # gsplat's gradient_2dgs: (dL/dM[0, 2], dL/dM[1, 2]) * M[2, 2]
             # from rows 4 and 7 of the channel-first block, in the carrier's own layout (no copy by autograd)
             per_cf = per.permute(2, 0, 1).reshape(per.shape[2], I * N).numpy()
             carrier = np.empty((I, N, 2), per_cf.dtype)
-            k2.carrier_grad(per_cf[4], per_cf[7], tsl_np.reshape(I * N, 9), carrier.reshape(I * N, 2))
+            k2.carrier_grad(per_cf[4], per_cf[7], c.tsl.reshape(I * N, 9), carrier.reshape(I * N, 2))
             g_carrier = torch.from_numpy(carrier)
-        return (per[..., 0:2], per[..., 2:11], per[..., 11].sum(0), cb.pose_sums(per, c, c + 3), per[..., c + 3],
-                per[..., c + 4:c + 7], None, None, None, None, None, g_carrier)
+        return (per[..., 0:2], per[..., 2:11], per[..., 11].sum(0), cb.pose_sums(per, f0, f0 + 3), per[..., f0 + 3],
+                per[..., f0 + 4:f0 + 7], None, None, None, None, None, g_carrier)
 
 
 def render_cpu_2dgs(gaussians: Gaussians, camera: Pinhole, viewmats: Tensor, *, pixel_pose_index: Tensor | None,

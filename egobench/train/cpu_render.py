@@ -53,24 +53,20 @@ def activations(g: Gaussians) -> Activations:
 
 @dataclass
 class Rendered:
-    """What the forward keeps for the backward. ``out_feat`` [1, H, W, C]: the summed colour, depth (and
-    normal), 2DGS's distortion last; ``tsl`` [I, N, 9]: 2DGS's ray transforms (3DGS: None)."""
+    """What the forward keeps for the backward: the projection (m2 [I, N, 2] in gsplat's pixels, radii
+    [I, N, 2] int32), the binning, and the compositing (`cb.Composited`: ``out_feat`` [1, H, W, C], the summed
+    colour, depth (and normal), 2DGS's distortion last; ``tsl`` [I, N, 9], 2DGS's ray transforms)."""
 
     viewmats: np.ndarray
-    m2: np.ndarray  # [I, N, 2] projected centres, gsplat's pixels
-    radii: np.ndarray  # [I, N, 2] int32
+    m2: np.ndarray
+    radii: np.ndarray
     setup: cb.RasterSetup
-    tab: np.ndarray
     pix_view: np.ndarray
-    out_feat: np.ndarray
-    out_T: np.ndarray
-    out_last: np.ndarray
-    rows_hit: np.ndarray
-    tsl: np.ndarray | None = None
+    comp: cb.Composited
 
     @property
     def surfels(self) -> bool:
-        return self.tsl is not None
+        return self.comp.tsl is not None
 
 
 def render_fwd(a: Activations, camera, poses: Tensor, ppi: Tensor | None, surfels: bool) -> Rendered:
@@ -82,7 +78,7 @@ def render_fwd(a: Activations, camera, poses: Tensor, ppi: Tensor | None, surfel
     m2, dep, rad = np.empty((I, N, 2), dt), np.empty((I, N), dt), np.empty((I, N, 2), np.int32)
     view, splats = cb.view_args(viewmats, cb.camera_array(camera), W, H), ck.Splats(a.means, a.quats, a.scales)
     if surfels:
-        tsl, nrm = np.empty((I, N, 9), dt), np.empty((I, N, 3), dt)
+        tsl, nrm, con = np.empty((I, N, 9), dt), np.empty((I, N, 3), dt), None
         k2.project_fwd_2dgs(splats, view, ck.ProjectedSurfels(m2, tsl, dep, rad, nrm))
     else:
         tsl, nrm, con = None, np.zeros((I, 0, 3), dt), np.empty((I, N, 3), dt)
@@ -92,18 +88,8 @@ def render_fwd(a: Activations, camera, poses: Tensor, ppi: Tensor | None, surfel
     ts, from_np = cb.DEFAULT_TILE, torch.from_numpy
     pix_view, bin_needed = cb.pixel_views(ppi, I, H, W, ts)
     st = cb.raster_setup(m2, from_np(rad), from_np(dep), from_np(a.colors), from_np(nrm), pix_view, bin_needed, ts)
-    Cf = st.feats.shape[1]
-    out_feat = np.zeros((1, H, W, Cf + (1 if surfels else 0)), dt)
-    out_T, out_last = np.zeros((1, H, W), dt), np.zeros((1, H, W), np.int32)
-    tab, rows_hit = cb.table_buffer(I * N, dt), cb.rows_hit_buffer(st.flat_ids.shape[0], ts, st.cw)
-    tiles, composite = st.tiles(pix_view, ts), ck.Composite(out_feat, out_T, out_last)
-    if surfels:
-        k2.surfel_table(m2, tsl, a.log_opac, st.needed, tab)
-        k2.raster_fwd_2dgs(ck.SurfelTables(tsl, tab, st.feats), tiles, st.constants(), composite, rows_hit)
-    else:
-        ck.gaussian_table(m2, con, rad, a.log_opac, st.needed, tab)
-        ck.raster_fwd(ck.Tables(tab, st.feats), tiles, st.constants(), composite, rows_hit)
-    return Rendered(viewmats, m2, rad, st, tab, pix_view, out_feat, out_T, out_last, rows_hit, tsl)
+    comp = cb.composite_fwd(st, pix_view, ts, m2, a.log_opac, conics=con, radii=rad, tsl=tsl)
+    return Rendered(viewmats, m2, rad, st, pix_view, comp)
 
 
 @dataclass
@@ -121,20 +107,13 @@ class PixelGrads:
 
 def _isect_grads(r: Rendered, px: PixelGrads) -> np.ndarray:
     """The rasterizer's backward -> per (image, Gaussian) sums, channel first [C, I, N]."""
-    st, (I, N) = r.setup, r.m2.shape[:2]
-    dt, P = r.out_T.dtype, r.out_T.size
-    Cf = st.feats.shape[1]
-    n_in = Cf + 2 if r.surfels else Cf  # 2DGS: + 2 dL/d distortion and the forward's depth
+    st, c, (I, N) = r.setup, r.comp, r.m2.shape[:2]
+    dt, P = c.out_T.dtype, c.out_T.size
+    n_in = st.feats.shape[1] + (2 if r.surfels else 0)  # 2DGS: + 2 dL/d distortion and the forward's depth
     g_state = np.empty((P, n_in), dt)
-    fwd = r.out_feat.reshape(P, -1) if r.surfels else np.empty((0, 0), dt)
+    fwd = c.out_feat.reshape(P, -1) if r.surfels else np.empty((0, 0), dt)
     ck.pack_pixel_grads(g_state, px.rgb, px.depth, px.normal, px.dist, fwd)
-    isect = np.zeros((st.flat_ids.shape[0], (12 if r.surfels else 6) + Cf), st.kc.dtype)
-    tiles, pixels = st.tiles(r.pix_view, cb.DEFAULT_TILE), ck.BackwardPixels(r.out_T, r.out_last,
-                                                                             g_state.reshape(r.out_T.shape + (n_in,)), px.T)
-    if r.surfels:
-        k2.raster_bwd_2dgs(ck.SurfelTables(r.tsl, r.tab, st.feats), tiles, st.constants(), pixels, isect, r.rows_hit)
-    else:
-        ck.raster_bwd(ck.Tables(r.tab, st.feats), tiles, st.constants(), pixels, isect, r.rows_hit)
+    isect = cb.composite_bwd(c, st, r.pix_view, cb.DEFAULT_TILE, g_state.reshape(c.out_T.shape + (n_in,)), px.T)
     per = np.empty((isect.shape[1], I * N), dt)  # every entry written
     ck.reduce_isect_grad(isect, st.flat_ids, st.flat_ids.shape[0], per, np.zeros((0, 2)), numba.get_num_threads())
     return per.reshape(-1, I, N)
@@ -157,7 +136,7 @@ def render_bwd(g: Gaussians, a: Activations, camera, r: Rendered, px: PixelGrads
         k2.project_bwd_2dgs(wide, view, ck.ProjectedSurfelGrads(per[0:2], per[2:11], per[c + 3], per[c + 4:c + 7]),
                             grads)
         carrier = np.empty((I, N, 2), per.dtype)
-        k2.carrier_grad(per[4].reshape(-1), per[7].reshape(-1), r.tsl.reshape(I * N, 9), carrier.reshape(I * N, 2))
+        k2.carrier_grad(per[4].reshape(-1), per[7].reshape(-1), r.comp.tsl.reshape(I * N, 9), carrier.reshape(I * N, 2))
         g_carrier = torch.from_numpy(carrier)
     else:
         ck.project_bwd(wide, view, False, ck.ProjectedGrads(per[0:2], per[2:5], per[9], np.zeros((3, I, 0), per.dtype)),

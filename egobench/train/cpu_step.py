@@ -32,7 +32,7 @@ from torch import Tensor
 
 from egobench.metrics import SSIM_SIGMA, SSIM_WINDOW, gaussian_taps
 from egobench.model.formation import FormationModel, GammaResponse
-from egobench.model.gamma_exposure import Exposed, ExposureCurve, _expose_bwd, _expose_fwd
+from egobench.model.gamma_exposure import Exposed, ExposureCurve, expose_bwd, expose_fwd
 from egobench.model.methods import MethodSpec
 from egobench.render import cpu_backend as cb
 from egobench.render import kernel_build
@@ -41,7 +41,7 @@ from egobench.render.types import Gaussians
 from egobench.train.config import TrainConfig
 from egobench.train.cpu_render import PixelGrads, Rendered, activations, render_bwd, render_fwd
 from egobench.train.normal_consistency import RenderedMaps, nc_backward_arrays, nc_forward_arrays, rays_of
-from egobench.train.photometric import _loss_and_grad
+from egobench.train.photometric import loss_and_grad
 
 #: environment variable: "autograd" trains through torch's autograd even where the compiled step applies
 #: (the oracle, and the old path of a speed comparison); unset or "auto": the compiled step where it applies
@@ -169,7 +169,7 @@ def _form(rgb: np.ndarray, spec: MethodSpec, formation, scale: np.ndarray) -> _F
     curve = ExposureCurve(bool(spec.scene_gamma), bool(formation.config.clamp), float(resp.gamma),
                           float(resp.toe_linear) ** (1.0 / float(resp.gamma)), float(resp.toe_linear))
     out, dx, ds = (np.empty_like(x) for _ in range(3))
-    _expose_fwd(x, scale, np.empty_like(scale), curve, Exposed(out, dx, ds))
+    expose_fwd(x, scale, np.empty_like(scale), curve, Exposed(out, dx, ds))
     return _Formed(out, dx, ds)
 
 
@@ -178,7 +178,7 @@ def _formation_backward(f: _Formed, g_pred: np.ndarray) -> np.ndarray:
     if f.ds is None:
         return g_pred * f.dx
     g_x, g_s = np.empty_like(f.dx), np.empty(f.dx.shape[0], f.dx.dtype)
-    _expose_bwd(g_pred, f.dx, f.ds, g_x, g_s)
+    expose_bwd(g_pred, f.dx, f.ds, g_x, g_s)
     return g_x
 
 
@@ -186,12 +186,12 @@ def _normal_consistency(r: Rendered, run: RunInputs, weight: float, px: PixelGra
     """The normal consistency of the rendered depth (normalised by alpha, `ck.alpha_depth`) and normals,
     times ``weight`` -> the weighted term; its gradients join ``px`` (the summed depth's
     and the transmittance's through the alpha-depth backward, the normals')."""
-    H, W = r.out_T.shape[1:]
-    d, t = np.ascontiguousarray(r.out_feat[0, ..., ck.DEPTH_CH]).reshape(-1), r.out_T.reshape(-1)
+    H, W = r.comp.out_T.shape[1:]
+    d, t = np.ascontiguousarray(r.comp.out_feat[0, ..., ck.DEPTH_CH]).reshape(-1), r.comp.out_T.reshape(-1)
     alpha, depth = np.empty_like(t), np.empty_like(t)
     one, floor = t.dtype.type(1.0), t.dtype.type(cb.ALPHA_MIN)
     ck.alpha_depth(d, t, one, floor, alpha, depth)
-    maps = RenderedMaps(depth.reshape(H, W), r.out_feat[0, ..., ck.DEPTH_CH + 1:ck.DEPTH_CH + 4],
+    maps = RenderedMaps(depth.reshape(H, W), r.comp.out_feat[0, ..., ck.DEPTH_CH + 1:ck.DEPTH_CH + 4],
                         alpha.reshape(H, W), run.mask)
     value, inputs = nc_forward_arrays(maps, run.rays, run.mask_count)
     g = float(torch.ones((), dtype=tdt) * weight)  # autograd's upstream gradient: 1 x lambda
@@ -206,8 +206,8 @@ def _normal_consistency(r: Rendered, run: RunInputs, weight: float, px: PixelGra
 def _distortion(r: Rendered, weight: float, px: PixelGrads, tdt: torch.dtype) -> Tensor:
     """The mean depth distortion times ``weight`` -> the weighted term; its gradient
     (lambda / pixels at every pixel, as autograd's mean backward computes it) into ``px.dist``."""
-    dist = torch.from_numpy(r.out_feat)[..., -1][..., None]  # the autograd path's view of the distortion map
-    P = r.out_T.size
+    dist = torch.from_numpy(r.comp.out_feat)[..., -1][..., None]  # the autograd path's view of the distortion map
+    P = r.comp.out_T.size
     px.dist = ((torch.ones((), dtype=tdt) * weight).expand(P) / P).numpy()
     return weight * dist.mean()
 
@@ -246,17 +246,17 @@ def frame_step(g: Gaussians, camera, poses: Tensor, ppi: Tensor | None, spec: Me
     cb.set_threads()  # for every kernel below (`raster_setup` sets them again)
     a = activations(g)
     rendered = render_fwd(a, camera, poses, ppi, surfels)
-    rgb = np.ascontiguousarray(rendered.out_feat[0, ..., :ck.DEPTH_CH])
+    rgb = np.ascontiguousarray(rendered.comp.out_feat[0, ..., :ck.DEPTH_CH])
     bg = run.background
     if bg.any():  # rgb + T bg, as `composite_output`
-        rgb += rendered.out_T[0, ..., None] * bg
+        rgb += rendered.comp.out_T[0, ..., None] * bg
     t_fwd = time.perf_counter() - t0
     formed = _form(rgb, spec, formation, target.scale)
     H, W = camera.height, camera.width
-    value, g_pred = _loss_and_grad(formed.pred.reshape(H, W * 3), target.gt_rows, run.mask_rows, 3, run.n_mask,
+    value, g_pred = loss_and_grad(formed.pred.reshape(H, W * 3), target.gt_rows, run.mask_rows, 3, run.n_mask,
                                    run.ssim_lambda, run.taps)
     loss = torch.tensor(value, dtype=g.means.dtype)
-    px = _pixel_grads(_formation_backward(formed, g_pred.reshape(-1, 3)), rendered.out_T, bg)
+    px = _pixel_grads(_formation_backward(formed, g_pred.reshape(-1, 3)), rendered.comp.out_T, bg)
     if surfels:
         loss = _surfel_loss(loss, rendered, run, it, px)
     t1 = time.perf_counter()

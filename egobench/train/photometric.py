@@ -203,7 +203,7 @@ def _ssim_grad(rows_t, pred, gt, mask, taps, scale, grad):
             _add_ssim_grad(grad[r], scale, g[0], g[1], g[2], xy[0], xy[1], mask[r])
 
 
-def _loss_and_grad(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray, C: int, n_mask: float,
+def loss_and_grad(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray, C: int, n_mask: float,
                    ssim_lambda: float, taps: np.ndarray) -> tuple[float, np.ndarray]:
     """Rows [H, W*C] of pred, gt and the mask (one float dtype, the arithmetic's) -> (the loss, d loss /
     d pred [H, W*C])."""
@@ -230,7 +230,7 @@ class _PhotometricCPU(torch.autograd.Function):
                 for t in (pred, gt, mask3)]
         taps = gaussian_taps(SSIM_WINDOW, float(SSIM_SIGMA), pred.dtype, torch.device("cpu")).numpy()
         set_threads()
-        value, grad = _loss_and_grad(*rows, C, float(n_mask), float(ssim_lambda), taps)
+        value, grad = loss_and_grad(*rows, C, float(n_mask), float(ssim_lambda), taps)
         ctx.grad = torch.from_numpy(grad).reshape(H, W, C)
         return torch.tensor(value, dtype=pred.dtype)
 

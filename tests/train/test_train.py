@@ -276,7 +276,7 @@ def test_nan_guard_names_iteration_and_quantity(toy, tmp_path, monkeypatch, step
 
     def poisoned_compiled(*args, **kwargs):
         rendered = real_compiled(*args, **kwargs)
-        rendered.out_feat = poison(rendered.out_feat)
+        rendered.comp.out_feat = poison(rendered.comp.out_feat)
         return rendered
 
     real, real_compiled = R.render, cpu_step.render_fwd
