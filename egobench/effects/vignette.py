@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import scipy.stats as sps
 
 from egobench.effects.base import Effect
 from egobench.model.formation import radial_vignette
@@ -53,10 +54,10 @@ class VignetteCause(Cause):
         (`vignette_calibration`), then the model's coverage rule (`coverage_rule`)."""
         if not evidence.photometric_fit.testable:
             return []
-        p, info, _t = evidence.memo(_calibration_on)
+        p, info, t = evidence.memo(_calibration_on)
         record = PlaceboRecord(p, {"p_value_cells": OWN_P,
                                    "calibration": {"p_value_placebo": p, "render_blur_px": evidence.blur_px, **info}})
-        coverage_rule(record, result, evidence.data)
+        coverage_rule(record, result, evidence.data, t)
         return [record]
 
     def trained_standard_error(self, evidence):
@@ -83,11 +84,18 @@ def coverage_corner_deficit(render_alpha: np.ndarray, valid: np.ndarray, princip
     return float(1.0 - math.exp(coef[1] + coef[2]))
 
 
-def coverage_explains(corner_attenuation: float, deficit: float) -> bool:
+def coverage_explains(corner_attenuation: float, deficit: float, log_se: float = 0.0, df: int = 0) -> bool:
     """Whether a corner shading estimate says the renders are too dark at the corners (negative) by
     no more than the model's missing opacity there can darken them (over a black background:
-    measured / rendered up to 1 / (1 - deficit)): then a vignette cannot be told from it."""
-    return corner_attenuation < 0.0 and deficit > 0.0 and -corner_attenuation <= deficit / (1.0 - deficit)
+    measured / rendered up to 1 / (1 - deficit)), within the estimate's own uncertainty: its log corner
+    shading, log(1 - corner_attenuation), does not exceed -log(1 - deficit) by more than the one-sided 95 %
+    Student-t quantile on ``df`` degrees of freedom times ``log_se`` (its standard error across frames;
+    0: the bound alone). An estimate at the bound is as likely from the coverage as from a lens (measured:
+    a hard-sweep null at -0.046 against a deficit's -0.044, named; results/diagnosis/README.md, 2026-12-06)."""
+    if not (corner_attenuation < 0.0 and deficit > 0.0):
+        return False
+    margin = float(sps.t.ppf(0.95, df)) * log_se if log_se > 0 and df > 0 else 0.0
+    return math.log1p(-corner_attenuation) <= -math.log1p(-deficit) + margin
 
 
 
@@ -146,21 +154,23 @@ def _calibration_on(evidence: TrainedRunEvidence):
     return vignette_calibration(fit, cells, data.ctx, H, W, without=without)
 
 
-def coverage_rule(record: PlaceboRecord, r: CauseResult, data: ResidualData) -> None:
+def coverage_rule(record: PlaceboRecord, r: CauseResult, data: ResidualData, frame_test_=None) -> None:
     """On a trained run, a vignette estimate that says the renders are too dark at the corners, by no
-    more than the model's own coverage falls off there (`coverage_explains`), is not testable
-    (``record`` changed in place; the deficit is recorded in its calibration either way)."""
+    more than the model's own coverage falls off there within the estimate's uncertainty (`coverage_explains`;
+    ``frame_test_``: the corner shading's test across frames, whose se and df it reads; None: the bound
+    alone), is not testable (``record`` changed in place; the deficit is recorded in its calibration either way)."""
     alpha = data.ctx.render_alpha
     if alpha is None:
         return
     deficit = coverage_corner_deficit(alpha[data.frames], data.ctx.valid, data.ctx.principal_point)
     record.params["calibration"]["coverage_corner_deficit"] = deficit
     corner = float(r.params["corner_attenuation"])
-    if coverage_explains(corner, deficit):
+    se, df = (0.0, 0) if frame_test_ is None else (float(frame_test_.se), int(frame_test_.df))
+    if coverage_explains(corner, deficit, se, df):
         record.untestable, record.reason = True, (
             f"the model's coverage falls off toward the corners (render opacity {100 * deficit:.1f} % lower there "
             f"than at the centre), which darkens its renders there as much as the shading estimate "
-            f"({corner:+.3f}) says: a vignette cannot be told from it")
+            f"({corner:+.3f}) says, within its uncertainty: a vignette cannot be told from it")
 
 
 class Vignette(Effect):

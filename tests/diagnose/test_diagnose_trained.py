@@ -857,6 +857,25 @@ def test_renders_dark_at_the_corners_where_the_model_covers_less_are_not_a_vigne
     assert real.testable and named[:1] == ["vignette"]
 
 
+def test_the_coverage_bound_on_a_vignette_counts_the_estimates_own_uncertainty():
+    """A shading estimate just past what the model's missing opacity can darken (a hard-sweep null: -0.046
+    against a deficit's -0.044, named) is not told from the coverage when it is within its standard error's
+    one-sided 95 % Student-t quantile; far past it, or with no uncertainty given, the bound alone decides."""
+    import scipy.stats as sps
+
+    from egobench.effects.vignette import coverage_explains
+
+    deficit = 0.0425
+    bound = -math.log1p(-deficit)  # the coverage's largest darkening, log
+    just_past = -math.expm1(bound + 0.002)  # corner attenuation 0.002 past it in log
+    assert not coverage_explains(just_past, deficit)  # the bound alone
+    assert coverage_explains(just_past, deficit, log_se=0.012, df=41)
+    q = sps.t.ppf(0.95, 41)
+    assert coverage_explains(-math.expm1(bound + 0.999 * q * 0.012), deficit, 0.012, 41)
+    assert not coverage_explains(-math.expm1(bound + 1.001 * q * 0.012), deficit, 0.012, 41)
+    assert coverage_explains(-0.02, deficit) and not coverage_explains(0.05, deficit, 0.5, 41)  # a darkening lens: never
+
+
 def _few_views_map(F: int, H: int, W: int, principal_point) -> np.ndarray:
     """[F, H, W] training-view counts of a walk with head turns: 20 at the centre, fewer toward the
     corners, and fewer still at the turn's leading edge (left in even frames, right in odd ones)."""
