@@ -154,10 +154,10 @@ def _calibration_on(evidence: TrainedRunEvidence):
     return vignette_calibration(fit, cells, data.ctx, H, W, without=without)
 
 
-def coverage_rule(record: PlaceboRecord, r: CauseResult, data: ResidualData, frame_test_=None) -> None:
+def coverage_rule(record: PlaceboRecord, r: CauseResult, data: ResidualData, shading_test=None) -> None:
     """On a trained run, a vignette estimate that says the renders are too dark at the corners, by no
     more than the model's own coverage falls off there within the estimate's uncertainty (`coverage_explains`;
-    ``frame_test_``: the corner shading's test across frames, whose se and df it reads; None: the bound
+    ``shading_test``: the corner shading's test across frames, whose se and df it reads; None: the bound
     alone), is not testable (``record`` changed in place; the deficit is recorded in its calibration either way)."""
     alpha = data.ctx.render_alpha
     if alpha is None:
@@ -165,7 +165,7 @@ def coverage_rule(record: PlaceboRecord, r: CauseResult, data: ResidualData, fra
     deficit = coverage_corner_deficit(alpha[data.frames], data.ctx.valid, data.ctx.principal_point)
     record.params["calibration"]["coverage_corner_deficit"] = deficit
     corner = float(r.params["corner_attenuation"])
-    se, df = (0.0, 0) if frame_test_ is None else (float(frame_test_.se), int(frame_test_.df))
+    se, df = (0.0, 0) if shading_test is None else (float(shading_test.se), int(shading_test.df))
     if coverage_explains(corner, deficit, se, df):
         record.untestable, record.reason = True, (
             f"the model's coverage falls off toward the corners (render opacity {100 * deficit:.1f} % lower there "

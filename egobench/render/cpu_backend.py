@@ -223,16 +223,25 @@ def composite_bwd(c: Composited, st: RasterSetup, pix_view: np.ndarray, tile_siz
     return isect
 
 
-def reduce_intersections(isect: np.ndarray, flat_ids: np.ndarray, I: int, N: int, dt: torch.dtype,
-                         absgrad_holder: list | None) -> Tensor:
-    """Per-intersection gradient rows [M, C] -> per (image, Gaussian) sums [I, N, C] (intersection
-    order; a view of a channel-first [C, I, N] tensor); sets absgrad_holder[0].absgrad [I, N, 2] (sum
-    of |row[:2]|) when a holder is given."""
+def intersection_sums(isect: np.ndarray, flat_ids: np.ndarray, n_rows: int, dtype: np.dtype,
+                      absg: np.ndarray | None = None) -> np.ndarray:
+    """Per-intersection gradient rows [M, C] -> per (image x Gaussian) sums, channel first [C, n_rows] in
+    ``dtype`` (intersection order; zeros where no intersection); ``absg`` [n_rows, 2] (float64), when given,
+    gets the sums of |row[:2]| (gsplat's absgrad)."""
     import numba
 
-    absg = np.zeros((I * N if absgrad_holder is not None else 0, 2))
-    per = torch.empty((isect.shape[1], I * N), dtype=dt)  # every entry written (zeros where no intersection)
-    ck.reduce_isect_grad(isect, flat_ids, flat_ids.shape[0], per.numpy(), absg, numba.get_num_threads())
+    per = np.empty((isect.shape[1], n_rows), dtype)  # every entry written
+    ck.reduce_isect_grad(isect, flat_ids, flat_ids.shape[0], per, np.zeros((0, 2)) if absg is None else absg,
+                         numba.get_num_threads())
+    return per
+
+
+def reduce_intersections(isect: np.ndarray, flat_ids: np.ndarray, I: int, N: int, dt: torch.dtype,
+                         absgrad_holder: list | None) -> Tensor:
+    """`intersection_sums` as per (image, Gaussian) sums [I, N, C] (a view of the channel-first [C, I, N]
+    block); sets absgrad_holder[0].absgrad [I, N, 2] (sum of |row[:2]|) when a holder is given."""
+    absg = np.zeros((I * N, 2)) if absgrad_holder is not None else None
+    per = torch.from_numpy(intersection_sums(isect, flat_ids, I * N, torch.empty(0, dtype=dt).numpy().dtype, absg))
     if absgrad_holder is not None:  # gsplat's absgrad attribute
         absgrad_holder[0].absgrad = torch.from_numpy(absg).reshape(I, N, 2).to(dt)
     return per.reshape(isect.shape[1], I, N).permute(1, 2, 0)

@@ -99,12 +99,19 @@ class _Rasterize2DGS(torch.autograd.Function):
         g_carrier = None
         if ctx.needs_input_grad[11]:  # gsplat's gradient_2dgs: (dL/dM[0, 2], dL/dM[1, 2]) * M[2, 2]
             # from rows 4 and 7 of the channel-first block, in the carrier's own layout (no copy by autograd)
-            per_cf = per.permute(2, 0, 1).reshape(per.shape[2], I * N).numpy()
-            carrier = np.empty((I, N, 2), per_cf.dtype)
-            k2.carrier_grad(per_cf[4], per_cf[7], c.tsl.reshape(I * N, 9), carrier.reshape(I * N, 2))
-            g_carrier = torch.from_numpy(carrier)
+            g_carrier = torch.from_numpy(carrier_grad(per.permute(2, 0, 1).reshape(per.shape[2], I * N).numpy(), c.tsl))
         return (per[..., 0:2], per[..., 2:11], per[..., 11].sum(0), cb.pose_sums(per, f0, f0 + 3), per[..., f0 + 3],
                 per[..., f0 + 4:f0 + 7], None, None, None, None, None, g_carrier)
+
+
+def carrier_grad(per_cf: np.ndarray, tsl: np.ndarray) -> np.ndarray:
+    """gsplat's gradient_2dgs carrier [I, N, 2], (dL/dM[0, 2], dL/dM[1, 2]) M[2, 2], from the channel-first
+    intersection sums [C, I * N] (rows 4 and 7: the ray transforms' translation column) and the ray transforms
+    tsl [I, N, 9]."""
+    I, N = tsl.shape[:2]
+    carrier = np.empty((I, N, 2), per_cf.dtype)
+    k2.carrier_grad(per_cf[4], per_cf[7], tsl.reshape(I * N, 9), carrier.reshape(I * N, 2))
+    return carrier
 
 
 def render_cpu_2dgs(gaussians: Gaussians, camera: Pinhole, viewmats: Tensor, *, pixel_pose_index: Tensor | None,

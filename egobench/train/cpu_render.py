@@ -11,12 +11,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 import torch
 from torch import Tensor
 
 from egobench.render import cpu_backend as cb
+from egobench.render import cpu_backend_2dgs as cb2
 from egobench.render import world_to_camera
 from egobench.render.cpu_backend import ck
 from egobench.render.cpu import surfels as k2
@@ -114,9 +114,7 @@ def _isect_grads(r: Rendered, px: PixelGrads) -> np.ndarray:
     fwd = c.out_feat.reshape(P, -1) if r.surfels else np.empty((0, 0), dt)
     ck.pack_pixel_grads(g_state, px.rgb, px.depth, px.normal, px.dist, fwd)
     isect = cb.composite_bwd(c, st, r.pix_view, cb.DEFAULT_TILE, g_state.reshape(c.out_T.shape + (n_in,)), px.T)
-    per = np.empty((isect.shape[1], I * N), dt)  # every entry written
-    ck.reduce_isect_grad(isect, st.flat_ids, st.flat_ids.shape[0], per, np.zeros((0, 2)), numba.get_num_threads())
-    return per.reshape(-1, I, N)
+    return cb.intersection_sums(isect, st.flat_ids, I * N, dt).reshape(-1, I, N)
 
 
 def render_bwd(g: Gaussians, a: Activations, camera, r: Rendered, px: PixelGrads) -> Tensor:
@@ -135,9 +133,7 @@ def render_bwd(g: Gaussians, a: Activations, camera, r: Rendered, px: PixelGrads
     if r.surfels:
         k2.project_bwd_2dgs(wide, view, ck.ProjectedSurfelGrads(per[0:2], per[2:11], per[c + 3], per[c + 4:c + 7]),
                             grads)
-        carrier = np.empty((I, N, 2), per.dtype)
-        k2.carrier_grad(per[4].reshape(-1), per[7].reshape(-1), r.comp.tsl.reshape(I * N, 9), carrier.reshape(I * N, 2))
-        g_carrier = torch.from_numpy(carrier)
+        g_carrier = torch.from_numpy(cb2.carrier_grad(per.reshape(per.shape[0], I * N), r.comp.tsl))
     else:
         ck.project_bwd(wide, view, False, ck.ProjectedGrads(per[0:2], per[2:5], per[9], np.zeros((3, I, 0), per.dtype)),
                        grads)
