@@ -16,6 +16,7 @@ from egobench.data.reader import add_input_arguments, recording_from_args
 from egobench.diagnose.absorption import hidden_testable, load_retention
 from egobench.diagnose.core import DiagnosisConfig, diagnose_residuals
 from egobench.diagnose.extension import judge_shading, learned_shading_of, load_shading_null, run_setup
+from egobench.diagnose.lens_check import diagnose_trained_run
 from egobench.diagnose.report import write_report
 from egobench.diagnose.sources import ground_truth_source, run_source
 from egobench.diagnose.trained_sweep import PHOTOMETRIC, TrainedSweepConfig, extension_gain, run_trained_sweep
@@ -72,6 +73,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--retention", action="append", default=None, metavar="TRAINED_SWEEP_JSON",
                         help="with a run: scale the smallest testable sizes by how much of each effect training "
                              "retained in this trained-run sweep summary (repeatable; later files win)")
+    parser.add_argument("--lens-check", action="store_true",
+                        help="on a trained run, when a distortion is named, measure the run's retention of a lens of "
+                             "that size (the method trained once more, on the recording warped by the named k0 "
+                             "error, into OUT/lens_check) and call a lens testable only from a retention of 25 %% "
+                             "(egobench.diagnose.lens_check)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     add_input_arguments(parser)
 
@@ -158,7 +164,11 @@ def _diagnose_recording(args: argparse.Namespace, cfg: DiagnosisConfig, out: Pat
     if source == "run":  # the null includes the trained model's own error (egobench.diagnose.placebo, `Cause.trained_placebos`)
         cfg = replace(cfg, trained_run=True)
     extension = _shading_extension(args, rec, run_dir, src, out) if args.shading_null else None
-    d = diagnose_residuals(src.measured, src.predicted, src.context, cfg)
+    if source == "run" and args.lens_check:  # a named distortion against the run's retention of a lens
+        d = diagnose_trained_run(rec, run_dir, src, cfg, out / "lens_check", pose_samples=args.pose_samples,
+                                 progress=not args.no_progress)
+    else:
+        d = diagnose_residuals(src.measured, src.predicted, src.context, cfg)
     if args.retention:
         _add_hidden_testable(d, args.retention)
     extra = {"method": args.method, "source": src.description}

@@ -88,6 +88,17 @@ def signature_plot(path: Path, result: CauseResult) -> None:
     save_png(fig, path)
 
 
+def lens_check_lines(check: dict | None) -> list[str]:
+    """The lens check of a named distortion (`egobench.diagnose.lens_check`), one line, or none."""
+    if not check:
+        return []
+    kept = "not measurable" if check["retention"] is None else f"{100 * check['retention']:.0f} %"
+    return [f"- lens check of the named distortion: trained again on the recording warped by a k0 error of "
+            f"{check['injected_k0']:+.4f}, the run keeps {kept} of it (k0 {check['k0_run']:+.4f} on the run, "
+            f"{check['k0_warped']:+.4f} warped, {check['k0_retrained']:+.4f} retrained); a lens is "
+            f"{'testable' if check['testable'] else 'not testable'} on this run (from {100 * check['floor']:.0f} %)"]
+
+
 def model_error_markdown(me: dict, config) -> list[str]:
     """The trained-run section: how much of the residual is the model's own error, and what is testable."""
     lines = ["## Trained run: reconstruction error versus physics", "",
@@ -98,6 +109,7 @@ def model_error_markdown(me: dict, config) -> list[str]:
              f"{me['model_error_over_noise_db']:+.1f} dB relative to the noise; non-physical share of the held-out "
              f"residual {100 * me['non_physical_share']:.1f} %; share of the model error explained by the named causes "
              f"{100 * me['share_explained_by_named_causes']:.1f} %",
+             *lens_check_lines(me.get("lens_check")),
              f"- reconstruction error dominates: {'yes' if me['dominates'] else 'no'} ({me['rule']})",
              f"- naming rules on a trained run: placebo-calibrated p (exposure metadata: split-half frame-label "
              f"shuffles; response: per-frame scale vs permuted exposure metadata; vignette: frames as units and "

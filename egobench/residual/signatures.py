@@ -48,6 +48,7 @@ class DiagnosisContext:
     render_alpha: np.ndarray | None = None  # [F, H, W] a trained model's accumulated opacity (its coverage of each pixel); None: not a trained run
     train_view_count: np.ndarray | None = None  # [F, H, W] training frames whose image holds each pixel's rendered surface (`coverage.training_view_count`); None: not a trained run
     model_pose_samples: np.ndarray | None = None  # [F] rolling-shutter pose samples a trained model rendered each frame with in its training (its sampling rule; 1: no rolling shutter); None: not a trained run
+    lens_retention: float | None = None  # share of an injected lens error a trained run keeps in its residual (`egobench.diagnose.lens_check`; NaN: not measurable); None: not measured
     holdout_every: int = 8  # every n-th frame (by index) is held out for the gain measurement
     quantisation_level: float = LEVEL  # display step of the measured images (1/255 for 8-bit)
     meta: dict = field(default_factory=dict)  # free-form provenance (recording, source of the prediction)
