@@ -316,14 +316,17 @@ def contained_causes(name: str) -> set[str]:
     return set(CAUSES[name].nests) | {other for other, c in CAUSES.items() if name in c.nested_in}
 
 
-def _note_containing_causes(cause: NamedCause, results: list[CauseResult]) -> None:
-    """A named cause that a more general one contains (time offset in readout) is also explained by that one
-    when the container's extra term is not significant, or when the container cannot be tested on this run:
-    say so in the named cause's params ("or"). Measured: a readout 40 % longer than stated moves the centre
-    row half the difference later than the model's timing, and a run that renders one pose sample a frame
-    (its readout untestable) names that shift as a time offset (results/diagnosis/README.md, 2026-12-05,
-    the hard sweeps rerun)."""
+def _note_alternatives(cause: NamedCause, results: list[CauseResult], data: ResidualData) -> None:
+    """Causes that would explain a named cause's residual on this run, in its params ("or"):
+    - a more general cause that contains it (time offset in readout) when the container's extra term is not
+      significant, or the container cannot be tested on this run. Measured: a readout 40 % longer than stated
+      moves the centre row half the difference later than the model's timing, and a run that renders one pose
+      sample a frame (its readout untestable) names that shift as a time offset (results/diagnosis/README.md,
+      2026-12-05, the hard sweeps rerun);
+    - a cause that mimics it where its own test cannot tell them apart (`Cause.mimicry`: a response error at a
+      fixed exposure darkens the stated vignette by a power of it)."""
     alternatives = []
+    by_name = {r.name: r for r in results}
     for r in results:
         if cause.name not in contained_causes(r.name) or (r.testable and r.significant):
             continue
@@ -332,6 +335,14 @@ def _note_containing_causes(cause: NamedCause, results: list[CauseResult]) -> No
         alternatives.append({"cause": r.name, "p_adjusted": r.p_adjusted if r.testable else None,
                              "note": f"{r.name} contains {cause.name}; {why}, so {r.name} would explain the "
                                      "same residual"})
+    for name, other in CAUSES.items():
+        r = by_name.get(name)
+        if cause.name not in other.mimics or (r is not None and r.testable and r.significant):
+            continue
+        why = other.mimicry(data, cause.params)
+        if why is not None:
+            alternatives.append({"cause": name, "p_adjusted": None,
+                                 "note": f"{why}, so {name} would explain the same residual"})
     if alternatives:
         cause.params["or"] = alternatives
 
@@ -445,7 +456,7 @@ def diagnose_residuals(
         picked = _name_mean_cause(testable, rnd, measured, current, ctx, split, cfg, score)
         if picked is not None:
             cause, current = picked
-            _note_containing_causes(cause, results)
+            _note_alternatives(cause, results, data)
             named.append(cause)
             continue
         noise = _name_noise(testable, rnd, measured, current, ctx, split, cfg)

@@ -115,7 +115,7 @@ def _context(recording, frames, velocity, gamma: float, noise, lens_k, meta) -> 
         readout_s=readout, pixel_velocity_px_s=velocity, gamma_assumed=gamma,
         noise_shot=None if noise is None else gain / noise.full_well_e,
         noise_read=None if noise is None else (gain * noise.read_noise_e / noise.full_well_e) ** 2,
-        lens_radial_k=lens_k, meta=meta,
+        lens_radial_k=lens_k, stated_vignette=recording.vignette.numpy().astype(np.float64).reshape(H, W), meta=meta,
     )
 
 

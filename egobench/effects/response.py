@@ -12,12 +12,52 @@ from egobench.effects.exposure_metadata import GLITCH_FOLLOW, metadata_split_hal
 from egobench.residual.calibration import OWN_P, PlaceboRecord, TrainedRunEvidence, frame_test
 from egobench.residual.estimation import (Cause, CauseResult, PhotometricFit, ResidualData, binned_means, own_term,
                                           photometric_apply)
+from egobench.residual.signatures import radial_coordinates
+
+
+#: Smallest spread (std of log exposure x gain across frames) for the trained-run response test.
+MIN_LOG_EXPOSURE_SPREAD = 0.05
+#: A stated vignette whose log shading at the farthest corner lies above -this is flat (`ResponseCause.mimicry`).
+FLAT_STATED_LOG_SHADING = 0.01
+
+
+def stated_corner_log_shading(vignette: np.ndarray, valid: np.ndarray, centre: tuple[float, float]) -> float:
+    """The stated vignette's log shading at the farthest corner, from a least-squares b2 r^2 + b4 r^4 over the valid
+    pixels (r: radius over the farthest corner's, the basis of the vignette cause's corner attenuation)."""
+    H, W = vignette.shape
+    _, _, r = radial_coordinates(H, W, centre)
+    m = valid & (vignette > 0)
+    x = np.stack([r[m] ** 2, r[m] ** 4], axis=-1)
+    b, *_ = np.linalg.lstsq(x, np.log(vignette[m]), rcond=None)
+    return float(b[0] + b[1])
 
 
 class ResponseCause(Cause):
     """Camera response wrong: log measured-linear is a power of log predicted-linear."""
 
     name = "response"
+    mimics = ("vignette",)
+
+    def mimicry(self, data, params):
+        """At a fixed exposure a trained run's colours absorb a wrong response everywhere but where the stated
+        vignette v darkens the image: there its residual is a radial log shading c log v(r), c = gamma_assumed /
+        gamma - 1, which only exposure changes tell from a lens shading. Says so when the frames' exposure x gain
+        spread is below the response test's (`MIN_LOG_EXPOSURE_SPREAD`) and the gamma that gives the named corner
+        shading lies in the effect's plausible range (a flat stated vignette gives none)."""
+        ctx = data.ctx
+        spread = float(np.std(ctx.log_exposure_gain[data.frames]))
+        if spread >= MIN_LOG_EXPOSURE_SPREAD or ctx.stated_vignette is None or "corner_attenuation" not in params:
+            return None
+        log_v = stated_corner_log_shading(ctx.stated_vignette, ctx.valid, ctx.principal_point)
+        if not log_v < -FLAT_STATED_LOG_SHADING:
+            return None
+        c = math.log1p(-float(params["corner_attenuation"])) / log_v
+        gamma = ctx.gamma_assumed / (1.0 + c) if 1.0 + c > 0.0 else math.inf
+        lo, hi = RESPONSE.plausible_range
+        if not lo <= gamma <= hi:
+            return None
+        return (f"at a fixed exposure (exposure x gain varies by {spread:.3f}, std of log) a camera response of gamma "
+                f"{gamma:.2f} darkens the stated vignette (corner {math.exp(log_v):.2f}) by as much")
 
     def fit(self, data: ResidualData) -> CauseResult:
         fit = data.photometric()
@@ -76,8 +116,6 @@ class ResponseCause(Cause):
 # ------------------------------------------------------------------------------------------------
 # On a trained run (egobench.residual.calibration)
 
-#: Smallest spread (std of log exposure x gain across frames) for the trained-run response test.
-MIN_LOG_EXPOSURE_SPREAD = 0.05
 
 
 def response_from_exposure(fit: PhotometricFit, data: ResidualData, draws: int, rng: np.random.Generator,

@@ -334,6 +334,7 @@ class Cause:
     mean_affecting = True
     nests: tuple[str, ...] = ()  # causes whose model is a special case of this one's (ranking rule in core)
     nested_in: tuple[str, ...] = ()  # the converse, declared by the special case (a new effect's own file)
+    mimics: tuple[str, ...] = ()  # causes whose residual this one leaves where its own test cannot tell (`mimicry`)
     #: One parameter per frame (exposure metadata): it cannot generalise across frames, so a trained
     #: run scores its gain on every frame's own held-out pixels (`apply_within_frames`, core).
     frame_local = False
@@ -362,6 +363,12 @@ class Cause:
     def nothing_to_name(self, result: CauseResult) -> str | None:
         """Why a significant ``result`` changes nothing worth a name (None: it may be named if it gains;
         `egobench.diagnose.gain`). Exposure metadata that flags no frame corrects no record."""
+        return None
+
+    def mimicry(self, data: ResidualData, params: dict) -> str | None:
+        """Why, on this run, this cause would leave the residual that a cause of `mimics`, named with ``params``,
+        explains, while its own test cannot tell the two apart (None: it would not). The diagnosis carries it as
+        the named cause's "or" (`core._note_alternatives`)."""
         return None
 
     def untestable_on_trained_run(self, data: ResidualData) -> str | None:

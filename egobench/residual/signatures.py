@@ -48,6 +48,7 @@ class DiagnosisContext:
     render_alpha: np.ndarray | None = None  # [F, H, W] a trained model's accumulated opacity (its coverage of each pixel); None: not a trained run
     train_view_count: np.ndarray | None = None  # [F, H, W] training frames whose image holds each pixel's rendered surface (`coverage.training_view_count`); None: not a trained run
     model_pose_samples: np.ndarray | None = None  # [F] rolling-shutter pose samples a trained model rendered each frame with in its training (its sampling rule; 1: no rolling shutter); None: not a trained run
+    stated_vignette: np.ndarray | None = None  # [H, W] the lens shading the prediction applies (the recording's stated vignette, linear); None: unknown
     lens_retention: float | None = None  # share of an injected lens error a trained run keeps in its residual (`egobench.diagnose.lens_check`; NaN: not measurable); None: not measured
     holdout_every: int = 8  # every n-th frame (by index) is held out for the gain measurement
     quantisation_level: float = LEVEL  # display step of the measured images (1/255 for 8-bit)
@@ -76,6 +77,8 @@ class DiagnosisContext:
             self.render_alpha = shape("render_alpha", (n_frames, height, width)).astype(np.float32)
         if self.train_view_count is not None:
             self.train_view_count = shape("train_view_count", (n_frames, height, width)).astype(np.float32)
+        if self.stated_vignette is not None:
+            self.stated_vignette = shape("stated_vignette", (height, width)).astype(np.float64)
         if self.model_pose_samples is not None:
             self.model_pose_samples = shape("model_pose_samples", (n_frames,)).astype(np.int64)
         if self.noise_reference is not None:

@@ -536,23 +536,23 @@ def test_a_weaker_cause_is_not_named_when_the_strongest_does_not_generalise(monk
 def test_a_contained_cause_is_named_with_its_container_and_scored_apart_from_wrong_names():
     """Time offset named while readout (which contains it) is not significant: the name carries
     readout as its "or"; the sweep counts that apart from a wrong name."""
-    from egobench.diagnose.core import NamedCause, _note_containing_causes
+    from egobench.diagnose.core import NamedCause, _note_alternatives
     from egobench.diagnose.trained_sweep import _row
     from egobench.residual.estimation import CauseResult
 
     def named(readout_significant):
         c = NamedCause("time_offset", 1, 1e-8, 0.006, {"time_offset_error_s": -0.0029}, 0.25)
-        _note_containing_causes(c, [CauseResult("readout", "geometric", True, p_adjusted=0.07,
-                                                significant=readout_significant),
-                                    CauseResult("vignette", "photometric", True, p_adjusted=0.5)])
+        _note_alternatives(c, [CauseResult("readout", "geometric", True, p_adjusted=0.07,
+                                           significant=readout_significant),
+                               CauseResult("vignette", "photometric", True, p_adjusted=0.5)], None)
         return c
 
     assert [a["cause"] for a in named(False).params["or"]] == ["readout"]
     assert "or" not in named(True).params
     # a container that cannot be tested on the run cannot be excluded either: it is an "or" too
     untested = NamedCause("time_offset", 1, 1e-3, 0.004, {"time_offset_error_s": 0.0008}, 0.04)
-    _note_containing_causes(untested, [CauseResult("readout", "geometric", False, reason="one pose sample a frame"),
-                                       CauseResult("distortion", "geometric", False, reason="no points")])
+    _note_alternatives(untested, [CauseResult("readout", "geometric", False, reason="one pose sample a frame"),
+                                  CauseResult("distortion", "geometric", False, reason="no points")], None)
     (alt,) = untested.params["or"]
     assert alt["cause"] == "readout" and alt["p_adjusted"] is None and "one pose sample a frame" in alt["note"]
 
@@ -568,6 +568,53 @@ def test_a_contained_cause_is_named_with_its_container_and_scored_apart_from_wro
     assert r["wrong_name"] and not r["contained_name"]
     r = row("readout", untested)
     assert r["contained_name"] and not r["wrong_name"]
+
+
+def _fixed_exposure_data(log_exposure_gain, stated_vignette, size=40):
+    from types import SimpleNamespace
+
+    ctx = SimpleNamespace(log_exposure_gain=np.asarray(log_exposure_gain, dtype=float), stated_vignette=stated_vignette,
+                          valid=np.ones((size, size), bool), principal_point=((size - 1) / 2, (size - 1) / 2),
+                          gamma_assumed=2.2)
+    return SimpleNamespace(ctx=ctx, frames=np.arange(len(log_exposure_gain)))
+
+
+def test_a_stated_vignettes_corner_shading_is_its_radial_fit_at_the_farthest_corner():
+    from egobench.effects.response import stated_corner_log_shading
+    from egobench.residual.signatures import radial_coordinates
+
+    _, _, r = radial_coordinates(40, 40, (19.5, 19.5))
+    v = np.exp(-0.3 * r**2 - 0.12 * r**4)
+    valid = r < 0.9  # the farthest corner itself outside the valid pixels: extrapolated by the fit
+    assert stated_corner_log_shading(v, valid, (19.5, 19.5)) == pytest.approx(-0.42, abs=1e-9)
+
+
+def test_a_vignette_named_at_a_fixed_exposure_carries_the_response_that_gives_it():
+    """A wrong response at a fixed exposure leaves c log v(r) of the stated vignette v, c = 2.2 / gamma - 1: a
+    vignette named with that corner shading carries "or response" at that gamma; not where the exposure varies,
+    the stated vignette is flat, the implied gamma is implausible, or the response was significant itself."""
+    from egobench.diagnose.core import NamedCause, _note_alternatives
+    from egobench.residual.estimation import CauseResult
+    from egobench.residual.signatures import radial_coordinates
+
+    _, _, r = radial_coordinates(40, 40, (19.5, 19.5))
+    stated = np.exp(-0.25 * r**2)
+    gamma = 2.6
+    corner = 1.0 - np.exp(-0.25 * (2.2 / gamma - 1.0))  # the named shading, from the corner's log v = -0.25
+
+    def alternatives(data, corner=corner, response=None):
+        c = NamedCause("vignette", 1, 1e-4, 0.01, {"corner_attenuation": float(corner)}, 0.2)
+        _note_alternatives(c, [response or CauseResult("response", "photometric", True, p_adjusted=1.0)], data)
+        return c.params.get("or", [])
+
+    fixed = _fixed_exposure_data(np.full(12, -6.0), stated)
+    (alt,) = alternatives(fixed)
+    assert alt["cause"] == "response" and alt["p_adjusted"] is None and f"gamma {gamma:.2f}" in alt["note"]
+    assert alternatives(_fixed_exposure_data(np.linspace(-6.3, -5.7, 12), stated)) == []  # exposure changes tell
+    assert alternatives(_fixed_exposure_data(np.full(12, -6.0), np.ones((40, 40)))) == []  # a flat stated vignette
+    assert alternatives(fixed, corner=0.6) == []  # c = log(0.4) / -0.25 = 3.7: gamma 0.47, outside 1.6-2.8
+    significant = CauseResult("response", "photometric", True, p_adjusted=1e-4, significant=True)
+    assert alternatives(fixed, response=significant) == []
 
 
 def test_retention_is_the_round_one_estimate_over_the_truth_as_deviations_from_nominal():
