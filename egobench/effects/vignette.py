@@ -51,13 +51,15 @@ class VignetteCause(Cause):
 
     def trained_placebos(self, result, evidence):
         """On a trained run: the corner shading tested across frames and against wrong centres
-        (`vignette_calibration`), then the model's coverage rule (`coverage_rule`)."""
+        (`vignette_calibration`), then the model's coverage rule (`coverage_rule`) and the lens's profile
+        (`profile_rule`)."""
         if not evidence.photometric_fit.testable:
             return []
-        p, info, t = evidence.memo(_calibration_on)
+        p, info, t, slopes = evidence.memo(_calibration_on)
         record = PlaceboRecord(p, {"p_value_cells": OWN_P,
                                    "calibration": {"p_value_placebo": p, "render_blur_px": evidence.blur_px, **info}})
         coverage_rule(record, result, evidence.data, t)
+        profile_rule(record, *slopes)
         return [record]
 
     def trained_standard_error(self, evidence):
@@ -114,17 +116,19 @@ def vignette_placebo(fit: PhotometricFit, cells: Cells, ctx, height: int, width:
     r2, r4 = radial_terms(cells, (cx, cy), height, width)
     est, var = per_frame_photometric(fit, cells, r2, r4, views) if frame_estimates is None else frame_estimates
     true = frame_test(est[:, 2], var[:, 2])
+    slopes = (frame_test(est[:, 4], var[:, 4]), frame_test(est[:, 5], var[:, 5]))
     rss_true = radial_rss(fit, cells, r2, r4, views)
     rss_placebo = [radial_rss(fit, cells, *radial_terms(cells, (cx + ox * width, cy + oy * height), height, width), views)
                    for ox, oy in PLACEBO_CENTRE_OFFSETS]
     exceed = int(sum(r <= rss_true for r in rss_placebo))
     placebo_p = (1 + exceed) / (1 + len(rss_placebo))
-    return {"frame_test": true, "rss_true": rss_true, "rss_placebo": rss_placebo, "placebo_exceed": exceed,
+    return {"frame_test": true, "slope_tests": slopes, "rss_true": rss_true, "rss_placebo": rss_placebo, "placebo_exceed": exceed,
             "placebo_p": placebo_p, "p": max(true.p_value, placebo_p if exceed else 0.0), "est": est, "var": var}
 
 
 def vignette_calibration(fit: PhotometricFit, cells: Cells, ctx, height: int, width: int, without: dict):
-    """The vignette's calibrated p on a trained run -> (p, info, the frame test behind p); ``without``:
+    """The vignette's calibrated p on a trained run -> (p, info, the frame test behind p, the frame tests of the
+    same fit's slopes at the centre and at the corner, `profile_rule`'s); ``without``:
     `vignette_placebo` of the same fit without the counts (computed once by the caller). With
     training-view counts that vary (`PhotometricFit.log_views`), the shading must pass
     `vignette_placebo` both with and without them as a nuisance (p: the larger):
@@ -139,15 +143,16 @@ def vignette_calibration(fit: PhotometricFit, cells: Cells, ctx, height: int, wi
     t = runs[worst]["frame_test"]
     info = {"frame_t": t.t, "frame_df": t.df, "frame_p": t.p_value,
             "placebo_centre_rss_ratio": [r / runs[worst]["rss_true"] for r in runs[worst]["rss_placebo"]],
-            "placebo_exceed": runs[worst]["placebo_exceed"]}
+            "placebo_exceed": runs[worst]["placebo_exceed"],
+            "slope_centre_t": runs[worst]["slope_tests"][0].t, "slope_corner_t": runs[worst]["slope_tests"][1].t}
     if fit.log_views is not None:
         info["p_with_view_counts"], info["p_without_view_counts"] = runs[True]["p"], runs[False]["p"]
-    return runs[worst]["p"], info, t
+    return runs[worst]["p"], info, t, runs[worst]["slope_tests"]
 
 
 
 def _calibration_on(evidence: TrainedRunEvidence):
-    """`vignette_calibration` of a trained run's evidence -> (p, info, frame test)."""
+    """`vignette_calibration` of a trained run's evidence -> (p, info, frame test, slope tests)."""
     data, fit, cells = evidence.data, evidence.photometric_fit, evidence.cells
     H, W = data.m.shape[1:3]
     without = vignette_placebo(fit, cells, data.ctx, H, W, views=False, frame_estimates=evidence.frame_estimates)
@@ -171,6 +176,26 @@ def coverage_rule(record: PlaceboRecord, r: CauseResult, data: ResidualData, sha
             f"the model's coverage falls off toward the corners (render opacity {100 * deficit:.1f} % lower there "
             f"than at the centre), which darkens its renders there as much as the shading estimate "
             f"({corner:+.3f}) says, within its uncertainty: a vignette cannot be told from it")
+
+
+def profile_rule(record: PlaceboRecord, centre, corner) -> None:
+    """On a trained run, a radial shading that changes direction is not testable as a vignette (``record``
+    changed in place). A lens's shading error is monotone in the radius: a lens darker than stated darkens the
+    image from the centre to the corner, one lighter than stated brightens it. Log shading a2 r^2 + a4 r^4 has
+    the slope a2 in r^2 at the centre and a2 + 2 a4 at the corner; ``centre`` and ``corner`` are their
+    `FrameTest`s across frames. Where both differ from zero with opposite signs, each beyond its one-sided 95 %
+    Student-t quantile (an intersection-union test at 5 %), the shading is what training left, of a lens it
+    absorbed or of its own error, which cannot be told apart (measured: results/diagnosis/README.md,
+    2026-12-06, the shading's profile)."""
+    if record.untestable or not all(x.se > 0 and x.df > 0 for x in (centre, corner)):
+        return
+    q = [float(sps.t.ppf(0.95, x.df)) for x in (centre, corner)]
+    if (centre.t > q[0] and corner.t < -q[1]) or (centre.t < -q[0] and corner.t > q[1]):
+        record.untestable, record.reason = True, (
+            f"the residual shading changes direction between the centre and the corner (slope in r^2 "
+            f"{centre.mean:+.3f} at the centre, t {centre.t:.1f}; {corner.mean:+.3f} at the corner, t {corner.t:.1f}): "
+            "a lens's shading error is monotone in the radius, so this is what training left, of a lens or of its "
+            "own error, and the two cannot be told apart")
 
 
 class Vignette(Effect):

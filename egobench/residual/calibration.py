@@ -100,17 +100,20 @@ def per_frame_photometric(fit: PhotometricFit, cells: Cells, r2: np.ndarray, r4:
                           ) -> tuple[np.ndarray, np.ndarray]:
     """Per-frame weighted fits of the cell log ratios on [1, R, B, r^2, r^4, log m (centred),
     nuisance columns (`_nuisance`)]
-    -> (estimates [f, 4]: log R gain, log B gain, corner log shading a2 + a4, slope c' on log m;
-    variances [f, 4] from each frame's own residual scatter; NaN where a frame has too few cells)."""
+    -> (estimates [f, 6]: log R gain, log B gain, corner log shading a2 + a4, slope c' on log m, and the
+    shading's slopes in r^2 at the centre, a2, and at the corner, a2 + 2 a4; variances [f, 6] from each frame's
+    own residual scatter; NaN where a frame has too few cells)."""
     keep = fit.keep
     X = np.stack([np.ones(fit.n_cells), (fit.cidx == 0).astype(float), (fit.cidx == 2).astype(float),
                   r2, r4, log_measured(fit)] + _nuisance(fit, views), axis=1)
-    L = np.zeros((4, X.shape[1]))
+    L = np.zeros((6, X.shape[1]))
     L[0, 1] = L[1, 2] = 1.0
     L[2, 3] = L[2, 4] = 1.0
     L[3, 5] = 1.0
-    est = np.full((fit.n_frames, 4), np.nan)
-    var = np.full((fit.n_frames, 4), np.nan)
+    L[4, 3] = 1.0
+    L[5, 3], L[5, 4] = 1.0, 2.0
+    est = np.full((fit.n_frames, 6), np.nan)
+    var = np.full((fit.n_frames, 6), np.nan)
     for f in range(fit.n_frames):  # one small solve per frame
         sel = keep & (cells.frame == f)
         if sel.sum() < 24:
@@ -336,7 +339,7 @@ class TrainedRunEvidence:
 
     @property
     def frame_estimates(self) -> tuple[np.ndarray, np.ndarray]:
-        """`per_frame_photometric` about the principal point without view counts: (estimates [f, 4], variances)."""
+        """`per_frame_photometric` about the principal point without view counts: (estimates [f, 6], variances)."""
         return self.memo(_frame_estimates)
 
     def rng(self, stream: int) -> np.random.Generator:

@@ -1112,3 +1112,64 @@ def test_a_frame_that_brightens_at_an_unchanged_fixed_record_is_not_a_wrong_reco
         em = next(r for r in d.rounds[0] if r.name == "exposure_metadata")
         assert em.params["calibration"]["frames_off_at_an_unchanged_fixed_record"] == [13]
         assert em.params["flagged_frames"] == [] and not em.significant and d.named == []
+
+
+def _shaded(predicted: np.ndarray, ctx, a2: float, a4: float, seed: int) -> np.ndarray:
+    """A trained model's render (`model_error`) whose residual carries the log shading a2 r^2 + a4 r^4 (linear):
+    the render is darkened by its inverse, in display units."""
+    from egobench.residual.signatures import radial_coordinates
+
+    H, W = predicted.shape[1:3]
+    _, _, r = radial_coordinates(H, W, ctx.principal_point)
+    log_s = a2 * r**2 + a4 * r**4
+    return np.clip(model_error(predicted, seed, amp=0.02) * np.exp(-log_s / 2.2)[None, :, :, None], 0, 1).astype(np.float32)
+
+
+def test_the_per_frame_fit_reads_the_shadings_slopes_at_the_centre_and_the_corner():
+    from egobench.residual.calibration import per_frame_photometric, radial_terms
+
+    case = make_case(None, seed=4)
+    _, fit, cells = _photometric_fit(case.measured, _shaded(case.predicted, case.context, 0.3, -0.35, 4), case.context)
+    est, var = per_frame_photometric(fit, cells, *radial_terms(cells, case.context.principal_point, 48, 48))
+    ok = np.isfinite(est[:, 4])
+    assert ok.sum() >= 12 and np.all(var[ok, 4:] > 0)
+    assert np.median(est[ok, 4]) == pytest.approx(0.3, abs=0.06)  # the slope in r^2 at the centre, a2
+    assert np.median(est[ok, 5]) == pytest.approx(-0.4, abs=0.1)  # ... at the corner, a2 + 2 a4
+    assert np.median(est[ok, 2]) == pytest.approx(-0.05, abs=0.03)  # the corner, a2 + a4
+
+
+def test_a_shading_that_changes_direction_is_not_a_vignette_on_a_trained_run():
+    """A lens's shading error is monotone in the radius. A residual that brightens mid-field and darkens only at
+    the corner (seen on a hard-sweep null named vignette at +0.058) is not testable as a vignette on a trained run;
+    a shading that falls all the way is named, and one that rises all the way stays testable (a lens lighter
+    than stated); the rule is an intersection-union test of the two slopes at the one-sided 95 % t quantile."""
+    import scipy.stats as sps
+
+    from egobench.effects.vignette import profile_rule
+    from egobench.residual.calibration import PlaceboRecord
+    from egobench.residual.signatures import FrameTest
+
+    null = make_case(None, seed=5)
+
+    def vignette(a2, a4):
+        d = diagnose_residuals(null.measured, _shaded(null.predicted, null.context, a2, a4, 5), null.context, TRAINED)
+        return next(x for x in d.rounds[0] if x.name == "vignette"), [n.name for n in d.named]
+
+    ring, named = vignette(0.35, -0.45)  # corner log shading -0.10, brighter mid-field
+    assert not ring.testable and "changes direction" in ring.reason and named == []
+    cal = ring.params["calibration"]
+    assert cal["slope_centre_t"] > 3 and cal["slope_corner_t"] < -3
+    falling, named = vignette(-0.2, -0.1)  # falling all the way (corner -0.30)
+    assert falling.testable and named[:1] == ["vignette"] and falling.params["calibration"]["slope_centre_t"] < 0
+    rising, _ = vignette(0.15, 0.05)  # rising all the way: a lens lighter than stated
+    assert "changes direction" not in rising.reason
+    q = float(sps.t.ppf(0.95, 40))
+
+    def untestable(t_centre, t_corner):
+        record = PlaceboRecord(0.001, {"calibration": {}})
+        profile_rule(record, FrameTest(0.1 * t_centre, 0.1, t_centre, 40, 0.0),
+                     FrameTest(0.1 * t_corner, 0.1, t_corner, 40, 0.0))
+        return record.untestable
+
+    assert untestable(1.001 * q, -1.001 * q) and untestable(-1.001 * q, 1.001 * q)
+    assert not untestable(0.999 * q, -5.0) and not untestable(5.0, -0.999 * q) and not untestable(5.0, 5.0)

@@ -118,7 +118,7 @@ def test_evidence_properties_are_computed_once(monkeypatch):
     assert ev.photometric_fit is fit and ev.blur_px in BLUR_SIGMAS_PX and len(calls) == 1
     assert ev.cells is ev.cells and ev.derangements is ev.derangements
     est, var = ev.frame_estimates
-    assert est.shape == (FRAMES, 4) and var.shape == (FRAMES, 4) and ev.frame_estimates[0] is est
+    assert est.shape == (FRAMES, 6) and var.shape == (FRAMES, 6) and ev.frame_estimates[0] is est
     assert len(calls) == 1
 
 
