@@ -16,7 +16,7 @@ the run when the retention reaches `LENS_RETENTION_FLOOR` (`DistortionCause.unte
 The check costs one more training, so it runs only when asked (`egobench diagnose --lens-check`) and the diagnosis
 names a distortion (`diagnose_trained_run`), injecting the error it named; the diagnosis then runs again with the
 retention in its context. Measured on the writer's null runs that name a distortion at 64 px and 800 iterations,
-the run keeps 32-105 % of a lens of the named size: the check does not remove those names (results/diagnosis/
+the run keeps 31-83 % of a lens of the named size: the check does not remove those names (results/diagnosis/
 README.md, "2026-12-06: a run's retention of a lens, measured on the run").
 """
 
@@ -103,7 +103,8 @@ def measure_lens_retention(recording_dir: str | Path, run_dir: str | Path, src: 
         train(LensWarpedRecording.of(recording, injected_k0, displacement), run.spec.name, run.config, retrained,
               resume="auto", progress=progress)
     warped = np.stack([warped_display(m, injected_k0, displacement) for m in src.measured])
-    predicted = run_source(recording_dir, retrained, max_frames=F, progress=progress, pose_samples=pose_samples).predicted
+    predicted = run_source(recording_dir, retrained, max_frames=F, progress=progress,
+                           pose_samples=pose_samples).predicted
     k_run = distortion_estimate(src.measured, src.predicted, ctx, border_px)
     k_warped = distortion_estimate(warped, src.predicted, ctx, border_px)
     k_retrained = distortion_estimate(warped, predicted, ctx, border_px)

@@ -122,8 +122,9 @@ def vignette_placebo(fit: PhotometricFit, cells: Cells, ctx, height: int, width:
                    for ox, oy in PLACEBO_CENTRE_OFFSETS]
     exceed = int(sum(r <= rss_true for r in rss_placebo))
     placebo_p = (1 + exceed) / (1 + len(rss_placebo))
-    return {"frame_test": true, "slope_tests": slopes, "rss_true": rss_true, "rss_placebo": rss_placebo, "placebo_exceed": exceed,
-            "placebo_p": placebo_p, "p": max(true.p_value, placebo_p if exceed else 0.0), "est": est, "var": var}
+    return {"frame_test": true, "slope_tests": slopes, "rss_true": rss_true, "rss_placebo": rss_placebo,
+            "placebo_exceed": exceed, "placebo_p": placebo_p, "p": max(true.p_value, placebo_p if exceed else 0.0),
+            "est": est, "var": var}
 
 
 def vignette_calibration(fit: PhotometricFit, cells: Cells, ctx, height: int, width: int, without: dict):

@@ -1122,7 +1122,8 @@ def _shaded(predicted: np.ndarray, ctx, a2: float, a4: float, seed: int) -> np.n
     H, W = predicted.shape[1:3]
     _, _, r = radial_coordinates(H, W, ctx.principal_point)
     log_s = a2 * r**2 + a4 * r**4
-    return np.clip(model_error(predicted, seed, amp=0.02) * np.exp(-log_s / 2.2)[None, :, :, None], 0, 1).astype(np.float32)
+    shaded = model_error(predicted, seed, amp=0.02) * np.exp(-log_s / 2.2)[None, :, :, None]
+    return np.clip(shaded, 0, 1).astype(np.float32)
 
 
 def test_the_per_frame_fit_reads_the_shadings_slopes_at_the_centre_and_the_corner():

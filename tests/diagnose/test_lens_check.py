@@ -90,7 +90,8 @@ def test_the_lens_check_trains_the_runs_method_config_and_seed_on_the_warped_fra
     src = run_source(rec, run, progress=False)
     check = measure_lens_retention(rec, run, src, 0.04, tmp_path / "check", border_px=2)
     mine, theirs = (json.loads((p / "train.json").read_text()) for p in (tmp_path / "check" / "run", run))
-    assert {k: mine[k] for k in ("method", "seed", "config_hash")} == {k: theirs[k] for k in ("method", "seed", "config_hash")}
+    keys = ("method", "seed", "config_hash")
+    assert {k: mine[k] for k in keys} == {k: theirs[k] for k in keys}
     assert check["k0_run"] == distortion_estimate(src.measured, src.predicted, src.context, 2)
     d = unit_displacement(src.context, *src.measured.shape[1:3])
     warped = np.stack([warped_display(m, 0.04, d) for m in src.measured])
