@@ -458,6 +458,7 @@ def diagnose_residuals(
             cause, current = picked
             _note_alternatives(cause, results, data)
             named.append(cause)
+            ctx = CAUSES[cause.name].corrected_context(ctx, cause.params)  # e.g. the records it corrected
             continue
         noise = _name_noise(testable, rnd, measured, current, ctx, split, cfg)
         if noise is not None:

@@ -365,6 +365,11 @@ class Cause:
         `egobench.diagnose.gain`). Exposure metadata that flags no frame corrects no record."""
         return None
 
+    def corrected_context(self, ctx: DiagnosisContext, params: dict) -> DiagnosisContext:
+        """The context the rounds after this cause, named with ``params``, read (default: unchanged): a cause that
+        says a recorded quantity is wrong corrects it there, as the prediction peeled carries its correction."""
+        return ctx
+
     def mimicry(self, data: ResidualData, params: dict) -> str | None:
         """Why, on this run, this cause would leave the residual that a cause of `mimics`, named with ``params``,
         explains, while its own test cannot tell the two apart (None: it would not). The diagnosis carries it as

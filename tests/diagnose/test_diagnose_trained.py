@@ -1174,3 +1174,28 @@ def test_a_shading_that_changes_direction_is_not_a_vignette_on_a_trained_run():
 
     assert untestable(1.001 * q, -1.001 * q) and untestable(-1.001 * q, 1.001 * q)
     assert not untestable(0.999 * q, -5.0) and not untestable(5.0, -0.999 * q) and not untestable(5.0, 5.0)
+
+
+def test_the_rounds_after_exposure_metadata_read_the_records_it_corrected():
+    """At a fixed record, wrong records on a few frames: once exposure metadata is named, the response test of the
+    next round reads the corrected records (no exposure spread left: not testable through exposure changes), not
+    the wrong ones as exposure changes; the caller's context is left as it was. The correction itself: each
+    flagged frame's exposure times its scale over the median scale of the frames not flagged."""
+    import dataclasses
+
+    from egobench.diagnose.estimators import CAUSES
+
+    case = make_case("exposure_metadata", 0.25, seed=1, fixed_exposure=True)
+    before = case.context.exposure_s.copy()
+    d = diagnose_residuals(case.measured, model_error(case.predicted, 1, amp=0.02), case.context, TRAINED)
+    assert d.named[0].name == "exposure_metadata" and len(d.rounds) > 1
+    response = next(r for r in d.rounds[1] if r.name == "response")
+    assert response.params["calibration"]["log_exposure_spread"] < 0.05 < float(np.std(np.log(before)))
+    np.testing.assert_array_equal(case.context.exposure_s, before)
+    ctx = dataclasses.replace(case.context, frame_index=np.arange(10, 26), exposure_s=np.full(16, 1e-3))
+    params = {"flagged_frames": [12, 20], "frame_scale": {10 + i: 1.02 for i in range(16)} | {12: 1.275, 20: 0.765}}
+    fixed = CAUSES["exposure_metadata"].corrected_context(ctx, params)
+    expected = np.full(16, 1e-3)
+    expected[2], expected[10] = 1e-3 * 1.25, 1e-3 * 0.75
+    np.testing.assert_allclose(fixed.exposure_s, expected, rtol=1e-12)
+    assert CAUSES["exposure_metadata"].corrected_context(ctx, {"flagged_frames": []}) is ctx
