@@ -161,6 +161,19 @@ def record_departures(recorded_log: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return dx, np.abs(dx) <= FIXED_RECORD_LOG
 
 
+def fixed_record_doubt(recorded_log: np.ndarray, shown_wrong: list[int]) -> np.ndarray:
+    """Frames [n] whose record is in doubt once the positions ``shown_wrong`` are shown wrong: at a fixed record
+    (`record_is_fixed`) every other departure from the fixed value, as a fixed exposure setting has no reason to
+    depart; an exposure that varies, or nothing shown wrong: none. A later test reads the fixed value there, so
+    no exposure change rests on a record of the kind already shown wrong."""
+    dx, at_fixed = record_departures(recorded_log)
+    doubt = np.zeros(dx.size, dtype=bool)
+    if shown_wrong and record_is_fixed(recorded_log):
+        doubt = ~at_fixed
+        doubt[list(shown_wrong)] = False
+    return doubt
+
+
 def record_is_fixed(recorded_log: np.ndarray) -> bool:
     """Whether a record of log exposure x gain [n] is fixed: at least FIXED_RECORD_SHARE of the
     frames record its median (within FIXED_RECORD_LOG)."""
@@ -208,7 +221,10 @@ class ExposureMetadataCause(Cause):
         scale of the frames not flagged (`frame_scale`: measured over predicted). Without it a later round's
         response test read the wrong records as exposure changes (a spread of 0.095 at a fixed record) and
         named a response after the records on 3 of 12 fresh hard-sweep cases and 2 of 10 of the writer's
-        (results/diagnosis/README.md, 2026-12-06, the corrected records)."""
+        (results/diagnosis/README.md, 2026-12-06, the corrected records). At a fixed record (`record_is_fixed`) the
+        departures it did not flag are in doubt too, once some are shown wrong (a run absorbs part of a wrong record,
+        so the test flags some of them: 5 of 12 on a writer's case, whose 7 others then named a response):
+        `fixed_record_doubt` reads the record's fixed value there."""
         flagged = {int(f) for f in params.get("flagged_frames") or []}
         scale = {int(f): float(v) for f, v in (params.get("frame_scale") or {}).items()}
         rest = [math.log(v) for f, v in scale.items() if f not in flagged and v > 0]
@@ -220,6 +236,8 @@ class ExposureMetadataCause(Cause):
         for f in flagged:
             if f in where and scale.get(f, 0.0) > 0:
                 exposure[where[f]] *= math.exp(math.log(scale[f]) - reference)
+        doubt = fixed_record_doubt(ctx.log_exposure_gain, [where[f] for f in flagged if f in where])
+        exposure[doubt] = np.exp(float(np.median(ctx.log_exposure_gain))) / np.asarray(ctx.gain, float)[doubt]
         return dc_replace(ctx, exposure_s=exposure)
 
     def fit(self, data: ResidualData) -> CauseResult:

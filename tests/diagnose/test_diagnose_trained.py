@@ -1181,10 +1181,6 @@ def test_the_rounds_after_exposure_metadata_read_the_records_it_corrected():
     next round reads the corrected records (no exposure spread left: not testable through exposure changes), not
     the wrong ones as exposure changes; the caller's context is left as it was. The correction itself: each
     flagged frame's exposure times its scale over the median scale of the frames not flagged."""
-    import dataclasses
-
-    from egobench.diagnose.estimators import CAUSES
-
     case = make_case("exposure_metadata", 0.25, seed=1, fixed_exposure=True)
     before = case.context.exposure_s.copy()
     d = diagnose_residuals(case.measured, model_error(case.predicted, 1, amp=0.02), case.context, TRAINED)
@@ -1199,3 +1195,23 @@ def test_the_rounds_after_exposure_metadata_read_the_records_it_corrected():
     expected[2], expected[10] = 1e-3 * 1.25, 1e-3 * 0.75
     np.testing.assert_allclose(fixed.exposure_s, expected, rtol=1e-12)
     assert CAUSES["exposure_metadata"].corrected_context(ctx, {"flagged_frames": []}) is ctx
+
+
+def test_at_a_fixed_record_the_departures_not_flagged_read_the_fixed_value_once_some_are_shown_wrong():
+    """A fixed record of 1 ms with three departures, two of them flagged: the third, not flagged, reads 1 ms in
+    the rounds after (a response test cannot rest on it); the flagged ones are corrected by their scale. A record
+    that varies keeps its unflagged frames as recorded."""
+    cause = CAUSES["exposure_metadata"]
+    exposure = np.full(16, 1e-3)
+    exposure[[2, 5, 10]] = 1.25e-3, 0.75e-3, 0.75e-3
+    ctx = dataclasses.replace(make_case(None, seed=1, fixed_exposure=True).context,
+                              frame_index=np.arange(10, 26), exposure_s=exposure, gain=np.full(16, 2.0))
+    params = {"flagged_frames": [12, 20], "frame_scale": {10 + i: 1.0 for i in range(16)} | {12: 0.8, 20: 4 / 3}}
+    fixed = cause.corrected_context(ctx, params)
+    np.testing.assert_allclose(fixed.exposure_s, np.full(16, 1e-3), rtol=1e-12)
+    varying = dataclasses.replace(ctx, exposure_s=np.geomspace(1e-3, 4e-3, 16))
+    after = cause.corrected_context(varying, params)
+    keep = np.ones(16, bool)
+    keep[[2, 10]] = False
+    np.testing.assert_array_equal(after.exposure_s[keep], varying.exposure_s[keep])
+    np.testing.assert_allclose(after.exposure_s[[2, 10]], varying.exposure_s[[2, 10]] * np.array([0.8, 4 / 3]), rtol=1e-12)
