@@ -123,16 +123,24 @@ def _child_command(dtype_name: str, mode: str) -> list[str]:
     return [sys.executable, "-m", "egobench.render.kernel_build", "--dtype", dtype_name, "--mode", mode]
 
 
-def _build_in_child(dtype_name: str, mode: str) -> str:
-    """Runs the build in a child (this process's egobench first on its path) -> "child", or "failed" after
-    a warning with the child's error output (the kernels then compile in this process)."""
-    print(f"egobench: compiling the CPU rasterizer's {mode} kernels for {dtype_name} in a child process "
-          "(once per machine and version; about a minute)", file=sys.stderr, flush=True)
+def run_child(command: list[str]) -> subprocess.CompletedProcess:
+    """Runs ``command`` (`_child_command`) with this process's egobench first on the child's path: as
+    PYTHONPATH, and as the working folder, since ``python -m`` puts the working folder before PYTHONPATH. A
+    child started in another checkout's folder built that checkout's kernels into its own cache, so this
+    process found no marker and compiled in-process (other bits, slower; measured 2026-12-06)."""
     package_root = str(Path(__file__).resolve().parents[2])
     path = os.pathsep.join([package_root] + [p for p in [os.environ.get("PYTHONPATH")] if p])
     env = dict(os.environ, PYTHONPATH=path, OMP_NUM_THREADS="1", **{BUILD_ENV: "in-process"})
+    return subprocess.run(command, env=env, cwd=package_root, capture_output=True, text=True)
+
+
+def _build_in_child(dtype_name: str, mode: str) -> str:
+    """Runs the build in a child (`run_child`) -> "child", or "failed" after a warning with the child's error
+    output (the kernels then compile in this process)."""
+    print(f"egobench: compiling the CPU rasterizer's {mode} kernels for {dtype_name} in a child process "
+          "(once per machine and version; about a minute)", file=sys.stderr, flush=True)
     start = time.perf_counter()
-    done = subprocess.run(_child_command(dtype_name, mode), env=env, capture_output=True, text=True)
+    done = run_child(_child_command(dtype_name, mode))
     if done.returncode != 0:
         print(f"egobench: the kernel build in a child failed (exit {done.returncode}); compiling in this process, "
               "whose kernels then differ from the cached ones in the last bits and run the 3DGS compositing ~4x "

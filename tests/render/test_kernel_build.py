@@ -7,6 +7,7 @@ from __future__ import annotations
 import sys
 import threading
 import time
+from pathlib import Path
 
 import torch
 
@@ -100,3 +101,15 @@ def test_an_unwritable_lock_folder_builds_without_the_lock(tmp_path):
     with kernel_build._locked(tmp_path / "a-file" / "egobench-build-3dgs-float32.lock"):  # its folder is a file
         ran.append(True)
     assert ran == [True]
+
+
+def test_the_child_imports_this_processs_egobench_from_any_working_folder(monkeypatch, tmp_path):
+    """Started from a folder that holds another egobench (a second checkout), the child still runs this one:
+    ``python -m`` puts the working folder first, and another checkout's child builds into its own cache."""
+    other = tmp_path / "egobench"
+    other.mkdir()
+    (other / "__init__.py").write_text("raise ImportError('the other checkout')\n")
+    monkeypatch.chdir(tmp_path)
+    done = kernel_build.run_child([sys.executable, "-c", "import egobench, sys; print(egobench.__file__)"])
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == str(Path(kernel_build.__file__).resolve().parents[1] / "__init__.py")
