@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -125,9 +125,9 @@ def diagnose_trained_run(recording_dir: str | Path, run_dir: str | Path, src: So
         return d
     check = measure_lens_retention(recording_dir, run_dir, src, float(named.params["k0_error"]), work_dir,
                                    cfg.border_px, pose_samples, progress)
-    src.context.lens_retention = math.nan if check["retention"] is None else check["retention"]
     if not check["testable"]:
-        d = diagnose_residuals(src.measured, src.predicted, src.context, cfg)
+        ctx = replace(src.context, lens_retention=math.nan if check["retention"] is None else check["retention"])
+        d = diagnose_residuals(src.measured, src.predicted, ctx, cfg)
     if d.model_error is not None:
         d.model_error["lens_check"] = check
     return d

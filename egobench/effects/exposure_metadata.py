@@ -236,8 +236,9 @@ class ExposureMetadataCause(Cause):
         for f in flagged:
             if f in where and scale.get(f, 0.0) > 0:
                 exposure[where[f]] *= math.exp(math.log(scale[f]) - reference)
-        doubt = fixed_record_doubt(ctx.log_exposure_gain, [where[f] for f in flagged if f in where])
-        exposure[doubt] = np.exp(float(np.median(ctx.log_exposure_gain))) / np.asarray(ctx.gain, float)[doubt]
+        recorded = ctx.log_exposure_gain
+        doubt = fixed_record_doubt(recorded, [where[f] for f in flagged if f in where])
+        exposure[doubt] = np.exp(float(np.median(recorded))) / np.asarray(ctx.gain, float)[doubt]
         return dc_replace(ctx, exposure_s=exposure)
 
     def fit(self, data: ResidualData) -> CauseResult:

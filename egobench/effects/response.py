@@ -111,11 +111,8 @@ class ResponseCause(Cause):
         resp = evidence.memo(_response_test)
         return resp.get("slope_sd_placebo", math.nan), max(evidence.photometric_fit.n_frames - 2, 2)
 
-
-
 # ------------------------------------------------------------------------------------------------
 # On a trained run (egobench.residual.calibration)
-
 
 
 def response_from_exposure(fit: PhotometricFit, data: ResidualData, draws: int, rng: np.random.Generator,
