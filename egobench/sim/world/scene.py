@@ -157,11 +157,32 @@ class Scene:
         return pk
 
     # ------------------------------------------------------------------ intersection
-    def intersect(self, origins: Tensor, directions: Tensor, t_max: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    def intersect(self, origins: Tensor, directions: Tensor, t_max: Tensor | None = None,
+                  backend: str = "auto") -> tuple[Tensor, Tensor]:
         """Closest hit of each ray. origins, directions (unit) [N, 3]; t_max [N] or None.
 
-        Returns (t [N], primitive_id [N] int64); misses have t = inf and id = -1.
+        Returns (t [N], primitive_id [N] int64); misses have t = inf and id = -1. ``backend``: "compiled"
+        (`raycast_kernel`, float32 and float64 CPU tensors), "torch" (the tensor tests of `raycast`, any dtype and
+        device: the reference) or "auto" (compiled where it applies). Both give the same bits.
         """
+        if backend not in ("auto", "compiled", "torch"):
+            raise ValueError(f"Scene.intersect: backend must be 'auto', 'compiled' or 'torch', got {backend!r}")
+        dtype = {torch.float32: np.float32, torch.float64: np.float64}.get(origins.dtype)
+        fits = dtype is not None and origins.device.type == "cpu" and directions.dtype == origins.dtype
+        if backend == "compiled" and not fits:
+            raise ValueError(f"Scene.intersect: the compiled backend takes float32 or float64 CPU rays, got "
+                             f"{origins.dtype} and {directions.dtype} on {origins.device}")
+        if backend != "torch" and fits:
+            from egobench.sim.world import raycast_kernel  # loads numba: after the thread set-up (host.setup_threads)
+
+            key = ("kernel", origins.dtype)
+            if key not in self._packs:
+                self._packs[key] = raycast_kernel.kernel_tables(self._pack(origins.dtype, origins.device), dtype)
+            return raycast_kernel.intersect_compiled(self._packs[key], origins, directions, t_max)
+        return self._intersect_torch(origins, directions, t_max)
+
+    def _intersect_torch(self, origins: Tensor, directions: Tensor, t_max: Tensor | None) -> tuple[Tensor, Tensor]:
+        """`intersect` through `raycast`'s tensor tests, in chunks of `chunk_rays`."""
         n = origins.shape[0]
         t_out = torch.full((n,), math.inf, dtype=origins.dtype, device=origins.device)
         id_out = torch.full((n,), -1, dtype=torch.int64, device=origins.device)
