@@ -132,11 +132,22 @@ def _smooth(x: Tensor) -> Tensor:
     return x * x * (3.0 - 2.0 * x)
 
 
+def _compiled_noise_applies(uv: Tensor, e: Tensor | None) -> bool:
+    """May `value_noise` run compiled: CPU float32 or float64 points (and footprints of their dtype), no autograd?"""
+    same = e is None or (e.dtype == uv.dtype and e.device == uv.device and not e.requires_grad)
+    return uv.device.type == "cpu" and uv.dtype in (torch.float32, torch.float64) and not uv.requires_grad and same
+
+
 def value_noise(uv: Tensor, scale_m: float, seed: int, e: Tensor | None = None) -> Tensor:
     """Smooth 2D value noise in [0, 1] with lattice spacing ``scale_m``. uv [N, 2] -> [N].
 
     With a footprint ``e`` [N] (metres) the noise fades to its mean 0.5 where e > scale_m / 2
-    (gone at e >= 1.5 scale_m): a cheap low-pass filter against aliasing."""
+    (gone at e >= 1.5 scale_m): a cheap low-pass filter against aliasing. Float32 and float64 CPU tensors
+    without autograd go through `noise_kernel` (the same bits, compiled)."""
+    if _compiled_noise_applies(uv, e):
+        from egobench.sim import noise_kernel  # loads numba: after the thread set-up (host.setup_threads)
+
+        return noise_kernel.value_noise(uv, scale_m, _lattice_table(seed, uv.dtype), e)
     p = uv / scale_m
     i = torch.floor(p)
     f = _smooth(p - i)

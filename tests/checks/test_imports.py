@@ -40,6 +40,8 @@ LIGHT_MODULES = {
     "egobench/sim/devices.py": "imported by the Snakefile's parse (through sim/config.py): no torch at import",
     "egobench/render/__init__.py": "the backend is chosen per call: the CPU kernels load numba, gsplat needs CUDA",
     "egobench/render/kernel_build.py": "builds the numba kernels in a child process",
+    "egobench/sim/textures.py": "the compiled value noise (noise_kernel) loads numba at the first lookup, after the "
+                                "thread set-up",
     "egobench/sim/world/scene.py": "the compiled ray caster (raycast_kernel) loads numba at the first cast, after the "
                                    "thread set-up",
 }
