@@ -74,6 +74,21 @@ def _dot(a0, a1, a2, b0, b1, b2):
     return a0 * b0 + a1 * b1 + a2 * b2
 
 
+@_inline
+def _first_min(t, j, tmin, jmin):
+    """The running minimum of a dense kind, the first index among equal t (as torch's ``min(dim)``)."""
+    if t < tmin or jmin < 0:
+        return t, j
+    return tmin, jmin
+
+
+@_inline
+def _fold_dense(T, I, i, tmin, jmin, ids):
+    """A dense kind's closest primitive replaces ray i's best hit only when strictly closer."""
+    if jmin >= 0 and tmin < T[i]:
+        T[i], I[i] = tmin, ids[jmin]
+
+
 @_kernel
 def _rects(O, D, T, I, N, U, V, H, cU, cV, cN, ids, k):
     """`raycast._hit_rects`: every ray against every rectangle; the first rectangle at the smallest t."""
@@ -91,10 +106,8 @@ def _rects(O, D, T, I, N, U, V, H, cU, cV, cN, ids, k):
             pv = _dot(o0, o1, o2, V[j, 0], V[j, 1], V[j, 2]) - cV[j] + t * _dot(d0, d1, d2, V[j, 0], V[j, 1], V[j, 2])
             if par or not (t > 0 and abs(pu) <= H[j, 0] and abs(pv) <= H[j, 1]):
                 t = k[K_INF]
-            if t < tmin or jmin < 0:
-                tmin, jmin = t, j
-        if jmin >= 0 and tmin < T[i]:
-            T[i], I[i] = tmin, ids[jmin]
+            tmin, jmin = _first_min(t, j, tmin, jmin)
+        _fold_dense(T, I, i, tmin, jmin, ids)
 
 
 @_kernel
@@ -113,10 +126,8 @@ def _dense_boxes(O, D, T, I, Rflat, cR, H, ids, k):
                         _dot(d0, d1, d2, Rflat[0, c0], Rflat[1, c0], Rflat[2, c0]),
                         _dot(d0, d1, d2, Rflat[0, c1], Rflat[1, c1], Rflat[2, c1]),
                         _dot(d0, d1, d2, Rflat[0, c2], Rflat[1, c2], Rflat[2, c2]), H[p, 0], H[p, 1], H[p, 2], k)
-            if t < tmin or jmin < 0:
-                tmin, jmin = t, p
-        if jmin >= 0 and tmin < T[i]:
-            T[i], I[i] = tmin, ids[jmin]
+            tmin, jmin = _first_min(t, p, tmin, jmin)
+        _fold_dense(T, I, i, tmin, jmin, ids)
 
 
 @_kernel
@@ -137,10 +148,8 @@ def _spheres(O, D, T, I, C, c2r2, ids, k):
             t = t0 if t0 > 0 else -b + sq
             if not (disc >= 0 and t > 0):
                 t = k[K_INF]
-            if t < tmin or jmin < 0:
-                tmin, jmin = t, j
-        if jmin >= 0 and tmin < T[i]:
-            T[i], I[i] = tmin, ids[jmin]
+            tmin, jmin = _first_min(t, j, tmin, jmin)
+        _fold_dense(T, I, i, tmin, jmin, ids)
 
 
 @_inline
