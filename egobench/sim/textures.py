@@ -133,9 +133,12 @@ def _smooth(x: Tensor) -> Tensor:
 
 
 def _compiled_noise_applies(uv: Tensor, e: Tensor | None) -> bool:
-    """May `value_noise` run compiled: CPU float32 or float64 points (and footprints of their dtype), no autograd?"""
-    same = e is None or (e.dtype == uv.dtype and e.device == uv.device and not e.requires_grad)
-    return uv.device.type == "cpu" and uv.dtype in (torch.float32, torch.float64) and not uv.requires_grad and same
+    """May `value_noise` run compiled: CPU float32 or float64 points [N, 2] (footprints [N], [1] or [] of their
+    dtype), no autograd?"""
+    points = uv.ndim == 2 and uv.shape[1] == 2 and uv.device.type == "cpu" and not uv.requires_grad
+    same = e is None or (e.dtype == uv.dtype and e.device == uv.device and not e.requires_grad
+                         and e.shape in ((), (1,), (uv.shape[0],)))
+    return points and uv.dtype in (torch.float32, torch.float64) and same
 
 
 def value_noise(uv: Tensor, scale_m: float, seed: int, e: Tensor | None = None) -> Tensor:

@@ -53,5 +53,7 @@ def test_autograd_and_mixed_dtypes_take_the_torch_version():
     assert not textures._compiled_noise_applies(uv, None)
     assert not textures._compiled_noise_applies(uv.detach(), torch.zeros(3, dtype=torch.float32))
     assert textures._compiled_noise_applies(uv.detach(), torch.zeros(3, dtype=torch.float64))
+    assert not textures._compiled_noise_applies(torch.zeros(3, 1, dtype=torch.float64), None)  # not points [N, 2]
+    assert not textures._compiled_noise_applies(uv.detach(), torch.zeros(2, dtype=torch.float64))
     textures.value_noise(uv, 0.5, 1).sum().backward()  # the torch version: differentiable
     assert uv.grad is not None

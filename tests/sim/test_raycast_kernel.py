@@ -14,7 +14,7 @@ import torch
 
 from egobench.sim.textures import Texture
 from egobench.sim.world import Box, Cylinder, Material, Rect, Scene, Sphere, WalkRegion, make_scene
-from egobench.sim.world.raycast_kernel import kernel_constants
+from egobench.sim.world.raycast_kernel import K_SLAB_FILL, K_SLAB_TINY, kernel_constants
 
 
 @pytest.fixture
@@ -78,6 +78,7 @@ def _doubled_scene() -> Scene:
     prims += [Box((-3.0 + 0.5 * i, 1.5, 0.3), (0.2, 0.2, 0.3), "flat") for i in range(10)]
     prims += [Box((-3.0 + 0.5 * i, 1.5, 0.3), (0.2, 0.2, 0.3), "flat") for i in range(3)]  # doubles
     prims += [Cylinder((-3.0 + 0.6 * i, -1.5, 0.5), (0, 0, 1), 0.2, 0.5, "flat") for i in range(10)]
+    prims += [Box((2.0, 2.0 + i, 0.5), (0.5, 0.25, 0.5), "flat") for i in range(2)]  # faces on a 0.25 m grid
     return Scene("custom", prims, flat, [], WalkRegion("box", (0.0, 0.0), (5.0, 5.0)), np.zeros((1, 3)),
                  ((-6.0, -6.0, -1.0), (10.0, 6.0, 3.0)))
 
@@ -87,6 +88,11 @@ def test_ties_between_equal_primitives_break_as_the_torch_path_breaks_them(dtype
     scene = _doubled_scene()
     o, d = _rays(scene, 8000, 5)
     _assert_same_bits(scene, o, d, dtype)
+    # origins on a 0.25 m grid, along the axes: rays that start on faces and graze edges exactly
+    g = np.stack(np.meshgrid(np.arange(1.0, 3.01, 0.25), np.arange(1.0, 3.51, 0.25), np.arange(0.0, 1.01, 0.25),
+                             indexing="ij"), -1).reshape(-1, 3)
+    axes = np.concatenate([np.eye(3), -np.eye(3)])
+    _assert_same_bits(scene, np.repeat(g, 6, 0), np.tile(axes, (len(g), 1)), dtype)
     t, ids = scene.intersect(torch.tensor(o, dtype=dtype), torch.tensor(d, dtype=dtype), backend="compiled")
     hit_kinds = {type(scene.primitives[i]).__name__ for i in ids.unique().tolist() if i >= 0}
     assert hit_kinds == {"Rect", "Box", "Sphere", "Cylinder"}
@@ -113,4 +119,38 @@ def test_constants_are_in_the_rays_dtype():
     for dtype in (np.float32, np.float64):
         k = kernel_constants(dtype)
         assert all(type(v) is dtype for v in k)
-    assert kernel_constants(np.float32)[5] == np.float32(1e-20) and kernel_constants(np.float64)[5] == 1e-30
+    f32, f64 = kernel_constants(np.float32), kernel_constants(np.float64)
+    assert f32[K_SLAB_TINY] == f32[K_SLAB_FILL] == np.float32(1e-20) and f64[K_SLAB_TINY] == 1e-30
+    assert f64[K_SLAB_FILL] == float(np.float32(1e-30)) != 1e-30  # torch.where of two Python scalars is float32
+
+
+def test_degenerate_rays_equal_the_torch_path(ieee_sqrt):
+    """Zero directions from inside boxes and unit rays far away: the slab's replaced components decide t."""
+    scene = _doubled_scene()
+    o = np.array([[-3.0, 1.5, 0.3], [6.0, 0.0, 1.0], [0.1, 0.2, 1.3], [2e14, 0.0, 0.5], [-3.0, -2e14, 0.3]])
+    d = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    for dtype in (torch.float64, torch.float32):
+        _assert_same_bits(scene, o, d, dtype)
+
+
+def _outcome(scene: Scene, o, d, t_max, backend: str):
+    """(t, ids) as lists, or the type of the error raised."""
+    try:
+        t, ids = scene.intersect(o, d, t_max, backend=backend)
+    except (RuntimeError, IndexError, ValueError) as err:
+        return type(err)
+    return t.tolist(), ids.tolist()
+
+
+def test_other_shapes_and_dtypes_take_the_torch_path():
+    """t_max of another dtype or a broadcast shape, mismatched directions, autograd: "auto" does what torch does."""
+    scene = _doubled_scene()
+    o, d = (torch.tensor(a, dtype=torch.float32) for a in _rays(scene, 64, 2))
+    t_max64 = torch.full((64,), 1.00000001, dtype=torch.float64)
+    for t_max, d_ in ((t_max64, d), (torch.tensor([2.0], dtype=torch.float32), d), (None, d[:1])):
+        assert _outcome(scene, o, d_, t_max, "auto") == _outcome(scene, o, d_, t_max, "torch")
+        with pytest.raises(ValueError, match="compiled backend takes"):
+            scene.intersect(o, d_, t_max, backend="compiled")
+    og = o.double().requires_grad_()
+    t, _ = scene.intersect(og, d.double())
+    assert t.grad_fn is not None

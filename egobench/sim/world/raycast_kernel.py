@@ -6,9 +6,12 @@ culled kinds gather (ray, primitive) pairs; at the simulator's sizes that is a t
 tensor temporaries and index lists. This kernel walks the same kinds in the same order for one ray at a time,
 and repeats their arithmetic operation for operation: the same products added in the same order (the order of
 `portable_math.matmul`, of `_dot3` and of torch's row sums), each operation rounded once, no fused multiply-add
-and no reassociation (numba without fast-math, serial). So it returns the torch path's bits: every ray's t and
-primitive id equal, on every x86-64 machine (tests/sim/test_raycast_kernel.py checks it on every scene kind).
-The torch functions stay the reference and the path for float32, autograd-free GPU tensors and anything else.
+and no reassociation (numba without fast-math, serial), with one exception: its square root is IEEE's, where
+torch's CPU ``sqrt`` is MKL's vector math, which is not correctly rounded. So it returns the bits of the torch
+path with an IEEE square root: every ray's t and primitive id, on every x86-64 machine
+(tests/sim/test_raycast_kernel.py checks it on every scene kind); against torch's own square root an ulp of t
+differs on about one sphere or cylinder hit in ten thousand. The torch functions stay the reference and the
+path for other dtypes, GPU tensors, autograd and inputs of other shapes.
 
 Ties are broken as the torch path breaks them: a dense kind keeps the first primitive of the kind at the
 smallest t (torch's ``min(dim)``), a culled kind the largest primitive id (`raycast._reduce_pairs`), and a
@@ -29,13 +32,16 @@ _RECT_EPS = 1e-12  # |d.n| below which a ray is parallel to a rectangle (`_hit_r
 _SLAB_TINY = {np.float64: 1e-30, np.float32: 1e-20}  # smallest |direction| component of a slab test (`_slab`)
 _CYL_EPS = 1e-18  # `_hit_cylinders`'s degenerate-quadratic and parallel-cap thresholds
 # The kernel's constants, in the rays' dtype (float32 arithmetic stays float32 only with float32 operands; torch
-# rounds a Python scalar to the tensor's dtype): K_ZERO, K_ONE, K_TWO, K_INF, K_RECT_EPS, K_SLAB_TINY, K_CYL_EPS
-K_ZERO, K_ONE, K_TWO, K_INF, K_RECT_EPS, K_SLAB_TINY, K_CYL_EPS = range(7)
+# rounds a Python scalar to the tensor's dtype). K_SLAB_FILL is what `_slab` puts in place of a direction
+# component below K_SLAB_TINY: ``torch.where(dl < 0, -tiny, tiny)`` of two Python scalars is a float32 tensor,
+# so float64 rays get float32(1e-30), not 1e-30.
+K_ZERO, K_ONE, K_TWO, K_INF, K_RECT_EPS, K_SLAB_TINY, K_SLAB_FILL, K_CYL_EPS = range(8)
 
 
 def kernel_constants(dtype: type) -> tuple:
     """The constants tuple (indexed by the K_* names) in ``dtype`` (np.float32 or np.float64)."""
-    return tuple(dtype(v) for v in (0.0, 1.0, 2.0, math.inf, _RECT_EPS, _SLAB_TINY[dtype], _CYL_EPS))
+    tiny = _SLAB_TINY[dtype]
+    return tuple(dtype(v) for v in (0.0, 1.0, 2.0, math.inf, _RECT_EPS, tiny, np.float32(tiny), _CYL_EPS))
 
 
 # Small helpers are inlined into the kinds' loops: a numba call that takes arrays costs two atomic reference
@@ -47,9 +53,8 @@ _kernel = njit(cache=True, error_model="numpy")
 @_inline
 def _slab_axis(ol, dl, h, k):
     """One axis of `raycast._slab`: (min, max) of the two plane crossings."""
-    tiny = k[K_SLAB_TINY]
-    if abs(dl) < tiny:
-        dl = -tiny if dl < 0 else tiny
+    if abs(dl) < k[K_SLAB_TINY]:
+        dl = -k[K_SLAB_FILL] if dl < 0 else k[K_SLAB_FILL]
     inv = k[K_ONE] / dl
     t1 = (-h - ol) * inv
     t2 = (h - ol) * inv
@@ -293,9 +298,11 @@ def kernel_tables(pk: dict, dtype: type) -> tuple:
     return rect, box_big, sphere, culled(pk.get("box")), culled(pk.get("cylinder")), kernel_constants(dtype)
 
 
-def intersect_compiled(tables: tuple, origins: Tensor, directions: Tensor, t_max: Tensor | None) -> tuple[Tensor, Tensor]:
+def intersect_compiled(tables: tuple, origins: Tensor, directions: Tensor,
+                       t_max: Tensor | None) -> tuple[Tensor, Tensor]:
     """`Scene.intersect` through `closest_hits`: CPU origins and unit directions [N, 3] of the tables' dtype,
-    t_max [N] or None -> (t [N], primitive id [N] int64), misses t = inf and id = -1."""
+    t_max [N] of that dtype or None (`scene._compiled_cast_applies` checks) -> (t [N], primitive id [N] int64),
+    misses t = inf and id = -1."""
     *kinds, k = tables
     o = np.ascontiguousarray(origins.detach().numpy())
     d = np.ascontiguousarray(directions.detach().numpy())

@@ -162,16 +162,18 @@ class Scene:
         """Closest hit of each ray. origins, directions (unit) [N, 3]; t_max [N] or None.
 
         Returns (t [N], primitive_id [N] int64); misses have t = inf and id = -1. ``backend``: "compiled"
-        (`raycast_kernel`, float32 and float64 CPU tensors), "torch" (the tensor tests of `raycast`, any dtype and
-        device: the reference) or "auto" (compiled where it applies). Both give the same bits.
+        (`raycast_kernel`: float32 or float64 CPU rays [N, 3] without autograd, t_max [N] of their dtype), "torch"
+        (the tensor tests of `raycast`, any dtype and device: the reference) or "auto" (compiled where it applies).
+        They give the same bits but for torch's square root (MKL's, not correctly rounded; the kernel's is IEEE).
         """
         if backend not in ("auto", "compiled", "torch"):
             raise ValueError(f"Scene.intersect: backend must be 'auto', 'compiled' or 'torch', got {backend!r}")
         dtype = {torch.float32: np.float32, torch.float64: np.float64}.get(origins.dtype)
-        fits = dtype is not None and origins.device.type == "cpu" and directions.dtype == origins.dtype
+        fits = _compiled_cast_applies(origins, directions, t_max) and dtype is not None
         if backend == "compiled" and not fits:
-            raise ValueError(f"Scene.intersect: the compiled backend takes float32 or float64 CPU rays, got "
-                             f"{origins.dtype} and {directions.dtype} on {origins.device}")
+            raise ValueError(f"Scene.intersect: the compiled backend takes float32 or float64 CPU rays [N, 3] without "
+                             f"autograd and t_max [N] of their dtype, got {origins.dtype} {tuple(origins.shape)} and "
+                             f"{directions.dtype} {tuple(directions.shape)} on {origins.device}")
         if backend != "torch" and fits:
             from egobench.sim.world import raycast_kernel  # loads numba: after the thread set-up (host.setup_threads)
 
@@ -512,6 +514,17 @@ class Scene:
 
 #: Fractal grain: largest feature (m) and octaves (each half the size, half the amplitude, down to 4 mm).
 GRAIN_SCALE_M, GRAIN_OCTAVES = 0.5, 8
+
+
+def _compiled_cast_applies(origins: Tensor, directions: Tensor, t_max: Tensor | None) -> bool:
+    """May `Scene.intersect` take the compiled kernel: CPU rays [N, 3] of one dtype without autograd, t_max [N] of
+    that dtype? (Anything else goes to the torch tests, which broadcast, raise or differentiate as torch does.)"""
+    n = origins.shape[0] if origins.ndim == 2 else -1
+    rays = (origins.ndim == 2 and origins.shape[1] == 3 and directions.shape == origins.shape
+            and directions.dtype == origins.dtype and origins.device.type == "cpu" and directions.device.type == "cpu"
+            and not (origins.requires_grad or directions.requires_grad))
+    return rays and (t_max is None or (t_max.shape == (n,) and t_max.dtype == origins.dtype
+                                       and t_max.device.type == "cpu" and not t_max.requires_grad))
 
 
 def grain_factor(uv: Tensor, primitive_id: Tensor, amplitude: float, seed: int,
