@@ -19,6 +19,10 @@ from torch import Tensor
 HASH_X, HASH_Y = 0x2C9277B5, 0x1B873593
 
 
+#: the kernel's constants 0, 1/2, 1, 3/2, 2, 3 per dtype (a float64 literal would turn float32 arithmetic float64)
+_CONSTANTS = {dt: tuple(dt(v) for v in (0.0, 0.5, 1.0, 1.5, 2.0, 3.0)) for dt in (np.float32, np.float64)}
+
+
 @njit(cache=True, error_model="numpy")
 def _value_noise(uv, scale, table, e, has_e, out, k):
     """out[n] = value noise of uv[n] (k: 0, 1/2, 1, 3/2, 2, 3 in uv's dtype; ``scale`` too)."""
@@ -51,10 +55,9 @@ def _value_noise(uv, scale, table, e, has_e, out, k):
 def value_noise(uv: Tensor, scale_m: float, table: Tensor, e: Tensor | None) -> Tensor:
     """`textures.value_noise` for float32 or float64 CPU tensors uv [N, 2] (and e [N], of uv's dtype) with the
     lattice ``table`` of that dtype -> [N]."""
-    dt = np.float32 if uv.dtype == torch.float32 else np.float64
     pts = np.ascontiguousarray(uv.detach().numpy())
+    dt = pts.dtype.type
     out = np.empty(pts.shape[0], dtype=dt)
     foot = np.zeros(0, dtype=dt) if e is None else np.ascontiguousarray(e.detach().expand(pts.shape[0]).numpy())
-    k = tuple(dt(v) for v in (0.0, 0.5, 1.0, 1.5, 2.0, 3.0))
-    _value_noise(pts, dt(scale_m), table.numpy(), foot, e is not None, out, k)
+    _value_noise(pts, dt(scale_m), table.numpy(), foot, e is not None, out, _CONSTANTS[dt])
     return torch.from_numpy(out)

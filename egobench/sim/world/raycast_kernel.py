@@ -215,6 +215,17 @@ def _exact_t(o0, o1, o2, d0, d1, d2, cyl, C, R, H, r, h, p, k):
     return _slab_t(l0, l1, l2, m0, m1, m2, H[p, 0], H[p, 1], H[p, 2], k)
 
 
+@_inline
+def _largest_id_min(t, pid, tmin, idmax, best_t):
+    """The running minimum of a culled kind, the largest primitive id among equal t below best_t
+    (`raycast._reduce_pairs`)."""
+    if t < tmin:
+        return t, pid
+    if t == tmin and t < best_t and pid > idmax:
+        return tmin, pid
+    return tmin, idmax
+
+
 @_kernel
 def _culled(O, D, T, I, cyl, C, R, H, r, h, c2r2b, rb, ids, GC, Gc2r2, Gr, Gmem, k):
     """`raycast._hit_boxes` (cyl False) or `_hit_cylinders` (cyl True): bounding-sphere culling (two levels
@@ -241,10 +252,7 @@ def _culled(O, D, T, I, cyl, C, R, H, r, h, c2r2b, rb, ids, GC, Gc2r2, Gr, Gmem,
                                                                  rb[p], best_t)):
                     continue
                 t = _exact_t(o0, o1, o2, d0, d1, d2, cyl, C, R, H, r, h, p, k)
-                if t < tmin:
-                    tmin, idmax = t, ids[p]
-                elif t == tmin and t < best_t and ids[p] > idmax:
-                    idmax = ids[p]
+                tmin, idmax = _largest_id_min(t, ids[p], tmin, idmax, best_t)
         if tmin < best_t:
             T[i], I[i] = tmin, idmax
 
@@ -276,9 +284,11 @@ def _arr(q: dict | None, key: str, shape: tuple[int, ...], dtype: type) -> np.nd
     return np.ascontiguousarray(q[key].numpy())
 
 
-def kernel_tables(pk: dict, dtype: type) -> tuple:
-    """`Scene._pack`'s CPU tables of ``dtype`` (np.float32 or np.float64) as the kernel's argument tuples (rect,
+def kernel_tables(pk: dict, torch_dtype: torch.dtype) -> tuple:
+    """`Scene._pack`'s CPU tables of ``torch_dtype`` (float32 or float64) as the kernel's argument tuples (rect,
     box_big, sphere, box, cylinder; empty tables for absent kinds) and its `kernel_constants`."""
+    dtype = torch.empty(0, dtype=torch_dtype).numpy().dtype.type
+
     def a(q, key, shape, kind=dtype):
         return _arr(q, key, shape, kind)
 

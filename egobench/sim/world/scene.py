@@ -168,8 +168,7 @@ class Scene:
         """
         if backend not in ("auto", "compiled", "torch"):
             raise ValueError(f"Scene.intersect: backend must be 'auto', 'compiled' or 'torch', got {backend!r}")
-        dtype = {torch.float32: np.float32, torch.float64: np.float64}.get(origins.dtype)
-        fits = _compiled_cast_applies(origins, directions, t_max) and dtype is not None
+        fits = _compiled_cast_applies(origins, directions, t_max)
         if backend == "compiled" and not fits:
             raise ValueError(f"Scene.intersect: the compiled backend takes float32 or float64 CPU rays [N, 3] without "
                              f"autograd and t_max [N] of their dtype, got {origins.dtype} {tuple(origins.shape)} and "
@@ -179,7 +178,8 @@ class Scene:
 
             key = ("kernel", origins.dtype)
             if key not in self._packs:
-                self._packs[key] = raycast_kernel.kernel_tables(self._pack(origins.dtype, origins.device), dtype)
+                pack = self._pack(origins.dtype, origins.device)
+                self._packs[key] = raycast_kernel.kernel_tables(pack, origins.dtype)
             return raycast_kernel.intersect_compiled(self._packs[key], origins, directions, t_max)
         return self._intersect_torch(origins, directions, t_max)
 
@@ -517,10 +517,11 @@ GRAIN_SCALE_M, GRAIN_OCTAVES = 0.5, 8
 
 
 def _compiled_cast_applies(origins: Tensor, directions: Tensor, t_max: Tensor | None) -> bool:
-    """May `Scene.intersect` take the compiled kernel: CPU rays [N, 3] of one dtype without autograd, t_max [N] of
+    """May `Scene.intersect` take the compiled kernel: float32 or float64 CPU rays [N, 3] without autograd, t_max [N] of
     that dtype? (Anything else goes to the torch tests, which broadcast, raise or differentiate as torch does.)"""
     n = origins.shape[0] if origins.ndim == 2 else -1
-    rays = (origins.ndim == 2 and origins.shape[1] == 3 and directions.shape == origins.shape
+    rays = (origins.dtype in (torch.float32, torch.float64) and origins.ndim == 2 and origins.shape[1] == 3
+            and directions.shape == origins.shape
             and directions.dtype == origins.dtype and origins.device.type == "cpu" and directions.device.type == "cpu"
             and not (origins.requires_grad or directions.requires_grad))
     return rays and (t_max is None or (t_max.shape == (n,) and t_max.dtype == origins.dtype
