@@ -1,7 +1,7 @@
 """The diagnosis on recordings egobench did not write: hidden-effect cases from scripts/independent_writer.py,
 'ours' trained on each, `egobench diagnose` on the trained run, the verdicts tallied.
 
-    python scripts/independent_sweep.py --out DIR [--jobs 2] [--only EFFECT] [--limit N] [--seed-set K]
+    python scripts/independent_sweep.py --out DIR [--jobs 2] [--only EFFECT] [--limit N] [--seed-set K] [--size S]
 
 The cases are fixed here, before any is run (the design: results/diagnosis/README.md, "2026-12-05: the
 diagnosis on an independent writer's recordings"): 20 nulls and 10 seeds of each hidden effect, at the
@@ -9,7 +9,8 @@ conditions of issue 72 (64 px, 48 frames, fixed 1 ms exposure and gain 1, a flat
 readout of 8 ms; 'ours' with `--preset cpu --iterations 800`). Each case lives in DIR/cases/<case>/ (rec/,
 run/, diag/) and every stage is skipped when its output exists: an interrupted sweep resumes. DIR/cases.csv
 holds one row per case and DIR/summary.json the rates the issue asks for. ``--seed-set 2`` writes fresh
-recordings: each effect's next block of seeds (nulls 121-140, vignette 211-220, ...).
+recordings: each effect's next block of seeds (nulls 121-140, vignette 211-220, ...). ``--size S`` writes S x S
+recordings and trains at that size (`--set max_side=S`; the issue's conditions: 64); everything else unchanged.
 """
 
 from __future__ import annotations
@@ -27,6 +28,8 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 WRITER = REPO / "scripts" / "independent_writer.py"
 STATED_READOUT_S = 0.008
+#: the issue's image size (the writer's default and the cpu preset's max_side)
+ISSUE_SIZE = 64
 GEOMETRIC = {"readout", "time_offset", "exposure_blur", "distortion"}
 
 #: effect -> (the key of its size in the report's smallest-testable table, the hidden size in that unit)
@@ -61,8 +64,8 @@ def seeds_of(effect: str, seed_set: int = 1) -> range:
     return range(seeds.start + shift, seeds.stop + shift)
 
 
-def run_case(out: Path, effect: str, seed: int, seed_set: int = 1) -> dict:
-    """Write, train and diagnose one case (each stage skipped when done); its row of cases.csv."""
+def run_case(out: Path, effect: str, seed: int, seed_set: int = 1, size: int = ISSUE_SIZE) -> dict:
+    """Write, train and diagnose one case at ``size`` px (each stage skipped when done); its row of cases.csv."""
     flags, seeds = CASES[effect][0], seeds_of(effect, seed_set)
     case = out / "cases" / f"{effect}_{seed}"
     case.mkdir(parents=True, exist_ok=True)
@@ -71,10 +74,11 @@ def run_case(out: Path, effect: str, seed: int, seed_set: int = 1) -> dict:
     times = {}
     if not (rec / "truth.json").is_file():
         times["write_s"] = _run([sys.executable, str(WRITER), "--out", str(rec), "--seed", str(seed),
-                                 *flags(seed - seeds.start)], case / "write.log")
+                                 "--size", str(size), *flags(seed - seeds.start)], case / "write.log")
     if not (run / "train.json").is_file():
         times["train_s"] = _run([*egobench, "train", "--recording", str(rec), "--method", "ours", "--preset", "cpu",
-                                 "--iterations", "800", "--seed", str(seed), "--out", str(run), "--no-progress"],
+                                 "--iterations", "800", "--set", f"max_side={size}", "--seed", str(seed), "--out", str(run),
+                                 "--no-progress"],
                                 case / "train.log")
     if not (diag / "diagnosis.json").is_file():
         times["diagnose_s"] = _run([*egobench, "diagnose", str(rec), "--run", str(run), "--method", "ours",
@@ -158,13 +162,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--limit", type=int, default=0, help="at most N cases of each effect (0: all)")
     ap.add_argument("--seed-set", type=int, default=1,
                     help="1: the seeds of CASES; k > 1: the k-th block of as many seeds after them (fresh recordings)")
+    ap.add_argument("--size", type=int, default=ISSUE_SIZE,
+                    help="image size of the recordings and of the training, pixels (the issue's: 64)")
     args = ap.parse_args(argv)
     if args.seed_set < 1:
         ap.error(f"--seed-set: expected an integer >= 1, got {args.seed_set}")
+    if not 8 <= args.size <= 1024:
+        ap.error(f"--size: expected 8..1024 pixels, got {args.size}")
     todo = [(e, s) for e in CASES if args.only in (None, e)
             for k, s in enumerate(seeds_of(e, args.seed_set)) if not args.limit or k < args.limit]
     with ThreadPoolExecutor(max(1, args.jobs)) as pool:
-        rows = list(pool.map(lambda es: run_case(args.out, *es, seed_set=args.seed_set), todo))
+        rows = list(pool.map(lambda es: run_case(args.out, *es, seed_set=args.seed_set, size=args.size), todo))
     with open(args.out / "cases.csv", "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=list(dict.fromkeys(k for r in rows for k in r)))  # first-seen order
         w.writeheader()
