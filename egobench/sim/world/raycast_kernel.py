@@ -22,6 +22,7 @@ start of the kind, as the torch path does.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -42,6 +43,70 @@ def kernel_constants(dtype: type) -> tuple:
     """The constants tuple (indexed by the K_* names) in ``dtype`` (np.float32 or np.float64)."""
     tiny = _SLAB_TINY[dtype]
     return tuple(dtype(v) for v in (0.0, 1.0, 2.0, math.inf, _RECT_EPS, tiny, np.float32(tiny), _CYL_EPS))
+
+
+class RectTable(NamedTuple):
+    """Rectangles [P]: unit normal N, in-plane axes U and V [P, 3], half sizes H [P, 2], the centre's
+    coordinates along U, V and N (cU, cV, cN [P]) and primitive ids [P] (`Scene._pack`'s "rect")."""
+
+    N: np.ndarray
+    U: np.ndarray
+    V: np.ndarray
+    H: np.ndarray
+    cU: np.ndarray
+    cV: np.ndarray
+    cN: np.ndarray
+    ids: np.ndarray
+
+
+class DenseBoxTable(NamedTuple):
+    """Boxes tested against every ray [P]: rotations as columns Rflat [3, 3P], R^T c as cR [P, 3], half sizes
+    H [P, 3] and ids [P] (`Scene._pack`'s "box_big")."""
+
+    Rflat: np.ndarray
+    cR: np.ndarray
+    H: np.ndarray
+    ids: np.ndarray
+
+
+class SphereTable(NamedTuple):
+    """Spheres [P]: centres C [P, 3], |c|^2 - r^2 as c2r2 [P] and ids [P] (`Scene._pack`'s "sphere")."""
+
+    C: np.ndarray
+    c2r2: np.ndarray
+    ids: np.ndarray
+
+
+class CulledTable(NamedTuple):
+    """Boxes or cylinders behind bounding spheres (`Scene._pack`'s "box", "cylinder"): per primitive [P] the
+    centre C [P, 3], rotation R [P, 3, 3], box half sizes H [P, 3], cylinder radius r and half height h, the
+    bounding sphere's |c|^2 - r^2 and radius (c2r2_bound, r_bound), ids; per group [G] (none: G = 0) the group
+    sphere's centre G_C [G, 3], G_c2r2 and radius G_r, and its members G_members [G, M] (-1: none)."""
+
+    C: np.ndarray
+    R: np.ndarray
+    H: np.ndarray
+    r: np.ndarray
+    h: np.ndarray
+    c2r2_bound: np.ndarray
+    r_bound: np.ndarray
+    ids: np.ndarray
+    G_C: np.ndarray
+    G_c2r2: np.ndarray
+    G_r: np.ndarray
+    G_members: np.ndarray
+
+
+class KernelTables(NamedTuple):
+    """A scene's tables in the rays' dtype (`kernel_tables`), one per kind in `Scene.intersect`'s order, and
+    the kernel's constants (`kernel_constants`)."""
+
+    rect: RectTable
+    box_big: DenseBoxTable
+    sphere: SphereTable
+    box: CulledTable
+    cylinder: CulledTable
+    k: tuple
 
 
 # Small helpers are inlined into the kinds' loops: a numba call that takes arrays costs two atomic reference
@@ -95,8 +160,10 @@ def _fold_dense(T, I, i, tmin, jmin, ids):
 
 
 @_kernel
-def _rects(O, D, T, I, N, U, V, H, cU, cV, cN, ids, k):
-    """`raycast._hit_rects`: every ray against every rectangle; the first rectangle at the smallest t."""
+def _rects(O, D, T, I, tab, k):
+    """`raycast._hit_rects`: every ray against every rectangle (`RectTable`); the first rectangle at the
+    smallest t."""
+    N, U, V, H, cU, cV, cN, ids = tab.N, tab.U, tab.V, tab.H, tab.cU, tab.cV, tab.cN, tab.ids
     eps = k[K_RECT_EPS]
     for i in range(O.shape[0]):
         o0, o1, o2, d0, d1, d2 = O[i, 0], O[i, 1], O[i, 2], D[i, 0], D[i, 1], D[i, 2]
@@ -116,9 +183,10 @@ def _rects(O, D, T, I, N, U, V, H, cU, cV, cN, ids, k):
 
 
 @_kernel
-def _dense_boxes(O, D, T, I, Rflat, cR, H, ids, k):
+def _dense_boxes(O, D, T, I, tab, k):
     """`raycast._hit_boxes_dense`: R^T o - R^T c and R^T d as ``o @ Rflat - cR`` and ``d @ Rflat``, a slab test
-    against every box; the first box at the smallest t."""
+    against every box (`DenseBoxTable`); the first box at the smallest t."""
+    Rflat, cR, H, ids = tab.Rflat, tab.cR, tab.H, tab.ids
     for i in range(O.shape[0]):
         o0, o1, o2, d0, d1, d2 = O[i, 0], O[i, 1], O[i, 2], D[i, 0], D[i, 1], D[i, 2]
         tmin = k[K_INF]
@@ -136,8 +204,10 @@ def _dense_boxes(O, D, T, I, Rflat, cR, H, ids, k):
 
 
 @_kernel
-def _spheres(O, D, T, I, C, c2r2, ids, k):
-    """`raycast._hit_spheres`: every ray against every sphere; the first sphere at the smallest t."""
+def _spheres(O, D, T, I, tab, k):
+    """`raycast._hit_spheres`: every ray against every sphere (`SphereTable`); the first sphere at the smallest
+    t."""
+    C, c2r2, ids = tab.C, tab.c2r2, tab.ids
     for i in range(O.shape[0]):
         o0, o1, o2, d0, d1, d2 = O[i, 0], O[i, 1], O[i, 2], D[i, 0], D[i, 1], D[i, 2]
         s_do = _dot(d0, d1, d2, o0, o1, o2)
@@ -227,10 +297,12 @@ def _largest_id_min(t, pid, tmin, idmax, best_t):
 
 
 @_kernel
-def _culled(O, D, T, I, cyl, C, R, H, r, h, c2r2b, rb, ids, GC, Gc2r2, Gr, Gmem, k):
-    """`raycast._hit_boxes` (cyl False) or `_hit_cylinders` (cyl True): bounding-sphere culling (two levels
-    when groups exist) against the ray's best t before the kind, then the exact test, folded as
-    `raycast._reduce_pairs` folds (the smallest t; among equal t the largest primitive id)."""
+def _culled(O, D, T, I, cyl, tab, k):
+    """`raycast._hit_boxes` (cyl False) or `_hit_cylinders` (cyl True) on a `CulledTable`: bounding-sphere
+    culling (two levels when groups exist) against the ray's best t before the kind, then the exact test, folded
+    as `raycast._reduce_pairs` folds (the smallest t; among equal t the largest primitive id)."""
+    C, R, H, r, h, c2r2b, rb, ids = tab.C, tab.R, tab.H, tab.r, tab.h, tab.c2r2_bound, tab.r_bound, tab.ids
+    GC, Gc2r2, Gr, Gmem = tab.G_C, tab.G_c2r2, tab.G_r, tab.G_members
     n_groups = GC.shape[0]
     for i in range(O.shape[0]):
         o0, o1, o2, d0, d1, d2 = O[i, 0], O[i, 1], O[i, 2], D[i, 0], D[i, 1], D[i, 2]
@@ -265,14 +337,15 @@ def _misses_at_infinity(T, I, k):
             T[i] = k[K_INF]
 
 
-def closest_hits(O, D, T, I, rect, box_big, sphere, box, cylinder, shadow: bool, k) -> None:
+def closest_hits(O, D, T, I, tables: KernelTables, shadow: bool) -> None:
     """Every ray's closest hit, into T [N] and I [N] (T holds t_max for shadow rays, inf otherwise; I -1). The
-    kinds in `Scene.intersect`'s order: rects, big boxes, spheres, boxes, cylinders; k: `kernel_constants`."""
-    _rects(O, D, T, I, *rect, k)
-    _dense_boxes(O, D, T, I, *box_big, k)
-    _spheres(O, D, T, I, *sphere, k)
-    _culled(O, D, T, I, False, *box, k)
-    _culled(O, D, T, I, True, *cylinder, k)
+    kinds in `Scene.intersect`'s order: rects, big boxes, spheres, boxes, cylinders."""
+    k = tables.k
+    _rects(O, D, T, I, tables.rect, k)
+    _dense_boxes(O, D, T, I, tables.box_big, k)
+    _spheres(O, D, T, I, tables.sphere, k)
+    _culled(O, D, T, I, False, tables.box, k)
+    _culled(O, D, T, I, True, tables.cylinder, k)
     if shadow:
         _misses_at_infinity(T, I, k)
 
@@ -284,9 +357,9 @@ def _arr(q: dict | None, key: str, shape: tuple[int, ...], dtype: type) -> np.nd
     return np.ascontiguousarray(q[key].numpy())
 
 
-def kernel_tables(pk: dict, torch_dtype: torch.dtype) -> tuple:
-    """`Scene._pack`'s CPU tables of ``torch_dtype`` (float32 or float64) as the kernel's argument tuples (rect,
-    box_big, sphere, box, cylinder; empty tables for absent kinds) and its `kernel_constants`."""
+def kernel_tables(pk: dict, torch_dtype: torch.dtype) -> KernelTables:
+    """`Scene._pack`'s CPU tables of ``torch_dtype`` (float32 or float64) as the kernel's tables (empty ones for
+    absent kinds) and its `kernel_constants`."""
     dtype = torch.empty(0, dtype=torch_dtype).numpy().dtype.type
 
     def a(q, key, shape, kind=dtype):
@@ -294,31 +367,32 @@ def kernel_tables(pk: dict, torch_dtype: torch.dtype) -> tuple:
 
     i8 = np.int64
     rq, bb, sp = pk.get("rect"), pk.get("box_big"), pk.get("sphere")
-    rect = (a(rq, "N", (3,)), a(rq, "U", (3,)), a(rq, "V", (3,)), a(rq, "H", (2,)), a(rq, "cU", ()), a(rq, "cV", ()),
-            a(rq, "cN", ()), a(rq, "ids", (), i8))
+    rect = RectTable(N=a(rq, "N", (3,)), U=a(rq, "U", (3,)), V=a(rq, "V", (3,)), H=a(rq, "H", (2,)),
+                     cU=a(rq, "cU", ()), cV=a(rq, "cV", ()), cN=a(rq, "cN", ()), ids=a(rq, "ids", (), i8))
     rflat = np.zeros((3, 0), dtype=dtype) if bb is None else a(bb, "Rflat", ())  # [3, 3P]
-    box_big = (rflat, a(bb, "cR", (3,)), a(bb, "H", (3,)), a(bb, "ids", (), i8))
-    sphere = (a(sp, "C", (3,)), a(sp, "c2r2", ()), a(sp, "ids", (), i8))
+    box_big = DenseBoxTable(Rflat=rflat, cR=a(bb, "cR", (3,)), H=a(bb, "H", (3,)), ids=a(bb, "ids", (), i8))
+    sphere = SphereTable(C=a(sp, "C", (3,)), c2r2=a(sp, "c2r2", ()), ids=a(sp, "ids", (), i8))
 
     def culled(q):
-        return (a(q, "C", (3,)), a(q, "R", (3, 3)), a(q, "H", (3,)), a(q, "r", ()), a(q, "h", ()),
-                a(q, "c2r2_bound", ()), a(q, "r_bound", ()), a(q, "ids", (), i8), a(q, "G_C", (3,)),
-                a(q, "G_c2r2", ()), a(q, "G_r", ()), a(q, "G_members", (1,), i8))
+        return CulledTable(C=a(q, "C", (3,)), R=a(q, "R", (3, 3)), H=a(q, "H", (3,)), r=a(q, "r", ()), h=a(q, "h", ()),
+                           c2r2_bound=a(q, "c2r2_bound", ()), r_bound=a(q, "r_bound", ()), ids=a(q, "ids", (), i8),
+                           G_C=a(q, "G_C", (3,)), G_c2r2=a(q, "G_c2r2", ()), G_r=a(q, "G_r", ()),
+                           G_members=a(q, "G_members", (1,), i8))
 
-    return rect, box_big, sphere, culled(pk.get("box")), culled(pk.get("cylinder")), kernel_constants(dtype)
+    return KernelTables(rect, box_big, sphere, culled(pk.get("box")), culled(pk.get("cylinder")),
+                        kernel_constants(dtype))
 
 
-def intersect_compiled(tables: tuple, origins: Tensor, directions: Tensor,
+def intersect_compiled(tables: KernelTables, origins: Tensor, directions: Tensor,
                        t_max: Tensor | None) -> tuple[Tensor, Tensor]:
     """`Scene.intersect` through `closest_hits`: CPU origins and unit directions [N, 3] of the tables' dtype,
     t_max [N] of that dtype or None (`scene._compiled_cast_applies` checks) -> (t [N], primitive id [N] int64),
     misses t = inf and id = -1."""
-    *kinds, k = tables
     o = np.ascontiguousarray(origins.detach().numpy())
     d = np.ascontiguousarray(directions.detach().numpy())
     n = o.shape[0]
     t = np.full(n, math.inf, dtype=o.dtype) if t_max is None else np.array(t_max.detach().numpy(), dtype=o.dtype)
     ids = np.full(n, -1, dtype=np.int64)
     if n:
-        closest_hits(o, d, t, ids, *kinds, t_max is not None, k)
+        closest_hits(o, d, t, ids, tables, t_max is not None)
     return torch.from_numpy(t), torch.from_numpy(ids)
