@@ -95,3 +95,24 @@ def test_the_power_tally_counts_cases_whose_hidden_size_is_at_least_twice_the_ru
             (("time_offset", True), ("", True), ("", False))]
     s = sweep.summary(rows)["time_offset"]
     assert s["at_least_twice_testable"] == 2 and s["named_where_at_least_twice_testable"] == 1
+
+
+def test_a_case_is_written_and_trained_at_the_size_asked(tmp_path, monkeypatch):
+    """--size S: the writer writes S x S images and the training's max_side is S (the issue's 64 by default)."""
+    commands = []
+
+    def run(cmd, log):
+        commands.append(cmd)
+        out = Path(cmd[cmd.index("--out") + 1])
+        out.mkdir(parents=True)
+        name = {"train": "train.json", "diagnose": "diagnosis.json"}.get(cmd[3], "truth.json")
+        (out / name).write_text(json.dumps({"effects": {"exposure_altered_frames": []}, "named": []}))
+        return 0.0
+
+    monkeypatch.setattr(sweep, "_run", run)
+    for size in (sweep.ISSUE_SIZE, 128):
+        commands.clear()
+        sweep.run_case(tmp_path / str(size), "readout", 1101, seed_set=81, size=size)
+        write, train, _ = commands
+        assert write[write.index("--size") + 1] == str(size) and "--readout-scale" in write
+        assert train[train.index("--set") + 1] == f"max_side={size}"
