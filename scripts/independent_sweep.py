@@ -2,6 +2,7 @@
 'ours' trained on each, `egobench diagnose` on the trained run, the verdicts tallied.
 
     python scripts/independent_sweep.py --out DIR [--jobs 2] [--only EFFECT] [--limit N] [--seed-set K] [--size S]
+        [--iterations N]
 
 The cases are fixed here, before any is run (the design: results/diagnosis/README.md, "2026-12-05: the
 diagnosis on an independent writer's recordings"): 20 nulls and 10 seeds of each hidden effect, at the
@@ -10,7 +11,8 @@ readout of 8 ms; 'ours' with `--preset cpu --iterations 800`). Each case lives i
 run/, diag/) and every stage is skipped when its output exists: an interrupted sweep resumes. DIR/cases.csv
 holds one row per case and DIR/summary.json the rates the issue asks for. ``--seed-set 2`` writes fresh
 recordings: each effect's next block of seeds (nulls 121-140, vignette 211-220, ...). ``--size S`` writes S x S
-recordings and trains at that size (`--set max_side=S`; the issue's conditions: 64); everything else unchanged.
+recordings and trains at that size (`--set max_side=S`; the issue's conditions: 64), ``--iterations N`` trains N
+iterations (the issue's: 800); everything else unchanged.
 """
 
 from __future__ import annotations
@@ -30,6 +32,8 @@ WRITER = REPO / "scripts" / "independent_writer.py"
 STATED_READOUT_S = 0.008
 #: the issue's image size (the writer's default and the cpu preset's max_side)
 ISSUE_SIZE = 64
+#: the issue's training iterations
+ISSUE_ITERATIONS = 800
 GEOMETRIC = {"readout", "time_offset", "exposure_blur", "distortion"}
 
 #: effect -> (the key of its size in the report's smallest-testable table, the hidden size in that unit)
@@ -64,8 +68,10 @@ def seeds_of(effect: str, seed_set: int = 1) -> range:
     return range(seeds.start + shift, seeds.stop + shift)
 
 
-def run_case(out: Path, effect: str, seed: int, seed_set: int = 1, size: int = ISSUE_SIZE) -> dict:
-    """Write, train and diagnose one case at ``size`` px (each stage skipped when done); its row of cases.csv."""
+def run_case(out: Path, effect: str, seed: int, seed_set: int = 1, size: int = ISSUE_SIZE,
+             iterations: int = ISSUE_ITERATIONS) -> dict:
+    """Write, train (``iterations`` at ``size`` px) and diagnose one case (each stage skipped when done); its row
+    of cases.csv."""
     flags, seeds = CASES[effect][0], seeds_of(effect, seed_set)
     case = out / "cases" / f"{effect}_{seed}"
     case.mkdir(parents=True, exist_ok=True)
@@ -77,7 +83,7 @@ def run_case(out: Path, effect: str, seed: int, seed_set: int = 1, size: int = I
                                  "--size", str(size), *flags(seed - seeds.start)], case / "write.log")
     if not (run / "train.json").is_file():
         times["train_s"] = _run([*egobench, "train", "--recording", str(rec), "--method", "ours", "--preset", "cpu",
-                                 "--iterations", "800", "--set", f"max_side={size}", "--seed", str(seed), "--out", str(run),
+                                 "--iterations", str(iterations), "--set", f"max_side={size}", "--seed", str(seed), "--out", str(run),
                                  "--no-progress"],
                                 case / "train.log")
     if not (diag / "diagnosis.json").is_file():
@@ -164,15 +170,20 @@ def main(argv: list[str] | None = None) -> int:
                     help="1: the seeds of CASES; k > 1: the k-th block of as many seeds after them (fresh recordings)")
     ap.add_argument("--size", type=int, default=ISSUE_SIZE,
                     help="image size of the recordings and of the training, pixels (the issue's: 64)")
+    ap.add_argument("--iterations", type=int, default=ISSUE_ITERATIONS,
+                    help="training iterations of each case (the issue's: 800)")
     args = ap.parse_args(argv)
     if args.seed_set < 1:
         ap.error(f"--seed-set: expected an integer >= 1, got {args.seed_set}")
     if not 8 <= args.size <= 1024:
         ap.error(f"--size: expected 8..1024 pixels, got {args.size}")
+    if args.iterations < 1:
+        ap.error(f"--iterations: expected an integer >= 1, got {args.iterations}")
     todo = [(e, s) for e in CASES if args.only in (None, e)
             for k, s in enumerate(seeds_of(e, args.seed_set)) if not args.limit or k < args.limit]
     with ThreadPoolExecutor(max(1, args.jobs)) as pool:
-        rows = list(pool.map(lambda es: run_case(args.out, *es, seed_set=args.seed_set, size=args.size), todo))
+        rows = list(pool.map(lambda es: run_case(args.out, *es, seed_set=args.seed_set, size=args.size,
+                                                       iterations=args.iterations), todo))
     with open(args.out / "cases.csv", "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=list(dict.fromkeys(k for r in rows for k in r)))  # first-seen order
         w.writeheader()

@@ -98,7 +98,8 @@ def test_the_power_tally_counts_cases_whose_hidden_size_is_at_least_twice_the_ru
 
 
 def test_a_case_is_written_and_trained_at_the_size_asked(tmp_path, monkeypatch):
-    """--size S: the writer writes S x S images and the training's max_side is S (the issue's 64 by default)."""
+    """--size S: the writer writes S x S images and the training's max_side is S (the issue's 64 by default);
+    --iterations N: the training's iterations (the issue's 800)."""
     commands = []
 
     def run(cmd, log):
@@ -110,9 +111,10 @@ def test_a_case_is_written_and_trained_at_the_size_asked(tmp_path, monkeypatch):
         return 0.0
 
     monkeypatch.setattr(sweep, "_run", run)
-    for size in (sweep.ISSUE_SIZE, 128):
+    for size, iterations in ((sweep.ISSUE_SIZE, sweep.ISSUE_ITERATIONS), (128, 3000)):
         commands.clear()
-        sweep.run_case(tmp_path / str(size), "readout", 1101, seed_set=81, size=size)
+        sweep.run_case(tmp_path / str(size), "readout", 1101, seed_set=81, size=size, iterations=iterations)
         write, train, _ = commands
         assert write[write.index("--size") + 1] == str(size) and "--readout-scale" in write
         assert train[train.index("--set") + 1] == f"max_side={size}"
+        assert train[train.index("--iterations") + 1] == str(iterations)
