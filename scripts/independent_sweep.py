@@ -83,8 +83,8 @@ def run_case(out: Path, effect: str, seed: int, seed_set: int = 1, size: int = I
                                  "--size", str(size), *flags(seed - seeds.start)], case / "write.log")
     if not (run / "train.json").is_file():
         times["train_s"] = _run([*egobench, "train", "--recording", str(rec), "--method", "ours", "--preset", "cpu",
-                                 "--iterations", str(iterations), "--set", f"max_side={size}", "--seed", str(seed), "--out", str(run),
-                                 "--no-progress"],
+                                 "--iterations", str(iterations), "--set", f"max_side={size}", "--seed", str(seed),
+                                 "--out", str(run), "--no-progress"],
                                 case / "train.log")
     if not (diag / "diagnosis.json").is_file():
         times["diagnose_s"] = _run([*egobench, "diagnose", str(rec), "--run", str(run), "--method", "ours",

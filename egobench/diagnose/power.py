@@ -38,9 +38,13 @@ class DetectionScale(NamedTuple):
 def geometric_standard_errors(results: list[CauseResult]) -> dict:
     """{cause: `DetectionScale`} of the geometric causes' tested parameter (between-frame spread), with the placebo
     records merged into each result."""
-    return {r.name: DetectionScale(r.internal["frame_se"], r.internal["frame_df"],
-                              tuple(v for k, v in r.params.items() if k.startswith("calibration") and isinstance(v, dict)))
+    return {r.name: DetectionScale(r.internal["frame_se"], r.internal["frame_df"], _placebo_records(r))
             for r in results if r.testable and "frame_se" in r.internal}
+
+
+def _placebo_records(result: CauseResult) -> tuple:
+    """The placebo calibrations merged into a result's params (`merge_record`): its ``calibration*`` dicts."""
+    return tuple(v for k, v in result.params.items() if k.startswith("calibration") and isinstance(v, dict))
 
 
 def placebo_critical_t(record: dict, level: float) -> float:

@@ -47,7 +47,8 @@ def test_the_smallest_testable_readout_grows_with_its_placebos_spread_and_not_wi
     assert smallest_testable({"readout": calibrated_like_t}, _ctx(), ALPHA, M)["readout"]["readout_relative_error"] \
         == pytest.approx(plain, rel=1e-9)  # placebos as narrow as the t test's own: the frame test decides
     wide = list(np.linspace(-5.0, 5.0, 16))
-    scale = DetectionScale(se, DF, ({"placebo_t_mean": 0.0, "placebo_t_sd": 1.0, "placebo_n": 999}, {"placebo_t": wide}))
+    narrow = {"placebo_t_mean": 0.0, "placebo_t_sd": 1.0, "placebo_n": 999}
+    scale = DetectionScale(se, DF, (narrow, {"placebo_t": wide}))
     got = smallest_testable({"readout": scale}, _ctx(), ALPHA, M)["readout"]["readout_relative_error"]
     expected = (placebo_critical_t({"placebo_t": wide}, ALPHA / M) + sps.t.ppf(MDE_POWER, DF)) * se / 0.008
     assert got == pytest.approx(expected, rel=1e-9) and got > 1.5 * plain
