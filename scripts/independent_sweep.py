@@ -160,6 +160,21 @@ def summary(rows: list[dict]) -> dict:
     return out
 
 
+def claim_conditions(out: Path, size: int, iterations: int) -> None:
+    """Stamp DIR with the sweep's image size and iterations (DIR/conditions.json), or raise when DIR holds cases of
+    other conditions: a case folder is reused stage by stage, so another size would silently keep the old runs."""
+    stamp, want = out / "conditions.json", {"size": int(size), "iterations": int(iterations)}
+    if stamp.is_file():
+        have = json.loads(stamp.read_text())
+        if have != want:
+            raise SystemExit(f"{stamp}: this folder holds cases at {have}, not {want}; use another --out")
+    elif (out / "cases").is_dir() and want != {"size": ISSUE_SIZE, "iterations": ISSUE_ITERATIONS}:
+        raise SystemExit(f"{out}: cases without {stamp.name} are the issue's conditions "
+                         f"({ISSUE_SIZE} px, {ISSUE_ITERATIONS} iterations), not {want}; use another --out")
+    out.mkdir(parents=True, exist_ok=True)
+    stamp.write_text(json.dumps(want) + "\n")
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", required=True, type=Path)
@@ -179,6 +194,7 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--size: expected 8..1024 pixels, got {args.size}")
     if args.iterations < 1:
         ap.error(f"--iterations: expected an integer >= 1, got {args.iterations}")
+    claim_conditions(args.out, args.size, args.iterations)
     todo = [(e, s) for e in CASES if args.only in (None, e)
             for k, s in enumerate(seeds_of(e, args.seed_set)) if not args.limit or k < args.limit]
     with ThreadPoolExecutor(max(1, args.jobs)) as pool:

@@ -16,6 +16,7 @@ from typing import NamedTuple
 import numpy as np
 import scipy.stats as sps
 
+from egobench.diagnose.estimators import CAUSES
 from egobench.effects import EFFECTS
 from egobench.residual.calibration import PLACEBO_MAX
 from egobench.residual.estimation import CauseResult
@@ -27,52 +28,71 @@ PLACEBO_LISTS = ("placebo_t", "placebo_centre_t")
 
 
 class DetectionScale(NamedTuple):
-    """A test's between-frame standard error and degrees of freedom, and its placebo calibrations' records (the
-    ``calibration*`` dicts of the cause's params; none for the photometric tests' standard errors)."""
+    """A test's between-frame standard error and degrees of freedom, its placebo calibrations' records on the same
+    t scale (`_placebo_records`; none for the photometric tests' standard errors), and whether the test is
+    one-sided (a positive statistic only, as exposure blur's)."""
 
     se: float
     df: int
     placebos: tuple = ()
+    one_sided: bool = False
 
 
 def geometric_standard_errors(results: list[CauseResult]) -> dict:
     """{cause: `DetectionScale`} of the geometric causes' tested parameter (between-frame spread), with the placebo
     records merged into each result."""
-    return {r.name: DetectionScale(r.internal["frame_se"], r.internal["frame_df"], _placebo_records(r))
+    return {r.name: DetectionScale(r.internal["frame_se"], r.internal["frame_df"], _placebo_records(r),
+                                   bool(getattr(CAUSES.get(r.name), "one_sided", False)))
             for r in results if r.testable and "frame_se" in r.internal}
 
 
 def _placebo_records(result: CauseResult) -> tuple:
-    """The placebo calibrations merged into a result's params (`merge_record`): its ``calibration*`` dicts."""
-    return tuple(v for k, v in result.params.items() if k.startswith("calibration") and isinstance(v, dict))
+    """The placebo calibrations merged into a result's params (`merge_record`: its ``calibration*`` dicts) whose
+    real statistic is the frame test's own t; a placebo of another statistic (exposure blur's velocity placebo
+    reads the residual before its shift-conditioned fit) is on another scale and is left out."""
+    t = result.statistic
+    return tuple(v for k, v in result.params.items() if k.startswith("calibration") and isinstance(v, dict)
+                 and isinstance(v.get("first_order_t"), (int, float)) and t is not None
+                 and math.isclose(float(v["first_order_t"]), float(t), rel_tol=1e-9, abs_tol=1e-12))
 
 
-def placebo_critical_t(record: dict, level: float) -> float:
-    """The smallest |t| that one placebo record lets pass at ``level`` (0 when the record holds no statistics): for
-    a few placebo statistics, above every one of them and beyond their Student-t prediction tail (`beat_placebos`);
-    for a sequential rank p, |mean| + sd times the normal quantile of the two-sided level, or inf where the level
-    is below the smallest rank p the test can give, 1 / (1 + `PLACEBO_MAX`)."""
+def placebo_critical_t(record: dict, level: float, one_sided: bool = False) -> float:
+    """The smallest t (|t| for a two-sided test) that one placebo record lets pass below ``level`` (0 when the
+    record holds no statistics; the larger of its two forms when it holds both):
+
+    - a few placebo statistics (`PLACEBO_LISTS`, finite ones, at least two): above every one of them and beyond
+      their Student-t prediction tail (`beat_placebos`);
+    - a sequential rank p (`sequential_rank_p`: placebo_t_mean, placebo_t_sd, placebo_n): its p takes the values
+      k / (1 + `PLACEBO_MAX`), so the level it must reach is the largest of them below ``level`` (inf where there is
+      none); the placebos' mean (|mean| two-sided) + sd sqrt(1 + 1/n) times the Student-t quantile of that level
+      (two-sided: its half) on n - 1 degrees of freedom, the prediction tail of n draws (an early stop leaves few)."""
+    out = 0.0
     for key in PLACEBO_LISTS:
-        ts = record.get(key)
-        if isinstance(ts, list) and len(ts) >= 2:
-            a = np.abs(np.asarray(ts, dtype=np.float64))
-            n = a.size
-            tail = a.mean() + a.std(ddof=1) * math.sqrt(1.0 + 1.0 / n) * float(sps.t.isf(level, n - 1))
-            return float(max(a.max(), tail))
-    mean, sd = record.get("placebo_t_mean"), record.get("placebo_t_sd")
-    if mean is None or sd is None or not (math.isfinite(mean) and math.isfinite(sd)):
-        return 0.0
-    if level < 1.0 / (1 + PLACEBO_MAX):
+        ts = np.asarray(record.get(key) or [], dtype=np.float64)
+        a = np.abs(ts[np.isfinite(ts)])
+        if a.size >= 2:
+            tail = a.mean() + a.std(ddof=1) * math.sqrt(1.0 + 1.0 / a.size) * float(sps.t.isf(level, a.size - 1))
+            out = max(out, float(a.max()), tail)
+    mean, sd, n = record.get("placebo_t_mean"), record.get("placebo_t_sd"), record.get("placebo_n")
+    if not all(isinstance(x, (int, float)) and math.isfinite(x) for x in (mean, sd, n)) or n < 2:
+        return out
+    k = math.ceil(level * (1 + PLACEBO_MAX)) - 1  # the largest k / (1 + PLACEBO_MAX) strictly below level
+    if k < 1:
         return math.inf
-    return abs(float(mean)) + float(sd) * float(sps.norm.isf(level / 2))
+    reach = k / (1 + PLACEBO_MAX)
+    centre = float(mean) if one_sided else abs(float(mean))
+    q = float(sps.t.isf(reach if one_sided else reach / 2, int(n) - 1))
+    return max(out, centre + float(sd) * math.sqrt(1.0 + 1.0 / n) * q)
 
 
 def _mde_multiplier(alpha: float, m: int, scale: DetectionScale) -> float:
     """The frame t an effect needs to be named with power `MDE_POWER`: the larger of the frame test's own
-    critical t (two-sided, alpha / m) and its placebos' (`placebo_critical_t`), plus the power's t quantile."""
+    critical t (alpha / m; two-sided unless the test is one-sided) and its placebos' (`placebo_critical_t`), plus
+    the power's t quantile."""
     df = max(int(scale.df), 2)
     level = alpha / max(m, 1)
-    critical = max([float(sps.t.ppf(1 - level / 2, df))] + [placebo_critical_t(p, level) for p in scale.placebos])
+    own = float(sps.t.isf(level if scale.one_sided else level / 2, df))
+    critical = max([own] + [placebo_critical_t(p, level, scale.one_sided) for p in scale.placebos])
     return critical + float(sps.t.ppf(MDE_POWER, df))
 
 

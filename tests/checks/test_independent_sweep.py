@@ -118,3 +118,18 @@ def test_a_case_is_written_and_trained_at_the_size_asked(tmp_path, monkeypatch):
         assert write[write.index("--size") + 1] == str(size) and "--readout-scale" in write
         assert train[train.index("--set") + 1] == f"max_side={size}"
         assert train[train.index("--iterations") + 1] == str(iterations)
+
+
+def test_a_sweep_folder_keeps_the_conditions_of_its_cases(tmp_path):
+    """A folder's cases are reused stage by stage, so a sweep at another size or iteration count into it stops."""
+    sweep.claim_conditions(tmp_path, 128, 800)
+    sweep.claim_conditions(tmp_path, 128, 800)  # the same conditions: resumes
+    with pytest.raises(SystemExit, match="128"):
+        sweep.claim_conditions(tmp_path, 256, 800)
+    old = tmp_path / "old"
+    (old / "cases").mkdir(parents=True)  # cases written before the stamp: the issue's conditions
+    sweep.claim_conditions(old, sweep.ISSUE_SIZE, sweep.ISSUE_ITERATIONS)
+    older = tmp_path / "older"
+    (older / "cases").mkdir(parents=True)
+    with pytest.raises(SystemExit, match="3000"):
+        sweep.claim_conditions(older, 64, 3000)
