@@ -18,7 +18,7 @@ import scipy.stats as sps
 
 from egobench.diagnose.estimators import CAUSES
 from egobench.effects import EFFECTS
-from egobench.residual.calibration import PLACEBO_MAX
+from egobench.residual.calibration import PLACEBO_MAX, prediction_bound
 from egobench.residual.estimation import CauseResult
 
 #: Power of the minimum detectable effect (probability of detecting an effect of that size).
@@ -71,8 +71,7 @@ def placebo_critical_t(record: dict, level: float, one_sided: bool = False) -> f
         ts = np.asarray(record.get(key) or [], dtype=np.float64)
         a = np.abs(ts[np.isfinite(ts)])
         if a.size >= 2:
-            tail = a.mean() + a.std(ddof=1) * math.sqrt(1.0 + 1.0 / a.size) * float(sps.t.isf(level, a.size - 1))
-            out = max(out, float(a.max()), tail)
+            out = max(out, float(a.max()), prediction_bound(a.mean(), a.std(ddof=1), a.size, level))
     mean, sd, n = record.get("placebo_t_mean"), record.get("placebo_t_sd"), record.get("placebo_n")
     if not all(isinstance(x, (int, float)) and math.isfinite(x) for x in (mean, sd, n)) or n < 2:
         return out
@@ -81,8 +80,7 @@ def placebo_critical_t(record: dict, level: float, one_sided: bool = False) -> f
         return math.inf
     reach = k / (1 + PLACEBO_MAX)
     centre = float(mean) if one_sided else abs(float(mean))
-    q = float(sps.t.isf(reach if one_sided else reach / 2, int(n) - 1))
-    return max(out, centre + float(sd) * math.sqrt(1.0 + 1.0 / n) * q)
+    return max(out, prediction_bound(centre, float(sd), int(n), reach if one_sided else reach / 2))
 
 
 def _mde_multiplier(alpha: float, m: int, scale: DetectionScale) -> float:
@@ -98,10 +96,9 @@ def _mde_multiplier(alpha: float, m: int, scale: DetectionScale) -> float:
 
 def smallest_testable(se: dict, ctx, alpha: float, m: int) -> dict:
     """Smallest effect of each kind this run could reveal (power MDE_POWER at level alpha / m, its placebos
-    included), in the effect's parameter units (see egobench.effects). ``se``: {cause: `DetectionScale` or (se, df)}."""
+    included), in the effect's parameter units (see egobench.effects). ``se``: {cause: `DetectionScale`}."""
     out = {}
-    for name, value in se.items():
-        scale = value if isinstance(value, DetectionScale) else DetectionScale(*value)
+    for name, scale in se.items():
         s = scale.se
         if not (s is not None and math.isfinite(s) and s > 0):
             continue

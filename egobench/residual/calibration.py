@@ -271,6 +271,12 @@ def beat_placebos(t_real: float, t_placebo: list[float]) -> tuple[float, int, fl
     return max((1 + exceed) / (1 + len(t_placebo)) if exceed else 0.0, p_tail), exceed, p_tail
 
 
+def prediction_bound(mean: float, sd: float, n: int, level: float) -> float:
+    """The value a new draw exceeds with probability ``level`` under the Student-t prediction interval of n draws
+    of this mean and sd: mean + sd sqrt(1 + 1/n) t_{n-1}(1 - level), the inverse of `beat_placebos`' tail."""
+    return float(mean + sd * math.sqrt(1.0 + 1.0 / n) * sps.t.isf(level, n - 1))
+
+
 # ------------------------------------------------------------------------------------------------
 # What a placebo says about a cause, and the evidence the placebos share
 

@@ -55,7 +55,7 @@ def test_only_placebos_of_the_frame_tests_own_statistic_are_read():
 
 def test_the_smallest_testable_readout_grows_with_its_placebos_spread_and_not_without_them():
     se = 0.0004  # s of the readout error
-    plain = smallest_testable({"readout": (se, DF)}, _ctx(), ALPHA, M)["readout"]["readout_relative_error"]
+    plain = smallest_testable({"readout": DetectionScale(se, DF)}, _ctx(), ALPHA, M)["readout"]["readout_relative_error"]
     student = sps.t.ppf(1 - ALPHA / (2 * M), DF) + sps.t.ppf(MDE_POWER, DF)
     assert plain == pytest.approx(student * se / 0.008, rel=1e-9)
     narrow = {"placebo_t": list(np.linspace(-1.0, 1.0, 16))}
