@@ -841,6 +841,29 @@ def test_readout_must_follow_the_true_row_times():
     assert max(abs(t) for t in c["placebo_t"]) > 0.8 * abs(c["first_order_t"])  # as strong along the columns
 
 
+
+def test_the_row_time_placebos_hold_the_true_row_times_so_a_true_readout_does_not_leak_into_them():
+    """Each wrong-row-time placebo is fitted beside the shear at the true row times (`row_time_placebo`): adding
+    any multiple of that shear to the residual moves the real statistic and leaves every placebo's t where it
+    was (least squares is invariant to adding a column of the design to the response). Without the column a
+    scrambled map, which keeps part of the true row order, takes a share of a true readout error, and its
+    spread grows with the effect it is to calibrate."""
+    import copy
+
+    from egobench.effects.readout import row_time_placebo
+    from egobench.residual.estimation import ResidualData
+
+    case = make_case(None, seed=4, speed_px_s=(250.0, 600.0))
+    d = ResidualData(case.measured, case.predicted, case.context, np.arange(case.measured.shape[0]))
+    cause = CAUSES["readout"]
+    before = row_time_placebo(cause, d).params["calibration_row_time"]
+    shear = cause.regressors(d)[cause.tested_index]  # velocity term x (R - 1/2): 1 s of readout error
+    with_readout = copy.copy(d)
+    with_readout.r = d.r + 0.004 * shear  # a 4 ms readout error, in the residual's first order
+    after = row_time_placebo(cause, with_readout).params["calibration_row_time"]
+    assert abs(after["first_order_t"]) > abs(before["first_order_t"]) + 5.0
+    np.testing.assert_allclose(after["placebo_t"], before["placebo_t"], rtol=1e-7, atol=1e-9)
+
 def _smooth_series(rng: np.random.Generator, n: int, rho: float) -> np.ndarray:
     """A centred AR(1) series: what exposure x gain and a model's per-frame error look like along a walk."""
     x = np.zeros(n)
