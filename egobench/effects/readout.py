@@ -131,8 +131,9 @@ class ReadoutCause(GeometricCause):
 #: Row-time bands of the row-time placebo, and how many band orders it tries.
 #: 14 scrambles since the placebos' tail became a Student-t prediction interval (`beat_placebos`): with 6,
 #: a synthetic hidden readout (t 13.6, one scramble at 11.3) had p 0.019; with 14, 0.0029; with 22, 0.0010,
-#: while the motion-following corner null of the same test fell from 0.059 (14) to 0.035 (22) (measured before each
-#: placebo held the true row times' shear, `row_time_placebo`).
+#: while the motion-following corner null of the same test fell from 0.059 (14) to 0.035 (22). Since each placebo
+#: holds the true row times' shear (`row_time_placebo`), the same hidden readout's strongest scramble is 2.7, not
+#: 11.3 (p 1e-11), and the corner null's p is 0.18 (tests/diagnose/test_diagnose_trained.py, seeds 3 and 4).
 ROW_TIME_BANDS, ROW_TIME_SCRAMBLES = 8, 14
 
 
