@@ -198,7 +198,8 @@ class Readout(Effect):
     cause_class = ReadoutCause  # the diagnosis's estimator (egobench.residual.estimation)
     identifiability = (
         "only with image motion during the readout: the shear grows with row time and image speed, so "
-        "quasi-static frames show nothing")
+        "quasi-static frames show nothing; on a run rendered with a staircase of pose samples, only by the steps "
+        "between the samples' row bands, where the run's own band-wise error also sits")
     trained_magnitudes = (0.4,)
     error_unit = "fraction"
     trained_placebo = "velocity_permutation"
