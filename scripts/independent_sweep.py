@@ -9,7 +9,8 @@ diagnosis on an independent writer's recordings"): 20 nulls and 10 seeds of each
 conditions of issue 72 (64 px, 48 frames, fixed 1 ms exposure and gain 1, a flat stated vignette, a stated
 readout of 8 ms; 'ours' with `--preset cpu --iterations 800`). Each case lives in DIR/cases/<case>/ (rec/,
 run/, diag/) and every stage is skipped when its output exists: an interrupted sweep resumes. DIR/cases.csv
-holds one row per case and DIR/summary.json the rates the issue asks for. ``--seed-set 2`` writes fresh
+holds one row per case, those of earlier invocations into DIR included, and DIR/summary.json the rates the issue
+asks for. ``--seed-set 2`` writes fresh
 recordings: each effect's next block of seeds (nulls 121-140, vignette 211-220, ...). ``--size S`` writes S x S
 recordings and trains at that size (`--set max_side=S`; the issue's conditions: 64), ``--iterations N`` trains N
 iterations (the issue's: 800); everything else unchanged.
@@ -160,6 +161,22 @@ def summary(rows: list[dict]) -> dict:
     return out
 
 
+def earlier_rows(out: Path, done: set[tuple[str, int]]) -> list[dict]:
+    """The rows of DIR/cases.csv's cases that this invocation did not run (``done``: (effect, seed)), re-read from
+    their folders with their stage times kept: a sweep run one effect at a time (``--only``) tallies them all."""
+    if not (out / "cases.csv").is_file():
+        return []
+    with open(out / "cases.csv", newline="") as fh:
+        old = [r for r in csv.DictReader(fh) if (r["effect"], int(r["seed"])) not in done]
+    rows = []
+    for r in old:
+        case = out / "cases" / f"{r['effect']}_{r['seed']}"
+        if (case / "diag" / "diagnosis.json").is_file():
+            times = {k: float(r[k]) for k in ("write_s", "train_s", "diagnose_s") if r.get(k)}
+            rows.append(case_row(r["effect"], int(r["seed"]), case, times))
+    return rows
+
+
 def claim_conditions(out: Path, size: int, iterations: int) -> None:
     """Stamp DIR with the sweep's image size and iterations (DIR/conditions.json), or raise when DIR holds cases of
     other conditions: a case folder is reused stage by stage, so another size would silently keep the old runs."""
@@ -200,6 +217,7 @@ def main(argv: list[str] | None = None) -> int:
     with ThreadPoolExecutor(max(1, args.jobs)) as pool:
         rows = list(pool.map(lambda es: run_case(args.out, *es, seed_set=args.seed_set, size=args.size,
                                                        iterations=args.iterations), todo))
+    rows = earlier_rows(args.out, set(todo)) + rows
     with open(args.out / "cases.csv", "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=list(dict.fromkeys(k for r in rows for k in r)))  # first-seen order
         w.writeheader()

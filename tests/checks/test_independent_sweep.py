@@ -133,3 +133,27 @@ def test_a_sweep_folder_keeps_the_conditions_of_its_cases(tmp_path):
     (older / "cases").mkdir(parents=True)
     with pytest.raises(SystemExit, match="3000"):
         sweep.claim_conditions(older, 64, 3000)
+
+
+def test_a_sweep_run_one_effect_at_a_time_keeps_the_earlier_cases_rows(tmp_path):
+    """cases.csv after `--only B` still holds the cases an earlier `--only A` into the same folder tallied (re-read
+    from their folders, their stage times kept); a case this invocation ran, or one without a diagnosis, is not
+    taken from the old table."""
+    import csv
+
+    cases = tmp_path / "cases"
+    _case(cases, "readout_301", [], [{"name": "readout", "params": {"readout_s_estimated": 0.0115}}])
+    _case(cases, "readout_302", [], [])
+    (cases / "readout_303" / "rec").mkdir(parents=True)  # written, never diagnosed
+    with open(tmp_path / "cases.csv", "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=["effect", "seed", "named", "write_s", "train_s", "diagnose_s"])
+        w.writeheader()
+        w.writerows([{"effect": "readout", "seed": 301, "named": "stale", "write_s": "27.5", "train_s": "12.0",
+                      "diagnose_s": "150.0"},
+                     {"effect": "readout", "seed": 302, "named": "", "write_s": "", "train_s": "", "diagnose_s": ""},
+                     {"effect": "readout", "seed": 303, "named": "", "write_s": "1", "train_s": "", "diagnose_s": ""}])
+    rows = sweep.earlier_rows(tmp_path, {("readout", 302), ("null", 101)})
+    assert [(r["effect"], r["seed"]) for r in rows] == [("readout", 301)]
+    assert rows[0]["named"] == "readout" and rows[0]["readout_s_estimated"] == 0.0115  # from its folder, not the table
+    assert (rows[0]["write_s"], rows[0]["train_s"], rows[0]["diagnose_s"]) == (27.5, 12.0, 150.0)
+    assert sweep.earlier_rows(tmp_path / "fresh", set()) == []
