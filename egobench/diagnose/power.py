@@ -51,8 +51,10 @@ def _placebo_records(result: CauseResult) -> tuple:
     real statistic is the frame test's own t; a placebo of another statistic (exposure blur's velocity placebo
     reads the residual before its shift-conditioned fit) is on another scale and is left out."""
     t = result.statistic
+    if t is None:
+        return ()
     return tuple(v for k, v in result.params.items() if k.startswith("calibration") and isinstance(v, dict)
-                 and isinstance(v.get("first_order_t"), (int, float)) and t is not None
+                 and isinstance(v.get("first_order_t"), (int, float))
                  and math.isclose(float(v["first_order_t"]), float(t), rel_tol=1e-9, abs_tol=1e-12))
 
 

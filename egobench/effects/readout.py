@@ -182,10 +182,11 @@ def row_time_placebo(cause: GeometricCause, data: ResidualData) -> PlaceboRecord
     data.share_derivatives()
     t_real = t_of(data, nuisance)
     held = nuisance + [cause.regressors(data)[j]]  # the true row times' shear, held in every placebo's fit
+    R_true = np.asarray(data.ctx.row_time_ratio)
     t_placebo = []
-    for R in row_time_maps(np.asarray(data.ctx.row_time_ratio, dtype=np.float64), np.asarray(data.ctx.valid, bool)):
+    for R in row_time_maps(R_true.astype(np.float64), np.asarray(data.ctx.valid, bool)):
         d = copy.copy(data)
-        d.ctx = dc_replace(data.ctx, row_time_ratio=R.astype(np.asarray(data.ctx.row_time_ratio).dtype))
+        d.ctx = dc_replace(data.ctx, row_time_ratio=R.astype(R_true.dtype))
         t_placebo.append(t_of(d, held))
     p, exceed, p_tail = beat_placebos(t_real, t_placebo)
     return PlaceboRecord(p, {"calibration_row_time": {

@@ -266,15 +266,20 @@ def beat_placebos(t_real: float, t_placebo: list[float]) -> tuple[float, int, fl
     exceed = int(sum(abs(t) >= abs(t_real) for t in t_placebo))
     a = np.abs(np.asarray(t_placebo))
     n = a.size
-    z = (abs(t_real) - a.mean()) / (max(float(a.std(ddof=1)), 1e-12) * math.sqrt(1.0 + 1.0 / n))
+    z = (abs(t_real) - a.mean()) / _prediction_sd(max(float(a.std(ddof=1)), 1e-12), n)
     p_tail = float(sps.t.sf(z, n - 1))
     return max((1 + exceed) / (1 + len(t_placebo)) if exceed else 0.0, p_tail), exceed, p_tail
+
+
+def _prediction_sd(sd: float, n: int) -> float:
+    """The scale of a new draw's Student-t prediction interval from n draws of this sd: sd sqrt(1 + 1/n)."""
+    return sd * math.sqrt(1.0 + 1.0 / n)
 
 
 def prediction_bound(mean: float, sd: float, n: int, level: float) -> float:
     """The value a new draw exceeds with probability ``level`` under the Student-t prediction interval of n draws
     of this mean and sd: mean + sd sqrt(1 + 1/n) t_{n-1}(1 - level), the inverse of `beat_placebos`' tail."""
-    return float(mean + sd * math.sqrt(1.0 + 1.0 / n) * sps.t.isf(level, n - 1))
+    return float(mean + _prediction_sd(sd, n) * sps.t.isf(level, n - 1))
 
 
 # ------------------------------------------------------------------------------------------------
