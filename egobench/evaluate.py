@@ -99,7 +99,7 @@ def _held_out(recording_dir, run_dir, device: str | None) -> _Held:
     frames = rec.test_frames
     if not frames:
         raise ValueError(f"recording {rec.root}: no held-out frames (every 8th frame, from index 0)")
-    counts = sample_counts(rec, frames, spec, run.config.max_pose_samples, run.config.sample_rule,
+    counts = sample_counts(rec, frames, spec, run.config.pose_sampling,
                            pixel_scale=run.camera.width / rec.camera.width)
     return _Held(run=run, recording=rec, frames=frames, counts=counts, maps=run_maps(rec, run),
                  k_of=method_normaliser(rec, spec), formation=formation_model(spec),

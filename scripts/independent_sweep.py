@@ -70,9 +70,9 @@ def seeds_of(effect: str, seed_set: int = 1) -> range:
 
 
 def run_case(out: Path, effect: str, seed: int, seed_set: int = 1, size: int = ISSUE_SIZE,
-             iterations: int = ISSUE_ITERATIONS) -> dict:
-    """Write, train (``iterations`` at ``size`` px) and diagnose one case (each stage skipped when done); its row
-    of cases.csv."""
+             iterations: int = ISSUE_ITERATIONS, train_set: tuple[str, ...] = ()) -> dict:
+    """Write, train (``iterations`` at ``size`` px, ``train_set``: further ``--set`` items) and diagnose one case
+    (each stage skipped when done); its row of cases.csv."""
     flags, seeds = CASES[effect][0], seeds_of(effect, seed_set)
     case = out / "cases" / f"{effect}_{seed}"
     case.mkdir(parents=True, exist_ok=True)
@@ -84,7 +84,8 @@ def run_case(out: Path, effect: str, seed: int, seed_set: int = 1, size: int = I
                                  "--size", str(size), *flags(seed - seeds.start)], case / "write.log")
     if not (run / "train.json").is_file():
         times["train_s"] = _run([*egobench, "train", "--recording", str(rec), "--method", "ours", "--preset", "cpu",
-                                 "--iterations", str(iterations), "--set", f"max_side={size}", "--seed", str(seed),
+                                 "--iterations", str(iterations), "--set", f"max_side={size}",
+                                 *[a for item in train_set for a in ("--set", item)], "--seed", str(seed),
                                  "--out", str(run), "--no-progress"],
                                 case / "train.log")
     if not (diag / "diagnosis.json").is_file():
@@ -177,10 +178,13 @@ def earlier_rows(out: Path, done: set[tuple[str, int]]) -> list[dict]:
     return rows
 
 
-def claim_conditions(out: Path, size: int, iterations: int) -> None:
-    """Stamp DIR with the sweep's image size and iterations (DIR/conditions.json), or raise when DIR holds cases of
-    other conditions: a case folder is reused stage by stage, so another size would silently keep the old runs."""
+def claim_conditions(out: Path, size: int, iterations: int, train_set: tuple[str, ...] = ()) -> None:
+    """Stamp DIR with the sweep's image size, iterations and training overrides (DIR/conditions.json), or raise when
+    DIR holds cases of other conditions: a case folder is reused stage by stage, so another size would silently keep
+    the old runs."""
     stamp, want = out / "conditions.json", {"size": int(size), "iterations": int(iterations)}
+    if train_set:
+        want["train_set"] = list(train_set)
     if stamp.is_file():
         have = json.loads(stamp.read_text())
         if have != want:
@@ -204,6 +208,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="image size of the recordings and of the training, pixels (the issue's: 64)")
     ap.add_argument("--iterations", type=int, default=ISSUE_ITERATIONS,
                     help="training iterations of each case (the issue's: 800)")
+    ap.add_argument("--train-set", action="append", default=[], metavar="FIELD=VALUE",
+                    help="a further TrainConfig override of every case's training (repeatable; as `egobench train --set`)")
     args = ap.parse_args(argv)
     if args.seed_set < 1:
         ap.error(f"--seed-set: expected an integer >= 1, got {args.seed_set}")
@@ -211,12 +217,13 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--size: expected 8..1024 pixels, got {args.size}")
     if args.iterations < 1:
         ap.error(f"--iterations: expected an integer >= 1, got {args.iterations}")
-    claim_conditions(args.out, args.size, args.iterations)
+    claim_conditions(args.out, args.size, args.iterations, tuple(args.train_set))
     todo = [(e, s) for e in CASES if args.only in (None, e)
             for k, s in enumerate(seeds_of(e, args.seed_set)) if not args.limit or k < args.limit]
     with ThreadPoolExecutor(max(1, args.jobs)) as pool:
         rows = list(pool.map(lambda es: run_case(args.out, *es, seed_set=args.seed_set, size=args.size,
-                                                       iterations=args.iterations), todo))
+                                                       iterations=args.iterations,
+                                                       train_set=tuple(args.train_set)), todo))
     rows = earlier_rows(args.out, set(todo)) + rows
     with open(args.out / "cases.csv", "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=list(dict.fromkeys(k for r in rows for k in r)))  # first-seen order

@@ -258,8 +258,8 @@ def calibration_errors(online_rec: Recording, factory_rec: Recording | None, cal
 def motion_samples(recording: Recording, pixel_scale: float = 1.0, config=None) -> dict:
     """'ours'' rolling-shutter pose-sample counts on the training frames, at the training resolution."""
     config = TrainConfig.cpu() if config is None else config
-    counts = np.asarray(sample_counts(recording, recording.train_frames, get_method("ours"), config.max_pose_samples,
-                                      config.sample_rule, pixel_scale=pixel_scale))
+    counts = np.asarray(sample_counts(recording, recording.train_frames, get_method("ours"), config.pose_sampling,
+                                      pixel_scale=pixel_scale))
     return {"motion_samples_median": float(np.median(counts)), "frac_frames_multi_sample": float(np.mean(counts > 1)),
             "motion_samples_per_frame": counts.tolist(), "motion_sample_rule": config.sample_rule,
             "motion_samples_max": int(config.max_pose_samples)}

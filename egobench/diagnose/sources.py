@@ -382,7 +382,7 @@ def run_source(recording_dir: str | Path, run_dir: str | Path, max_frames: int |
     frames = _select(rec.frames, max_frames)
     maps, k_of, formation = run_maps(rec, run), method_normaliser(rec, spec), formation_model(spec)
     settings = RenderSettings.of(run.config)
-    counts = sample_counts(rec, frames, spec, run.config.max_pose_samples, run.config.sample_rule, 1.0)
+    counts = sample_counts(rec, frames, spec, run.config.pose_sampling, 1.0)
     trained_counts = np.array(counts, dtype=np.int64)  # as in its training: the same rule at the same size
     if pose_samples is not None:
         if int(pose_samples) != pose_samples or pose_samples < 1:

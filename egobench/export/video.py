@@ -65,7 +65,7 @@ def _predict(panel: _Panel, timestamp_ns: int) -> np.ndarray:
         img = resize_map(panel.recording.load_image(frame), cam)
     else:
         run = held.run
-        n = sample_counts(held.recording, [frame], run.spec, run.config.max_pose_samples, run.config.sample_rule,
+        n = sample_counts(held.recording, [frame], run.spec, run.config.pose_sampling,
                           pixel_scale=run.camera.width / held.recording.camera.width)[0]
         img = predict_frame(run.gaussians, held.recording, frame, run.spec, run.camera, held.maps,
                             held.k_of[frame.index], n, held.settings, held.formation).image

@@ -49,6 +49,16 @@ DEFAULT_MAX_SAMPLES = 8
 SampleRule = Literal["code", "paper"]
 
 
+@dataclass(frozen=True)
+class SamplingRule:
+    """How many rolling-shutter pose samples a frame gets (`estimate_motion`): the rule, its cap and the
+    pixels of row shear one sample covers (the released code: "code", 8, 1 px)."""
+
+    max_samples: int = DEFAULT_MAX_SAMPLES
+    rule: SampleRule = "code"
+    step_px: float = 1.0
+
+
 @dataclass
 class MotionEstimate:
     """Pixel motion of a frame's sparse points, as used to pick the sample count."""
@@ -115,15 +125,19 @@ def _nan_median(disp: Tensor, valid: Tensor) -> Tensor:  # [K, P], [K, P] -> [K]
 
 def estimate_motion(
     recording: Recording, frame: Frame, max_samples: int = DEFAULT_MAX_SAMPLES, rule: SampleRule = "code",
-    pixel_scale: float = 1.0,
+    pixel_scale: float = 1.0, step_px: float = 1.0,
 ) -> MotionEstimate:
     """Pick the number of rolling-shutter pose samples for ``frame`` (see module docstring).
 
     ``pixel_scale`` converts the recording's pixels to the rendered ones (training at half
-    resolution: 0.5), so that "1 pixel" means one rendered pixel.
+    resolution: 0.5), so that "1 pixel" means one rendered pixel. ``step_px``: the rendered pixels of
+    row shear one sample may cover (the rules' 1 px). `MotionEstimate.median_motion_px` stays in
+    rendered pixels.
     """
     if not pixel_scale > 0:
         raise ValueError(f"pixel_scale: expected > 0, got {pixel_scale}")
+    if not step_px > 0:
+        raise ValueError(f"step_px: expected > 0 pixels of row shear per pose sample, got {step_px}")
     if int(max_samples) != max_samples or max_samples < 1:
         raise ValueError(f"max_samples: expected an integer >= 1, got {max_samples}")
     readout_ns = frame.read_end_ns - frame.read_start_ns
@@ -137,7 +151,7 @@ def estimate_motion(
         )
         n_points = int(valid.sum())
         median = float(_nan_median(disp, valid)[0]) * pixel_scale if n_points else 0.0
-        n = int(min(max(readout_ns / (MOTION_WINDOW_S * 1e9) * median, 1), max_samples))
+        n = int(min(max(readout_ns / (MOTION_WINDOW_S * 1e9) * median / step_px, 1), max_samples))
         return MotionEstimate(n_samples=n, median_motion_px=median, n_points=n_points, rule=rule)
     if rule == "paper":
         if readout_ns == 0:
@@ -156,7 +170,7 @@ def estimate_motion(
         worst = torch.zeros(int(max_samples) + 1, dtype=torch.float64).scatter_reduce(
             0, owner_t, med, reduce="amax", include_self=False
         )[1:]  # [max] worst bracket median per candidate n
-        ok = torch.nonzero(worst < 1.0)
+        ok = torch.nonzero(worst < step_px)
         n = int(ok[0]) + 1 if len(ok) else int(max_samples)
         return MotionEstimate(n_samples=n, median_motion_px=float(worst[0]), n_points=int(valid[0].sum()), rule=rule)
     raise ValueError(f"rule: expected 'code' or 'paper', got {rule!r}")
@@ -164,10 +178,11 @@ def estimate_motion(
 
 def n_pose_samples(
     recording: Recording, frame: Frame, max_samples: int = DEFAULT_MAX_SAMPLES, rule: SampleRule = "code",
-    pixel_scale: float = 1.0,
+    pixel_scale: float = 1.0, step_px: float = 1.0,
 ) -> int:
     """Number of rolling-shutter pose samples for ``frame`` (1 for a static frame)."""
-    return estimate_motion(recording, frame, max_samples=max_samples, rule=rule, pixel_scale=pixel_scale).n_samples
+    return estimate_motion(recording, frame, max_samples=max_samples, rule=rule, pixel_scale=pixel_scale,
+                           step_px=step_px).n_samples
 
 
 def sample_times_ns(frame: Frame, n: int, n_exposure_samples: int = 1) -> Tensor:

@@ -74,9 +74,10 @@ def method_normaliser(recording: Recording, spec: MethodSpec) -> dict[int, Tenso
     return {f.index: k_all[i] for i, f in enumerate(recording.frames)}
 
 
-def sample_counts(recording: Recording, frames: list[Frame], spec: MethodSpec, max_samples: int,
-                  rule: str, pixel_scale: float) -> list[int]:
-    """Rolling-shutter sample count per frame at the rendering resolution (1 for centre methods).
+def sample_counts(recording: Recording, frames: list[Frame], spec: MethodSpec,
+                  sampling: motion_sampling.SamplingRule, pixel_scale: float) -> list[int]:
+    """Rolling-shutter sample count per frame at the rendering resolution (1 for centre methods), by
+    ``sampling`` (`TrainConfig.pose_sampling`: the rule a run was trained with).
 
     A frame whose sparse depth is empty gets 1 sample (as the released code: it cannot see motion).
     """
@@ -87,7 +88,8 @@ def sample_counts(recording: Recording, frames: list[Frame], spec: MethodSpec, m
         if f.sparse_depth is None or len(f.sparse_depth.z) == 0:
             counts.append(1)
             continue
-        est = motion_sampling.estimate_motion(recording, f, max_samples=max_samples, rule=rule, pixel_scale=pixel_scale)
+        est = motion_sampling.estimate_motion(recording, f, max_samples=sampling.max_samples, rule=sampling.rule,
+                                              pixel_scale=pixel_scale, step_px=sampling.step_px)
         counts.append(est.n_samples)
     return counts
 

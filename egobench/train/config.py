@@ -8,8 +8,14 @@ import json
 from dataclasses import asdict, dataclass, fields, replace
 from typing import Any, Literal
 
+from egobench.model.motion_sampling import SamplingRule
+
 #: Length of the paper's schedule; schedule fields below are fractions of it.
 PAPER_ITERATIONS = 30_000
+
+
+#: TrainConfig fields added after runs were trained, with the default they are left out of `TrainConfig.hash` at.
+HASHED_WHEN_SET = {"pose_sample_step_px": 1.0}
 
 
 @dataclass(frozen=True)
@@ -50,6 +56,7 @@ class TrainConfig:
     motion_warmup_frac: float = 7_500 / PAPER_ITERATIONS  # motion sampling on after this (paper 7.5K; code 10K)
     max_pose_samples: int = 8  # cap on rolling-shutter pose samples per frame (released code: 8)
     sample_rule: Literal["code", "paper"] = "code"  # how the sample count is chosen (motion_sampling)
+    pose_sample_step_px: float = 1.0  # pixels of row shear one pose sample covers (released code: 1)
     normal_lambda: float = 0.05  # 2DGS normal-consistency weight...
     normal_start_frac: float = 7_000 / PAPER_ITERATIONS  # ...from this fraction (paper 7K)
     dist_lambda: float = 0.01  # 2DGS distortion weight...
@@ -83,6 +90,8 @@ class TrainConfig:
             raise ValueError(f"TrainConfig.ssim_lambda: expected a value in [0, 1], got {self.ssim_lambda}")
         if int(self.max_pose_samples) != self.max_pose_samples or self.max_pose_samples < 1:
             raise ValueError(f"TrainConfig.max_pose_samples: expected an integer >= 1, got {self.max_pose_samples}")
+        if not self.pose_sample_step_px > 0:
+            raise ValueError(f"TrainConfig.pose_sample_step_px: expected > 0 pixels, got {self.pose_sample_step_px}")
         if not self.lr_shading > 0:
             raise ValueError(f"TrainConfig.lr_shading: expected > 0, got {self.lr_shading}")
         if len(self.background) != 3:
@@ -144,14 +153,21 @@ class TrainConfig:
         base.update(overrides)
         return cls(**base)
 
+    @property
+    def pose_sampling(self) -> SamplingRule:
+        """The rolling-shutter sampling rule every render of this run uses (training, evaluation, diagnosis)."""
+        return SamplingRule(self.max_pose_samples, self.sample_rule, self.pose_sample_step_px)
+
     def to_dict(self) -> dict:
         d = asdict(self)
         d["background"] = list(self.background)
         return d
 
     def hash(self, method: str) -> str:
-        """sha1 of the canonical JSON of (method, config)."""
-        blob = json.dumps({"method": method, "config": self.to_dict()}, sort_keys=True, separators=(",", ":"))
+        """sha1 of the canonical JSON of (method, config); a field added later is left out at its default
+        (`HASHED_WHEN_SET`), so that runs trained before it existed keep their hash."""
+        config = {k: v for k, v in self.to_dict().items() if HASHED_WHEN_SET.get(k, object()) != v}
+        blob = json.dumps({"method": method, "config": config}, sort_keys=True, separators=(",", ":"))
         return hashlib.sha1(blob.encode()).hexdigest()
 
 

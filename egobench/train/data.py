@@ -164,7 +164,7 @@ def prepare_data(recording: Recording, spec: MethodSpec, config: TrainConfig, pr
     frames = recording.train_frames
     images = load_image_store(recording, frames, cam, pin_memory=_pin_store(config.device), progress=progress)
     k_of = method_normaliser(recording, spec)
-    counts = sample_counts(recording, frames, spec, config.max_pose_samples, config.sample_rule,
+    counts = sample_counts(recording, frames, spec, config.pose_sampling,
                            pixel_scale=cam.width / recording.camera.width)
     return TrainingData(
         recording=recording, spec=spec, camera=cam, frames=frames, images=images, maps=frame_maps(recording, cam),

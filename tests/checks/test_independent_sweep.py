@@ -118,6 +118,12 @@ def test_a_case_is_written_and_trained_at_the_size_asked(tmp_path, monkeypatch):
         assert write[write.index("--size") + 1] == str(size) and "--readout-scale" in write
         assert train[train.index("--set") + 1] == f"max_side={size}"
         assert train[train.index("--iterations") + 1] == str(iterations)
+    commands.clear()
+    sweep.run_case(tmp_path / "fine", "readout", 1101, seed_set=81, size=256,
+                   train_set=("pose_sample_step_px=0.25", "max_pose_samples=32"))
+    train = commands[1]
+    sets = [train[i + 1] for i, a in enumerate(train) if a == "--set"]
+    assert sets == ["max_side=256", "pose_sample_step_px=0.25", "max_pose_samples=32"]
 
 
 def test_a_sweep_folder_keeps_the_conditions_of_its_cases(tmp_path):
@@ -133,6 +139,8 @@ def test_a_sweep_folder_keeps_the_conditions_of_its_cases(tmp_path):
     (older / "cases").mkdir(parents=True)
     with pytest.raises(SystemExit, match="3000"):
         sweep.claim_conditions(older, 64, 3000)
+    with pytest.raises(SystemExit, match="pose_sample_step_px"):  # the same size, another training
+        sweep.claim_conditions(tmp_path, 128, 800, ("pose_sample_step_px=0.25",))
 
 
 def test_a_sweep_run_one_effect_at_a_time_keeps_the_earlier_cases_rows(tmp_path):

@@ -108,6 +108,30 @@ def test_paper_rule_matches_analytic_count():
         assert got == expected, (readout, omega)
 
 
+@pytest.mark.parametrize("step_px", [0.25, 0.5, 2.0])
+def test_a_finer_step_takes_analytically_more_samples(step_px):
+    """Both rules count in steps of `step_px` pixels of row shear: the code rule divides the shear by the step,
+    the paper rule asks every bracket's median displacement to stay below it."""
+    uv, z = centre_points()
+    omega, readout = 3.0, 16e-3
+    rec = make_recording(omega, uv, z, readout_s=readout)
+    d_2ms = 2 * F_PX * math.tan(omega * MOTION_WINDOW_S / 2)
+    code = n_pose_samples(rec, rec.frames[0], max_samples=64, step_px=step_px)
+    assert code == int(min(max(readout / MOTION_WINDOW_S * d_2ms / step_px, 1), 64))
+    paper = n_pose_samples(rec, rec.frames[0], max_samples=64, rule="paper", step_px=step_px)
+    worst = [np.max(F_PX * np.diff(np.tan((-readout / 2 + np.arange(n + 1) * readout / n) * omega)))
+             for n in range(1, 65)]
+    assert paper == next(n for n, w in enumerate(worst, 1) if w < step_px)
+    assert (code > 1 and paper > 1) and (step_px >= 1 or paper > n_pose_samples(rec, rec.frames[0], rule="paper"))
+
+
+def test_a_step_of_no_pixels_is_refused():
+    uv, z = centre_points()
+    rec = make_recording(3.0, uv, z)
+    with pytest.raises(ValueError, match="step_px"):
+        estimate_motion(rec, rec.frames[0], step_px=0.0)
+
+
 def test_pixel_scale_reduces_count():
     uv, z = centre_points()
     rec = make_recording(40.0, uv, z)

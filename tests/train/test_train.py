@@ -54,6 +54,25 @@ def test_means_lr_matches_the_paper_travel_on_a_short_schedule():
     assert cpu.hash("ours") != dataclasses.replace(cpu, means_travel_matched=False).hash("ours")
 
 
+def test_a_field_added_later_keeps_the_hash_of_runs_trained_before_it():
+    """`HASHED_WHEN_SET`: at its default a later field is not in the hash (the canonical JSON without it, as
+    before it existed); set, it is, and every render of the run reads it through `TrainConfig.pose_sampling`."""
+    import hashlib
+    import json
+
+    from egobench.train.config import HASHED_WHEN_SET
+
+    cfg = TrainConfig.cpu()
+    before = {k: v for k, v in cfg.to_dict().items() if k not in HASHED_WHEN_SET}
+    blob = json.dumps({"method": "ours", "config": before}, sort_keys=True, separators=(",", ":"))
+    assert cfg.hash("ours") == hashlib.sha1(blob.encode()).hexdigest()
+    fine = parse_overrides(cfg, ["pose_sample_step_px=0.25", "max_pose_samples=32"])
+    assert fine.hash("ours") != dataclasses.replace(cfg, max_pose_samples=32).hash("ours")
+    assert (fine.pose_sampling.step_px, fine.pose_sampling.max_samples, fine.pose_sampling.rule) == (0.25, 32, "code")
+    with pytest.raises(ValueError, match="TrainConfig.pose_sample_step_px"):
+        TrainConfig(pose_sample_step_px=0.0)
+
+
 def test_overrides_and_errors():
     cfg = parse_overrides(TrainConfig(), ["lr_means=1e-3", "max_side=48", "opacity_reset=intended",
                                           "background=1,1,1"])
