@@ -217,6 +217,9 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--size: expected 8..1024 pixels, got {args.size}")
     if args.iterations < 1:
         ap.error(f"--iterations: expected an integer >= 1, got {args.iterations}")
+    fixed = [item for item in args.train_set if item.split("=", 1)[0].strip() in ("max_side", "seed", "iterations")]
+    if fixed:
+        ap.error(f"--train-set {fixed[0]!r}: the sweep sets that field (--size, the case's seed, --iterations)")
     claim_conditions(args.out, args.size, args.iterations, tuple(args.train_set))
     todo = [(e, s) for e in CASES if args.only in (None, e)
             for k, s in enumerate(seeds_of(e, args.seed_set)) if not args.limit or k < args.limit]

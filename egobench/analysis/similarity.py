@@ -262,7 +262,8 @@ def motion_samples(recording: Recording, pixel_scale: float = 1.0, config=None) 
                                       pixel_scale=pixel_scale))
     return {"motion_samples_median": float(np.median(counts)), "frac_frames_multi_sample": float(np.mean(counts > 1)),
             "motion_samples_per_frame": counts.tolist(), "motion_sample_rule": config.sample_rule,
-            "motion_samples_max": int(config.max_pose_samples)}
+            "motion_samples_max": int(config.max_pose_samples),
+            "motion_sample_step_px": float(config.pose_sample_step_px)}
 
 
 def exposure_ratio(recording: Recording) -> float:

@@ -114,8 +114,9 @@ class ReadoutCause(GeometricCause):
         if share is None or share >= MIN_SHUTTER_FRAME_SHARE:
             return None
         return (f"the run renders no rolling shutter on {100 * (1 - share):.0f} % of the frames (one pose sample "
-                "each: the sampling rule below about a pixel of row shear), so a readout error cannot be told "
-                "from the shear its scene absorbed")
+                "each: the sampling rule below one step of row shear, TrainConfig.pose_sample_step_px), so a "
+                "readout error cannot be told from the shear its scene absorbed; a run trained with a sub-pixel "
+                "step (--set pose_sample_step_px=0.0625) renders it")
 
     def trained_placebos(self, result, evidence):
         """On a trained run: the velocity placebo, and wrong row times (`row_time_placebo`)."""
@@ -200,7 +201,8 @@ class Readout(Effect):
     identifiability = (
         "only with image motion during the readout: the shear grows with row time and image speed, so "
         "quasi-static frames show nothing; on a run rendered with a staircase of pose samples, only by the steps "
-        "between the samples' row bands, where the run's own band-wise error also sits")
+        "between the samples' row bands, where the run's own band-wise error also sits: a run trained in sub-pixel "
+        "steps (TrainConfig.pose_sample_step_px below 1) leaves less of it")
     trained_magnitudes = (0.4,)
     error_unit = "fraction"
     trained_placebo = "velocity_permutation"

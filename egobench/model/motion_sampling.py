@@ -10,11 +10,11 @@ How many samples (`n_pose_samples`), two rules:
 - ``rule="code"`` (default; the authors' released code, `scene/cameras.py`): the median over
   the frame's sparse-depth points of the pixel displacement max(|du|, |dv|) between the poses
   at t_c - 1 ms and t_c + 1 ms (a 2 ms window) is scaled to the readout:
-  N = clamp(int(R / 2 ms * median_px), 1, max_samples). For constant velocity this equals
-  the median displacement between the read-start and read-end poses.
+  N = clamp(int(R / 2 ms * median_px / step_px), 1, max_samples) (the code: step_px 1). For constant
+  velocity this equals the median displacement between the read-start and read-end poses, in steps.
 - ``rule="paper"`` (the paper's sentence: "half of the reprojected pixels have fewer than
   1 pixel reprojection error"): the smallest N in 1..max_samples for which, in every one of the
-  N brackets, the median displacement between the bracket's start and end poses is < 1 px.
+  N brackets, the median displacement between the bracket's start and end poses is < step_px (1 px).
 
 Bracket centres are t_c - R/2 + (i + 0.5) R / N (i = 0..N-1), and the per-pixel sample index
 is round(R(u) * (N - 1)) (as the released code; note this differs slightly from the bracket
@@ -50,7 +50,7 @@ SampleRule = Literal["code", "paper"]
 
 
 @dataclass(frozen=True)
-class SamplingRule:
+class PoseSampling:
     """How many rolling-shutter pose samples a frame gets (`estimate_motion`): the rule, its cap and the
     pixels of row shear one sample covers (the released code: "code", 8, 1 px)."""
 

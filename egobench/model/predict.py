@@ -75,7 +75,7 @@ def method_normaliser(recording: Recording, spec: MethodSpec) -> dict[int, Tenso
 
 
 def sample_counts(recording: Recording, frames: list[Frame], spec: MethodSpec,
-                  sampling: motion_sampling.SamplingRule, pixel_scale: float) -> list[int]:
+                  sampling: motion_sampling.PoseSampling, pixel_scale: float) -> list[int]:
     """Rolling-shutter sample count per frame at the rendering resolution (1 for centre methods), by
     ``sampling`` (`TrainConfig.pose_sampling`: the rule a run was trained with).
 

@@ -8,7 +8,7 @@ import json
 from dataclasses import asdict, dataclass, fields, replace
 from typing import Any, Literal
 
-from egobench.model.motion_sampling import SamplingRule
+from egobench.model.motion_sampling import PoseSampling
 
 #: Length of the paper's schedule; schedule fields below are fractions of it.
 PAPER_ITERATIONS = 30_000
@@ -154,9 +154,9 @@ class TrainConfig:
         return cls(**base)
 
     @property
-    def pose_sampling(self) -> SamplingRule:
+    def pose_sampling(self) -> PoseSampling:
         """The rolling-shutter sampling rule every render of this run uses (training, evaluation, diagnosis)."""
-        return SamplingRule(self.max_pose_samples, self.sample_rule, self.pose_sample_step_px)
+        return PoseSampling(self.max_pose_samples, self.sample_rule, self.pose_sample_step_px)
 
     def to_dict(self) -> dict:
         d = asdict(self)

@@ -141,6 +141,9 @@ def test_a_sweep_folder_keeps_the_conditions_of_its_cases(tmp_path):
         sweep.claim_conditions(older, 64, 3000)
     with pytest.raises(SystemExit, match="pose_sample_step_px"):  # the same size, another training
         sweep.claim_conditions(tmp_path, 128, 800, ("pose_sample_step_px=0.25",))
+    with pytest.raises(SystemExit):  # a field the sweep sets itself is no training override
+        sweep.main(["--out", str(tmp_path / "fixed"), "--train-set", "max_side=32"])
+    assert not (tmp_path / "fixed").exists()
 
 
 def test_a_sweep_run_one_effect_at_a_time_keeps_the_earlier_cases_rows(tmp_path):

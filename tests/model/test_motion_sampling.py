@@ -125,6 +125,20 @@ def test_a_finer_step_takes_analytically_more_samples(step_px):
     assert (code > 1 and paper > 1) and (step_px >= 1 or paper > n_pose_samples(rec, rec.frames[0], rule="paper"))
 
 
+def test_a_runs_sample_counts_follow_its_pose_sampling():
+    """`predict.sample_counts` (every render of a run) counts with the run's whole `PoseSampling`, step included."""
+    from egobench.model.methods import get_method
+    from egobench.model.motion_sampling import PoseSampling
+    from egobench.model.predict import sample_counts
+
+    uv, z = centre_points()
+    rec = make_recording(3.0, uv, z, readout_s=16e-3)
+    released, fine = (sample_counts(rec, rec.frames, get_method("ours"), PoseSampling(64, "code", step), 1.0)[0]
+                      for step in (1.0, 0.25))
+    assert released == n_pose_samples(rec, rec.frames[0], max_samples=64)
+    assert fine == n_pose_samples(rec, rec.frames[0], max_samples=64, step_px=0.25) > released
+
+
 def test_a_step_of_no_pixels_is_refused():
     uv, z = centre_points()
     rec = make_recording(3.0, uv, z)
