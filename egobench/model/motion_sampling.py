@@ -32,7 +32,6 @@ the *rectified* image row (the pinhole assumption) and extrapolates the centre p
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
 
 import numpy as np
 import torch
@@ -40,23 +39,10 @@ from torch import Tensor
 
 from egobench.data.recording import Frame, Recording
 from egobench.geometry import make_pose, so3_exp
+from egobench.model.pose_sampling import DEFAULT_MAX_SAMPLES, SampleRule
 
 #: The released code measures pixel motion over this window (its `_motion_sample_max`, 2 ms).
 MOTION_WINDOW_S = 2e-3
-#: The released code's cap on rolling-shutter samples (`_max_rolling_shutter_sample`).
-DEFAULT_MAX_SAMPLES = 8
-
-SampleRule = Literal["code", "paper"]
-
-
-@dataclass(frozen=True)
-class PoseSampling:
-    """How many rolling-shutter pose samples a frame gets (`estimate_motion`): the rule, its cap and the
-    pixels of row shear one sample covers (the released code: "code", 8, 1 px)."""
-
-    max_samples: int = DEFAULT_MAX_SAMPLES
-    rule: SampleRule = "code"
-    step_px: float = 1.0
 
 
 @dataclass

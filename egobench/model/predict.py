@@ -24,6 +24,7 @@ from egobench.geometry import se3_exp
 from egobench.model import motion_sampling  # its functions looked up at each call (tests replace them)
 from egobench.model.formation import FormationConfig, FormationModel, exposure_gain_normaliser
 from egobench.model.methods import MethodSpec
+from egobench.model.pose_sampling import PoseSampling
 from egobench.model.shading import learned_vignette
 from egobench.render.types import Gaussians, RenderOutput, first_image
 
@@ -75,7 +76,7 @@ def method_normaliser(recording: Recording, spec: MethodSpec) -> dict[int, Tenso
 
 
 def sample_counts(recording: Recording, frames: list[Frame], spec: MethodSpec,
-                  sampling: motion_sampling.PoseSampling, pixel_scale: float) -> list[int]:
+                  sampling: PoseSampling, pixel_scale: float) -> list[int]:
     """Rolling-shutter sample count per frame at the rendering resolution (1 for centre methods), by
     ``sampling`` (`TrainConfig.pose_sampling`: the rule a run was trained with).
 

@@ -8,7 +8,7 @@ import json
 from dataclasses import asdict, dataclass, fields, replace
 from typing import Any, Literal
 
-from egobench.model.motion_sampling import PoseSampling
+from egobench.model.pose_sampling import PoseSampling
 
 #: Length of the paper's schedule; schedule fields below are fractions of it.
 PAPER_ITERATIONS = 30_000

@@ -128,7 +128,7 @@ def test_a_finer_step_takes_analytically_more_samples(step_px):
 def test_a_runs_sample_counts_follow_its_pose_sampling():
     """`predict.sample_counts` (every render of a run) counts with the run's whole `PoseSampling`, step included."""
     from egobench.model.methods import get_method
-    from egobench.model.motion_sampling import PoseSampling
+    from egobench.model.pose_sampling import PoseSampling
     from egobench.model.predict import sample_counts
 
     uv, z = centre_points()
