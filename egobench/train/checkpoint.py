@@ -21,7 +21,7 @@ from egobench.data.reader import recording_from_args
 from egobench.io_utils import atomic_path, read_json
 from egobench.model.methods import MethodSpec, get_method
 from egobench.model.predict import gaussians_from_params
-from egobench.train.config import HASHED_WHEN_SET, TrainConfig
+from egobench.train.config import TrainConfig
 
 CHECKPOINT_FORMAT = "egobench.checkpoint/1"
 
@@ -104,7 +104,7 @@ def resumable_checkpoint(path: Path, method: str, config: TrainConfig) -> dict:
 
 def config_of(ck: dict) -> TrainConfig:
     """The `TrainConfig` a checkpoint was trained with."""
-    cfg = {**HASHED_WHEN_SET, **ck["config"]}  # a run trained before a later field: that field's hashed-out default
+    cfg = dict(ck["config"])  # a field added after the run was trained takes its default
     cfg["background"] = tuple(cfg["background"])
     return TrainConfig(**cfg)
 

@@ -8,14 +8,14 @@ import json
 from dataclasses import asdict, dataclass, fields, replace
 from typing import Any, Literal
 
-from egobench.model.pose_sampling import PoseSampling
+from egobench.model.pose_sampling import DEFAULT_MAX_SAMPLES, PoseSampling, SampleRule
 
 #: Length of the paper's schedule; schedule fields below are fractions of it.
 PAPER_ITERATIONS = 30_000
 
 
-#: TrainConfig fields added after runs were trained, with the default they are left out of `TrainConfig.hash` at.
-HASHED_WHEN_SET = {"pose_sample_step_px": 1.0}
+#: TrainConfig fields added after runs were trained: `TrainConfig.hash` leaves each out at its default.
+HASHED_WHEN_SET = ("pose_sample_step_px",)
 
 
 @dataclass(frozen=True)
@@ -54,8 +54,8 @@ class TrainConfig:
     opacity_reset: Literal["gsplat", "intended"] = "gsplat"  # "gsplat": never (gsplat 1.5.3 bug, authors' runs)
     ssim_lambda: float = 0.2  # loss = (1 - l) L1 + l (1 - SSIM)
     motion_warmup_frac: float = 7_500 / PAPER_ITERATIONS  # motion sampling on after this (paper 7.5K; code 10K)
-    max_pose_samples: int = 8  # cap on rolling-shutter pose samples per frame (released code: 8)
-    sample_rule: Literal["code", "paper"] = "code"  # how the sample count is chosen (motion_sampling)
+    max_pose_samples: int = DEFAULT_MAX_SAMPLES  # cap on rolling-shutter pose samples per frame (released code: 8)
+    sample_rule: SampleRule = "code"  # how the sample count is chosen (motion_sampling)
     pose_sample_step_px: float = 1.0  # pixels of row shear one pose sample covers (released code: 1)
     normal_lambda: float = 0.05  # 2DGS normal-consistency weight...
     normal_start_frac: float = 7_000 / PAPER_ITERATIONS  # ...from this fraction (paper 7K)
@@ -166,7 +166,8 @@ class TrainConfig:
     def hash(self, method: str) -> str:
         """sha1 of the canonical JSON of (method, config); a field added later is left out at its default
         (`HASHED_WHEN_SET`), so that runs trained before it existed keep their hash."""
-        config = {k: v for k, v in self.to_dict().items() if HASHED_WHEN_SET.get(k, object()) != v}
+        defaults = {f.name: f.default for f in fields(self) if f.name in HASHED_WHEN_SET}
+        config = {k: v for k, v in self.to_dict().items() if k not in defaults or v != defaults[k]}
         blob = json.dumps({"method": method, "config": config}, sort_keys=True, separators=(",", ":"))
         return hashlib.sha1(blob.encode()).hexdigest()
 
