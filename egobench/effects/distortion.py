@@ -57,10 +57,14 @@ class DistortionCause(GeometricCause):
         return [-(gx * d[None, :, :, 0:1] + gy * d[None, :, :, 1:2])]
 
     def nuisance_regressors(self, data):
-        """The image motion's shift signature (the time offset's), where the frames move: a lens displaces every
-        frame alike, while a radial pattern that follows each frame's motion (walking forward: the flow
-        expands about a point near the principal point) is timing or the model's own error, not a lens."""
-        return [] if data.velocity is None else [velocity_term(data)]
+        """The image motion's shift and row-time shear signatures (a time offset's and a readout's), where the
+        frames move: a lens displaces every frame alike, while a radial pattern that follows each frame's motion
+        (walking forward: the flow expands about a point near the principal point), whole or growing down the
+        rows, is timing or the model's own error, not a lens."""
+        if data.velocity is None:
+            return []
+        shift = velocity_term(data)
+        return [shift, shift * (data.ctx.row_time_ratio - 0.5)[None, :, :, None]]
 
     def displacement(self, theta, ctx, frames, shape):
         d = unit_displacement(ctx, shape[1], shape[2])

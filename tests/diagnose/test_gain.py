@@ -160,3 +160,38 @@ def test_a_radial_flow_that_follows_the_motion_is_not_taken_for_a_lens():
     alone, _ = frame_slopes(lens.regressors(data), data.p, data.r, data.usable)
     beside, _ = lens.first_order(data)
     assert abs(t(alone[:, 0])) > 4.0 and abs(t(beside[:, 0])) < 3.0, (t(alone[:, 0]), t(beside[:, 0]))
+
+
+def test_a_row_time_stretch_that_follows_the_motion_is_not_taken_for_a_lens():
+    """Tilting the head one way, a readout error shears the image along the rows' times: moving vertically, the
+    rows read later move further, so the image stretches top to bottom as a k0 error's radial displacement partly
+    does (measured: a 256 px writer run with a 50 % longer readout named a distortion first, k0 +0.078).
+    Distortion is fitted beside the readout's shear too: that stretch gives it nothing, while the radial term
+    alone takes it up; a real k0 error on top of it is still found."""
+    import dataclasses
+
+    from egobench.effects.distortion import unit_displacement
+    from egobench.residual.estimation import ResidualData, frame_slopes, velocity_term
+
+    case = make_case(None, seed=6, n_frames=16)
+    ctx = case.context
+    pace = np.linspace(0.5, 1.5, 16, dtype=np.float32)[:, None, None]  # tilting one way, each frame its own pace
+    flow = np.stack([np.zeros((16, 48, 48), np.float32), np.broadcast_to(400.0 * pace, (16, 48, 48))], -1)
+    ctx = dataclasses.replace(ctx, pixel_velocity_px_s=np.ascontiguousarray(flow))
+    probe = ResidualData(case.measured, case.predicted, ctx, np.arange(16))
+    stretch = velocity_term(probe) * (ctx.row_time_ratio - 0.5)[None, :, :, None]
+    measured = np.clip(case.predicted + 0.004 * stretch, 0, 1)  # a readout 4 ms longer than stated
+    data = ResidualData(measured, case.predicted, ctx, np.arange(16))
+    lens = CAUSES["distortion"]
+
+    def t(est):
+        return est.mean() / (est.std(ddof=1) / 4.0)
+
+    alone, _ = frame_slopes(lens.regressors(data), data.p, data.r, data.usable)
+    beside, _ = lens.first_order(data)
+    assert abs(t(alone[:, 0])) > 4.0 and abs(t(beside[:, 0])) < 3.0, (t(alone[:, 0]), t(beside[:, 0]))
+    gx, gy = probe.grad
+    d = unit_displacement(ctx, 48, 48)
+    lensed = np.clip(measured - 0.01 * (gx * d[None, ..., 0:1] + gy * d[None, ..., 1:2]), 0, 1)
+    with_lens, _ = lens.first_order(ResidualData(lensed, case.predicted, ctx, np.arange(16)))
+    assert t(with_lens[:, 0]) > 5.0 and with_lens[:, 0].mean() == pytest.approx(0.01, rel=0.25)
