@@ -39,7 +39,7 @@ from torch import Tensor
 
 from egobench.data.recording import Frame, Recording
 from egobench.geometry import make_pose, so3_exp
-from egobench.model.pose_sampling import DEFAULT_MAX_SAMPLES, SampleRule
+from egobench.model.pose_sampling import PoseSampling
 
 #: The released code measures pixel motion over this window (its `_motion_sample_max`, 2 ms).
 MOTION_WINDOW_S = 2e-3
@@ -109,66 +109,64 @@ def _nan_median(disp: Tensor, valid: Tensor) -> Tensor:  # [K, P], [K, P] -> [K]
     return torch.where(valid, disp, torch.full_like(disp, float("nan"))).nanmedian(dim=1).values
 
 
-def estimate_motion(
-    recording: Recording, frame: Frame, max_samples: int = DEFAULT_MAX_SAMPLES, rule: SampleRule = "code",
-    pixel_scale: float = 1.0, step_px: float = 1.0,
-) -> MotionEstimate:
-    """Pick the number of rolling-shutter pose samples for ``frame`` (see module docstring).
+def estimate_motion(recording: Recording, frame: Frame, sampling: PoseSampling = PoseSampling(),
+                    pixel_scale: float = 1.0) -> MotionEstimate:
+    """Pick the number of rolling-shutter pose samples for ``frame`` by ``sampling``'s rule, cap and step (see
+    module docstring).
 
     ``pixel_scale`` converts the recording's pixels to the rendered ones (training at half
-    resolution: 0.5), so that "1 pixel" means one rendered pixel. ``step_px``: the rendered pixels of
-    row shear one sample may cover (the rules' 1 px). `MotionEstimate.median_motion_px` stays in
-    rendered pixels.
+    resolution: 0.5), so that "1 pixel" means one rendered pixel, as the step does.
+    `MotionEstimate.median_motion_px` stays in rendered pixels.
     """
     if not pixel_scale > 0:
         raise ValueError(f"pixel_scale: expected > 0, got {pixel_scale}")
-    if not step_px > 0:
-        raise ValueError(f"step_px: expected > 0 pixels of row shear per pose sample, got {step_px}")
-    if int(max_samples) != max_samples or max_samples < 1:
-        raise ValueError(f"max_samples: expected an integer >= 1, got {max_samples}")
     readout_ns = frame.read_end_ns - frame.read_start_ns
     if readout_ns < 0:
         raise ValueError(f"frame {frame.index}: read_end_ns < read_start_ns ({frame.read_end_ns} < {frame.read_start_ns})")
-    t_c = float(frame.timestamp_ns)
-    if rule == "code":
-        half = MOTION_WINDOW_S * 1e9 / 2
-        disp, valid = displacements_px(
-            recording, frame, torch.tensor([t_c - half], dtype=torch.float64), torch.tensor([t_c + half], dtype=torch.float64)
-        )
-        n_points = int(valid.sum())
-        median = float(_nan_median(disp, valid)[0]) * pixel_scale if n_points else 0.0
-        n = int(min(max(readout_ns / (MOTION_WINDOW_S * 1e9) * median / step_px, 1), max_samples))
-        return MotionEstimate(n_samples=n, median_motion_px=median, n_points=n_points, rule=rule)
-    if rule == "paper":
-        if readout_ns == 0:
-            return MotionEstimate(n_samples=1, median_motion_px=0.0, n_points=0, rule=rule)
-        # All candidate bracket edges at once: for n in 1..max, edges t_c - R/2 + i R/n.
-        starts, ends, owner = [], [], []
-        for n in range(1, int(max_samples) + 1):  # loop over candidate counts (<= 16), not points
-            edges = t_c - readout_ns / 2 + torch.arange(n + 1, dtype=torch.float64) * readout_ns / n
-            starts.append(edges[:-1])
-            ends.append(edges[1:])
-            owner.append(torch.full((n,), n))
-        disp, valid = displacements_px(recording, frame, torch.cat(starts), torch.cat(ends))
-        med = _nan_median(disp, valid) * pixel_scale  # [sum n]
-        med = torch.nan_to_num(med, nan=0.0)  # a bracket with no visible point cannot ask for more samples
-        owner_t = torch.cat(owner)
-        worst = torch.zeros(int(max_samples) + 1, dtype=torch.float64).scatter_reduce(
-            0, owner_t, med, reduce="amax", include_self=False
-        )[1:]  # [max] worst bracket median per candidate n
-        ok = torch.nonzero(worst < step_px)
-        n = int(ok[0]) + 1 if len(ok) else int(max_samples)
-        return MotionEstimate(n_samples=n, median_motion_px=float(worst[0]), n_points=int(valid[0].sum()), rule=rule)
-    raise ValueError(f"rule: expected 'code' or 'paper', got {rule!r}")
+    rule = _code_rule if sampling.rule == "code" else _paper_rule
+    return rule(recording, frame, sampling, pixel_scale, readout_ns)
 
 
-def n_pose_samples(
-    recording: Recording, frame: Frame, max_samples: int = DEFAULT_MAX_SAMPLES, rule: SampleRule = "code",
-    pixel_scale: float = 1.0, step_px: float = 1.0,
-) -> int:
+def _code_rule(recording: Recording, frame: Frame, sampling: PoseSampling, pixel_scale: float,
+               readout_ns: int) -> MotionEstimate:
+    """The released code's count: the median motion over `MOTION_WINDOW_S` scaled to the readout, in steps."""
+    t_c, half = float(frame.timestamp_ns), MOTION_WINDOW_S * 1e9 / 2
+    disp, valid = displacements_px(
+        recording, frame, torch.tensor([t_c - half], dtype=torch.float64), torch.tensor([t_c + half], dtype=torch.float64)
+    )
+    n_points = int(valid.sum())
+    median = float(_nan_median(disp, valid)[0]) * pixel_scale if n_points else 0.0
+    n = int(min(max(readout_ns / (MOTION_WINDOW_S * 1e9) * median / sampling.step_px, 1), sampling.max_samples))
+    return MotionEstimate(n_samples=n, median_motion_px=median, n_points=n_points, rule="code")
+
+
+def _paper_rule(recording: Recording, frame: Frame, sampling: PoseSampling, pixel_scale: float,
+                readout_ns: int) -> MotionEstimate:
+    """The paper's count: the fewest brackets whose worst median motion stays below one step."""
+    if readout_ns == 0:
+        return MotionEstimate(n_samples=1, median_motion_px=0.0, n_points=0, rule="paper")
+    t_c, cap = float(frame.timestamp_ns), int(sampling.max_samples)
+    # All candidate bracket edges at once: for n in 1..cap, edges t_c - R/2 + i R/n.
+    starts, ends, owner = [], [], []
+    for n in range(1, cap + 1):  # loop over candidate counts, not points
+        edges = t_c - readout_ns / 2 + torch.arange(n + 1, dtype=torch.float64) * readout_ns / n
+        starts.append(edges[:-1])
+        ends.append(edges[1:])
+        owner.append(torch.full((n,), n))
+    disp, valid = displacements_px(recording, frame, torch.cat(starts), torch.cat(ends))
+    med = torch.nan_to_num(_nan_median(disp, valid) * pixel_scale, nan=0.0)  # [sum n]; no visible point: no ask
+    worst = torch.zeros(cap + 1, dtype=torch.float64).scatter_reduce(
+        0, torch.cat(owner), med, reduce="amax", include_self=False
+    )[1:]  # [cap] worst bracket median per candidate n
+    ok = torch.nonzero(worst < sampling.step_px)
+    n = int(ok[0]) + 1 if len(ok) else cap
+    return MotionEstimate(n_samples=n, median_motion_px=float(worst[0]), n_points=int(valid[0].sum()), rule="paper")
+
+
+def n_pose_samples(recording: Recording, frame: Frame, sampling: PoseSampling = PoseSampling(),
+                   pixel_scale: float = 1.0) -> int:
     """Number of rolling-shutter pose samples for ``frame`` (1 for a static frame)."""
-    return estimate_motion(recording, frame, max_samples=max_samples, rule=rule, pixel_scale=pixel_scale,
-                           step_px=step_px).n_samples
+    return estimate_motion(recording, frame, sampling, pixel_scale).n_samples
 
 
 def sample_times_ns(frame: Frame, n: int, n_exposure_samples: int = 1) -> Tensor:

@@ -89,9 +89,7 @@ def sample_counts(recording: Recording, frames: list[Frame], spec: MethodSpec,
         if f.sparse_depth is None or len(f.sparse_depth.z) == 0:
             counts.append(1)
             continue
-        est = motion_sampling.estimate_motion(recording, f, max_samples=sampling.max_samples, rule=sampling.rule,
-                                              pixel_scale=pixel_scale, step_px=sampling.step_px)
-        counts.append(est.n_samples)
+        counts.append(motion_sampling.n_pose_samples(recording, f, sampling, pixel_scale))
     return counts
 
 

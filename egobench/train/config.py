@@ -8,7 +8,7 @@ import json
 from dataclasses import asdict, dataclass, fields, replace
 from typing import Any, Literal
 
-from egobench.model.pose_sampling import DEFAULT_MAX_SAMPLES, PoseSampling, SampleRule
+from egobench.model.pose_sampling import DEFAULT_MAX_SAMPLES, PoseSampling, SampleRule, sampling_problem
 
 #: Length of the paper's schedule; schedule fields below are fractions of it.
 PAPER_ITERATIONS = 30_000
@@ -16,6 +16,8 @@ PAPER_ITERATIONS = 30_000
 
 #: TrainConfig fields added after runs were trained: `TrainConfig.hash` leaves each out at its default.
 HASHED_WHEN_SET = ("pose_sample_step_px",)
+#: TrainConfig's field of each `PoseSampling` field
+SAMPLING_FIELDS = {"max_samples": "max_pose_samples", "rule": "sample_rule", "step_px": "pose_sample_step_px"}
 
 
 @dataclass(frozen=True)
@@ -84,14 +86,11 @@ class TrainConfig:
             raise ValueError(f"TrainConfig.opacity_reset: expected 'gsplat' or 'intended', got {self.opacity_reset!r}")
         if self.init_colour not in ("image", "grey"):
             raise ValueError(f"TrainConfig.init_colour: expected 'image' or 'grey', got {self.init_colour!r}")
-        if self.sample_rule not in ("code", "paper"):
-            raise ValueError(f"TrainConfig.sample_rule: expected 'code' or 'paper', got {self.sample_rule!r}")
         if not 0 <= self.ssim_lambda <= 1:
             raise ValueError(f"TrainConfig.ssim_lambda: expected a value in [0, 1], got {self.ssim_lambda}")
-        if int(self.max_pose_samples) != self.max_pose_samples or self.max_pose_samples < 1:
-            raise ValueError(f"TrainConfig.max_pose_samples: expected an integer >= 1, got {self.max_pose_samples}")
-        if not self.pose_sample_step_px > 0:
-            raise ValueError(f"TrainConfig.pose_sample_step_px: expected > 0 pixels, got {self.pose_sample_step_px}")
+        bad = sampling_problem(self.max_pose_samples, self.sample_rule, self.pose_sample_step_px)
+        if bad is not None:  # `PoseSampling`'s own check, in TrainConfig's names
+            raise ValueError(f"TrainConfig.{SAMPLING_FIELDS[bad[0]]}: {bad[1]}")
         if not self.lr_shading > 0:
             raise ValueError(f"TrainConfig.lr_shading: expected > 0, got {self.lr_shading}")
         if len(self.background) != 3:

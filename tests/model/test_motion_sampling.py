@@ -11,6 +11,7 @@ import torch
 
 from egobench.camera.pinhole import Pinhole
 from egobench.data.recording import Frame, Recording, SparseDepth
+from egobench.model.pose_sampling import PoseSampling
 from egobench.model.motion_sampling import (
     MOTION_WINDOW_S, estimate_motion, exposure_pose_samples, frame_twist_camera, n_pose_samples,
     pixel_pose_index, pose_samples, sample_times_ns, velocity_poses,
@@ -75,7 +76,7 @@ def test_static_frame_needs_one_sample():
     uv, z = centre_points()
     rec = make_recording(0.0, uv, z)
     assert n_pose_samples(rec, rec.frames[0]) == 1
-    assert n_pose_samples(rec, rec.frames[0], rule="paper") == 1
+    assert n_pose_samples(rec, rec.frames[0], PoseSampling(rule="paper")) == 1
 
 
 @pytest.mark.parametrize("omega", [7.0, 12.0, 40.0])
@@ -96,7 +97,7 @@ def test_paper_rule_matches_analytic_count():
     uv, z = centre_points()
     for readout, omega in [(5e-3, 1.2), (5e-3, 3.5), (16e-3, 3.0)]:
         rec = make_recording(omega, uv, z, readout_s=readout)
-        got = n_pose_samples(rec, rec.frames[0], rule="paper")
+        got = n_pose_samples(rec, rec.frames[0], PoseSampling(rule="paper"))
         # Brackets over [-R/2, R/2]; displacement in bracket i is f (tan a1 - tan a0); the worst is an outer one.
         expected = 8
         for n in range(1, 9):
@@ -116,34 +117,39 @@ def test_a_finer_step_takes_analytically_more_samples(step_px):
     omega, readout = 3.0, 16e-3
     rec = make_recording(omega, uv, z, readout_s=readout)
     d_2ms = 2 * F_PX * math.tan(omega * MOTION_WINDOW_S / 2)
-    code = n_pose_samples(rec, rec.frames[0], max_samples=64, step_px=step_px)
+    code = n_pose_samples(rec, rec.frames[0], PoseSampling(64, "code", step_px))
     assert code == int(min(max(readout / MOTION_WINDOW_S * d_2ms / step_px, 1), 64))
-    paper = n_pose_samples(rec, rec.frames[0], max_samples=64, rule="paper", step_px=step_px)
+    paper = n_pose_samples(rec, rec.frames[0], PoseSampling(64, "paper", step_px))
     worst = [np.max(F_PX * np.diff(np.tan((-readout / 2 + np.arange(n + 1) * readout / n) * omega)))
              for n in range(1, 65)]
     assert paper == next(n for n, w in enumerate(worst, 1) if w < step_px)
-    assert (code > 1 and paper > 1) and (step_px >= 1 or paper > n_pose_samples(rec, rec.frames[0], rule="paper"))
+    assert (code > 1 and paper > 1) and (step_px >= 1 or paper > n_pose_samples(rec, rec.frames[0], PoseSampling(rule="paper")))
 
 
 def test_a_runs_sample_counts_follow_its_pose_sampling():
     """`predict.sample_counts` (every render of a run) counts with the run's whole `PoseSampling`, step included."""
     from egobench.model.methods import get_method
-    from egobench.model.pose_sampling import PoseSampling
     from egobench.model.predict import sample_counts
 
     uv, z = centre_points()
     rec = make_recording(3.0, uv, z, readout_s=16e-3)
     released, fine = (sample_counts(rec, rec.frames, get_method("ours"), PoseSampling(64, "code", step), 1.0)[0]
                       for step in (1.0, 0.25))
-    assert released == n_pose_samples(rec, rec.frames[0], max_samples=64)
-    assert fine == n_pose_samples(rec, rec.frames[0], max_samples=64, step_px=0.25) > released
+    assert released == n_pose_samples(rec, rec.frames[0], PoseSampling(64))
+    assert fine == n_pose_samples(rec, rec.frames[0], PoseSampling(64, "code", 0.25)) > released
 
 
-def test_a_step_of_no_pixels_is_refused():
-    uv, z = centre_points()
-    rec = make_recording(3.0, uv, z)
-    with pytest.raises(ValueError, match="step_px"):
-        estimate_motion(rec, rec.frames[0], step_px=0.0)
+@pytest.mark.parametrize("field, value, train_field", [("step_px", 0.0, "pose_sample_step_px"),
+                                                       ("max_samples", 1.5, "max_pose_samples"),
+                                                       ("rule", "fast", "sample_rule")])
+def test_a_sampling_setting_that_is_no_rule_is_refused_in_its_own_name(field, value, train_field):
+    """One check (`sampling_problem`), named as the caller spells the field: PoseSampling or TrainConfig."""
+    from egobench.train.config import TrainConfig
+
+    with pytest.raises(ValueError, match=f"PoseSampling.{field}: expected"):
+        PoseSampling(**{field: value})
+    with pytest.raises(ValueError, match=f"TrainConfig.{train_field}: expected"):
+        TrainConfig(**{train_field: value})
 
 
 def test_pixel_scale_reduces_count():
