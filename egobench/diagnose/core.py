@@ -31,7 +31,7 @@ import numpy as np
 from egobench.diagnose.estimators import CAUSES, variance_model_cause
 from egobench.diagnose.gain import FRAME_LOCAL_GAIN_FLOOR_DB, gain_placebo_test, refusal
 from egobench.diagnose.placebo import mark_untestable_on_trained_run, trained_run_records
-from egobench.diagnose.power import DetectionScale, geometric_standard_errors, smallest_testable
+from egobench.diagnose.power import geometric_standard_errors, smallest_testable
 from egobench.effects import EFFECTS
 from egobench.effects.noise import NoiseCause
 from egobench.residual.calibration import merge_record
@@ -450,8 +450,7 @@ def diagnose_residuals(
             mark_untestable_on_trained_run(testable, data)
             testable = [r for r in testable if r.testable]  # (white balance and noise are not identifiable on a trained run)
             if rnd == 1:
-                photometric = {name: DetectionScale(*v) for name, v in se.items()}
-                round1_se = {**photometric, **geometric_standard_errors(testable)}
+                round1_se = {**se, **geometric_standard_errors(testable)}
         _adjust_and_rank(testable, cfg)
         rounds.append(results)
         picked = _name_mean_cause(testable, rnd, measured, current, ctx, split, cfg, score)

@@ -23,6 +23,7 @@ own and its placebos'. Noise and white balance have no test on a trained run (`E
 from __future__ import annotations
 
 from egobench.diagnose.estimators import CAUSES, assumed_noise_variance
+from egobench.diagnose.power import DetectionScale
 from egobench.effects import EFFECTS
 from egobench.effects.base import TRAINED_PLACEBO_ORDER
 from egobench.residual.calibration import PlaceboRecord, TrainedRunEvidence
@@ -30,21 +31,21 @@ from egobench.residual.estimation import CauseResult, ResidualData
 
 
 def trained_run_records(data: ResidualData, results: list[CauseResult], draws: int, seed: int
-                        ) -> tuple[list[tuple[CauseResult, PlaceboRecord]], dict[str, tuple[float, int]]]:
+                        ) -> tuple[list[tuple[CauseResult, PlaceboRecord]], dict[str, DetectionScale]]:
     """The placebo records of the testable causes in ``results`` on a trained run, in the order they are merged
-    (`TRAINED_PLACEBO_ORDER`, then the results' order), and the between-frame standard errors {cause: (se, df)} of
-    the photometric tests (for the smallest testable effects; computed when any photometric cause is testable).
-    ``draws``: the permutation tests' placebo draws; ``seed``: the round's placebo seed."""
+    (`TRAINED_PLACEBO_ORDER`, then the results' order), and the between-frame standard errors of the photometric
+    tests {cause: `DetectionScale`} (for the smallest testable effects; computed when any photometric cause is
+    testable). ``draws``: the permutation tests' placebo draws; ``seed``: the round's placebo seed."""
     evidence = TrainedRunEvidence(data, draws, seed, assumed_noise_variance)
     testable = [r for r in results if r.testable]
     records = [(r, record) for kind in TRAINED_PLACEBO_ORDER for r in testable
                if EFFECTS[r.name].trained_placebo == kind for record in CAUSES[r.name].trained_placebos(r, evidence)]
-    se: dict[str, tuple[float, int]] = {}
+    se: dict[str, DetectionScale] = {}
     if any(EFFECTS[r.name].trained_placebo == "photometric" for r in testable):
         for name, cause in CAUSES.items():
             s = cause.trained_standard_error(evidence)
             if s is not None:
-                se[name] = s
+                se[name] = DetectionScale(*s)
     return records, se
 
 

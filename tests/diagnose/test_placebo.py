@@ -11,6 +11,7 @@ import pytest
 
 from egobench.diagnose.estimators import CAUSES
 from egobench.diagnose.placebo import mark_untestable_on_trained_run, trained_run_records
+from egobench.diagnose.power import DetectionScale
 from egobench.diagnose.synthetic import make_case
 from egobench.effects import EFFECTS
 from egobench.effects.base import TRAINED_PLACEBO_ORDER
@@ -106,7 +107,7 @@ def test_standard_errors_only_when_a_photometric_cause_is_testable(monkeypatch, 
     assert records == [] and se == {} and calls == []  # never computed
     results = geometric_only + [CauseResult(photometric[-1], "photometric", True)]
     _, se = trained_run_records(data, results, draws=10, seed=3)
-    assert se == values  # a key for each cause that gives one (None: no key)
+    assert se == {n: DetectionScale(*v) for n, v in values.items()}  # a key for each cause that gives one (None: none)
     assert sorted(calls) == sorted(CAUSES)  # every cause was asked once
 
 
@@ -119,7 +120,7 @@ def test_real_placebos_on_a_small_case(data):
     ranks = [TRAINED_PLACEBO_ORDER.index(kind_of(r.name)) for r, _ in records]
     assert ranks == sorted(ranks) and len(set(ranks)) == 3
     assert se and set(se) <= {n for n in EFFECTS if kind_of(n) == "photometric"}
-    assert all(s > 0 and 0 < df <= FRAMES - 1 for s, df in se.values())
+    assert all(s.se > 0 and 0 < s.df <= FRAMES - 1 and s.placebos == () for s in se.values())
     for result, record in records:
         assert isinstance(record, PlaceboRecord)
         before = result.p_value
