@@ -7,12 +7,12 @@ image per pose sample and gather each pixel from the sample its row time falls i
 
 How many samples (`n_pose_samples`), two rules:
 
-- ``rule="code"`` (default; the authors' released code, `scene/cameras.py`): the median over
+- `PoseSampling.rule` "code" (default; the authors' released code, `scene/cameras.py`): the median over
   the frame's sparse-depth points of the pixel displacement max(|du|, |dv|) between the poses
   at t_c - 1 ms and t_c + 1 ms (a 2 ms window) is scaled to the readout:
   N = clamp(int(R / 2 ms * median_px / step_px), 1, max_samples) (the code: step_px 1). For constant
   velocity this equals the median displacement between the read-start and read-end poses, in steps.
-- ``rule="paper"`` (the paper's sentence: "half of the reprojected pixels have fewer than
+- `PoseSampling.rule` "paper" (the paper's sentence: "half of the reprojected pixels have fewer than
   1 pixel reprojection error"): the smallest N in 1..max_samples for which, in every one of the
   N brackets, the median displacement between the bracket's start and end poses is < step_px (1 px).
 
@@ -123,8 +123,8 @@ def estimate_motion(recording: Recording, frame: Frame, sampling: PoseSampling =
     readout_ns = frame.read_end_ns - frame.read_start_ns
     if readout_ns < 0:
         raise ValueError(f"frame {frame.index}: read_end_ns < read_start_ns ({frame.read_end_ns} < {frame.read_start_ns})")
-    rule = _code_rule if sampling.rule == "code" else _paper_rule
-    return rule(recording, frame, sampling, pixel_scale, readout_ns)
+    count = _code_rule if sampling.rule == "code" else _paper_rule  # PoseSampling has checked its rule
+    return count(recording, frame, sampling, pixel_scale, readout_ns)
 
 
 def _code_rule(recording: Recording, frame: Frame, sampling: PoseSampling, pixel_scale: float,
@@ -142,7 +142,8 @@ def _code_rule(recording: Recording, frame: Frame, sampling: PoseSampling, pixel
 
 def _paper_rule(recording: Recording, frame: Frame, sampling: PoseSampling, pixel_scale: float,
                 readout_ns: int) -> MotionEstimate:
-    """The paper's count: the fewest brackets whose worst median motion stays below one step."""
+    """The paper's count: the fewest brackets whose worst median motion stays below one step (the cap when none
+    does)."""
     if readout_ns == 0:
         return MotionEstimate(n_samples=1, median_motion_px=0.0, n_points=0, rule="paper")
     t_c, cap = float(frame.timestamp_ns), int(sampling.max_samples)
@@ -154,7 +155,8 @@ def _paper_rule(recording: Recording, frame: Frame, sampling: PoseSampling, pixe
         ends.append(edges[1:])
         owner.append(torch.full((n,), n))
     disp, valid = displacements_px(recording, frame, torch.cat(starts), torch.cat(ends))
-    med = torch.nan_to_num(_nan_median(disp, valid) * pixel_scale, nan=0.0)  # [sum n]; no visible point: no ask
+    med = _nan_median(disp, valid) * pixel_scale  # [sum n]
+    med = torch.nan_to_num(med, nan=0.0)  # a bracket with no visible point cannot ask for more samples
     worst = torch.zeros(cap + 1, dtype=torch.float64).scatter_reduce(
         0, torch.cat(owner), med, reduce="amax", include_self=False
     )[1:]  # [cap] worst bracket median per candidate n

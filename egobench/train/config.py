@@ -88,7 +88,7 @@ class TrainConfig:
             raise ValueError(f"TrainConfig.init_colour: expected 'image' or 'grey', got {self.init_colour!r}")
         if not 0 <= self.ssim_lambda <= 1:
             raise ValueError(f"TrainConfig.ssim_lambda: expected a value in [0, 1], got {self.ssim_lambda}")
-        bad = sampling_problem(self.max_pose_samples, self.sample_rule, self.pose_sample_step_px)
+        bad = sampling_problem(**self._sampling_fields())
         if bad is not None:  # `PoseSampling`'s own check, in TrainConfig's names
             raise ValueError(f"TrainConfig.{SAMPLING_FIELDS[bad[0]]}: {bad[1]}")
         if not self.lr_shading > 0:
@@ -155,7 +155,11 @@ class TrainConfig:
     @property
     def pose_sampling(self) -> PoseSampling:
         """The rolling-shutter sampling rule every render of this run uses (training, evaluation, diagnosis)."""
-        return PoseSampling(self.max_pose_samples, self.sample_rule, self.pose_sample_step_px)
+        return PoseSampling(**self._sampling_fields())
+
+    def _sampling_fields(self) -> dict:
+        """{`PoseSampling` field: this config's value} (`SAMPLING_FIELDS`)."""
+        return {field: getattr(self, own) for field, own in SAMPLING_FIELDS.items()}
 
     def to_dict(self) -> dict:
         d = asdict(self)

@@ -11,11 +11,11 @@ import torch
 
 from egobench.camera.pinhole import Pinhole
 from egobench.data.recording import Frame, Recording, SparseDepth
-from egobench.model.pose_sampling import PoseSampling
 from egobench.model.motion_sampling import (
     MOTION_WINDOW_S, estimate_motion, exposure_pose_samples, frame_twist_camera, n_pose_samples,
     pixel_pose_index, pose_samples, sample_times_ns, velocity_poses,
 )
+from egobench.model.pose_sampling import PoseSampling
 
 F_PX = 100.0
 T_C = 10_000_000_000  # centre-row time of the test frame, ns
@@ -123,7 +123,8 @@ def test_a_finer_step_takes_analytically_more_samples(step_px):
     worst = [np.max(F_PX * np.diff(np.tan((-readout / 2 + np.arange(n + 1) * readout / n) * omega)))
              for n in range(1, 65)]
     assert paper == next(n for n, w in enumerate(worst, 1) if w < step_px)
-    assert (code > 1 and paper > 1) and (step_px >= 1 or paper > n_pose_samples(rec, rec.frames[0], PoseSampling(rule="paper")))
+    released_paper = n_pose_samples(rec, rec.frames[0], PoseSampling(rule="paper"))
+    assert (code > 1 and paper > 1) and (step_px >= 1 or paper > released_paper)
 
 
 def test_a_runs_sample_counts_follow_its_pose_sampling():
