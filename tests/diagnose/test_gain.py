@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from egobench.diagnose.estimators import CAUSES
 from egobench.diagnose.gain import GAIN_PLACEBOS, GainTest, gain_placebo_test, per_frame_gains, refusal
 from egobench.diagnose.synthetic import make_case
-from egobench.residual.estimation import CauseResult
+from egobench.effects.distortion import unit_displacement
+from egobench.effects.readout import rendered_row_time, staircase_shear
+from egobench.residual.estimation import CauseResult, ResidualData, frame_slopes, velocity_term
 from egobench.residual.signatures import checkerboard, tile_shuffled
 
 
@@ -98,11 +102,6 @@ def test_timing_causes_are_tested_beside_the_shear_the_runs_own_staircase_leaves
     and the readout are fitted beside it (a nuisance, never tested or applied): that shear alone gives neither a
     shift nor a readout error, whatever N, while the same fits without it take it up; a real offset or readout
     error on top of it is still found."""
-    import dataclasses
-
-    from egobench.effects.readout import rendered_row_time, staircase_shear
-    from egobench.residual.estimation import ResidualData, frame_slopes, velocity_term
-
     case = make_case(None, seed=5, n_frames=16, speed_px_s=(250.0, 600.0))
     R = np.ascontiguousarray(np.broadcast_to(np.linspace(0.0, 1.0, 48)[:, None] ** 1.5, (48, 48)))  # rows read unevenly
     ctx = dataclasses.replace(case.context, row_time_ratio=R)
@@ -134,32 +133,39 @@ def test_timing_causes_are_tested_beside_the_shear_the_runs_own_staircase_leaves
             assert t("readout", longer, samples) > 5.0
 
 
+def _moving(flow: np.ndarray):
+    """A 16-frame synthetic case whose frames move by ``flow`` [16, 48, 48, 2] px/s -> (case, its context with
+    that flow, the residual data of the case against its own prediction: its gradients and velocity term)."""
+    case = make_case(None, seed=6, n_frames=16)
+    ctx = dataclasses.replace(case.context, pixel_velocity_px_s=np.ascontiguousarray(flow, dtype=np.float32))
+    return case, ctx, ResidualData(case.measured, case.predicted, ctx, np.arange(16))
+
+
+def _frames_t(est: np.ndarray) -> float:
+    return float(est.mean() / (est.std(ddof=1) / np.sqrt(len(est))))
+
+
+def _lens_slopes(case, ctx, measured: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The lens's per-frame k0 slopes [16] of ``measured`` against the case's prediction: fitted alone, and beside
+    its nuisance signatures (`DistortionCause.first_order`)."""
+    data = ResidualData(measured, case.predicted, ctx, np.arange(16))
+    lens = CAUSES["distortion"]
+    alone, _ = frame_slopes(lens.regressors(data), data.p, data.r, data.usable)
+    beside, _ = lens.first_order(data)
+    return alone[:, 0], beside[:, 0]
+
+
 def test_a_radial_flow_that_follows_the_motion_is_not_taken_for_a_lens():
     """Walking forward, a time offset moves every pixel along a flow that expands about a point near the
     principal point, which a k0 error's radial displacement resembles. Distortion is fitted beside the
     motion's shift signature: the flow's residual gives it nothing, while the radial term alone takes it up."""
-    import dataclasses
-
-    from egobench.residual.estimation import ResidualData, frame_slopes, velocity_term
-
-    case = make_case(None, seed=6, n_frames=16)
-    ctx = case.context
     v, u = np.mgrid[0:48, 0:48].astype(np.float32)
-    cx, cy = ctx.principal_point
+    cx, cy = make_case(None, seed=6, n_frames=16).context.principal_point
     speed = np.linspace(0.5, 1.5, 16, dtype=np.float32)[:, None, None, None]  # each frame its own pace
-    flow = np.stack([u - cx, v - cy], -1)[None] * 8.0 * speed  # px/s, expanding
-    ctx = dataclasses.replace(ctx, pixel_velocity_px_s=np.ascontiguousarray(flow))
-    probe = ResidualData(case.measured, case.predicted, ctx, np.arange(16))
+    case, ctx, probe = _moving(np.stack([u - cx, v - cy], -1)[None] * 8.0 * speed)  # px/s, expanding
     measured = np.clip(case.predicted + 0.003 * velocity_term(probe), 0, 1)  # a 3 ms offset along the flow
-    data = ResidualData(measured, case.predicted, ctx, np.arange(16))
-    lens = CAUSES["distortion"]
-
-    def t(est):
-        return est.mean() / (est.std(ddof=1) / 4.0)
-
-    alone, _ = frame_slopes(lens.regressors(data), data.p, data.r, data.usable)
-    beside, _ = lens.first_order(data)
-    assert abs(t(alone[:, 0])) > 4.0 and abs(t(beside[:, 0])) < 3.0, (t(alone[:, 0]), t(beside[:, 0]))
+    alone, beside = _lens_slopes(case, ctx, measured)
+    assert abs(_frames_t(alone)) > 4.0 and abs(_frames_t(beside)) < 3.0, (_frames_t(alone), _frames_t(beside))
 
 
 def test_a_row_time_stretch_that_follows_the_motion_is_not_taken_for_a_lens():
@@ -168,30 +174,14 @@ def test_a_row_time_stretch_that_follows_the_motion_is_not_taken_for_a_lens():
     does (measured: a 256 px writer run with a 50 % longer readout named a distortion first, k0 +0.078).
     Distortion is fitted beside the readout's shear too: that stretch gives it nothing, while the radial term
     alone takes it up; a real k0 error on top of it is still found."""
-    import dataclasses
-
-    from egobench.effects.distortion import unit_displacement
-    from egobench.residual.estimation import ResidualData, frame_slopes, velocity_term
-
-    case = make_case(None, seed=6, n_frames=16)
-    ctx = case.context
     pace = np.linspace(0.5, 1.5, 16, dtype=np.float32)[:, None, None]  # tilting one way, each frame its own pace
-    flow = np.stack([np.zeros((16, 48, 48), np.float32), np.broadcast_to(400.0 * pace, (16, 48, 48))], -1)
-    ctx = dataclasses.replace(ctx, pixel_velocity_px_s=np.ascontiguousarray(flow))
-    probe = ResidualData(case.measured, case.predicted, ctx, np.arange(16))
+    case, ctx, probe = _moving(np.stack([np.zeros((16, 48, 48)), np.broadcast_to(400.0 * pace, (16, 48, 48))], -1))
     stretch = velocity_term(probe) * (ctx.row_time_ratio - 0.5)[None, :, :, None]
     measured = np.clip(case.predicted + 0.004 * stretch, 0, 1)  # a readout 4 ms longer than stated
-    data = ResidualData(measured, case.predicted, ctx, np.arange(16))
-    lens = CAUSES["distortion"]
-
-    def t(est):
-        return est.mean() / (est.std(ddof=1) / 4.0)
-
-    alone, _ = frame_slopes(lens.regressors(data), data.p, data.r, data.usable)
-    beside, _ = lens.first_order(data)
-    assert abs(t(alone[:, 0])) > 4.0 and abs(t(beside[:, 0])) < 3.0, (t(alone[:, 0]), t(beside[:, 0]))
+    alone, beside = _lens_slopes(case, ctx, measured)
+    assert abs(_frames_t(alone)) > 4.0 and abs(_frames_t(beside)) < 3.0, (_frames_t(alone), _frames_t(beside))
     gx, gy = probe.grad
     d = unit_displacement(ctx, 48, 48)
     lensed = np.clip(measured - 0.01 * (gx * d[None, ..., 0:1] + gy * d[None, ..., 1:2]), 0, 1)
-    with_lens, _ = lens.first_order(ResidualData(lensed, case.predicted, ctx, np.arange(16)))
-    assert t(with_lens[:, 0]) > 5.0 and with_lens[:, 0].mean() == pytest.approx(0.01, rel=0.25)
+    _, with_lens = _lens_slopes(case, ctx, lensed)
+    assert _frames_t(with_lens) > 5.0 and with_lens.mean() == pytest.approx(0.01, rel=0.25)
