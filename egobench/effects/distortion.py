@@ -10,8 +10,9 @@ import numpy as np
 from scipy import ndimage
 
 from egobench.effects.base import Effect
+from egobench.effects.readout import ReadoutCause
 from egobench.residual.calibration import PLACEBO_CENTRE_OFFSETS, PlaceboRecord, beat_placebos
-from egobench.residual.estimation import GeometricCause, ResidualData, velocity_term
+from egobench.residual.estimation import GeometricCause, ResidualData
 from egobench.residual.signatures import distortion_profile, frame_t_test, radial_coordinates
 
 #: On a trained run a lens error is testable when the run keeps at least this share of an injected one in its
@@ -19,6 +20,7 @@ from egobench.residual.signatures import distortion_profile, frame_t_test, radia
 #: two regimes measured before the rule was set: a time offset kept 0.68 through training, a lens 0.03-0.10 at
 #: 64 px and 800 iterations (results/diagnosis/README.md, "2026-12-06: what the distortion test reads on null runs").
 LENS_RETENTION_FLOOR = 0.25
+_READOUT = ReadoutCause()  # whose signature the lens is fitted beside (`DistortionCause.nuisance_regressors`)
 
 
 def unit_displacement(ctx, height: int, width: int) -> np.ndarray:
@@ -57,14 +59,11 @@ class DistortionCause(GeometricCause):
         return [-(gx * d[None, :, :, 0:1] + gy * d[None, :, :, 1:2])]
 
     def nuisance_regressors(self, data):
-        """The image motion's shift and row-time shear signatures (a time offset's and a readout's), where the
-        frames move: a lens displaces every frame alike, while a radial pattern that follows each frame's motion
-        (walking forward: the flow expands about a point near the principal point), whole or growing down the
-        rows, is timing or the model's own error, not a lens."""
-        if data.velocity is None:
-            return []
-        shift = velocity_term(data)
-        return [shift, shift * (data.ctx.row_time_ratio - 0.5)[None, :, :, None]]
+        """The readout's signature (`ReadoutCause.regressors`: the image motion's shift, a time offset's, and its
+        row-time shear), where the frames move: a lens displaces every frame alike, while a radial pattern that
+        follows each frame's motion (walking forward: the flow expands about a point near the principal point),
+        whole or growing down the rows, is timing or the model's own error, not a lens."""
+        return [] if data.velocity is None else _READOUT.regressors(data)
 
     def displacement(self, theta, ctx, frames, shape):
         d = unit_displacement(ctx, shape[1], shape[2])
