@@ -13,7 +13,7 @@ from egobench.effects.base import Effect
 from egobench.effects.readout import ReadoutCause
 from egobench.residual.calibration import PLACEBO_CENTRE_OFFSETS, PlaceboRecord, beat_placebos
 from egobench.residual.estimation import GeometricCause, ResidualData
-from egobench.residual.signatures import distortion_profile, frame_t_test, radial_coordinates
+from egobench.residual.signatures import border_pull, distortion_profile, frame_t_test, radial_coordinates
 
 #: On a trained run a lens error is testable when the run keeps at least this share of an injected one in its
 #: residual (`DistortionCause.untestable_on_trained_run`; measured by `egobench.diagnose.lens_check`). Between the
@@ -59,11 +59,18 @@ class DistortionCause(GeometricCause):
         return [-(gx * d[None, :, :, 0:1] + gy * d[None, :, :, 1:2])]
 
     def nuisance_regressors(self, data):
-        """The readout's signature (`ReadoutCause.regressors`: the image motion's shift, a time offset's, and its
-        row-time shear), where the frames move: a lens displaces every frame alike, while a radial pattern that
-        follows each frame's motion (walking forward: the flow expands about a point near the principal point),
-        whole or growing down the rows, is timing or the model's own error, not a lens."""
-        return [] if data.velocity is None else _READOUT.regressors(data)
+        """Fitted beside the lens, never tested or applied:
+        - the readout's signature (`ReadoutCause.regressors`: the image motion's shift, a time offset's, and its
+          row-time shear), where the frames move: a lens displaces every frame alike, while a radial pattern that
+          follows each frame's motion (walking forward: the flow expands about a point near the principal
+          point), whole or growing down the rows, is timing or the model's own error, not a lens;
+        - the model's pull at the image border (`border_pull`, one column per band with usable pixels): static
+          and inward like a lens's, but normal to the nearest border rather than radial about the principal
+          point, so at one radius it is larger beside an edge than towards a corner."""
+        gx, gy = data.grad
+        pull = [-(gx * f[None, :, :, 0:1] + gy * f[None, :, :, 1:2]) for f in border_pull(*data.p.shape[1:3])
+                if np.any(data.valid & np.any(f != 0, axis=-1))]
+        return ([] if data.velocity is None else _READOUT.regressors(data)) + pull
 
     def displacement(self, theta, ctx, frames, shape):
         d = unit_displacement(ctx, shape[1], shape[2])
