@@ -39,7 +39,8 @@ GEOMETRIC = {"readout", "time_offset", "exposure_blur", "distortion"}
 
 #: effect -> (the key of its size in the report's smallest-testable table, the hidden size in that unit)
 HIDDEN_SIZE = {"vignette": ("corner_attenuation", 0.40), "readout": ("readout_relative_error", 0.5),
-               "exposure_metadata": ("exposure_relative_error", 0.25), "time_offset": ("time_offset_error_s", 0.003)}
+               "exposure_metadata": ("exposure_relative_error", 0.25), "time_offset": ("time_offset_error_s", 0.003),
+               "distortion": ("k0_error", 0.1)}
 #: effect -> (writer flags of seed index i, the cause that should be named, the seeds)
 CASES = {
     "null": (lambda i: [], None, range(101, 121)),
@@ -48,6 +49,7 @@ CASES = {
     "exposure_metadata": (lambda i: ["--exposure-error", "0.75" if i % 2 else "1.25", "--exposure-fraction", "0.25"],
                           "exposure_metadata", range(401, 411)),
     "time_offset": (lambda i: ["--time-offset-s", "0.003"], "time_offset", range(501, 511)),
+    "distortion": (lambda i: ["--lens-k0", "0.1"], "distortion", range(601, 611)),
 }
 
 

@@ -6,7 +6,7 @@ numpy and OpenCV only): recordings egobench did not write, to test its diagnosis
     python scripts/independent_writer.py --out DIR [--seed N] [--size 64] [--frames 48] [--fps 15]
         [--exposure-s 0.001] [--gain 1.0] [--readout-s 0.008] [--supersample 2] [--noise 1.0]
         [--vignette-corner F] [--readout-scale S] [--exposure-error E --exposure-fraction P]
-        [--time-offset-s D]
+        [--time-offset-s D] [--lens-k0 K]
 
 The world: a 6 x 5 x 3 m box room (z up, metres) with procedural textures (seeded sums of sinusoids
 plus a grid of soft lines) on its six faces and four axis-aligned boxes inside, ray-cast
@@ -41,6 +41,9 @@ Hidden effects (default: none, a null recording), each written to truth.json:
   --exposure-error E, --exposure-fraction P   a seeded P share of the frames records exposure x E;
                         the images use the true exposure.
   --time-offset-s D     true centre time = recorded timestamp + D (recorded timestamps are D early).
+  --lens-k0 K           the true lens bends rays radially: the pixel at field angle theta of the stated pinhole
+                        sees the ray at theta - K theta^3, so the content moves outward by about
+                        K f sec^2(theta) theta^3 px (a Fisheye624 k0 larger by K); the stated camera is the pinhole.
 Matrix products use einsum rather than BLAS (numpy's @), whose kernels vary between CPUs.
 """
 
@@ -94,6 +97,7 @@ class Config:
     exposure_error: float = 1.0
     exposure_fraction: float = 0.0
     time_offset_s: float = 0.0
+    lens_k0: float = 0.0
     motion: str = "both"  # the head's motion: "both", "rotation" (no translation) or "translation" (no rotation)
 
     @property
@@ -129,6 +133,7 @@ def check_config(c: Config) -> None:
         ((c.exposure_error == 1.0) == (c.exposure_fraction == 0.0),
          "--exposure-error (not 1) and --exposure-fraction (> 0) must be given together"),
         (abs(c.time_offset_s) <= 0.05, f"--time-offset-s must be within +-0.05 s, got {c.time_offset_s}"),
+        (abs(c.lens_k0) <= 0.5, f"--lens-k0 must be within +-0.5, got {c.lens_k0}"),
     ]
     for ok, message in rules:  # every range is bounded, so NaN and infinity fail too
         if not ok:
@@ -340,12 +345,23 @@ def cast_pixels(c: Config, scene: dict, motion: dict, t_centre_true_ns: int, uv:
     uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
     rows = np.floor(uv[:, 1] + 0.5)
     T = camera_poses(motion, row_time_ns(c, t_centre_true_ns, rows))
-    d_cam = np.stack([(uv[:, 0] - c.centre_px) / c.focal_px, (uv[:, 1] - c.centre_px) / c.focal_px,
+    d_cam = np.stack([*true_ray_xy(c, (uv[:, 0] - c.centre_px) / c.focal_px, (uv[:, 1] - c.centre_px) / c.focal_px),
                       np.ones(len(uv))], -1)
     d = np.einsum("nij,nj->ni", T[:, :3, :3], d_cam / np.linalg.norm(d_cam, axis=1, keepdims=True))
     t, sid, normal = cast(scene, T[:, :3, 3], d)
     p = T[:, :3, 3] + t[:, None] * d
     return p, radiance(scene, p, sid, normal)
+
+
+def true_ray_xy(c: Config, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The true ray (x / z, y / z) through the stated pinhole's normalised position (x, y): its field angle
+    theta taken down to theta - lens_k0 theta^3 along the same azimuth (unchanged when lens_k0 = 0)."""
+    if c.lens_k0 == 0.0:
+        return x, y
+    r = np.hypot(x, y)
+    theta = np.arctan(r)
+    scale = np.tan(theta - c.lens_k0 * theta ** 3) / np.maximum(r, 1e-12)
+    return x * scale, y * scale
 
 
 def true_vignette(c: Config) -> np.ndarray:
@@ -492,7 +508,8 @@ def frame_entry(c: Config, k: int, clock: dict, T_world_camera: np.ndarray) -> d
 def hidden_effects(c: Config) -> list[str]:
     """Names of the effects this configuration hides (empty: a null recording)."""
     return [name for name, on in (("vignette", c.vignette_corner > 0), ("readout", c.readout_scale != 1.0),
-                                  ("exposure_metadata", c.exposure_fraction > 0), ("time_offset", c.time_offset_s != 0))
+                                  ("exposure_metadata", c.exposure_fraction > 0), ("time_offset", c.time_offset_s != 0),
+                                  ("distortion", c.lens_k0 != 0))
             if on]
 
 
@@ -504,9 +521,11 @@ def truth_record(c: Config, clock: dict) -> dict:
         "effects": {"vignette_corner": c.vignette_corner, "readout_scale": c.readout_scale,
                     "readout_stated_s": c.readout_s, "readout_true_s": c.readout_s * c.readout_scale,
                     "exposure_error": c.exposure_error, "exposure_fraction": c.exposure_fraction,
-                    "exposure_altered_frames": clock["altered"], "time_offset_s": c.time_offset_s},
+                    "exposure_altered_frames": clock["altered"], "time_offset_s": c.time_offset_s,
+                    "lens_k0": c.lens_k0},
         "conventions": {
             "time_offset": "true centre-row mid-exposure time = recorded timestamp + time_offset_s",
+            "lens": "the pixel at the stated pinhole's field angle theta sees the ray at theta - lens_k0 theta^3",
             "row_time": "row v is rendered at t_centre_true + (v / (H - 1) - 1/2) * readout_true_s (mid-exposure)",
             "vignette": "true shading 1 - vignette_corner * (r / r_corner)^2 from (cx, cy); vignette.png is flat",
             "exposure": "images use exposure_true_s; transforms record exposure_recorded_s",
@@ -581,7 +600,8 @@ def parse_args(argv: list[str] | None) -> tuple[Path, Config]:
             ("readout-scale", float, "hidden: true readout = stated x S"),
             ("exposure-error", float, "hidden: recorded exposure = true x E on --exposure-fraction of the frames"),
             ("exposure-fraction", float, "hidden: share P of frames with a misrecorded exposure"),
-            ("time-offset-s", float, "hidden: true capture time = recorded timestamp + D, s")):
+            ("time-offset-s", float, "hidden: true capture time = recorded timestamp + D, s"),
+            ("lens-k0", float, "hidden: the pixel at field angle theta sees the ray at theta - K theta^3")):
         attr = name.replace("-", "_")
         p.add_argument(f"--{name}", type=kind, default=getattr(defaults, attr),
                        help=f"{helptext} (default {getattr(defaults, attr)})")

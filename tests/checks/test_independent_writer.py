@@ -20,6 +20,7 @@ import torch
 
 from egobench.data import load_recording
 from egobench.model.motion_sampling import camera_poses_at
+from egobench.residual.signatures import distortion_profile
 
 SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "independent_writer.py"
 EFFECTS = ["--vignette-corner", "0.4", "--readout-scale", "1.5", "--exposure-error", "1.25",
@@ -74,7 +75,8 @@ def test_a_recording_loads_with_its_stated_metadata_and_truth(recordings):
     assert bool((rec.vignette == 1.0).all()) and len(rec.points_world) > 1000
     assert truth["effects"] | {"exposure_altered_frames": None} == {
         "vignette_corner": 0.4, "readout_scale": 1.5, "readout_stated_s": 0.008, "readout_true_s": 0.012,
-        "exposure_error": 1.25, "exposure_fraction": 0.25, "exposure_altered_frames": None, "time_offset_s": 0.003}
+        "exposure_error": 1.25, "exposure_fraction": 0.25, "exposure_altered_frames": None, "time_offset_s": 0.003,
+        "lens_k0": 0.0}
     assert json.loads((recordings["null"] / "truth.json").read_text())["hidden_effects"] == []
 
 
@@ -108,6 +110,23 @@ def test_a_drawn_point_reprojects_onto_its_pixel_at_its_row_time(recordings):
     assert np.median(_reprojection_px(recordings["effects"], use_truth=False)) > 0.05  # the hidden timing shows
 
 
+def test_the_hidden_lens_moves_content_outward_as_a_larger_k0_does():
+    """``--lens-k0 K``: the content the stated pinhole puts at radius r (px) shows K f sec^2(theta) theta^3 further
+    out (egobench's `distortion_profile`, first order in K), along the same azimuth; K = 0 leaves every ray."""
+    c = writer.Config(size=64, lens_k0=0.01)
+    v, u = np.mgrid[0:64:7, 0:64:7].astype(np.float64)
+    x, y = (u - c.centre_px) / c.focal_px, (v - c.centre_px) / c.focal_px
+    tx, ty = writer.true_ray_xy(c, x, y)
+    r = np.hypot(x, y) * c.focal_px
+    seen_at = np.hypot(tx, ty) * c.focal_px  # where the pinhole would put the ray this pixel sees
+    assert np.allclose(tx * y, ty * x, atol=1e-12)  # the same azimuth
+    np.testing.assert_allclose(r - seen_at, 0.01 * distortion_profile(r, c.focal_px, None), rtol=0.03, atol=1e-6)
+    assert (r - seen_at).max() > 0.15  # px at the corners of a 64 px image
+    same = writer.true_ray_xy(writer.Config(size=64), x, y)
+    assert same[0] is x and same[1] is y
+    assert writer.hidden_effects(c) == ["distortion"]
+
+
 def test_the_hidden_vignette_darkens_the_corners_only_in_the_images(recordings):
     def corner_over_centre(path: Path) -> float:
         stream = next(path.glob("camera-rgb-rectified-*"))
@@ -122,7 +141,8 @@ def test_the_hidden_vignette_darkens_the_corners_only_in_the_images(recordings):
 def test_bad_arguments_are_refused_with_a_message(tmp_path, capsys):
     cases = [(["--size", "4"], "--size must be"), (["--exposure-error", "0.75"], "must be given together"),
              (["--readout-scale", "-1"], "--readout-scale must be"), (["--time-offset-s", "nan"], "--time-offset-s"),
-             (["--frames", "x"], "invalid int value")]
+             (["--frames", "x"], "invalid int value"),
+             (["--lens-k0", "0.7"], "--lens-k0 must be")]
     for extra, message in cases:
         with pytest.raises(SystemExit) as exc:
             writer.main(["--out", str(tmp_path / "r"), *extra])
