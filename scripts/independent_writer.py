@@ -135,6 +135,10 @@ def check_config(c: Config) -> None:
         (abs(c.time_offset_s) <= 0.05, f"--time-offset-s must be within +-0.05 s, got {c.time_offset_s}"),
         (abs(c.lens_k0) <= 0.5, f"--lens-k0 must be within +-0.5, got {c.lens_k0}"),
     ]
+    if all(ok for ok, _ in rules):  # the lens must map the corner's field angle one to one, in front of the camera
+        corner = math.atan(math.hypot(c.centre_px, c.centre_px) / c.focal_px)
+        rules.append((1.0 - 3.0 * c.lens_k0 * corner ** 2 > 0.0 and corner - c.lens_k0 * corner ** 3 < math.pi / 2,
+                      f"--lens-k0 {c.lens_k0} folds or turns back the rays at the corners of a {c.fov_deg} deg view"))
     for ok, message in rules:  # every range is bounded, so NaN and infinity fail too
         if not ok:
             raise ValueError(message)

@@ -13,7 +13,7 @@ from egobench.effects.base import Effect
 from egobench.effects.readout import ReadoutCause
 from egobench.residual.calibration import PLACEBO_CENTRE_OFFSETS, PlaceboRecord, beat_placebos
 from egobench.residual.estimation import GeometricCause, ResidualData
-from egobench.residual.signatures import border_pull, distortion_profile, frame_t_test, radial_coordinates
+from egobench.residual.signatures import border_pull_basis, distortion_profile, frame_t_test, radial_coordinates
 
 #: On a trained run a lens error is testable when the run keeps at least this share of an injected one in its
 #: residual (`DistortionCause.untestable_on_trained_run`; measured by `egobench.diagnose.lens_check`). Between the
@@ -59,18 +59,17 @@ class DistortionCause(GeometricCause):
         return [-(gx * d[None, :, :, 0:1] + gy * d[None, :, :, 1:2])]
 
     def nuisance_regressors(self, data):
-        """Fitted beside the lens, never tested or applied:
+        """Fitted beside the lens in its test, never tested or applied (the refined k0, a warp, is fitted
+        without them: a named lens's size and gain include what they took up):
         - the readout's signature (`ReadoutCause.regressors`: the image motion's shift, a time offset's, and its
           row-time shear), where the frames move: a lens displaces every frame alike, while a radial pattern that
           follows each frame's motion (walking forward: the flow expands about a point near the principal
           point), whole or growing down the rows, is timing or the model's own error, not a lens;
-        - the model's pull at the image border (`border_pull`, one column per band with usable pixels): static
-          and inward like a lens's, but normal to the nearest border rather than radial about the principal
-          point, so at one radius it is larger beside an edge than towards a corner."""
-        gx, gy = data.grad
-        pull = [-(gx * f[None, :, :, 0:1] + gy * f[None, :, :, 1:2]) for f in border_pull(*data.p.shape[1:3])
-                if np.any(data.valid & np.any(f != 0, axis=-1))]
-        return ([] if data.velocity is None else _READOUT.regressors(data)) + pull
+        - on a trained run (`DiagnosisContext.model_pose_samples` set), the model's pull at its image border
+          (`border_pull`): static and outward of the render like a lens's, but normal to the nearest border
+          rather than radial about the principal point, so at one radius larger beside an edge than towards a
+          corner."""
+        return ([] if data.velocity is None else _READOUT.regressors(data)) + border_pull(data)
 
     def displacement(self, theta, ctx, frames, shape):
         d = unit_displacement(ctx, shape[1], shape[2])
@@ -120,6 +119,21 @@ class DistortionCause(GeometricCause):
         return [distortion_placebo(self, evidence.data)] if result.testable else []
 
 
+def border_pull(data: ResidualData) -> list[np.ndarray]:
+    """A trained run's pull at its image border as regressors [f, H, W, 3] (`signatures.border_pull_basis`), one
+    per hat that every frame has usable pixels under (a hat without would make that frame's design singular and
+    drop it from the test); none where the prediction is no trained run's."""
+    if data.ctx.model_pose_samples is None:
+        return []
+    gx, gy = data.grad
+    out = []
+    for field in border_pull_basis(*data.p.shape[1:3]):
+        under = np.any(field != 0, axis=-1)[None, :, :, None]
+        if np.all(np.any(data.usable & under, axis=(1, 2, 3))):
+            out.append(-(gx * field[None, :, :, 0:1] + gy * field[None, :, :, 1:2]))
+    return out
+
+
 def distortion_placebo(cause: DistortionCause, data: ResidualData) -> PlaceboRecord:
     """Lens distortion on a trained run must beat radial placebos: the same per-frame
     radial-displacement statistic about wrong centres (PLACEBO_CENTRE_OFFSETS). p_placebo = the
@@ -127,9 +141,10 @@ def distortion_placebo(cause: DistortionCause, data: ResidualData) -> PlaceboRec
     against the placebos' |t| (model error near the image border, where the model has less
     coverage, is radial about any centre and inflates them all)."""
     H, W = data.m.shape[1:3]
+    nuisance = cause.nuisance_regressors(data)  # the true centre's: no column depends on the centre
 
     def t_of(d):
-        est, info = cause.first_order(d)
+        est, info = cause.first_order(d, nuisance)
         return frame_t_test(est[:, 0], info[:, 0]).t
 
     t_real = t_of(data)

@@ -234,20 +234,21 @@ def distortion_profile(radius_px: np.ndarray, focal_px: float, k: tuple[float, .
     return focal_px * theta**3 / np.cos(theta) ** 2 / np.maximum(drdtheta, 1e-3)
 
 
-#: Knots of distance from the image border (fractions of the shorter side) of `border_pull`'s profiles: a
-#: trained run's renders are pulled inward there, by up to half a pixel at 64 px, fading about a quarter of the
-#: way in (results/diagnosis/README.md, "2026-12-06: the renders' pull sits at the image border").
+#: Knots of distance from the image border (fractions of the shorter side) of `border_pull_basis`: a trained run's
+#: renders sit inward of the measured frames there, by up to half a pixel at 64 px, fading about a quarter of
+#: the way in (results/diagnosis/README.md, "2026-12-06: the renders' pull sits at the image border").
 BORDER_KNOTS = (0.0, 1.0 / 32.0, 1.0 / 16.0, 1.0 / 8.0, 1.0 / 4.0, 3.0 / 8.0)
 
 
-def border_pull(height: int, width: int, knots: tuple[float, ...] = BORDER_KNOTS) -> list[np.ndarray]:
-    """Per knot but the last, a displacement field [H, W, 2] px: a pull along the inward normal of each border,
-    1 at the knot's distance from it and falling linearly to 0 at the neighbouring knots (a hat; the first
-    knot's holds out to the border), the four borders summed, so a corner moves along both. Together they span
-    every profile piecewise linear between the knots and 0 from the last one on: structure of a trained model's
-    own under-fit at its image border, not of any lens."""
+def border_pull_basis(height: int, width: int, knots: tuple[float, ...] = BORDER_KNOTS) -> list[np.ndarray]:
+    """Per knot but the last, a displacement field [H, W, 2] px of the measured content against the render (as
+    `distortion.unit_displacement`, where a lens's points outward): along the outward normal of each border,
+    1 at the knot's distance from it, falling linearly to 0 at the neighbouring knots (a hat), the four
+    borders summed, so a corner moves along both. One profile shared by the four borders, piecewise linear
+    between the knots and 0 from the last on, is a sum of them: a trained model's under-fit at its image border,
+    not a lens."""
     v, u = _pixel_rows_cols(height, width)
-    sides = ((u + 0.5, 1.0, 0.0), (width - 0.5 - u, -1.0, 0.0), (v + 0.5, 0.0, 1.0), (height - 0.5 - v, 0.0, -1.0))
+    sides = ((u + 0.5, -1.0, 0.0), (width - 0.5 - u, 1.0, 0.0), (v + 0.5, 0.0, -1.0), (height - 0.5 - v, 0.0, 1.0))
     at = np.asarray(knots, dtype=np.float64) * min(height, width)
     fields = []
     for k in range(len(at) - 1):

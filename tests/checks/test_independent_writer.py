@@ -110,21 +110,24 @@ def test_a_drawn_point_reprojects_onto_its_pixel_at_its_row_time(recordings):
     assert np.median(_reprojection_px(recordings["effects"], use_truth=False)) > 0.05  # the hidden timing shows
 
 
-def test_the_hidden_lens_moves_content_outward_as_a_larger_k0_does():
+def test_the_hidden_lens_moves_content_outward_as_a_larger_k0_does(tmp_path):
     """``--lens-k0 K``: the content the stated pinhole puts at radius r (px) shows K f sec^2(theta) theta^3 further
-    out (egobench's `distortion_profile`, first order in K), along the same azimuth; K = 0 leaves every ray."""
-    c = writer.Config(size=64, lens_k0=0.01)
+    out (egobench's `distortion_profile`, first order in K; at 110 deg the angle's cubic and the tangent's differ
+    by a tenth), along the same azimuth; K = 0 leaves every ray; truth.json names it."""
+    c = writer.Config(size=64, fov_deg=110.0, lens_k0=0.002)
     v, u = np.mgrid[0:64:7, 0:64:7].astype(np.float64)
     x, y = (u - c.centre_px) / c.focal_px, (v - c.centre_px) / c.focal_px
     tx, ty = writer.true_ray_xy(c, x, y)
     r = np.hypot(x, y) * c.focal_px
     seen_at = np.hypot(tx, ty) * c.focal_px  # where the pinhole would put the ray this pixel sees
     assert np.allclose(tx * y, ty * x, atol=1e-12)  # the same azimuth
-    np.testing.assert_allclose(r - seen_at, 0.01 * distortion_profile(r, c.focal_px, None), rtol=0.03, atol=1e-6)
-    assert (r - seen_at).max() > 0.15  # px at the corners of a 64 px image
+    np.testing.assert_allclose(r - seen_at, 0.002 * distortion_profile(r, c.focal_px, None), rtol=0.03, atol=1e-6)
+    assert (r - seen_at).max() > 0.15  # px at the corners
     same = writer.true_ray_xy(writer.Config(size=64), x, y)
     assert same[0] is x and same[1] is y
-    assert writer.hidden_effects(c) == ["distortion"]
+    writer.main(["--out", str(tmp_path / "lens"), "--seed", "2", "--size", "16", "--frames", "3", "--lens-k0", "-0.1"])
+    truth = json.loads((tmp_path / "lens" / "truth.json").read_text())
+    assert truth["hidden_effects"] == ["distortion"] and truth["effects"]["lens_k0"] == -0.1
 
 
 def test_the_hidden_vignette_darkens_the_corners_only_in_the_images(recordings):
@@ -142,7 +145,9 @@ def test_bad_arguments_are_refused_with_a_message(tmp_path, capsys):
     cases = [(["--size", "4"], "--size must be"), (["--exposure-error", "0.75"], "must be given together"),
              (["--readout-scale", "-1"], "--readout-scale must be"), (["--time-offset-s", "nan"], "--time-offset-s"),
              (["--frames", "x"], "invalid int value"),
-             (["--lens-k0", "0.7"], "--lens-k0 must be")]
+             (["--lens-k0", "0.7"], "--lens-k0 must be"),
+             (["--lens-k0", "0.3", "--fov-deg", "120"], "folds or turns back"),
+             (["--lens-k0", "-0.5", "--fov-deg", "120"], "folds or turns back")]
     for extra, message in cases:
         with pytest.raises(SystemExit) as exc:
             writer.main(["--out", str(tmp_path / "r"), *extra])

@@ -13,7 +13,7 @@ from egobench.diagnose.synthetic import make_case
 from egobench.effects.distortion import unit_displacement
 from egobench.effects.readout import rendered_row_time, staircase_shear
 from egobench.residual.estimation import CauseResult, ResidualData, frame_slopes, velocity_term
-from egobench.residual.signatures import border_pull, checkerboard, tile_shuffled
+from egobench.residual.signatures import border_pull_basis, checkerboard, tile_shuffled
 
 
 def test_tile_shuffle_keeps_each_frames_values_and_moves_them():
@@ -190,37 +190,45 @@ def test_a_row_time_stretch_that_follows_the_motion_is_not_taken_for_a_lens():
 def test_a_pull_at_the_image_border_is_not_taken_for_a_lens():
     """A trained run's renders sit inward of the measured frames near the image border, by up to half a pixel and
     fading a few pixels in (measured on the independent writer's nulls: at one radius twice as much beside an
-    edge as towards a corner), which a lens's radial displacement takes up when fitted alone. The lens is fitted
-    beside the border pull's profiles (`border_pull`): a smooth pull of another shape gives it a tenth of what it
-    takes alone, and a real k0 error on top of it is still found."""
+    edge as towards a corner), which a lens's radial displacement takes up as a positive k0 when fitted alone.
+    On a trained run the lens is fitted beside the border pull's hats (`border_pull_basis`): a smooth pull of
+    another shape gives it a tenth of what it takes alone, and a real k0 error on top of it is still found; on
+    a prediction that is no trained run's there is no such nuisance."""
     pace = np.linspace(0.5, 1.5, 16, dtype=np.float32)[:, None, None]
     case, ctx, probe = _moving(np.stack([np.broadcast_to(300.0 * pace, (16, 48, 48)), np.zeros((16, 48, 48))], -1))
+    trained = dataclasses.replace(ctx, model_pose_samples=np.full(16, 4))
     v, u = np.mgrid[0:48, 0:48].astype(np.float64)
-    inward = np.zeros((48, 48, 2))
-    for distance, nx, ny in ((u + 0.5, 1, 0), (47.5 - u, -1, 0), (v + 0.5, 0, 1), (47.5 - v, 0, -1)):
+    outward = np.zeros((48, 48, 2))
+    for distance, nx, ny in ((u + 0.5, -1, 0), (47.5 - u, 1, 0), (v + 0.5, 0, -1), (47.5 - v, 0, 1)):
         profile = 0.5 * np.exp(-distance / 3.5)  # px: an exponential, not one of the hats
-        inward[..., 0] += nx * profile
-        inward[..., 1] += ny * profile
+        outward[..., 0] += nx * profile
+        outward[..., 1] += ny * profile
     gx, gy = probe.grad
-    pulled = np.clip(case.predicted - (gx * inward[None, ..., 0:1] + gy * inward[None, ..., 1:2]), 0, 1)
-    alone, beside = _lens_slopes(case, ctx, pulled)
-    assert abs(_frames_t(alone)) > 4.0 and abs(beside.mean()) < 0.1 * abs(alone.mean()), (alone.mean(), beside.mean())
+    pulled = np.clip(case.predicted - (gx * outward[None, ..., 0:1] + gy * outward[None, ..., 1:2]), 0, 1)
+    alone, beside = _lens_slopes(case, trained, pulled)
+    assert _frames_t(alone) > 4.0 and abs(beside.mean()) < 0.1 * alone.mean(), (alone.mean(), beside.mean())
+    _, untrained = _lens_slopes(case, ctx, pulled)
+    assert untrained.mean() > 0.5 * alone.mean()
     d = unit_displacement(ctx, 48, 48)
     lensed = np.clip(pulled - 0.01 * (gx * d[None, ..., 0:1] + gy * d[None, ..., 1:2]), 0, 1)
-    _, with_lens = _lens_slopes(case, ctx, lensed)
+    _, with_lens = _lens_slopes(case, trained, lensed)
     assert _frames_t(with_lens) > 5.0 and with_lens.mean() == pytest.approx(0.01, rel=0.1)
 
 
-def test_the_border_pull_is_an_inward_normal_falling_linearly_between_knots():
-    """`border_pull` at 64 px (knots 0, 2, 4, 8, 16 and 24 px from each border): the pixel centre 3.5 px from the
-    left edge moves by 3/4 of the hat at 4 px and 1/4 of the hat at 2 px along +x, one 3.5 px from the bottom
-    edge along -y, a corner pixel along both normals, the centre not at all; the hats sum to 1 out to 16 px and
-    fall to 0 at 24 px."""
-    hats = border_pull(64, 64)
+def test_the_border_pull_is_an_outward_normal_falling_linearly_between_knots():
+    """`border_pull_basis` at 64 px (knots 0, 2, 4, 8, 16 and 24 px from each border): the pixel centre 3.5 px from
+    the left edge moves by 3/4 of the hat at 4 px and 1/4 of the hat at 2 px along -x, one 3.5 px from the bottom
+    edge along +y, a corner pixel along both outward normals, the centre not at all; the hats sum to 1 out to
+    16 px and fall to 0 at 24 px. On a 32 x 64 image the knots are fractions of the shorter side."""
+    hats = border_pull_basis(64, 64)
     assert len(hats) == 5
-    assert hats[2][32, 3].tolist() == [0.75, 0.0] and hats[1][32, 3].tolist() == [0.25, 0.0]
-    assert hats[2][60, 32].tolist() == [0.0, -0.75] and hats[0][0, 63].tolist() == [-0.75, 0.75]
+    assert hats[2][32, 3].tolist() == [-0.75, 0.0] and hats[1][32, 3].tolist() == [-0.25, 0.0]
+    assert hats[2][60, 32].tolist() == [0.0, 0.75] and hats[0][0, 63].tolist() == [0.75, -0.75]
     assert all(h[32, 32].tolist() == [0.0, 0.0] for h in hats)
     d = np.arange(64) + 0.5
-    expected = np.clip((24.0 - d) / 8.0, 0.0, 1.0) - np.clip((24.0 - d[::-1]) / 8.0, 0.0, 1.0)
+    expected = np.clip((24.0 - d[::-1]) / 8.0, 0.0, 1.0) - np.clip((24.0 - d) / 8.0, 0.0, 1.0)
     np.testing.assert_allclose(sum(h[32, :, 0] for h in hats), expected, atol=1e-12)
+    wide = border_pull_basis(32, 64)  # knots at 0, 1, 2, 4, 8 and 12 px
+    assert wide[3][16, 3].tolist() == [-0.75, 0.0] and wide[2][16, 3].tolist() == [-0.25, 0.0]
+    assert wide[3][3, 32].tolist() == [0.0, -0.75]
+    assert all(h[16, 20].tolist() == [0.0, 0.0] for h in wide)
