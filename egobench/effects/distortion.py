@@ -69,7 +69,7 @@ class DistortionCause(GeometricCause):
           (`border_pull`): static and outward of the render like a lens's, but normal to the nearest border
           rather than radial about the principal point, so at one radius larger beside an edge than towards a
           corner."""
-        return ([] if data.velocity is None else _READOUT.regressors(data)) + border_pull(data)
+        return self.radial_nuisance(data) + border_pull(data)
 
     def displacement(self, theta, ctx, frames, shape):
         d = unit_displacement(ctx, shape[1], shape[2])
@@ -115,9 +115,20 @@ class DistortionCause(GeometricCause):
                 "cannot be told from a lens")
 
     def trained_placebos(self, result, evidence):
-        """On a trained run: the radial statistic about wrong centres (`distortion_placebo`)."""
-        return [distortion_placebo(self, evidence.data)] if result.testable else []
+        """On a trained run the lens must beat two explanations, each on its own statistic about wrong centres
+        (`distortion_placebo`): a radial pattern about any centre (the lens fitted beside the readout's signature
+        alone, `radial_nuisance`), and that beside the run's pull at its border too (`nuisance_regressors`, the
+        test's own). The larger p stands: the pull moves the statistic of the true centre less than the wrong
+        centres', so either calibration alone passes one kind of under-fit as a lens."""
+        if not result.testable:
+            return []
+        data = evidence.data
+        return [distortion_placebo(self, data, self.nuisance_regressors(data)),
+                distortion_placebo(self, data, self.radial_nuisance(data), key="calibration_radial")]
 
+    def radial_nuisance(self, data):
+        """The readout's signature alone (`nuisance_regressors` without the border pull)."""
+        return [] if data.velocity is None else _READOUT.regressors(data)
 
 def border_pull(data: ResidualData) -> list[np.ndarray]:
     """A trained run's pull at its image border as regressors [f, H, W, 3] (`signatures.border_pull_basis`), one
@@ -134,14 +145,15 @@ def border_pull(data: ResidualData) -> list[np.ndarray]:
     return out
 
 
-def distortion_placebo(cause: DistortionCause, data: ResidualData) -> PlaceboRecord:
-    """Lens distortion on a trained run must beat radial placebos: the same per-frame
-    radial-displacement statistic about wrong centres (PLACEBO_CENTRE_OFFSETS). p_placebo = the
-    larger of the rank p (1 + exceed) / 9 when a placebo is as strong, and the Student-t tail of |t| (`beat_placebos`)
-    against the placebos' |t| (model error near the image border, where the model has less
-    coverage, is radial about any centre and inflates them all)."""
+def distortion_placebo(cause: DistortionCause, data: ResidualData, nuisance: list[np.ndarray],
+                       key: str = "calibration") -> PlaceboRecord:
+    """Lens distortion on a trained run must beat radial placebos: the per-frame radial-displacement statistic
+    (fitted beside ``nuisance``, whose columns do not depend on the centre) about the true centre against the same
+    about wrong centres (PLACEBO_CENTRE_OFFSETS). p_placebo = the larger of the rank p (1 + exceed) / 9 when a
+    placebo is as strong, and the Student-t tail of |t| (`beat_placebos`) against the placebos' |t| (model error
+    near the image border, where the model has less coverage, is radial about any centre and inflates them
+    all); recorded under ``key``."""
     H, W = data.m.shape[1:3]
-    nuisance = cause.nuisance_regressors(data)  # the true centre's: no column depends on the centre
 
     def t_of(d):
         est, info = cause.first_order(d, nuisance)
@@ -155,8 +167,8 @@ def distortion_placebo(cause: DistortionCause, data: ResidualData) -> PlaceboRec
         d.ctx = dc_replace(data.ctx, principal_point=(cx + ox * W, cy + oy * H))
         t_placebo.append(t_of(d))
     p, exceed, p_tail = beat_placebos(t_real, t_placebo)
-    return PlaceboRecord(p, {"calibration": {"p_value_placebo": p, "first_order_t": t_real, "placebo_centre_t": t_placebo,
-                                             "placebo_exceed": exceed, "p_tail": p_tail}})
+    return PlaceboRecord(p, {key: {"p_value_placebo": p, "first_order_t": t_real, "placebo_centre_t": t_placebo,
+                                   "placebo_exceed": exceed, "p_tail": p_tail}})
 
 
 class Distortion(Effect):
