@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import itertools
 import math
 from dataclasses import replace as dc_replace
 
@@ -12,7 +13,7 @@ from scipy import ndimage
 from egobench.effects.base import Effect
 from egobench.effects.readout import ReadoutCause
 from egobench.residual.calibration import PLACEBO_CENTRE_OFFSETS, PlaceboRecord, beat_placebos
-from egobench.residual.estimation import GeometricCause, ResidualData
+from egobench.residual.estimation import GeometricCause, ResidualData, frame_slopes
 from egobench.residual.signatures import border_pull_basis, distortion_profile, frame_t_test, radial_coordinates
 
 #: On a trained run a lens error is testable when the run keeps at least this share of an injected one in its
@@ -54,9 +55,7 @@ class DistortionCause(GeometricCause):
 
     def regressors(self, data):
         H, W = data.p.shape[1:3]
-        d = unit_displacement(data.ctx, H, W)
-        gx, gy = data.grad
-        return [-(gx * d[None, :, :, 0:1] + gy * d[None, :, :, 1:2])]
+        return [static_shift_regressor(data, unit_displacement(data.ctx, H, W))]
 
     def nuisance_regressors(self, data):
         """Fitted beside the lens in its test, never tested or applied (the refined k0, a warp, is fitted
@@ -116,19 +115,27 @@ class DistortionCause(GeometricCause):
 
     def trained_placebos(self, result, evidence):
         """On a trained run the lens must beat two explanations, each on its own statistic about wrong centres
-        (`distortion_placebo`): a radial pattern about any centre (the lens fitted beside the readout's signature
+        (`distortion_placebos`): a radial pattern about any centre (the lens fitted beside the readout's signature
         alone, `radial_nuisance`), and that beside the run's pull at its border too (`nuisance_regressors`, the
         test's own). The larger p stands: the pull moves the statistic of the true centre less than the wrong
         centres', so either calibration alone passes one kind of under-fit as a lens."""
         if not result.testable:
             return []
         data = evidence.data
-        return [distortion_placebo(self, data, self.nuisance_regressors(data)),
-                distortion_placebo(self, data, self.radial_nuisance(data), key="calibration_radial")]
+        return distortion_placebos(self, data, {"calibration": self.nuisance_regressors(data),
+                                                "calibration_radial": self.radial_nuisance(data)})
 
     def radial_nuisance(self, data):
         """The readout's signature alone (`nuisance_regressors` without the border pull)."""
         return [] if data.velocity is None else _READOUT.regressors(data)
+
+
+def static_shift_regressor(data: ResidualData, field: np.ndarray) -> np.ndarray:
+    """The residual [f, H, W, 3] per unit of a static displacement ``field`` [H, W, 2] px of the measured content
+    against the render, to first order: -grad(prediction) . field."""
+    gx, gy = data.grad
+    return -(gx * field[None, :, :, 0:1] + gy * field[None, :, :, 1:2])
+
 
 def border_pull(data: ResidualData) -> list[np.ndarray]:
     """A trained run's pull at its image border as regressors [f, H, W, 3] (`signatures.border_pull_basis`), one
@@ -136,39 +143,43 @@ def border_pull(data: ResidualData) -> list[np.ndarray]:
     drop it from the test); none where the prediction is no trained run's."""
     if data.ctx.model_pose_samples is None:
         return []
-    gx, gy = data.grad
     out = []
     for field in border_pull_basis(*data.p.shape[1:3]):
         under = np.any(field != 0, axis=-1)[None, :, :, None]
         if np.all(np.any(data.usable & under, axis=(1, 2, 3))):
-            out.append(-(gx * field[None, :, :, 0:1] + gy * field[None, :, :, 1:2]))
+            out.append(static_shift_regressor(data, field))
     return out
 
 
-def distortion_placebo(cause: DistortionCause, data: ResidualData, nuisance: list[np.ndarray],
-                       key: str = "calibration") -> PlaceboRecord:
-    """Lens distortion on a trained run must beat radial placebos: the per-frame radial-displacement statistic
-    (fitted beside ``nuisance``, whose columns do not depend on the centre) about the true centre against the same
-    about wrong centres (PLACEBO_CENTRE_OFFSETS). p_placebo = the larger of the rank p (1 + exceed) / 9 when a
-    placebo is as strong, and the Student-t tail of |t| (`beat_placebos`) against the placebos' |t| (model error
-    near the image border, where the model has less coverage, is radial about any centre and inflates them
-    all); recorded under ``key``."""
+def distortion_placebos(cause: DistortionCause, data: ResidualData, calibrations: dict[str, list[np.ndarray]]
+                        ) -> list[PlaceboRecord]:
+    """Lens distortion on a trained run must beat radial placebos: per calibration (its params key -> the nuisance
+    columns fitted beside the lens, none depending on the centre), the per-frame radial-displacement statistic about
+    the true centre against the same about wrong centres (PLACEBO_CENTRE_OFFSETS); each centre's lens column is
+    made once for all calibrations. p_placebo = the larger of the rank p (1 + exceed) / 9 when a placebo is as
+    strong, and the Student-t tail of |t| (`beat_placebos`) against the placebos' |t| (model error near the image
+    border, where the model has less coverage, is radial about any centre and inflates them all)."""
     H, W = data.m.shape[1:3]
-
-    def t_of(d):
-        est, info = cause.first_order(d, nuisance)
-        return frame_t_test(est[:, 0], info[:, 0]).t
-
-    t_real = t_of(data)
     cx, cy = data.ctx.principal_point
-    t_placebo = []
-    for ox, oy in PLACEBO_CENTRE_OFFSETS:
+
+    def about(ox, oy):  # the same data about a wrong centre (a shallow copy, made lazily: it shares the grad cache)
         d = copy.copy(data)
         d.ctx = dc_replace(data.ctx, principal_point=(cx + ox * W, cy + oy * H))
-        t_placebo.append(t_of(d))
-    p, exceed, p_tail = beat_placebos(t_real, t_placebo)
-    return PlaceboRecord(p, {key: {"p_value_placebo": p, "first_order_t": t_real, "placebo_centre_t": t_placebo,
-                                   "placebo_exceed": exceed, "p_tail": p_tail}})
+        return d
+
+    t_of = {key: [] for key in calibrations}  # per calibration: the true centre's t, then the wrong centres'
+    for d in itertools.chain([data], (about(ox, oy) for ox, oy in PLACEBO_CENTRE_OFFSETS)):
+        lens = cause.regressors(d)
+        for key, nuisance in calibrations.items():
+            est, info = frame_slopes(lens + nuisance, d.p, d.r, d.usable)  # `GeometricCause.first_order`
+            t_of[key].append(frame_t_test(est[:, 0], info[:, 0]).t)
+    records = []
+    for key, (t_real, *t_placebo) in t_of.items():
+        p, exceed, p_tail = beat_placebos(t_real, t_placebo)
+        records.append(PlaceboRecord(p, {key: {"p_value_placebo": p, "first_order_t": t_real,
+                                               "placebo_centre_t": t_placebo, "placebo_exceed": exceed,
+                                               "p_tail": p_tail}}))
+    return records
 
 
 class Distortion(Effect):
