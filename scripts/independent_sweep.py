@@ -75,7 +75,7 @@ def seeds_of(effect: str, seed_set: int = 1) -> range:
 
 
 def run_case(out: Path, effect: str, seed: int, seed_set: int = 1, size: int = ISSUE_SIZE,
-             iterations: int = ISSUE_ITERATIONS, train_set: tuple[str, ...] = ()) -> dict:
+             iterations: int = ISSUE_ITERATIONS, train_set: tuple[str, ...] = (), lens_check: bool = False) -> dict:
     """Write, train (``iterations`` at ``size`` px, ``train_set``: further ``--set`` items) and diagnose one case
     (each stage skipped when done); its row of cases.csv."""
     flags, seeds = CASES[effect][0], seeds_of(effect, seed_set)
@@ -95,7 +95,8 @@ def run_case(out: Path, effect: str, seed: int, seed_set: int = 1, size: int = I
                                 case / "train.log")
     if not (diag / "diagnosis.json").is_file():
         times["diagnose_s"] = _run([*egobench, "diagnose", str(rec), "--run", str(run), "--method", "ours",
-                                    "--out", str(diag), "--no-progress"], case / "diagnose.log")
+                                    *(["--lens-check"] if lens_check else []), "--out", str(diag), "--no-progress"],
+                                   case / "diagnose.log")
     return case_row(effect, seed, case, times)
 
 
@@ -127,8 +128,17 @@ def case_row(effect: str, seed: int, case: Path, times: dict) -> dict:
         "k0_error": params.get("distortion", {}).get("k0_error"),
         "flagged_frames": " ".join(map(str, flagged)), "altered_frames": " ".join(map(str, altered)),
         "flagged_altered": len(set(flagged) & set(altered)), "flagged_wrong": len(set(flagged) - set(altered)),
-        "psnr_gain_db": d.get("psnr_gain_db"), **smallest_testable_of(effect, d), **times,
+        "psnr_gain_db": d.get("psnr_gain_db"), **smallest_testable_of(effect, d), **lens_check_of(d), **times,
     }
+
+
+def lens_check_of(d: dict) -> dict:
+    """The lens check's outcome (`egobench diagnose --lens-check`), where the diagnosis made one."""
+    check = (d.get("model_error") or {}).get("lens_check")
+    if not check:
+        return {}
+    return {"lens_injected_k0": check.get("injected_k0"), "lens_retention": check.get("retention"),
+            "lens_testable": bool(check.get("testable"))}
 
 
 def smallest_testable_of(effect: str, d: dict) -> dict:
@@ -153,6 +163,8 @@ def summary(rows: list[dict]) -> dict:
              "wrong_first_name": sum(r["wrong_first"] for r in rs if r["named"]),
              "contained_first_name": sum(bool(r.get("contained_first")) for r in rs if r["named"]),
              "geometric_named": sum(r["geometric_named"] for r in rs)}
+        if any("lens_testable" in r for r in rs):
+            s["lens_testable"] = sum(r.get("lens_testable") in (True, "True") for r in rs)
         if effect in HIDDEN_SIZE:
             eligible = [r for r in rs if r.get("at_least_twice_testable")]
             s["at_least_twice_testable"] = len(eligible)
@@ -184,13 +196,16 @@ def earlier_rows(out: Path, done: set[tuple[str, int]]) -> list[dict]:
     return rows
 
 
-def claim_conditions(out: Path, size: int, iterations: int, train_set: tuple[str, ...] = ()) -> None:
+def claim_conditions(out: Path, size: int, iterations: int, train_set: tuple[str, ...] = (),
+                     lens_check: bool = False) -> None:
     """Stamp DIR with the sweep's image size, iterations and training overrides (DIR/conditions.json), or raise when
     DIR holds cases of other conditions: a case folder is reused stage by stage, so another size would silently keep
     the old runs."""
     stamp, want = out / "conditions.json", {"size": int(size), "iterations": int(iterations)}
     if train_set:
         want["train_set"] = list(train_set)
+    if lens_check:
+        want["lens_check"] = True
     if stamp.is_file():
         have = json.loads(stamp.read_text())
         if have != want:
@@ -216,6 +231,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="training iterations of each case (the issue's: 800)")
     ap.add_argument("--train-set", action="append", default=[], metavar="FIELD=VALUE",
                     help="a further TrainConfig override of every case's training (repeatable; as `egobench train --set`)")
+    ap.add_argument("--lens-check", action="store_true",
+                    help="diagnose with `egobench diagnose --lens-check` (a lens tested only where the run keeps one)")
     args = ap.parse_args(argv)
     if args.seed_set < 1:
         ap.error(f"--seed-set: expected an integer >= 1, got {args.seed_set}")
@@ -226,13 +243,14 @@ def main(argv: list[str] | None = None) -> int:
     fixed = [item for item in args.train_set if item.split("=", 1)[0].strip() in ("max_side", "seed", "iterations")]
     if fixed:
         ap.error(f"--train-set {fixed[0]!r}: the sweep sets that field (--size, the case's seed, --iterations)")
-    claim_conditions(args.out, args.size, args.iterations, tuple(args.train_set))
+    claim_conditions(args.out, args.size, args.iterations, tuple(args.train_set), args.lens_check)
     todo = [(e, s) for e in CASES if args.only in (None, e)
             for k, s in enumerate(seeds_of(e, args.seed_set)) if not args.limit or k < args.limit]
     with ThreadPoolExecutor(max(1, args.jobs)) as pool:
         rows = list(pool.map(lambda es: run_case(args.out, *es, seed_set=args.seed_set, size=args.size,
                                                        iterations=args.iterations,
-                                                       train_set=tuple(args.train_set)), todo))
+                                                       train_set=tuple(args.train_set),
+                                                       lens_check=args.lens_check), todo))
     rows = earlier_rows(args.out, set(todo)) + rows
     with open(args.out / "cases.csv", "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=list(dict.fromkeys(k for r in rows for k in r)))  # first-seen order

@@ -74,10 +74,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="with a run: scale the smallest testable sizes by how much of each effect training "
                              "retained in this trained-run sweep summary (repeatable; later files win)")
     parser.add_argument("--lens-check", action="store_true",
-                        help="on a trained run, when a distortion is named, measure the run's retention of a lens of "
-                             "that size (the method trained once more, on the recording warped by the named k0 "
-                             "error, into OUT/lens_check) and call a lens testable only from a retention of 25 %% "
-                             "(egobench.diagnose.lens_check)")
+                        help="on a trained run, measure the run's retention of a lens of twice the smallest k0 "
+                             "error its report calls testable (the method trained once more, on the recording "
+                             "warped by it, into OUT/lens_check) and test a lens only from a retention of 25 %%; "
+                             "without it a trained run's lens is not tested (egobench.diagnose.lens_check)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     add_input_arguments(parser)
 
@@ -164,7 +164,7 @@ def _diagnose_recording(args: argparse.Namespace, cfg: DiagnosisConfig, out: Pat
     if source == "run":  # the null includes the trained model's own error (egobench.diagnose.placebo, `Cause.trained_placebos`)
         cfg = replace(cfg, trained_run=True)
     extension = _shading_extension(args, rec, run_dir, src, out) if args.shading_null else None
-    if source == "run" and args.lens_check:  # a named distortion against the run's retention of a lens
+    if source == "run" and args.lens_check:  # a lens tested only where the run keeps one
         d = diagnose_trained_run(rec, run_dir, src, cfg, out / "lens_check", pose_samples=args.pose_samples,
                                  progress=not args.no_progress)
     else:

@@ -13,11 +13,12 @@ m, p: the recording's frames and the run's renders; m': the frames warped; p': t
 m'; k: the distortion cause's first-order estimate, frame-weighted over every frame. A lens error is testable on
 the run when the retention reaches `LENS_RETENTION_FLOOR` (`DistortionCause.untestable_on_trained_run`).
 
-The check costs one more training, so it runs only when asked (`egobench diagnose --lens-check`) and the diagnosis
-names a distortion (`diagnose_trained_run`), injecting the error it named; the diagnosis then runs again with the
-retention in its context. Measured on the writer's null runs that name a distortion at 64 px and 800 iterations,
-the run keeps 31-83 % of a lens of the named size: the check does not remove those names (results/diagnosis/
-README.md, "2026-12-06: a run's retention of a lens, measured on the run").
+On a trained run a lens is not tested unless the retention is measured. The check costs one more training, so it
+runs when asked (`egobench diagnose --lens-check`, `diagnose_trained_run`), before any name: it injects twice the
+smallest k0 error the run's report would call testable, the size that report's power claim says is named. (Checked
+only after a distortion was named, with the named size injected, the writer's null runs at 64 px and 800 iterations
+kept 31-83 % of it, and the check removed none of those names: results/diagnosis/README.md, "2026-12-06: a run's
+retention of a lens, measured on the run".)
 """
 
 from __future__ import annotations
@@ -40,6 +41,11 @@ from egobench.residual.signatures import DiagnosisContext, frame_t_test
 from egobench.train import train
 from egobench.train.checkpoint import load_trained_run
 
+#: The lens check injects this multiple of the run's smallest testable k0 error: the size that the diagnosis's
+#: power claim says is named on the run (an effect at least twice the smallest testable).
+LENS_CHECK_MULTIPLE = 2.0
+#: The retention the first pass of `diagnose_trained_run` assumes, to find the run's smallest testable k0 error.
+PROVISIONAL_RETENTION = 1.0
 #: The warp alone must move the estimate by at least this share of the injected error (the first-order
 #: estimator's own sensitivity) for a retention to be measured; below it the retention is NaN (not testable).
 MIN_RESIDUAL_RESPONSE = 0.25
@@ -116,18 +122,24 @@ def measure_lens_retention(recording_dir: str | Path, run_dir: str | Path, src: 
 
 def diagnose_trained_run(recording_dir: str | Path, run_dir: str | Path, src: Sources, cfg: DiagnosisConfig,
                          work_dir: str | Path, pose_samples: int | None = None, progress: bool = False) -> Diagnosis:
-    """`diagnose_residuals` of a trained run's sources; when it names a distortion, the run's
-    retention of a lens error of the named size (`measure_lens_retention`, in WORK_DIR) decides whether a lens is
-    testable on it, and the diagnosis runs again with it (its record in ``model_error["lens_check"]``)."""
-    d = diagnose_residuals(src.measured, src.predicted, src.context, cfg)
-    named = next((n for n in d.named if n.name == DistortionCause.name), None)
-    if named is None:
-        return d
-    check = measure_lens_retention(recording_dir, run_dir, src, float(named.params["k0_error"]), work_dir,
-                                   cfg.border_px, pose_samples, progress)
-    if not check["testable"]:
-        ctx = replace(src.context, lens_retention=math.nan if check["retention"] is None else check["retention"])
-        d = diagnose_residuals(src.measured, src.predicted, ctx, cfg)
+    """`diagnose_residuals` of a trained run's sources with a lens testable only where the run keeps one: the
+    diagnosis runs once with the lens provisionally testable (`PROVISIONAL_RETENTION`) for the run's smallest
+    testable k0 error s; the run's retention of a lens of `LENS_CHECK_MULTIPLE` x s (`measure_lens_retention`, in
+    WORK_DIR) then decides, and where it falls below the floor the diagnosis runs again with it (the record in
+    ``model_error["lens_check"]``). A run that gives no s keeps the lens untestable (not measured)."""
+    d = diagnose_residuals(src.measured, src.predicted, replace(src.context, lens_retention=PROVISIONAL_RETENTION), cfg)
+    smallest = ((d.model_error or {}).get("smallest_testable") or {}).get(DistortionCause.name, {}).get("k0_error")
+    if smallest is None or not math.isfinite(smallest):
+        d = diagnose_residuals(src.measured, src.predicted, replace(src.context, lens_retention=None), cfg)
+        check = {"smallest_testable_k0": None, "testable": False,
+                 "reason": "the provisional diagnosis gives no smallest testable k0 error"}
+    else:
+        check = measure_lens_retention(recording_dir, run_dir, src, LENS_CHECK_MULTIPLE * abs(smallest), work_dir,
+                                       cfg.border_px, pose_samples, progress)
+        check["smallest_testable_k0"] = float(abs(smallest))
+        if not check["testable"]:
+            kept = math.nan if check["retention"] is None else check["retention"]
+            d = diagnose_residuals(src.measured, src.predicted, replace(src.context, lens_retention=kept), cfg)
     if d.model_error is not None:
         d.model_error["lens_check"] = check
     return d

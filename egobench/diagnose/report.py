@@ -89,14 +89,17 @@ def signature_plot(path: Path, result: CauseResult) -> None:
 
 
 def lens_check_lines(check: dict | None) -> list[str]:
-    """The lens check of a named distortion (`egobench.diagnose.lens_check`), one line, or none."""
+    """The lens check of a trained run (`egobench.diagnose.lens_check`), one line, or none."""
     if not check:
         return []
+    if "retention" not in check:
+        return [f"- lens check: {check['reason']}; a lens is not testable on this run"]
     kept = "not measurable" if check["retention"] is None else f"{100 * check['retention']:.0f} %"
-    return [f"- lens check of the named distortion: trained again on the recording warped by a k0 error of "
-            f"{check['injected_k0']:+.4f}, the run keeps {kept} of it (k0 {check['k0_run']:+.4f} on the run, "
-            f"{check['k0_warped']:+.4f} warped, {check['k0_retrained']:+.4f} retrained); a lens is "
-            f"{'testable' if check['testable'] else 'not testable'} on this run (from {100 * check['floor']:.0f} %)"]
+    return [f"- lens check: trained again on the recording warped by a k0 error of {check['injected_k0']:+.4f} "
+            f"(twice the smallest testable, {check['smallest_testable_k0']:.4f}), the run keeps {kept} of it (k0 "
+            f"{check['k0_run']:+.4f} on the run, {check['k0_warped']:+.4f} warped, {check['k0_retrained']:+.4f} "
+            f"retrained); a lens is {'testable' if check['testable'] else 'not testable'} on this run (from "
+            f"{100 * check['floor']:.0f} %)"]
 
 
 def model_error_markdown(me: dict, config) -> list[str]:

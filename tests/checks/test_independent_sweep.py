@@ -168,3 +168,15 @@ def test_a_sweep_run_one_effect_at_a_time_keeps_the_earlier_cases_rows(tmp_path)
     assert rows[0]["named"] == "readout" and rows[0]["readout_s_estimated"] == 0.0115  # from its folder, not the table
     assert (rows[0]["write_s"], rows[0]["train_s"], rows[0]["diagnose_s"]) == (27.5, 12.0, 150.0)
     assert sweep.earlier_rows(tmp_path / "fresh", set()) == []
+
+
+def test_a_case_row_reads_the_lens_check_and_the_summary_counts_the_runs_a_lens_is_testable_on(tmp_path):
+    case = _case(tmp_path, "lens", [], [])
+    d = json.loads((case / "diag" / "diagnosis.json").read_text())
+    d["model_error"] = {"lens_check": {"injected_k0": 0.09, "retention": 0.31, "testable": True}}
+    (case / "diag" / "diagnosis.json").write_text(json.dumps(d))
+    row = sweep.case_row("null", 101, case, {})
+    assert (row["lens_injected_k0"], row["lens_retention"], row["lens_testable"]) == (0.09, 0.31, True)
+    assert "lens_testable" not in sweep.case_row("null", 102, _case(tmp_path, "unchecked", [], []), {})
+    rows = [dict(row), dict(row, lens_testable="False"), dict(row, lens_testable="True")]  # as re-read from cases.csv
+    assert sweep.summary(rows)["null"]["lens_testable"] == 2

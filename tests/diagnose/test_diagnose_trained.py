@@ -352,7 +352,8 @@ def test_per_frame_pose_jitter_along_the_motion_is_not_exposure_blur():
 def test_distortion_must_beat_wrong_centre_placebos():
     """A radial displacement about an off-centre point in every frame (model error tied to the
     image) passes the frame-level distortion test but not the wrong-centre placebos; a real k0
-    error (radial about the principal point) is still named, its estimate within 10 %."""
+    error (radial about the principal point) is still named, its estimate within 10 %, on a run whose retention of a
+    lens is measured; where it is not, a trained run's lens is not tested."""
     from egobench.residual.signatures import warp
 
     null = make_case(None, seed=3)
@@ -361,13 +362,17 @@ def test_distortion_must_beat_wrong_centre_placebos():
     pred, _ = warp(null.predicted, np.ascontiguousarray(np.broadcast_to(disp[None], (16, 48, 48, 2))))
     pred = np.clip(pred, 0, 1).astype(np.float32)
     assert diagnose_residuals(null.measured, pred, null.context).verdict == "distortion"
-    d = diagnose_residuals(null.measured, pred, null.context, TRAINED)
+    kept = dataclasses.replace(null.context, lens_retention=1.0)  # a run that keeps the whole of a lens (as measured)
+    d = diagnose_residuals(null.measured, pred, kept, TRAINED)
     dist = next(r for r in d.rounds[0] if r.name == "distortion")
-    assert dist.p_value > 0.01 and "distortion" not in [n.name for n in d.named]  # the placebos calibrate it away
+    assert dist.testable and dist.p_value > 0.01 and "distortion" not in [n.name for n in d.named]  # the placebos calibrate it away
     case = make_case("distortion", 0.008, seed=3)
-    d = diagnose_residuals(case.measured, case.predicted, case.context, TRAINED)
+    d = diagnose_residuals(case.measured, case.predicted, dataclasses.replace(case.context, lens_retention=1.0), TRAINED)
     assert d.verdict == "distortion" and abs(d.named[0].params["k0_error"] / 0.008 - 1) < 0.1
     assert d.named[0].params["calibration"]["placebo_exceed"] == 0
+    d = diagnose_residuals(case.measured, case.predicted, case.context, TRAINED)
+    dist = next(r for r in d.rounds[0] if r.name == "distortion")
+    assert not dist.testable and "not measured" in dist.reason and "distortion" not in [n.name for n in d.named]
 
 
 def test_the_sweeps_vignette_truth_is_the_shading_at_the_views_corner(tmp_path):
@@ -471,13 +476,14 @@ def test_diagnose_runs_the_shading_extension_on_a_run_with_and_without_a_learned
     assert x["setup"] == {"method": "ours", "size": 32, "n_frames": 16, "iterations": 40} and x["setup_mismatch"] == {}
     kept = tmp_path / "kept.json"  # a trained-sweep summary's retention (--retention)
     kept.write_text(json.dumps({"config": {}, "effects": [{"effect": "time_offset", "median_retention": 0.5},
-                                                          {"effect": "distortion", "median_retention": -0.1}]}))
+                                                          {"effect": "exposure_blur", "median_retention": -0.1}]}))
     assert main(["diagnose", str(rec), "--run", str(tmp_path / "plain"), "--shading-null", str(null),
                  "--retention", str(kept), "--out", str(tmp_path / "d2"), "--no-progress"]) == 0
     me = json.loads((tmp_path / "d2" / "diagnosis.json").read_text())["model_error"]
     assert me["smallest_testable_hidden"]["time_offset"]["time_offset_error_s"] == pytest.approx(
         2 * me["smallest_testable"]["time_offset"]["time_offset_error_s"])
-    assert me["smallest_testable_hidden"]["distortion"] == {"testable": False, "retention": -0.1}
+    assert me["smallest_testable_hidden"]["exposure_blur"] == {"testable": False, "retention": -0.1}
+    assert "distortion" not in me["smallest_testable"]  # a trained run's lens, untested without --lens-check
     ext = json.loads((tmp_path / "d2" / "run_shading" / "train.json").read_text())
     base = json.loads((tmp_path / "plain" / "train.json").read_text())
     assert ext["config"]["learn_shading"] and {k: v for k, v in ext["config"].items() if k != "learn_shading"} == \

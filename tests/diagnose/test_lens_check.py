@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -64,14 +65,14 @@ def test_the_retention_is_the_retrained_shift_over_the_warps_own():
     assert math.isnan(retention_of(0.01, -0.05, 0.02, 0.04))  # ... or the other way
 
 
-@pytest.mark.parametrize("retention, testable", [(None, True), (LENS_RETENTION_FLOOR, True), (0.9, True),
+@pytest.mark.parametrize("retention, testable", [(None, False), (LENS_RETENTION_FLOOR, True), (0.9, True),
                                                  (LENS_RETENTION_FLOOR - 0.01, False), (math.nan, False)])
-def test_a_distortion_is_untestable_on_a_run_that_keeps_too_little_of_a_lens(retention, testable):
+def test_a_distortion_is_untestable_on_a_run_that_keeps_too_little_of_a_lens_or_was_not_measured(retention, testable):
     data = SimpleNamespace(ctx=SimpleNamespace(lens_retention=retention))
     reason = DistortionCause().untestable_on_trained_run(data)
     assert (reason is None) == testable
     if not testable:
-        assert "radial under-fit" in reason
+        assert "radial under-fit" in reason and (("not measured" in reason) == (retention is None))
 
 
 def test_the_lens_check_trains_the_runs_method_config_and_seed_on_the_warped_frames(tmp_path):
@@ -108,3 +109,37 @@ def test_the_lens_check_trains_the_runs_method_config_and_seed_on_the_warped_fra
     assert (tmp_path / "check" / "run" / "train.json").stat().st_mtime_ns == stamp
     with pytest.raises(ValueError, match="injected_k0"):
         measure_lens_retention(rec, run, src, 0.0, tmp_path / "check0", border_px=2)
+
+
+def test_a_trained_runs_lens_is_tested_only_after_its_retention_of_twice_the_smallest_testable(tmp_path):
+    """`diagnose_trained_run`: the provisional diagnosis gives the run's smallest testable k0 error s; the check
+    injects 2 s; the final diagnosis tests a lens exactly when the run keeps enough of it, and is the provisional
+    one where it does."""
+    from egobench.cli import main
+    from egobench.diagnose.core import DiagnosisConfig, diagnose_residuals
+    from egobench.diagnose.lens_check import LENS_CHECK_MULTIPLE, PROVISIONAL_RETENTION, diagnose_trained_run
+    from egobench.diagnose.sources import run_source
+
+    rec, run = tmp_path / "rec", tmp_path / "run"
+    sets = ["n_frames=16", "rectified_size=32", "motion=fast"]
+    assert main(["simulate", "--kind", "indoor", "--seed", "4", "--out", str(rec), "--no-progress",
+                 *[x for s in sets for x in ("--set", s)]]) == 0
+    assert main(["train", "--recording", str(rec), "--method", "ours", "--out", str(run), "--preset", "cpu",
+                 "--iterations", "30", "--seed", "1", "--set", "max_side=0", "--no-progress"]) == 0
+    src = run_source(rec, run, progress=False)
+    cfg = DiagnosisConfig(trained_run=True)
+    provisional = diagnose_residuals(src.measured, src.predicted,
+                                     replace(src.context, lens_retention=PROVISIONAL_RETENTION), cfg)
+    smallest = provisional.model_error["smallest_testable"]["distortion"]["k0_error"]
+    d = diagnose_trained_run(rec, run, src, cfg, tmp_path / "check")
+    check = d.model_error["lens_check"]
+    assert check["smallest_testable_k0"] == abs(smallest)
+    assert check["injected_k0"] == LENS_CHECK_MULTIPLE * abs(smallest)
+    lens = next(r for r in d.rounds[0] if r.name == "distortion")
+    assert lens.testable == check["testable"]
+    if check["testable"]:
+        assert d.verdict == provisional.verdict
+    else:
+        assert "of a lens error in its residual" in lens.reason
+    untested = diagnose_residuals(src.measured, src.predicted, src.context, cfg)  # no retention measured
+    assert not next(r for r in untested.rounds[0] if r.name == "distortion").testable
