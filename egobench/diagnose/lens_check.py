@@ -91,11 +91,27 @@ def retention_of(k_run: float, k_warped: float, k_retrained: float, injected: fl
     return (k_retrained - k_run) / response
 
 
+def claim_warp(work_dir: Path, warp: dict) -> None:
+    """Stamp WORK_DIR with the warp its run is trained on (WORK_DIR/warp.json: injected k0, run, recording), or
+    raise where it holds a run of another warp: a run there is reused, and one trained on another lens would give
+    a wrong retention without a sign."""
+    stamp = work_dir / "warp.json"
+    if stamp.is_file():
+        have = json.loads(stamp.read_text())
+        if have != warp:
+            raise ValueError(f"{stamp}: this folder holds a lens check of {have}, not {warp}; use another --out")
+    elif (work_dir / "run").exists():
+        raise ValueError(f"{work_dir / 'run'}: a run without {stamp.name} (its warp unknown); use another --out")
+    work_dir.mkdir(parents=True, exist_ok=True)
+    stamp.write_text(json.dumps(warp) + "\n")
+
+
 def measure_lens_retention(recording_dir: str | Path, run_dir: str | Path, src: Sources, injected_k0: float,
                            work_dir: str | Path, border_px: int, pose_samples: int | None = None,
                            progress: bool = False) -> dict:
     """Train ``run_dir``'s method with its config and seed on the recording warped by ``injected_k0`` (into
-    WORK_DIR/run; a complete run there is reused) and measure the run's retention of a lens error -> the record."""
+    WORK_DIR/run; a run there of the same warp, run and recording, `claim_warp`, is reused or resumed) and measure
+    the run's retention of a lens error -> the record."""
     if not (math.isfinite(injected_k0) and injected_k0 != 0.0):
         raise ValueError(f"injected_k0: expected a finite nonzero k0 error, got {injected_k0!r}")
     run = load_trained_run(run_dir, None, f"lens check of {run_dir}")
@@ -103,6 +119,8 @@ def measure_lens_retention(recording_dir: str | Path, run_dir: str | Path, src: 
     F, H, W = src.measured.shape[:3]
     displacement = unit_displacement(ctx, H, W)
     retrained = Path(work_dir) / "run"
+    claim_warp(Path(work_dir), {"injected_k0": float(injected_k0), "run": str(Path(run_dir).resolve()),
+                                "recording": str(Path(recording_dir).resolve())})
     done = retrained / "train.json"
     if not (done.is_file() and json.loads(done.read_text()).get("complete")):
         recording = load_recording(recording_dir, calibration=run.spec.calibration)
@@ -126,17 +144,19 @@ def diagnose_trained_run(recording_dir: str | Path, run_dir: str | Path, src: So
     diagnosis runs once with the lens provisionally testable (`PROVISIONAL_RETENTION`) for the run's smallest
     testable k0 error s; the run's retention of a lens of `LENS_CHECK_MULTIPLE` x s (`measure_lens_retention`, in
     WORK_DIR) then decides, and where it falls below the floor the diagnosis runs again with it (the record in
-    ``model_error["lens_check"]``). A run that gives no s keeps the lens untestable (not measured)."""
+    ``model_error["lens_check"]``). A run that gives no s keeps the lens untestable (unmeasurable). The lens injected
+    is positive, the sign every writer run's own under-fit reads (results/diagnosis/README.md); a negative lens is
+    judged by that retention too."""
     d = diagnose_residuals(src.measured, src.predicted, replace(src.context, lens_retention=PROVISIONAL_RETENTION), cfg)
     smallest = ((d.model_error or {}).get("smallest_testable") or {}).get(DistortionCause.name, {}).get("k0_error")
-    if smallest is None or not math.isfinite(smallest):
-        d = diagnose_residuals(src.measured, src.predicted, replace(src.context, lens_retention=None), cfg)
+    if smallest is None or not (math.isfinite(smallest) and smallest != 0.0):
+        d = diagnose_residuals(src.measured, src.predicted, replace(src.context, lens_retention=math.nan), cfg)
         check = {"smallest_testable_k0": None, "testable": False,
                  "reason": "the provisional diagnosis gives no smallest testable k0 error"}
     else:
         check = measure_lens_retention(recording_dir, run_dir, src, LENS_CHECK_MULTIPLE * abs(smallest), work_dir,
                                        cfg.border_px, pose_samples, progress)
-        check["smallest_testable_k0"] = float(abs(smallest))
+        check.update(smallest_testable_k0=float(abs(smallest)), multiple=LENS_CHECK_MULTIPLE)
         if not check["testable"]:
             kept = math.nan if check["retention"] is None else check["retention"]
             d = diagnose_residuals(src.measured, src.predicted, replace(src.context, lens_retention=kept), cfg)
@@ -145,5 +165,5 @@ def diagnose_trained_run(recording_dir: str | Path, run_dir: str | Path, src: So
     return d
 
 
-__all__ = ["LensWarpedRecording", "diagnose_trained_run", "distortion_estimate", "measure_lens_retention",
+__all__ = ["LensWarpedRecording", "claim_warp", "diagnose_trained_run", "distortion_estimate", "measure_lens_retention",
            "retention_of", "warped_display"]

@@ -92,14 +92,15 @@ def lens_check_lines(check: dict | None) -> list[str]:
     """The lens check of a trained run (`egobench.diagnose.lens_check`), one line, or none."""
     if not check:
         return []
-    if "retention" not in check:
-        return [f"- lens check: {check['reason']}; a lens is not testable on this run"]
-    kept = "not measurable" if check["retention"] is None else f"{100 * check['retention']:.0f} %"
-    return [f"- lens check: trained again on the recording warped by a k0 error of {check['injected_k0']:+.4f} "
-            f"(twice the smallest testable, {check['smallest_testable_k0']:.4f}), the run keeps {kept} of it (k0 "
-            f"{check['k0_run']:+.4f} on the run, {check['k0_warped']:+.4f} warped, {check['k0_retrained']:+.4f} "
-            f"retrained); a lens is {'testable' if check['testable'] else 'not testable'} on this run (from "
-            f"{100 * check['floor']:.0f} %)"]
+    if check.get("injected_k0") is None:
+        return [f"- lens check: {check.get('reason', 'not made')}; a lens is not testable on this run"]
+    kept = "not measurable" if check.get("retention") is None else f"{100 * check['retention']:.0f} %"
+    size = (f" ({check['multiple']:g} x the smallest testable, {check['smallest_testable_k0']:.4f})"
+            if check.get("smallest_testable_k0") is not None and check.get("multiple") else "")
+    return [f"- lens check: trained again on the recording warped by a k0 error of {check['injected_k0']:+.4f}{size}, "
+            f"the run keeps {kept} of it (k0 {check['k0_run']:+.4f} on the run, {check['k0_warped']:+.4f} warped, "
+            f"{check['k0_retrained']:+.4f} retrained); a lens is {'testable' if check['testable'] else 'not testable'} "
+            f"on this run (from {100 * check['floor']:.0f} %)"]
 
 
 def model_error_markdown(me: dict, config) -> list[str]:

@@ -282,6 +282,7 @@ class Suite:
         self.diagnose_jobs = [(s, m) for s in diag.get("scenes", []) for m in diag.get("methods", ["ours"])]
         self.diagnose_source: str = diag.get("source", "run")
         self.diagnose_max_frames: int | None = diag.get("max_frames")
+        self.diagnose_lens_check: bool = bool(diag.get("lens_check", False))
         self.sweep_seeds: int = int(diag.get("sweep_seeds", 3))
         self.adt_dir: str | None = diag.get("adt_dir")
         self.trained_sweep: dict = dict(diag.get("trained_sweep") or {})
@@ -452,7 +453,8 @@ class Suite:
         limit = "" if self.diagnose_max_frames is None else f" --max-frames {int(self.diagnose_max_frames)}"
         if self.diagnose_source != "run":
             return "--source ground_truth" + limit
-        return f"--source run --run {shlex.quote(self.run_dir(scene, method, self._scene(scene).seeds[0]))}" + limit
+        lens = " --lens-check" if self.diagnose_lens_check else ""
+        return f"--source run --run {shlex.quote(self.run_dir(scene, method, self._scene(scene).seeds[0]))}" + lens + limit
 
     def discovery_outputs(self) -> list[str]:
         """Targets of `snakemake discovery`: the hidden-effect sweep, and the ADT diagnosis if configured."""

@@ -109,6 +109,8 @@ def test_the_lens_check_trains_the_runs_method_config_and_seed_on_the_warped_fra
     assert (tmp_path / "check" / "run" / "train.json").stat().st_mtime_ns == stamp
     with pytest.raises(ValueError, match="injected_k0"):
         measure_lens_retention(rec, run, src, 0.0, tmp_path / "check0", border_px=2)
+    with pytest.raises(ValueError, match="warp.json"):  # the folder's run was trained on another lens
+        measure_lens_retention(rec, run, src, 0.05, tmp_path / "check", border_px=2)
 
 
 def test_a_trained_runs_lens_is_tested_only_after_its_retention_of_twice_the_smallest_testable(tmp_path):
@@ -143,3 +145,56 @@ def test_a_trained_runs_lens_is_tested_only_after_its_retention_of_twice_the_sma
         assert "of a lens error in its residual" in lens.reason
     untested = diagnose_residuals(src.measured, src.predicted, src.context, cfg)  # no retention measured
     assert not next(r for r in untested.rounds[0] if r.name == "distortion").testable
+
+
+@pytest.mark.parametrize("retention, testable", [(0.8, True), (0.1, False), (None, False)])
+def test_the_final_diagnosis_is_the_provisional_one_or_drops_the_lens_as_the_check_decides(monkeypatch, tmp_path,
+                                                                                           retention, testable):
+    """`diagnose_trained_run` with the retraining replaced by its record: a testable check returns the provisional
+    diagnosis; one below the floor or unmeasurable gives the diagnosis with the lens untestable, saying why."""
+    from egobench.diagnose import lens_check
+    from egobench.diagnose.core import DiagnosisConfig, diagnose_residuals
+    from egobench.diagnose.report import lens_check_lines
+
+    case = make_case("distortion", 0.008, seed=3)
+    src = SimpleNamespace(measured=case.measured, predicted=case.predicted, context=case.context)
+    cfg = DiagnosisConfig(trained_run=True)
+    provisional = diagnose_residuals(case.measured, case.predicted, replace(case.context, lens_retention=1.0), cfg)
+    smallest = provisional.model_error["smallest_testable"]["distortion"]["k0_error"]
+    asked = []
+
+    def record(rec, run, src, injected, work, border_px, pose_samples, progress):
+        asked.append(injected)
+        return {"injected_k0": injected, "k0_run": 0.0, "k0_warped": injected, "k0_retrained": 0.0,
+                "retention": retention, "floor": LENS_RETENTION_FLOOR, "testable": testable, "retrained_run": "x"}
+
+    monkeypatch.setattr(lens_check, "measure_lens_retention", record)
+    d = lens_check.diagnose_trained_run("rec", "run", src, cfg, tmp_path)
+    assert asked == [lens_check.LENS_CHECK_MULTIPLE * abs(smallest)]
+    lens = next(r for r in d.rounds[0] if r.name == "distortion")
+    assert lens.testable == testable
+    if testable:
+        assert [n.name for n in d.named] == [n.name for n in provisional.named] == ["distortion"]
+    else:
+        assert "distortion" not in [n.name for n in d.named]
+        assert ("unmeasurable share" if retention is None else "keeps 10 %") in lens.reason
+    line, = lens_check_lines(d.model_error["lens_check"])
+    assert f"{2 * abs(smallest):+.4f} (2 x the smallest testable, {abs(smallest):.4f})" in line
+    assert ("a lens is testable" in line) == testable
+
+
+def test_a_run_without_a_smallest_testable_k0_keeps_its_lens_untested(tmp_path):
+    """Where the provisional diagnosis tests no lens (here: its causes leave it out) there is no size to inject:
+    no retraining, and the report says why."""
+    from egobench.diagnose import lens_check
+    from egobench.diagnose.core import DiagnosisConfig
+    from egobench.diagnose.report import lens_check_lines
+
+    case = make_case(None, seed=3)
+    src = SimpleNamespace(measured=case.measured, predicted=case.predicted, context=case.context)
+    causes = tuple(c for c in DiagnosisConfig().causes if c != "distortion")
+    d = lens_check.diagnose_trained_run("no-recording", "no-run", src, DiagnosisConfig(trained_run=True, causes=causes),
+                                        tmp_path)
+    assert d.model_error["lens_check"]["testable"] is False and not (tmp_path / "run").exists()
+    assert lens_check_lines(d.model_error["lens_check"]) == [
+        "- lens check: the provisional diagnosis gives no smallest testable k0 error; a lens is not testable on this run"]

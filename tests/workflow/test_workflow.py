@@ -154,6 +154,14 @@ def test_diagnose_and_motion_stats_jobs():
     gt = wc.Suite(wc.fill_defaults(config))
     assert gt.diagnose_run("outdoor_0", "ours") == [] and gt.diagnose_args("outdoor_0", "ours") == "--source ground_truth"
     assert gt.motion_stats_args() == f"--kind indoor --real {__file__}"
+    config = load("ci.yaml")
+    config["diagnose"]["lens_check"] = True  # a trained run's lens tested where the run keeps one
+    wc.check_config(config)
+    lens = wc.Suite(wc.fill_defaults(config))
+    assert lens.diagnose_args("outdoor_0", "ours") == "--source run --run results/ci/runs/outdoor_0/ours/seed0 --lens-check"
+    config["diagnose"]["lens_check"] = "yes"
+    with pytest.raises(wc.ConfigError, match="lens_check"):
+        wc.check_config(config)
     # the paper suite bounds the diagnosis's in-memory frames
     paper = wc.load_suite(REPO / "config" / "paper.yaml")
     assert paper.diagnose_args("bike_shop", "ours").endswith(" --max-frames 64")
