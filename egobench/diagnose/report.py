@@ -151,12 +151,17 @@ def identifiability_markdown(d: Diagnosis) -> list[str]:
     return lines + [""]
 
 
+def _testable(d: Diagnosis) -> int:
+    """How many causes round 1 tested (Holm's m there)."""
+    return sum(r.testable for r in d.rounds[0]) if d.rounds else 0
+
+
 def markdown(d: Diagnosis, title: str) -> str:
     lines = [f"# {title}", ""]
     lines.append(f"**Verdict: {d.verdict}**" + (f" (p_adj {d.named[0].p_adjusted:.2g})" if d.named else ""))
     lines += ["", f"- held-out frames {d.held_out_frames}: PSNR {d.baseline_psnr_db:.2f} dB -> "
               f"{d.extended_psnr_db:.2f} dB (gain {d.psnr_gain_db:+.2f} dB, odd-checkerboard pixels)",
-              f"- runtime {d.runtime_s:.1f} s; alpha {d.config.alpha} (Holm over {len(d.rounds[0]) if d.rounds else 0} causes); "
+              f"- runtime {d.runtime_s:.1f} s; alpha {d.config.alpha} (Holm over the {_testable(d)} testable causes of round 1); "
               f"effect floor {d.config.effect_floor * LEVELS:.2f} levels",
               f"- photometric cells trimmed as off-model content (round 1): {100 * d.unmodelled_fraction:.1f} %", ""]
     lines += identifiability_markdown(d)

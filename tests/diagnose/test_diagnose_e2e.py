@@ -54,6 +54,8 @@ def test_simulated_null_and_hidden_vignette_through_the_cli(tmp_path):
     assert abs(record["named"][0]["params"]["corner_attenuation"] - corner_true) < 0.05
     assert (out / "report.md").is_file() and (out / "figures" / "signature_vignette.png").is_file()
     assert (out / "figures" / "residual_maps.png").is_file()
+    tested = sum(c["testable"] for c in record["rounds"][0])  # Holm's m of round 1, untestable causes left out
+    assert f"Holm over the {tested} testable causes" in (out / "report.md").read_text()
 
 
 #: Hidden geometric effects through the simulator (fast motion, full-sensor readout 16.26 ms,

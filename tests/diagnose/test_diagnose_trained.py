@@ -320,6 +320,8 @@ def test_badly_fitted_trained_run_through_the_cli_says_reconstruction_error_domi
     # the report says so before its ranking
     text = (out / "report.md").read_text()
     assert text.index("## Identifiability on this recording") < text.index("## Ranking")
+    tested = sum(c["testable"] for c in first.values())  # Holm's m: white balance, noise and the lens left out
+    assert tested <= len(first) - 3 and f"Holm over the {tested} testable causes of round 1" in text
     assert fooled(diagnose_residuals(src.measured, src.predicted, src.context))
 
 
