@@ -10,8 +10,8 @@ conditions of issue 72 (64 px, 48 frames, fixed 1 ms exposure and gain 1, a flat
 readout of 8 ms; 'ours' with `--preset cpu --iterations 800`); 10 seeds of a lens (k0 +-0.1) were added on
 2026-12-06, outside the issue's list, to measure what the lens test keeps on trained runs. Each case lives in DIR/cases/<case>/ (rec/,
 run/, diag/) and every stage is skipped when its output exists: an interrupted sweep resumes. DIR/cases.csv
-holds one row per case, those of earlier invocations into DIR included, and DIR/summary.json the rates the issue
-asks for. ``--seed-set 2`` writes fresh
+holds one row per case, those of earlier invocations into DIR included, DIR/readout_and_lens_tests.csv each case's
+round-1 readout and lens tests, and DIR/summary.json the rates the issue asks for. ``--seed-set 2`` writes fresh
 recordings: each effect's next block of seeds (nulls 121-140, vignette 211-220, ...). ``--size S`` writes S x S
 recordings and trains at that size (`--set max_side=S`; the issue's conditions: 64), ``--iterations N`` trains N
 iterations (the issue's: 800); everything else unchanged.
@@ -151,6 +151,39 @@ def smallest_testable_of(effect: str, d: dict) -> dict:
     return {"smallest_testable": s, "at_least_twice_testable": s is not None and hidden >= 2 * s}
 
 
+def round1_tests_row(case: Path) -> dict | None:
+    """One case's round-1 readout and lens tests as its diagnosis.json holds them (the statistic, p, estimate, each
+    lens calibration's wrong centres) and its lens check; None before the case is diagnosed."""
+    path = case / "diag" / "diagnosis.json"
+    if not path.is_file():
+        return None
+    d = json.loads(path.read_text())
+    first = {c["name"]: c for c in d["rounds"][0]}
+    readout, lens = first.get("readout", {}), first.get("distortion", {})
+    rp, lp = readout.get("params") or {}, lens.get("params") or {}
+    pull, radial = lp.get("calibration") or {}, lp.get("calibration_radial") or {}
+    wrong = pull.get("placebo_centre_t") or []
+    check = (d.get("model_error") or {}).get("lens_check") or {}
+    return {"case": case.name, "named": " ".join(n["name"] for n in d.get("named", [])),
+            "readout_t": readout.get("statistic"), "readout_p_adjusted": readout.get("p_adjusted"),
+            "readout_s_estimated": rp.get("readout_s_estimated"), "readout_reason": readout.get("reason", ""),
+            "distortion_k0": lp.get("k0_error"), "distortion_t": lens.get("statistic"),
+            "distortion_p_adjusted": lens.get("p_adjusted"), "distortion_significant": lens.get("significant"),
+            "distortion_placebo_t_mean": sum(wrong) / len(wrong) if wrong else None,
+            "distortion_radial_t": radial.get("first_order_t"), "distortion_radial_p": radial.get("p_value_placebo"),
+            "distortion_testable": lens.get("testable"), "distortion_reason": lens.get("reason", ""),
+            **{"lens_" + k: check.get(k) for k in ("smallest_testable_k0", "injected_k0", "k0_run", "k0_warped",
+                                                   "k0_retrained", "retention", "testable")}}
+
+
+def write_csv(path: Path, rows: list[dict]) -> None:
+    """``rows`` as a CSV, columns in first-seen order."""
+    with open(path, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(dict.fromkeys(k for r in rows for k in r)))
+        w.writeheader()
+        w.writerows(rows)
+
+
 def summary(rows: list[dict]) -> dict:
     """The rates of issue 72's acceptance, per effect."""
     out: dict = {}
@@ -252,10 +285,9 @@ def main(argv: list[str] | None = None) -> int:
                                                        train_set=tuple(args.train_set),
                                                        lens_check=args.lens_check), todo))
     rows = earlier_rows(args.out, set(todo)) + rows
-    with open(args.out / "cases.csv", "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=list(dict.fromkeys(k for r in rows for k in r)))  # first-seen order
-        w.writeheader()
-        w.writerows(rows)
+    write_csv(args.out / "cases.csv", rows)
+    tests = [t for case in sorted((args.out / "cases").iterdir()) if (t := round1_tests_row(case))]
+    write_csv(args.out / "readout_and_lens_tests.csv", tests)
     (args.out / "summary.json").write_text(json.dumps(summary(rows), indent=1) + "\n")
     print(json.dumps(summary(rows), indent=1))
     return 0

@@ -180,3 +180,22 @@ def test_a_case_row_reads_the_lens_check_and_the_summary_counts_the_runs_a_lens_
     assert "lens_testable" not in sweep.case_row("null", 102, _case(tmp_path, "unchecked", [], []), {})
     rows = [dict(row), dict(row, lens_testable="False"), dict(row, lens_testable="True")]  # as re-read from cases.csv
     assert sweep.summary(rows)["null"]["lens_testable"] == 2
+
+
+def test_the_round1_tests_table_reads_the_readout_and_both_lens_calibrations(tmp_path):
+    case = _case(tmp_path, "readout_1181", [], [{"name": "readout", "params": {}}])
+    d = json.loads((case / "diag" / "diagnosis.json").read_text())
+    d["rounds"] = [[
+        {"name": "readout", "statistic": 4.1, "p_adjusted": 0.004, "reason": "", "params": {"readout_s_estimated": 0.0103}},
+        {"name": "distortion", "statistic": 2.5, "p_adjusted": 0.2, "significant": False, "testable": True, "reason": "",
+         "params": {"k0_error": 0.03, "calibration": {"placebo_centre_t": [1.0, 2.0, 3.0]},
+                    "calibration_radial": {"first_order_t": 5.9, "p_value_placebo": 0.001}}}]]
+    d["model_error"] = {"lens_check": {"injected_k0": 0.12, "retention": None, "testable": False}}
+    (case / "diag" / "diagnosis.json").write_text(json.dumps(d))
+    row = sweep.round1_tests_row(case)
+    assert (row["case"], row["named"], row["readout_t"], row["readout_s_estimated"]) == ("readout_1181", "readout", 4.1, 0.0103)
+    assert (row["distortion_placebo_t_mean"], row["distortion_radial_t"], row["distortion_radial_p"]) == (2.0, 5.9, 0.001)
+    assert (row["lens_injected_k0"], row["lens_retention"], row["lens_testable"]) == (0.12, None, False)
+    assert sweep.round1_tests_row(tmp_path / "not_diagnosed") is None
+    sweep.write_csv(tmp_path / "t.csv", [row, {"case": "x", "extra": 1}])
+    assert (tmp_path / "t.csv").read_text().splitlines()[0].endswith(",extra")
