@@ -18,6 +18,8 @@ PYTEST_API = re.compile(rf'scope="{PERIOD_WORD}"|request\.{PERIOD_WORD}|\b{PERIO
 #: files outside the repository that a clone does not have; the real sample data (an environment variable with a
 #: documented default, ../shared/data) is the one exception
 OUTSIDE = re.compile(r"PAPER-NOTES|DESIGN\.md|\.\./shared/(?!data\b)")
+#: a scratch folder of the machine a measurement ran on (a record names its command, not its scratch files)
+SCRATCH = re.compile(r"(?<![\w.])/work/")
 
 
 def _text_files() -> list[Path]:
@@ -50,6 +52,10 @@ def test_the_package_docs_and_tests_cite_only_files_in_the_repository():
     assert _hits(OUTSIDE, under=("egobench/", "docs/", "tests/", "README.md", "scripts/")) == []
 
 
+def test_no_text_names_a_scratch_folder_of_the_machine_it_ran_on():
+    assert _hits(SCRATCH) == []
+
+
 def test_the_guards_catch_a_planted_example_of_each():
     stop = "st" + "op"
     assert WORK_PERIOD.search(f"measured in {stop} 62") and WORK_PERIOD.search(f"after {stop}s 45-49")
@@ -58,3 +64,4 @@ def test_the_guards_catch_a_planted_example_of_each():
     assert PERIOD_NAME.search(PYTEST_API.sub("", f'@pytest.fixture(scope="{PERIOD_WORD}")')) is None
     assert OUTSIDE.search("see PAPER-NOTES section 2") and OUTSIDE.search("open ../shared/DESIGN.md")
     assert not OUTSIDE.search("expected at ../shared/data/ (EGOBENCH_SHARED_DATA)")
+    assert SCRATCH.search("Command: `/wor" + "k/explore/vig_views.py`") and not SCRATCH.search("a network/work/ path")
