@@ -13,6 +13,7 @@
 #   usage: bash scripts/gpu_check.sh OUT_DIR [BUDGET_SECONDS]     (EGOBENCH_CACHE: LPIPS weights)
 #   STEPS="install gsplat_build paper_smoke" bash scripts/gpu_check.sh ...   runs only the steps named
 #   STEPS="paper_smoke" bash scripts/gpu_check.sh OUT 280   continues the smoke on a still-warm machine
+#   STEPS="install gsplat_build ladder" bash scripts/gpu_check.sh OUT 540   the scale ladder, continued
 set -u
 OUT=${1:?usage: gpu_check.sh OUT_DIR [BUDGET_SECONDS]}
 BUDGET=${2:-560}
@@ -85,6 +86,14 @@ step bench_train 150 bash -c "python3 -m egobench.cli bench train --device cuda 
   --points 1000000 --iterations 30 > $LOGS/bench_train.json"
 step sim_frames 150 python3 -m egobench.cli simulate --out /tmp/sim2400 --kind outdoor --seed 0 \
   --set n_frames=2 --set rectified_size=2400 --set compute_device=cuda
+# the scale ladder (scripts/scale_ladder.py, docs/gpu-and-cluster.md), only where STEPS names it: it continues from
+# the committed records (results/gpu/ladder/ladder.csv) and leaves them, with what ran, in OUT/ladder
+if [[ " ${STEPS:-} " == *" ladder "* ]]; then
+  mkdir -p "$OUT/ladder"
+  cp results/gpu/ladder/ladder.csv "$OUT/ladder/" 2>/dev/null
+  step ladder "$(($(left) - 20))" python3 scripts/scale_ladder.py --out "$OUT/ladder" --work /tmp/ladder \
+    --top "${LADDER_TOP:-512}" --rungs "${LADDER_RUNGS:-128,256,512}" --device cuda --budget-s "$(($(left) - 40))"
+fi
 SMOKE=$(($(left) - 30))
 # a smoke run killed by its time limit leaves a lock; the next call unlocks and resumes it (frames, checkpoints)
 # the jobs toward SMOKE_FIRST run first (default: the diagnosis, the one job no lease has finished);

@@ -1,0 +1,165 @@
+"""The scale ladder: how the laptop suite's findings move as the regime approaches the paper's.
+
+    python scripts/scale_ladder.py --out OUT --work WORK [--top 1024] [--rungs 128,256,512,1024]
+        [--frames 48] [--device cuda] [--budget-s 540] [--dry-run]
+
+One outdoor and one indoor recording are simulated once at TOP px (seed 0, into WORK), and 'ours', w/o motion
+sampling and w/o VIBA are trained on each at every rung (`--set max_side=RUNG`, seed 0) and evaluated on the
+held-out frames. The budget of a rung is fixed by this rule, written before any run: the cpu preset's schedule
+with `ITERATIONS_AT_128` x (rung / 128) iterations and `GAUSSIANS_AT_128` x (rung / 128)^2 Gaussians at most (a
+Gaussian's travel and the Gaussians per pixel as at 128 px). Jobs run rung by rung, smallest first.
+
+OUT keeps only the small records: OUT/ladder.csv (one row per finished job: held-out PSNR, resolved wavelength,
+the budget, the training time, the device) and OUT/ladder.md (per kind and rung: 'ours', each ablation's
+delta, the resolved wavelength, beside the paper's mean delta over its Table 1 scenes of that kind). A job in
+OUT/ladder.csv is not run again: commit OUT after a call and the next call (a fresh machine, WORK lost)
+continues the ladder. A job that would start with less than `MIN_JOB_S` of the budget left is left to the next
+call.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from egobench.report import paper_numbers as pn
+
+KINDS = ("outdoor", "indoor")
+METHODS = ("ours", "no_motion_sampling", "no_viba")
+ABLATIONS = METHODS[1:]
+ITERATIONS_AT_128 = 1000
+GAUSSIANS_AT_128 = 8000
+MIN_JOB_S = 60
+FIELDS = ("kind", "rung", "method", "iterations", "max_gaussians", "held_out_psnr", "resolved_wavelength_px",
+          "train_s", "device")
+PAPER_TABLE = {"outdoor": pn.TABLE1_OUTDOOR, "indoor": pn.TABLE1_INDOOR}
+
+
+def budget(rung: int) -> tuple[int, int]:
+    """(iterations, Gaussian cap) of a rung: the rule of the module docstring."""
+    scale = rung / 128
+    return max(1, round(ITERATIONS_AT_128 * scale)), max(1, round(GAUSSIANS_AT_128 * scale * scale))
+
+
+def paper_delta(kind: str, ablation: str) -> float:
+    """The paper's mean PSNR delta ('ours' - ablation) over its Table 1 scenes of ``kind``."""
+    table = PAPER_TABLE[kind]
+    d = [table.value("ours", c, pn.PSNR) - table.value(ablation, c, pn.PSNR) for c in table.columns]
+    return sum(d) / len(d)
+
+
+def read_rows(path: Path) -> list[dict]:
+    if not path.is_file():
+        return []
+    with open(path, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    if rows and set(rows[0]) != set(FIELDS):
+        raise SystemExit(f"{path}: columns {sorted(rows[0])}, expected {sorted(FIELDS)}; use another --out")
+    return rows
+
+
+def write_rows(path: Path, rows: list[dict]) -> None:
+    partial = path.with_name(path.name + ".partial")
+    with open(partial, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=FIELDS)
+        w.writeheader()
+        w.writerows(rows)
+    partial.replace(path)
+
+
+def _egobench(*args: str, log: Path) -> None:
+    with open(log, "a") as fh:
+        subprocess.run([sys.executable, "-m", "egobench.cli", *args], stdout=fh, stderr=subprocess.STDOUT, check=True)
+
+
+def recording(work: Path, kind: str, top: int, frames: int) -> Path:
+    """The kind's recording at TOP px (simulated once into WORK; the simulator resumes an interrupted one)."""
+    rec = work / f"{kind}_{top}"
+    if not (rec / "recording.json").is_file():
+        _egobench("simulate", "--kind", kind, "--seed", "0", "--out", str(rec), "--frames", str(frames),
+                  "--set", f"rectified_size={top}", "--no-progress", log=work / "simulate.log")
+    return rec
+
+
+def run_job(work: Path, rec: Path, kind: str, rung: int, method: str, device: str) -> dict:
+    """Train and evaluate one job -> its ladder row."""
+    iterations, gaussians = budget(rung)
+    run = work / "runs" / f"{kind}_{rung}_{method}"
+    began = time.perf_counter()
+    _egobench("train", "--recording", str(rec), "--method", method, "--seed", "0", "--out", str(run), "--preset", "cpu",
+              "--iterations", str(iterations), "--set", f"max_side={rung}", "--set", f"max_gaussians={gaussians}",
+              "--set", f"device={device}", "--resume", "auto", "--no-progress", log=work / "train.log")
+    train_s = time.perf_counter() - began
+    _egobench("evaluate", "--recording", str(rec), "--run", str(run), "--no-renders", log=work / "evaluate.log")
+    record = json.loads((run / "eval.json").read_text())
+    return {"kind": kind, "rung": rung, "method": method, "iterations": iterations, "max_gaussians": gaussians,
+            "held_out_psnr": record["metrics"][pn.PSNR],
+            "resolved_wavelength_px": (record.get("fidelity") or {}).get("resolved_wavelength_px"),
+            "train_s": round(train_s, 1), "device": device}
+
+
+def table(rows: list[dict]) -> str:
+    """OUT/ladder.md: per kind and rung, 'ours', each ablation's delta and the resolved wavelength, beside the
+    paper's mean delta."""
+    by = {(r["kind"], int(r["rung"]), r["method"]): r for r in rows}
+    head = ["kind", "rung px", "iterations", "Gaussians", "'ours' PSNR", "resolved wavelength px",
+            *[f"ours - {a} (paper)" for a in ABLATIONS]]
+    out = ["delta: 'ours' minus the ablation, held-out PSNR dB, one seed; in brackets the paper's mean over its "
+           "Table 1 scenes of the kind.", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for kind, rung in sorted({(k, g) for k, g, _ in by}, key=lambda x: (KINDS.index(x[0]), x[1])):
+        ours = by.get((kind, rung, "ours"))
+        if ours is None:
+            continue
+        cells = [kind, rung, ours["iterations"], ours["max_gaussians"], f"{float(ours['held_out_psnr']):.2f}",
+                 f"{float(ours['resolved_wavelength_px']):.1f}" if ours["resolved_wavelength_px"] not in (None, "") else "-"]
+        for a in ABLATIONS:
+            other = by.get((kind, rung, a))
+            delta = "-" if other is None else f"{float(ours['held_out_psnr']) - float(other['held_out_psnr']):+.2f}"
+            cells.append(f"{delta} ({paper_delta(kind, a):+.2f})")
+        out.append("| " + " | ".join(str(c) for c in cells) + " |")
+    return "\n".join(out) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", required=True, type=Path, help="the small records (commit it)")
+    ap.add_argument("--work", required=True, type=Path, help="recordings and runs (not kept)")
+    ap.add_argument("--top", type=int, default=1024, help="the recordings' size, px")
+    ap.add_argument("--rungs", default="128,256,512,1024", help="training sizes, px, comma-separated, at most --top")
+    ap.add_argument("--frames", type=int, default=48, help="frames of each recording")
+    ap.add_argument("--device", default="cuda", help="torch device of training and evaluation")
+    ap.add_argument("--budget-s", type=float, default=0.0, help="stop starting jobs after this many seconds (0: none)")
+    ap.add_argument("--dry-run", action="store_true", help="list the jobs left and their budgets, run nothing")
+    args = ap.parse_args(argv)
+    rungs = sorted({int(r) for r in args.rungs.split(",") if r.strip()})
+    if not rungs or rungs[0] < 8 or rungs[-1] > args.top:
+        ap.error(f"--rungs: expected sizes from 8 to --top ({args.top}) px, got {args.rungs!r}")
+    args.out.mkdir(parents=True, exist_ok=True)
+    rows = read_rows(args.out / "ladder.csv")
+    done = {(r["kind"], int(r["rung"]), r["method"]) for r in rows}
+    todo = [(k, g, m) for g in rungs for k in KINDS for m in METHODS if (k, g, m) not in done]
+    if args.dry_run:
+        for k, g, m in todo:
+            print(k, g, m, "iterations %d, at most %d Gaussians" % budget(g))
+        return 0
+    args.work.mkdir(parents=True, exist_ok=True)
+    began = time.perf_counter()
+    for n, (kind, rung, method) in enumerate(todo):
+        if args.budget_s and args.budget_s - (time.perf_counter() - began) < MIN_JOB_S:
+            print(f"left for the next call: {len(todo) - n} jobs", flush=True)
+            break
+        rec = recording(args.work, kind, args.top, args.frames)
+        rows.append(run_job(args.work, rec, kind, rung, method, args.device))
+        write_rows(args.out / "ladder.csv", rows)
+        (args.out / "ladder.md").write_text(table(rows))
+        print(json.dumps(rows[-1]), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
