@@ -90,9 +90,9 @@ step sim_frames 150 python3 -m egobench.cli simulate --out /tmp/sim2400 --kind o
 # the committed records (results/gpu/ladder/ladder.csv) and leaves them, with what ran, in OUT/ladder
 if [[ " ${STEPS:-} " == *" ladder "* ]]; then
   mkdir -p "$OUT/ladder"
-  cp results/gpu/ladder/ladder.csv "$OUT/ladder/" 2>/dev/null
+  [[ -e "$OUT/ladder/ladder.csv" ]] || cp results/gpu/ladder/ladder.csv "$OUT/ladder/" 2>/dev/null
   step ladder "$(($(left) - 20))" python3 scripts/scale_ladder.py --out "$OUT/ladder" --work /tmp/ladder \
-    --top "${LADDER_TOP:-512}" --rungs "${LADDER_RUNGS:-128,256,512}" --device cuda --budget-s "$(($(left) - 40))"
+    --top "${LADDER_TOP:-512}" --rungs "${LADDER_RUNGS:-128,256,512}" --device cuda --budget-s "$(($(left) > 60 ? $(left) - 40 : 20))"
 fi
 SMOKE=$(($(left) - 30))
 # a smoke run killed by its time limit leaves a lock; the next call unlocks and resumes it (frames, checkpoints)

@@ -1,20 +1,21 @@
 """The scale ladder: how the laptop suite's findings move as the regime approaches the paper's.
 
-    python scripts/scale_ladder.py --out OUT --work WORK [--top 1024] [--rungs 128,256,512,1024]
-        [--frames 48] [--device cuda] [--budget-s 540] [--dry-run]
+    python scripts/scale_ladder.py --out OUT --work WORK [--top 512] [--rungs 128,256,512]
+        [--frames 48] [--device cuda] [--budget-s 480] [--dry-run]
 
-One outdoor and one indoor recording are simulated once at TOP px (seed 0, into WORK), and 'ours', w/o motion
+One outdoor and one indoor recording are simulated at TOP px (seed 0, into WORK; once a machine), and 'ours', w/o motion
 sampling and w/o VIBA are trained on each at every rung (`--set max_side=RUNG`, seed 0) and evaluated on the
 held-out frames. The budget of a rung is fixed by this rule, written before any run: the cpu preset's schedule
 with `ITERATIONS_AT_128` x (rung / 128) iterations and `GAUSSIANS_AT_128` x (rung / 128)^2 Gaussians at most (a
 Gaussian's travel and the Gaussians per pixel as at 128 px). Jobs run rung by rung, smallest first.
 
 OUT keeps only the small records: OUT/ladder.csv (one row per finished job: held-out PSNR, resolved wavelength,
-the budget, the training time, the device) and OUT/ladder.md (per kind and rung: 'ours', each ablation's
-delta, the resolved wavelength, beside the paper's mean delta over its Table 1 scenes of that kind). A job in
-OUT/ladder.csv is not run again: commit OUT after a call and the next call (a fresh machine, WORK lost)
-continues the ladder. A job that would start with less than `MIN_JOB_S` of the budget left is left to the next
-call.
+the budget, the recordings' size and frames, the training time and Gaussians as `egobench train` recorded them,
+the device and backend), OUT/ladder.md (per kind and rung: 'ours', each ablation's delta, the resolved
+wavelength, beside the paper's mean delta over its Table 1 scenes of that kind) and OUT/logs/ (each command's
+output; a failed job's is kept there and the ladder goes on). A job in OUT/ladder.csv is not run again: commit
+OUT after a call and the next call (a fresh machine, WORK lost) continues the ladder. A job starts only where
+its estimated time (`estimate_s`) fits in what is left of the budget.
 """
 
 from __future__ import annotations
@@ -34,9 +35,10 @@ METHODS = ("ours", "no_motion_sampling", "no_viba")
 ABLATIONS = METHODS[1:]
 ITERATIONS_AT_128 = 1000
 GAUSSIANS_AT_128 = 8000
+#: the smallest time a job is given before any has been timed, s
 MIN_JOB_S = 60
-FIELDS = ("kind", "rung", "method", "iterations", "max_gaussians", "held_out_psnr", "resolved_wavelength_px",
-          "train_s", "device")
+FIELDS = ("kind", "rung", "method", "top", "frames", "iterations", "max_gaussians", "held_out_psnr",
+          "resolved_wavelength_px", "train_s", "gaussians", "device", "backend")
 PAPER_TABLE = {"outdoor": pn.TABLE1_OUTDOOR, "indoor": pn.TABLE1_INDOOR}
 
 
@@ -53,13 +55,18 @@ def paper_delta(kind: str, ablation: str) -> float:
     return sum(d) / len(d)
 
 
-def read_rows(path: Path) -> list[dict]:
+def read_rows(path: Path, top: int | None = None, frames: int | None = None) -> list[dict]:
+    """The recorded jobs of ``path``; refused where its columns or its recordings' size and frames differ."""
     if not path.is_file():
         return []
     with open(path, newline="") as fh:
         rows = list(csv.DictReader(fh))
     if rows and set(rows[0]) != set(FIELDS):
         raise SystemExit(f"{path}: columns {sorted(rows[0])}, expected {sorted(FIELDS)}; use another --out")
+    other = {(r["top"], r["frames"]) for r in rows} - {(str(top), str(frames))}
+    if top is not None and other:
+        raise SystemExit(f"{path}: jobs on recordings of {sorted(other)} (top px, frames), not ({top}, {frames}); "
+                         "use another --out")
     return rows
 
 
@@ -73,34 +80,49 @@ def write_rows(path: Path, rows: list[dict]) -> None:
 
 
 def _egobench(*args: str, log: Path) -> None:
+    log.parent.mkdir(parents=True, exist_ok=True)
     with open(log, "a") as fh:
         subprocess.run([sys.executable, "-m", "egobench.cli", *args], stdout=fh, stderr=subprocess.STDOUT, check=True)
 
 
-def recording(work: Path, kind: str, top: int, frames: int) -> Path:
+def recording(work: Path, logs: Path, kind: str, top: int, frames: int) -> Path:
     """The kind's recording at TOP px (simulated once into WORK; the simulator resumes an interrupted one)."""
     rec = work / f"{kind}_{top}"
     if not (rec / "recording.json").is_file():
         _egobench("simulate", "--kind", kind, "--seed", "0", "--out", str(rec), "--frames", str(frames),
-                  "--set", f"rectified_size={top}", "--no-progress", log=work / "simulate.log")
+                  "--set", f"rectified_size={top}", "--no-progress", log=logs / f"simulate_{kind}.log")
     return rec
 
 
-def run_job(work: Path, rec: Path, kind: str, rung: int, method: str, device: str) -> dict:
-    """Train and evaluate one job -> its ladder row."""
+def run_job(work: Path, logs: Path, rec: Path, job: tuple[str, int, str], top: int, frames: int, device: str) -> dict:
+    """Train and evaluate one job (kind, rung, method) -> its ladder row."""
+    kind, rung, method = job
     iterations, gaussians = budget(rung)
     run = work / "runs" / f"{kind}_{rung}_{method}"
-    began = time.perf_counter()
+    log = logs / f"{kind}_{rung}_{method}.log"
     _egobench("train", "--recording", str(rec), "--method", method, "--seed", "0", "--out", str(run), "--preset", "cpu",
               "--iterations", str(iterations), "--set", f"max_side={rung}", "--set", f"max_gaussians={gaussians}",
-              "--set", f"device={device}", "--resume", "auto", "--no-progress", log=work / "train.log")
-    train_s = time.perf_counter() - began
-    _egobench("evaluate", "--recording", str(rec), "--run", str(run), "--no-renders", log=work / "evaluate.log")
+              "--set", f"device={device}", "--resume", "auto", "--no-progress", log=log)
+    _egobench("evaluate", "--recording", str(rec), "--run", str(run), "--no-renders", log=log)
     record = json.loads((run / "eval.json").read_text())
-    return {"kind": kind, "rung": rung, "method": method, "iterations": iterations, "max_gaussians": gaussians,
-            "held_out_psnr": record["metrics"][pn.PSNR],
+    trained = json.loads((run / "train.json").read_text())["train"]
+    return {"kind": kind, "rung": rung, "method": method, "top": top, "frames": frames, "iterations": iterations,
+            "max_gaussians": gaussians, "held_out_psnr": record["metrics"][pn.PSNR],
             "resolved_wavelength_px": (record.get("fidelity") or {}).get("resolved_wavelength_px"),
-            "train_s": round(train_s, 1), "device": device}
+            "train_s": round(float(trained["time_s"]), 1), "gaussians": trained.get("num_gaussians"),
+            "device": trained.get("device", device), "backend": trained.get("backend", "")}
+
+
+def estimate_s(rows: list[dict], rung: int) -> float:
+    """A job's expected time, s: the slowest recorded job at the largest rung timed so far, times (rung / its
+    rung)^3 (iterations grow as the rung, pixels as its square), plus `MIN_JOB_S` for start, recording and
+    evaluation; `MIN_JOB_S` before any job has been timed."""
+    timed = [r for r in rows if r.get("train_s") not in (None, "")]
+    if not timed:
+        return MIN_JOB_S
+    base = max(int(r["rung"]) for r in timed)
+    slowest = max(float(r["train_s"]) for r in timed if int(r["rung"]) == base)
+    return slowest * (rung / base) ** 3 + MIN_JOB_S
 
 
 def table(rows: list[dict]) -> str:
@@ -129,36 +151,43 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", required=True, type=Path, help="the small records (commit it)")
     ap.add_argument("--work", required=True, type=Path, help="recordings and runs (not kept)")
-    ap.add_argument("--top", type=int, default=1024, help="the recordings' size, px")
-    ap.add_argument("--rungs", default="128,256,512,1024", help="training sizes, px, comma-separated, at most --top")
+    ap.add_argument("--top", type=int, default=512, help="the recordings' size, px")
+    ap.add_argument("--rungs", default="128,256,512", help="training sizes, px, comma-separated, at most --top")
     ap.add_argument("--frames", type=int, default=48, help="frames of each recording")
     ap.add_argument("--device", default="cuda", help="torch device of training and evaluation")
-    ap.add_argument("--budget-s", type=float, default=0.0, help="stop starting jobs after this many seconds (0: none)")
+    ap.add_argument("--budget-s", type=float, default=None, help="start no job that would end after this many s")
     ap.add_argument("--dry-run", action="store_true", help="list the jobs left and their budgets, run nothing")
     args = ap.parse_args(argv)
     rungs = sorted({int(r) for r in args.rungs.split(",") if r.strip()})
     if not rungs or rungs[0] < 8 or rungs[-1] > args.top:
         ap.error(f"--rungs: expected sizes from 8 to --top ({args.top}) px, got {args.rungs!r}")
     args.out.mkdir(parents=True, exist_ok=True)
-    rows = read_rows(args.out / "ladder.csv")
+    rows = read_rows(args.out / "ladder.csv", args.top, args.frames)
     done = {(r["kind"], int(r["rung"]), r["method"]) for r in rows}
     todo = [(k, g, m) for g in rungs for k in KINDS for m in METHODS if (k, g, m) not in done]
     if args.dry_run:
         for k, g, m in todo:
             print(k, g, m, "iterations %d, at most %d Gaussians" % budget(g))
         return 0
-    args.work.mkdir(parents=True, exist_ok=True)
-    began = time.perf_counter()
-    for n, (kind, rung, method) in enumerate(todo):
-        if args.budget_s and args.budget_s - (time.perf_counter() - began) < MIN_JOB_S:
-            print(f"left for the next call: {len(todo) - n} jobs", flush=True)
+    (args.out / "ladder.md").write_text(table(rows))
+    began, logs, failed = time.perf_counter(), args.out / "logs", []
+    for n, job in enumerate(todo):
+        left = None if args.budget_s is None else args.budget_s - (time.perf_counter() - began)
+        if left is not None and estimate_s(rows, job[1]) > left:
+            print(f"left for the next call: {len(todo) - n} jobs ({left:.0f} s left, this one needs about "
+                  f"{estimate_s(rows, job[1]):.0f} s)", flush=True)
             break
-        rec = recording(args.work, kind, args.top, args.frames)
-        rows.append(run_job(args.work, rec, kind, rung, method, args.device))
+        try:
+            rec = recording(args.work, logs, job[0], args.top, args.frames)
+            rows.append(run_job(args.work, logs, rec, job, args.top, args.frames, args.device))
+        except subprocess.CalledProcessError as err:
+            failed.append(job)
+            print(f"failed: {job}: exit {err.returncode}; see {logs}", flush=True)
+            continue
         write_rows(args.out / "ladder.csv", rows)
         (args.out / "ladder.md").write_text(table(rows))
         print(json.dumps(rows[-1]), flush=True)
-    return 0
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -29,7 +30,7 @@ def test_the_paper_delta_is_the_mean_over_its_table1_scenes_of_the_kind():
     assert ladder.paper_delta("indoor", "no_viba") == pytest.approx(1.1066667, abs=1e-6)
 
 
-def _stub(monkeypatch, calls: list):
+def _stub(monkeypatch, calls: list, fail: str = ""):
     def egobench(*args, log):
         calls.append(args[0])
         if args[0] == "simulate":
@@ -37,7 +38,12 @@ def _stub(monkeypatch, calls: list):
             out.mkdir(parents=True)
             (out / "recording.json").write_text("{}")
         elif args[0] == "train":
-            Path(args[args.index("--out") + 1]).mkdir(parents=True, exist_ok=True)
+            run = Path(args[args.index("--out") + 1])
+            if run.name == fail:
+                raise subprocess.CalledProcessError(3, "egobench train")
+            run.mkdir(parents=True, exist_ok=True)
+            (run / "train.json").write_text(json.dumps({"train": {"time_s": 10.0, "num_gaussians": 321,
+                                                                  "device": "cpu", "backend": "cpu"}}))
         elif args[0] == "evaluate":
             run = Path(args[args.index("--run") + 1])
             rung = int(run.name.split("_")[1])
@@ -47,26 +53,43 @@ def _stub(monkeypatch, calls: list):
     monkeypatch.setattr(ladder, "_egobench", egobench)
 
 
-def test_a_call_records_each_job_and_the_next_continues_where_it_stopped(monkeypatch, tmp_path):
+def _jobs(out: Path) -> list[tuple]:
+    return [(r["kind"], int(r["rung"]), r["method"]) for r in ladder.read_rows(out / "ladder.csv")]
+
+
+def test_a_call_starts_only_the_jobs_its_budget_fits_and_the_next_continues(monkeypatch, tmp_path):
     calls: list = []
     _stub(monkeypatch, calls)
-    args = ["--out", str(tmp_path / "out"), "--work", str(tmp_path / "w1"), "--top", "64", "--rungs", "32,64",
-            "--device", "cpu"]
-    clock = iter([0.0] + [10.0 * k for k in range(1, 100)])
+    out = tmp_path / "out"
+    args = ["--out", str(out), "--top", "64", "--rungs", "32,64", "--frames", "16", "--device", "cpu"]
+    clock = iter(10.0 * k for k in range(100))  # 10 s a loop
     monkeypatch.setattr(ladder.time, "perf_counter", lambda: next(clock))
-    assert ladder.main([*args, "--budget-s", "175"]) == 0  # 60 s must be left to start a job (a job: 30 s): 4 of 12 run
-    rows = ladder.read_rows(tmp_path / "out" / "ladder.csv")
-    assert [(r["kind"], r["rung"], r["method"]) for r in rows] == [
-        ("outdoor", "32", "ours"), ("outdoor", "32", "no_motion_sampling"), ("outdoor", "32", "no_viba"),
-        ("indoor", "32", "ours")]
-    assert calls.count("simulate") == 2 and calls.count("train") == 4
-    calls.clear()
-    args[3] = str(tmp_path / "w2")  # a fresh machine: the work folder is gone, the records are committed
-    assert ladder.main(args) == 0
-    rows = ladder.read_rows(tmp_path / "out" / "ladder.csv")
-    assert len(rows) == 12 and calls.count("train") == 8 and calls.count("simulate") == 2
-    md = (tmp_path / "out" / "ladder.md").read_text()
+    # each job trains 10 s: a 32 px job needs 10 + 60 s, a 64 px one 10 x 8 + 60 = 140 s, with 130 s left at the 7th
+    assert ladder.main([*args, "--work", str(tmp_path / "w1"), "--budget-s", "200"]) == 0
+    assert _jobs(out) == [(k, 32, m) for k in ladder.KINDS for m in ladder.METHODS]
+    assert calls.count("simulate") == 2 and calls.count("train") == 6
+    calls.clear()  # a fresh machine: the work folder is gone, the records are committed
+    assert ladder.main([*args, "--work", str(tmp_path / "w2")]) == 0
+    assert len(_jobs(out)) == 12 and calls.count("train") == 6 and calls.count("simulate") == 2
+    row = ladder.read_rows(out / "ladder.csv")[-1]
+    assert (row["train_s"], row["gaussians"], row["backend"], row["top"], row["frames"]) == ("10.0", "321", "cpu", "64", "16")
+    md = (out / "ladder.md").read_text()
     assert "| outdoor | 64 | 500 | 2000 | 26.14 | 8.0 | +0.50 (+1.09) | +0.50 (+" in md
+    with pytest.raises(SystemExit, match=r"not \(128, 16\)"):  # jobs on other recordings are not mixed in
+        ladder.main(["--out", str(out), "--work", str(tmp_path / "w3"), "--top", "128", "--rungs", "64", "--frames", "16"])
+
+
+def test_a_failed_job_is_left_out_and_the_others_run(monkeypatch, tmp_path):
+    calls: list = []
+    _stub(monkeypatch, calls, fail="indoor_32_no_viba")
+    out = tmp_path / "out"
+    assert ladder.main(["--out", str(out), "--work", str(tmp_path / "w"), "--top", "32", "--rungs", "32"]) == 1
+    assert _jobs(out) == [(k, 32, m) for k in ladder.KINDS for m in ladder.METHODS][:-1]
+
+
+def test_the_table_is_written_when_no_job_runs(tmp_path):
+    assert ladder.main(["--out", str(tmp_path), "--work", str(tmp_path / "w"), "--budget-s", "1"]) == 0
+    assert (tmp_path / "ladder.md").read_text().count("\n") == 4 and not (tmp_path / "ladder.csv").exists()
 
 
 def test_records_of_another_layout_are_refused(tmp_path):
