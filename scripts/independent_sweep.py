@@ -132,9 +132,14 @@ def case_row(effect: str, seed: int, case: Path, times: dict) -> dict:
     }
 
 
+def lens_check_record(d: dict) -> dict:
+    """A diagnosis.json's lens check (`egobench diagnose --lens-check`); {} where it made none."""
+    return (d.get("model_error") or {}).get("lens_check") or {}
+
+
 def lens_check_of(d: dict) -> dict:
-    """The lens check's outcome (`egobench diagnose --lens-check`), where the diagnosis made one."""
-    check = (d.get("model_error") or {}).get("lens_check")
+    """The lens check's outcome, where the diagnosis made one."""
+    check = lens_check_record(d)
     if not check:
         return {}
     return {"lens_injected_k0": check.get("injected_k0"), "lens_retention": check.get("retention"),
@@ -163,7 +168,7 @@ def round1_tests_row(case: Path) -> dict | None:
     rp, lp = readout.get("params") or {}, lens.get("params") or {}
     pull, radial = lp.get("calibration") or {}, lp.get("calibration_radial") or {}
     wrong = pull.get("placebo_centre_t") or []
-    check = (d.get("model_error") or {}).get("lens_check") or {}
+    check = lens_check_record(d)
     return {"case": case.name, "named": " ".join(n["name"] for n in d.get("named", [])),
             "readout_t": readout.get("statistic"), "readout_p_adjusted": readout.get("p_adjusted"),
             "readout_s_estimated": rp.get("readout_s_estimated"), "readout_reason": readout.get("reason", ""),
@@ -197,7 +202,7 @@ def summary(rows: list[dict]) -> dict:
              "contained_first_name": sum(bool(r.get("contained_first")) for r in rs if r["named"]),
              "geometric_named": sum(r["geometric_named"] for r in rs)}
         if any("lens_testable" in r for r in rs):
-            s["lens_testable"] = sum(r.get("lens_testable") in (True, "True") for r in rs)
+            s["lens_testable"] = sum(bool(r.get("lens_testable")) for r in rs)
         if effect in HIDDEN_SIZE:
             eligible = [r for r in rs if r.get("at_least_twice_testable")]
             s["at_least_twice_testable"] = len(eligible)

@@ -29,6 +29,7 @@ import time
 from pathlib import Path
 
 from egobench.report import paper_numbers as pn
+from egobench.report.gains import paper_deltas
 
 KINDS = ("outdoor", "indoor")
 METHODS = ("ours", "no_motion_sampling", "no_viba")
@@ -50,8 +51,7 @@ def budget(rung: int) -> tuple[int, int]:
 
 def paper_delta(kind: str, ablation: str) -> float:
     """The paper's mean PSNR delta ('ours' - ablation) over its Table 1 scenes of ``kind``."""
-    table = PAPER_TABLE[kind]
-    d = [table.value("ours", c, pn.PSNR) - table.value(ablation, c, pn.PSNR) for c in table.columns]
+    d = paper_deltas(PAPER_TABLE[kind], "ours", ablation, PAPER_TABLE[kind].columns)
     return sum(d) / len(d)
 
 

@@ -127,8 +127,8 @@ class DistortionCause(GeometricCause):
         if not result.testable:
             return []
         data = evidence.data
-        return distortion_placebos(self, data, {"calibration": self.nuisance_regressors(data),
-                                                "calibration_radial": self.radial_nuisance(data)})
+        radial = self.radial_nuisance(data)  # `nuisance_regressors` is radial + border_pull
+        return distortion_placebos(self, data, {"calibration": radial + border_pull(data), "calibration_radial": radial})
 
     def radial_nuisance(self, data):
         """The readout's signature alone (`nuisance_regressors` without the border pull)."""

@@ -131,7 +131,7 @@ def _gain_row(group: str, kind: str, paper: pn.PaperTable, recs: Sequence[RunRec
     low, high = ci95(means)
     identical = identical_by_construction(m, pairs)
     cols = _matched_columns(recs, kind, paper)
-    per_scene = _paper_deltas(paper, m, ref, cols)
+    per_scene = paper_deltas(paper, m, ref, cols)
     matched = _paper_delta(paper, m, ref, cols)
     return {
         "group": group, "method": m, "reference": ref, "unit": unit, "n_units": len(means),
@@ -224,14 +224,14 @@ def _matched_columns(recs: Sequence[RunRecord], kind: str, paper: pn.PaperTable)
     return sorted({(r.paper_scene or "").lower() for r in recs} & set(paper.columns))
 
 
-def _paper_deltas(paper: pn.PaperTable, method: str, ref: str, cols) -> list[float]:
+def paper_deltas(paper: pn.PaperTable, method: str, ref: str, cols) -> list[float]:
     """The paper's per-scene PSNR differences over ``cols`` (scenes where it reports both rows)."""
     return [paper.value(method, c, pn.PSNR) - paper.value(ref, c, pn.PSNR) for c in cols
             if paper.value(method, c, pn.PSNR) is not None and paper.value(ref, c, pn.PSNR) is not None]
 
 
 def _paper_delta(paper: pn.PaperTable, method: str, ref: str, cols) -> float | None:
-    d = _paper_deltas(paper, method, ref, cols)
+    d = paper_deltas(paper, method, ref, cols)
     return round(float(np.mean(d)), 6) if d else None
 
 

@@ -178,7 +178,7 @@ def test_a_case_row_reads_the_lens_check_and_the_summary_counts_the_runs_a_lens_
     row = sweep.case_row("null", 101, case, {})
     assert (row["lens_injected_k0"], row["lens_retention"], row["lens_testable"]) == (0.09, 0.31, True)
     assert "lens_testable" not in sweep.case_row("null", 102, _case(tmp_path, "unchecked", [], []), {})
-    rows = [dict(row), dict(row, lens_testable="False"), dict(row, lens_testable="True")]  # as re-read from cases.csv
+    rows = [dict(row), dict(row, lens_testable=False), dict(row, lens_testable=True)]  # as case_row makes them
     assert sweep.summary(rows)["null"]["lens_testable"] == 2
 
 
