@@ -11,6 +11,11 @@ adds shifted copies. Likewise numpy's ``@``, ``dot`` and ``linalg.norm`` of one 
 ``dgemm``/``ddot``, whose kernels (chosen by CPU model: ``Haswell``, ``SkylakeX``, ``SapphireRapids``, ...) sum in
 other orders, and torch's ``@`` calls MKL, which picks its kernels by CPU vendor; `matmul`, `vecdot`, `dot` and
 `norm` add in a fixed order with elementwise operations (numpy or torch).
+
+torch's CPU ``sqrt``, ``sin``, ``cos`` and ``atan2`` run in MKL's vector math, which is not correctly rounded and
+picks its code by CPU vendor: 0.8 % of float64 square roots differ from IEEE's on an Intel Xeon, 1.2 % on an AMD
+EPYC Zen 4, and not the same ones (results/cross_isa/README.md, 2026-12-07). `sqrt`, `sin`, `cos` and `atan2`
+take float64 CPU tensors to numpy's correctly rounded square root and glibc's functions, autograd included.
 """
 
 from __future__ import annotations
@@ -18,6 +23,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import torch
 
 
 def _elementwise(fn, *arrays) -> np.ndarray:
@@ -101,3 +107,88 @@ def vecdot(a, b):
     for k in range(1, a.shape[-1]):
         out = out + a[..., k] * b[..., k]
     return out
+
+
+def _portable(x) -> bool:
+    """Whether a torch tensor takes the portable path (float64 on the CPU); other dtypes and devices keep torch's."""
+    return x.dtype == torch.float64 and x.device.type == "cpu"
+
+
+def _numpy_call(fn, *tensors):
+    """``fn`` over the tensors' values as numpy arrays -> a float64 tensor (0-d included)."""
+    return torch.from_numpy(np.asarray(fn(*(t.detach().numpy() for t in tensors)), dtype=np.float64))
+
+
+class _Sqrt(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x):
+        y = _numpy_call(np.sqrt, x)
+        ctx.save_for_backward(y)
+        return y
+
+    @staticmethod
+    def backward(ctx, g):
+        (y,) = ctx.saved_tensors
+        return g * 0.5 / y
+
+
+class _Sin(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x):
+        ctx.save_for_backward(x)
+        return _numpy_call(np.sin, x)
+
+    @staticmethod
+    def backward(ctx, g):
+        (x,) = ctx.saved_tensors
+        return g * cos(x)
+
+
+class _Cos(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x):
+        ctx.save_for_backward(x)
+        return _numpy_call(np.cos, x)
+
+    @staticmethod
+    def backward(ctx, g):
+        (x,) = ctx.saved_tensors
+        return -g * sin(x)
+
+
+class _Atan2(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, y, x):
+        ctx.save_for_backward(y, x)
+        return _numpy_call(arctan2, y, x)
+
+    @staticmethod
+    def backward(ctx, g):
+        y, x = ctx.saved_tensors
+        r2 = x * x + y * y
+        return g * x / r2, -g * y / r2
+
+
+def sqrt(x):
+    """The square root of a torch tensor; float64 on the CPU correctly rounded (numpy's, IEEE), the same bits on
+    every x86-64 machine (torch's is MKL's vector math there); autograd included."""
+    return _Sqrt.apply(x) if _portable(x) else torch.sqrt(x)
+
+
+def sin(x):
+    """The sine of a torch tensor; float64 on the CPU numpy's (its float64 sine does not follow its dispatch)."""
+    return _Sin.apply(x) if _portable(x) else torch.sin(x)
+
+
+def cos(x):
+    """The cosine of a torch tensor; float64 on the CPU numpy's (its float64 cosine does not follow its dispatch)."""
+    return _Cos.apply(x) if _portable(x) else torch.cos(x)
+
+
+def atan2(y, x):
+    """The angle of (x, y) of torch tensors of one shape; float64 on the CPU glibc's ``atan2`` element by
+    element (`arctan2`, about 50 ns an element: for poses, not images)."""
+    if not (_portable(y) and _portable(x)):
+        return torch.atan2(y, x)
+    y, x = torch.broadcast_tensors(y, x)
+    return _Atan2.apply(y.contiguous(), x.contiguous())

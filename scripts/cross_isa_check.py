@@ -20,7 +20,7 @@ difference. ``--simulate-each``: the recording is also simulated again under eve
 compared file by file with the host's (``recordings``). ``--recordings-only``: only that, no training (about
 a minute). ``--reference-digests FILE``: simulate the four scene kinds' reference recordings (`REFERENCE_CASES`)
 and compare every file's digest with FILE, written on another machine (``--write-reference-digests FILE``
-writes it; `results/cross_isa/recording_digests.json` is an AMD EPYC Zen 4 host's): the cross-vendor check
+writes it; `results/cross_isa/recording_digests.json` is an Intel Xeon host's): the cross-vendor check
 that needs one machine at a time. Exploratory: one seed, one scene. Bit identity under an emulated CPU is a property of the machine
 this runs on (on an AMD CPU, MKL ignores some of these settings), so it is measured here and reported, not
 asserted by a test (docs/reproducibility.md).

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from egobench import portable_math as pm
 from egobench.camera.base import check_pixels, check_points, scaled_size
 
 
@@ -41,8 +42,8 @@ class Equidistant:
         xy, z = points_cam[..., :2], points_cam[..., 2]
         r2 = (xy * xy).sum(-1)
         nonzero = r2 > 0
-        r = torch.sqrt(torch.where(nonzero, r2, torch.ones_like(r2)))
-        theta = torch.atan2(r, z)
+        r = pm.sqrt(torch.where(nonzero, r2, torch.ones_like(r2)))
+        theta = pm.atan2(r, z)
         z_safe = torch.where(z != 0, z, torch.ones_like(z))
         scale = torch.where(nonzero, theta / r, 1.0 / z_safe)
         uv = self.f * scale[..., None] * xy + xy.new_tensor([self.cx, self.cy])
@@ -55,9 +56,9 @@ class Equidistant:
         d = (pixels - pixels.new_tensor([self.cx, self.cy])) / self.f
         theta2 = (d * d).sum(-1)
         nonzero = theta2 > 0
-        theta = torch.sqrt(torch.where(nonzero, theta2, torch.ones_like(theta2)))
-        sinc = torch.where(nonzero, torch.sin(theta) / theta, torch.ones_like(theta))
-        cos = torch.where(nonzero, torch.cos(theta), torch.ones_like(theta))
+        theta = pm.sqrt(torch.where(nonzero, theta2, torch.ones_like(theta2)))
+        sinc = torch.where(nonzero, pm.sin(theta) / theta, torch.ones_like(theta))
+        cos = torch.where(nonzero, pm.cos(theta), torch.ones_like(theta))
         return torch.cat([sinc[..., None] * d, cos[..., None]], -1)
 
     def scaled(self, factor: float) -> "Equidistant":

@@ -23,6 +23,7 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
+from egobench import portable_math as pm
 from egobench.camera.base import check_pixels, check_points, scaled_size
 
 #: Number of parameters of FisheyeRadTanThinPrism.
@@ -176,8 +177,8 @@ class Fisheye624:
         xy = P[..., :2]
         r2 = (xy * xy).sum(-1)
         nonzero = r2 > 0
-        r = torch.sqrt(torch.where(nonzero, r2, torch.ones_like(r2)))
-        theta = torch.atan2(r, P[..., 2])
+        r = pm.sqrt(torch.where(nonzero, r2, torch.ones_like(r2)))
+        theta = pm.atan2(r, P[..., 2])
         th_d, _ = self._radial(theta, k)
         # th_d / r -> 1 / z on the axis (where xy = 0 anyway).
         z_safe = torch.where(P[..., 2] != 0, P[..., 2], torch.ones_like(r))
@@ -216,7 +217,7 @@ class Fisheye624:
         res = self._tangential_prism(ab0, pt, s) - target
         J = self._tangential_prism_jacobian(ab0, pt, s)
         ab = ab0 - _solve2x2(J, res)
-        th_d = torch.sqrt((ab * ab).sum(-1).clamp_min(1e-300))
+        th_d = pm.sqrt((ab * ab).sum(-1).clamp_min(1e-300))
         g, dg = self._radial(theta0, k)
         theta = theta0 - (g - th_d) / dg
         with torch.no_grad():
@@ -227,7 +228,7 @@ class Fisheye624:
         direction = ab / th_d[..., None]
         on_axis = (ab * ab).sum(-1) == 0
         direction = torch.where(on_axis[..., None], torch.zeros_like(direction), direction)
-        rays = torch.cat([torch.sin(theta)[..., None] * direction, torch.cos(theta)[..., None]], -1)
+        rays = torch.cat([pm.sin(theta)[..., None] * direction, pm.cos(theta)[..., None]], -1)
         rays = torch.nan_to_num(rays, nan=0.0)  # a non-converged pixel is flagged, never NaN
         dtype = pixels.dtype if pixels.dtype.is_floating_point else torch.float64
         return rays.to(dtype), converged

@@ -35,12 +35,18 @@ def _check_last(x: Tensor, size: int, name: str, what: str) -> None:
         raise ValueError(f"{name}: expected shape {what}, got {tuple(x.shape)}")
 
 
+def _quat_norm(q: Tensor) -> Tensor:
+    """|q| [..., 1] of quaternions [..., 4]: squares added in index order, a correctly rounded square root on the CPU
+    (`portable_math.sqrt`: the same bits on every x86-64 machine)."""
+    return pm.sqrt(pm.vecdot(q, q))[..., None]
+
+
 def quat_normalize(q: Tensor, name: str = "quats") -> Tensor:
     """q [..., 4] (w, x, y, z) -> unit quaternions; ValueError on zero or non-finite entries."""
     _check_last(q, 4, name, "[..., 4] (w, x, y, z)")
     if not bool(torch.isfinite(q).all()):
         raise ValueError(f"{name}: quaternions contain NaN or infinite values")
-    norm = q.norm(dim=-1, keepdim=True)
+    norm = _quat_norm(q)
     if bool((norm < 1e-12).any()):
         raise ValueError(f"{name}: zero-length quaternion cannot be normalised")
     return q / norm
@@ -98,10 +104,10 @@ def rotmat_to_quat(R: Tensor) -> Tensor:
     m20, m21, m22 = R[..., 2, 0], R[..., 2, 1], R[..., 2, 2]
     tiny = torch.finfo(R.dtype).tiny
     # Four candidate forms; each is well conditioned when its pivot is the largest.
-    s0 = 2.0 * torch.sqrt((1.0 + m00 + m11 + m22).clamp_min(tiny))  # s = 4w
-    s1 = 2.0 * torch.sqrt((1.0 + m00 - m11 - m22).clamp_min(tiny))  # s = 4x
-    s2 = 2.0 * torch.sqrt((1.0 - m00 + m11 - m22).clamp_min(tiny))  # s = 4y
-    s3 = 2.0 * torch.sqrt((1.0 - m00 - m11 + m22).clamp_min(tiny))  # s = 4z
+    s0 = 2.0 * pm.sqrt((1.0 + m00 + m11 + m22).clamp_min(tiny))  # s = 4w
+    s1 = 2.0 * pm.sqrt((1.0 + m00 - m11 - m22).clamp_min(tiny))  # s = 4x
+    s2 = 2.0 * pm.sqrt((1.0 - m00 + m11 - m22).clamp_min(tiny))  # s = 4y
+    s3 = 2.0 * pm.sqrt((1.0 - m00 - m11 + m22).clamp_min(tiny))  # s = 4z
     q0 = torch.stack([0.25 * s0, (m21 - m12) / s0, (m02 - m20) / s0, (m10 - m01) / s0], -1)
     q1 = torch.stack([(m21 - m12) / s1, 0.25 * s1, (m01 + m10) / s1, (m02 + m20) / s1], -1)
     q2 = torch.stack([(m02 - m20) / s2, (m01 + m10) / s2, 0.25 * s2, (m12 + m21) / s2], -1)
@@ -111,7 +117,7 @@ def rotmat_to_quat(R: Tensor) -> Tensor:
     cands = torch.stack([q0, q1, q2, q3], -2)  # [..., 4 candidates, 4]
     q = torch.gather(cands, -2, choice[..., None, None].expand(*choice.shape, 1, 4)).squeeze(-2)
     q = torch.where(q[..., :1] < 0, -q, q)
-    return q / q.norm(dim=-1, keepdim=True)
+    return q / _quat_norm(q)
 
 
 def hat(omega: Tensor) -> Tensor:
@@ -125,8 +131,8 @@ def _so3_coeffs(theta2: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """A = sin t / t, B = (1 - cos t) / t^2, C = (t - sin t) / t^3 (all [...]) from t^2."""
     small = theta2 < _small_threshold(theta2.dtype)
     t2 = torch.where(small, torch.ones_like(theta2), theta2)  # safe value for the direct branch
-    t = torch.sqrt(t2)
-    s, c = torch.sin(t), torch.cos(t)
+    t = pm.sqrt(t2)
+    s, c = pm.sin(t), pm.cos(t)
     A_direct, B_direct, C_direct = s / t, (1 - c) / t2, (t - s) / (t2 * t)
     x = theta2
     A_series = 1 - x / 6 * (1 - x / 20 * (1 - x / 42 * (1 - x / 72)))
@@ -142,7 +148,7 @@ def _so3_coeffs(theta2: Tensor) -> tuple[Tensor, Tensor, Tensor]:
 def so3_exp(omega: Tensor) -> Tensor:
     """Rotation vector omega [..., 3] (radians) -> R [..., 3, 3] (Rodrigues)."""
     _check_last(omega, 3, "so3_exp(omega)", "[..., 3]")
-    theta2 = (omega * omega).sum(-1)
+    theta2 = pm.vecdot(omega, omega)
     A, B, _ = _so3_coeffs(theta2)
     K = hat(omega)
     eye = torch.eye(3, dtype=omega.dtype, device=omega.device).expand_as(K)
@@ -153,10 +159,10 @@ def so3_log(R: Tensor) -> Tensor:
     """R [..., 3, 3] -> rotation vector [..., 3] with norm in [0, pi] (via the quaternion)."""
     q = rotmat_to_quat(R)
     w, v = q[..., 0], q[..., 1:]
-    n2 = (v * v).sum(-1)
+    n2 = pm.vecdot(v, v)
     small = n2 < (1e-6 if q.dtype == torch.float64 else 1e-4)
-    n = torch.sqrt(torch.where(small, torch.ones_like(n2), n2))
-    direct = 2.0 * torch.atan2(n, w) / n
+    n = pm.sqrt(torch.where(small, torch.ones_like(n2), n2))
+    direct = 2.0 * pm.atan2(n, w) / n
     ws = torch.where(small, w, torch.ones_like(w))  # w ~ 1 where small
     x2 = n2 / (ws * ws)
     series = 2.0 / ws * (1 - x2 / 3 + x2 * x2 / 5)  # 2 atan(n / w) / n
@@ -173,7 +179,7 @@ def se3_exp(xi: Tensor) -> Tensor:
     """Twist xi [..., 6] = (rho, omega) -> T [..., 4, 4] = [[exp(omega^), V rho], [0, 1]]."""
     _check_last(xi, 6, "se3_exp(xi)", "[..., 6] (rho, omega)")
     rho, omega = xi[..., :3], xi[..., 3:]
-    theta2 = (omega * omega).sum(-1)
+    theta2 = pm.vecdot(omega, omega)
     A, B, C = _so3_coeffs(theta2)
     K = hat(omega)
     K2 = pm.matmul(K, K)
@@ -189,14 +195,15 @@ def se3_log(T: Tensor) -> Tensor:
     _check_pose_shape(T, "se3_log(T)")
     R, t = T[..., :3, :3], T[..., :3, 3]
     omega = so3_log(R)
-    theta2 = (omega * omega).sum(-1)
+    theta2 = pm.vecdot(omega, omega)
     # D = (1 - A / (2B)) / theta^2 cancels badly for small angles: series below 0.15 rad (float64).
     small = theta2 < (0.15**2 if theta2.dtype == torch.float64 else _small_threshold(theta2.dtype))
     A, B, _ = _so3_coeffs(theta2)
     t2 = torch.where(small, torch.ones_like(theta2), theta2)
     D_direct = (1 - A / (2 * B)) / t2
     x = theta2
-    D_series = 1 / 12 + x / 720 + x * x / 30240 + x**3 / 1209600 + x**4 / 47900160
+    x2 = x * x
+    D_series = 1 / 12 + x / 720 + x2 / 30240 + x2 * x / 1209600 + x2 * x2 / 47900160
     D = torch.where(small, D_series, D_direct)
     K = hat(omega)
     eye = torch.eye(3, dtype=T.dtype, device=T.device).expand_as(K)
