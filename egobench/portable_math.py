@@ -132,28 +132,19 @@ class _Sqrt(torch.autograd.Function):
         return g * 0.5 / y
 
 
-class _Sin(torch.autograd.Function):
+class _Trig(torch.autograd.Function):
+    """sin or cos (``name``) through numpy; the derivative through the other one."""
+
     @staticmethod
-    def forward(ctx, x):
+    def forward(ctx, x, name):
         ctx.save_for_backward(x)
-        return _numpy_call(np.sin, x)
+        ctx.name = name
+        return _numpy_call(np.sin if name == "sin" else np.cos, x)
 
     @staticmethod
     def backward(ctx, g):
         (x,) = ctx.saved_tensors
-        return g * cos(x)
-
-
-class _Cos(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, x):
-        ctx.save_for_backward(x)
-        return _numpy_call(np.cos, x)
-
-    @staticmethod
-    def backward(ctx, g):
-        (x,) = ctx.saved_tensors
-        return -g * sin(x)
+        return (g * cos(x) if ctx.name == "sin" else -g * sin(x)), None
 
 
 class _Atan2(torch.autograd.Function):
@@ -177,12 +168,12 @@ def sqrt(x):
 
 def sin(x):
     """The sine of a torch tensor; float64 on the CPU numpy's (its float64 sine does not follow its dispatch)."""
-    return _Sin.apply(x) if _portable(x) else torch.sin(x)
+    return _Trig.apply(x, "sin") if _portable(x) else torch.sin(x)
 
 
 def cos(x):
     """The cosine of a torch tensor; float64 on the CPU numpy's (its float64 cosine does not follow its dispatch)."""
-    return _Cos.apply(x) if _portable(x) else torch.cos(x)
+    return _Trig.apply(x, "cos") if _portable(x) else torch.cos(x)
 
 
 def atan2(y, x):
