@@ -109,8 +109,12 @@ def case_row(effect: str, seed: int, case: Path, times: dict) -> dict:
     """One case's verdict from its truth.json and diagnosis.json."""
     truth = json.loads((case / "rec" / "truth.json").read_text())
     d = json.loads((case / "diag" / "diagnosis.json").read_text())
-    named = [n["name"] for n in d.get("named", [])]
+    timing = d.get("learned_timing")  # a run trained with learn_timing: its names come first
+    timing_named = timing["named"] if timing else []
+    named = timing_named + [n["name"] for n in d.get("named", []) if n["name"] not in timing_named]
     params = {n["name"]: n.get("params", {}) for n in d.get("named", [])}
+    params.update({cause: {"time_offset_error_s": timing["time_offset_error_s"],
+                           "readout_s_estimated": timing["readout_s_estimated"]} for cause in timing_named})
     expected = CASES[effect][1]
     altered = [int(k) for k in truth["effects"]["exposure_altered_frames"]]
     flagged = params.get("exposure_metadata", {}).get("flagged_frames", [])
@@ -128,8 +132,17 @@ def case_row(effect: str, seed: int, case: Path, times: dict) -> dict:
         "k0_error": params.get("distortion", {}).get("k0_error"),
         "flagged_frames": " ".join(map(str, flagged)), "altered_frames": " ".join(map(str, altered)),
         "flagged_altered": len(set(flagged) & set(altered)), "flagged_wrong": len(set(flagged) - set(altered)),
-        "psnr_gain_db": d.get("psnr_gain_db"), **smallest_testable_of(effect, d), **lens_check_of(d), **times,
+        "psnr_gain_db": d.get("psnr_gain_db"), **smallest_testable_of(effect, d), **lens_check_of(d),
+        **learned_timing_columns(timing), **times,
     }
+
+
+def learned_timing_columns(timing: dict | None) -> dict:
+    """The learned timing's columns (none for a run that learned none)."""
+    if not timing:
+        return {}
+    return {"learned_time_offset_ms": timing["learned"]["time_offset_ms"],
+            "learned_readout_error_ms": timing["learned"]["readout_error_ms"], "timing_named": " ".join(timing["named"])}
 
 
 def lens_check_record(d: dict) -> dict:

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from egobench.diagnose.core import Diagnosis
+from egobench.diagnose.learned_timing import timing_markdown
 from egobench.effects import EFFECTS
 from egobench.io_utils import atomic_path, write_json
 from egobench.residual.estimation import CauseResult
@@ -204,9 +205,10 @@ def shading_markdown(x: dict) -> str:
 
 def write_report(out_dir: str | Path, d: Diagnosis, measured: np.ndarray, predicted: np.ndarray,
                  title: str = "Residual diagnosis", extra: dict | None = None,
-                 shading_extension: dict | None = None) -> dict:
+                 shading_extension: dict | None = None, learned_timing: dict | None = None) -> dict:
     """Write diagnosis.json, report.md and figures/ into out_dir; return the JSON record
-    (``shading_extension``: the model extension's call, `egobench.diagnose.extension.judge_shading`)."""
+    (``shading_extension``: the model extension's call, `egobench.diagnose.extension.judge_shading`;
+    ``learned_timing``: the timing a run learned with its scene, `egobench.diagnose.learned_timing.judge_timing`)."""
     out = Path(out_dir)
     (out / "figures").mkdir(parents=True, exist_ok=True)
     record = d.to_dict()
@@ -214,10 +216,14 @@ def write_report(out_dir: str | Path, d: Diagnosis, measured: np.ndarray, predic
         record["extra"] = extra
     if shading_extension is not None:
         record["shading_extension"] = shading_extension
+    if learned_timing is not None:
+        record["learned_timing"] = learned_timing
     write_json(out / "diagnosis.json", record)
     text = markdown(d, title)
     if shading_extension is not None:
         text += shading_markdown(shading_extension)
+    if learned_timing is not None:
+        text += timing_markdown(learned_timing)
     if extra:
         text += "\n## Extra\n\n```json\n" + json.dumps(extra, indent=1, default=str)[:6000] + "\n```\n"
     with atomic_path(out / "report.md") as tmp:

@@ -43,6 +43,8 @@ from egobench.model.pose_sampling import PoseSampling
 
 #: The released code measures pixel motion over this window (its `_motion_sample_max`, 2 ms).
 MOTION_WINDOW_S = 2e-3
+#: The name of a run's learned timing correction among its trainables (`TrainConfig.learn_timing`; [2], ms)
+TIMING_KEY = "timing"
 
 
 @dataclass
@@ -245,6 +247,28 @@ def velocity_poses(T_world_camera: Tensor, twist_camera: Tensor, dt_s: Tensor) -
     differentiable in both inputs.
     """
     like = dict(device=twist_camera.device, dtype=twist_camera.dtype)
-    dt = dt_s.to(**like)[:, None]  # [K, 1]
-    T_rel = make_pose(so3_exp(dt * twist_camera[None, 3:]), dt * twist_camera[None, :3])  # [K, 4, 4]
-    return T_world_camera[None].to(**like) @ T_rel
+    return T_world_camera[None].to(**like) @ relative_motion(twist_camera, dt_s.to(**like))
+
+
+def relative_motion(twist_camera: Tensor, dt_s: Tensor) -> Tensor:
+    """The camera's motion over dt_s [K] (s) at a constant twist [6] in its own frame: [exp(dt omega^), dt v]
+    -> [K, 4, 4], to right-multiply a pose; differentiable in both inputs."""
+    dt = dt_s[:, None]  # [K, 1]
+    return make_pose(so3_exp(dt * twist_camera[None, 3:]), dt * twist_camera[None, :3])
+
+
+def timing_shifts_s(n: int, timing_ms: Tensor) -> Tensor:
+    """The time shifts [n] (s) of a frame's n rolling-shutter samples under a timing correction ``timing_ms``
+    [2] = (time offset, readout error) in ms: the offset plus the readout error times the sample's place in the
+    readout, (k + 1/2) / n - 1/2 (`sample_times_ns`' bracket centres; the centre row does not move)."""
+    place = (torch.arange(n, dtype=timing_ms.dtype, device=timing_ms.device) + 0.5) / n - 0.5
+    return (timing_ms[0] + place * timing_ms[1]) * 1e-3
+
+
+def timed_poses(poses: Tensor, twist_camera: Tensor, timing_ms: Tensor) -> Tensor:
+    """A frame's sample poses [M, K, 4, 4] moved along its constant twist [6] (camera frame) by the timing
+    correction ``timing_ms`` [2] (`timing_shifts_s` of each of the K samples) -> [M, K, 4, 4], differentiable
+    in ``timing_ms``: the model's poses at the times a learned time offset and readout say the rows were read."""
+    like = dict(device=timing_ms.device, dtype=timing_ms.dtype)
+    T_rel = relative_motion(twist_camera.to(**like), timing_shifts_s(poses.shape[-3], timing_ms))
+    return poses.to(**like) @ T_rel[None]

@@ -46,6 +46,7 @@ class FrameMaps:
     mask: Tensor  # [H, W] bool valid pixels
     vignette: Tensor  # [H, W] float32
     row_time_ratio: Tensor  # [H, W] float32 R(u)
+    timing_ms: Tensor | None = None  # [2] a run's learned timing correction (time offset, readout error; ms)
 
 
 def frame_maps(recording: Recording, camera: Pinhole) -> FrameMaps:
@@ -59,7 +60,10 @@ def run_maps(recording: Recording, run) -> FrameMaps:
     """`frame_maps` at a trained run's camera, its vignette times the lens shading the run learned
     (`egobench.model.shading`; unchanged for runs without one)."""
     maps = frame_maps(recording, run.camera)
-    return replace(maps, vignette=learned_vignette(maps.vignette, run.camera, run.checkpoint.get("extra") or {}, run.config))
+    extra = run.checkpoint.get("extra") or {}
+    timing = extra.get(motion_sampling.TIMING_KEY)
+    return replace(maps, vignette=learned_vignette(maps.vignette, run.camera, extra, run.config),
+                   timing_ms=None if timing is None else timing.detach().to(torch.float32).cpu())
 
 
 def exposure_normaliser(recording: Recording) -> Tensor:
@@ -118,6 +122,7 @@ class PoseSampleCache:
     def __init__(self) -> None:
         self.poses: dict[tuple[int, int, int], Tensor] = {}  # (frame timestamp, n, M) -> [M, n, 4, 4] float32
         self.ppi: dict[int, Tensor] = {}  # n -> [H, W] int64
+        self.twists: dict[int, Tensor] = {}  # frame timestamp -> [6] float32
 
     def samples(self, recording: Recording, frame: Frame, n: int, n_exposure_samples: int,
                 row_time_ratio: Tensor) -> tuple[Tensor, Tensor | None]:
@@ -128,16 +133,26 @@ class PoseSampleCache:
             self.ppi[n] = motion_sampling.pixel_pose_index(row_time_ratio, n)
         return self.poses[key], self.ppi.get(n) if n > 1 else None
 
+    def twist(self, recording: Recording, frame: Frame) -> Tensor:
+        """The frame's camera twist [6] float32 at its centre-row time (`motion_sampling.frame_twist_camera`)."""
+        key = int(frame.timestamp_ns)
+        if key not in self.twists:
+            self.twists[key] = motion_sampling.frame_twist_camera(recording, frame).to(torch.float32)
+        return self.twists[key]
+
 
 def frame_poses(recording: Recording, frame: Frame, spec: MethodSpec, n: int, row_time_ratio: Tensor,
                 pose_delta: Tensor | None = None, twist: Tensor | None = None,
-                n_exposure_samples: int = 1, cache: PoseSampleCache | None = None) -> tuple[Tensor, Tensor | None]:
+                n_exposure_samples: int = 1, cache: PoseSampleCache | None = None,
+                timing: Tensor | None = None) -> tuple[Tensor, Tensor | None]:
     """Poses to render one frame: (T_world_camera [M, K, 4, 4] float32, pixel_pose_index [H, W] | None).
 
     M exposure samples (averaged by the caller), K rolling-shutter samples gathered per pixel.
     ``pose_delta`` [6] (se(3), right-multiplied) and ``twist`` [6] are the per-frame trainables of
-    pose-optimising / velocity-shift methods. ``cache`` (a run's, for its fixed ``row_time_ratio``)
-    keeps the trajectory samples and pixel indices between calls.
+    pose-optimising / velocity-shift methods. ``timing`` [2] (ms) is a run's timing correction (time offset,
+    readout error; `TrainConfig.learn_timing`): each sample moves along the frame's twist by its time shift
+    (`motion_sampling.timed_poses`). ``cache`` (a run's, for its fixed ``row_time_ratio``) keeps the trajectory
+    samples, pixel indices and twists between calls.
     """
     if spec.motion_sampling == "velocity_shift":
         return _velocity_shift_poses(recording, frame, n, row_time_ratio, pose_delta, twist, n_exposure_samples)
@@ -147,6 +162,9 @@ def frame_poses(recording: Recording, frame: Frame, spec: MethodSpec, n: int, ro
     else:  # without a run's cache, a throwaway one: one code path
         cache = cache if cache is not None else PoseSampleCache()
         poses, ppi = cache.samples(recording, frame, n, n_exposure_samples, row_time_ratio)
+    if timing is not None:
+        twist_of = (cache if cache is not None else PoseSampleCache()).twist
+        poses = motion_sampling.timed_poses(poses, twist_of(recording, frame), timing)
     if pose_delta is not None:
         poses = poses.to(pose_delta.device) @ se3_exp(pose_delta.to(torch.float32))
     return poses, ppi
@@ -223,7 +241,7 @@ def predict_frame(gaussians, recording: Recording, frame: Frame, spec: MethodSpe
     """Render ``frame`` with the method's poses (``n_samples`` rolling-shutter samples and its exposure
     samples) and formation; the image formation runs on the CPU (float, as the metrics)."""
     poses, ppi = frame_poses(recording, frame, spec, n_samples, maps.row_time_ratio,
-                             n_exposure_samples=spec.render_exposure_samples)
+                             n_exposure_samples=spec.render_exposure_samples, timing=maps.timing_ms)
     outs = render_frame(gaussians, camera, poses, ppi, spec, settings)
     rgb = mean_rgb(outs).cpu()
     image = predict_image(rgb, spec, k, maps.vignette, formation)

@@ -45,6 +45,10 @@ class TrainConfig:
     lr_shading: float = 1e-2  # Adam lr of the shading coefficients
     shading_centre_dx: float = 0.0
     shading_centre_dy: float = 0.0
+    # Model extension (egobench.model.motion_sampling.timed_poses): a time offset and a readout error (ms) learned
+    # with the scene, moving every pose sample along its frame's twist by its time shift
+    learn_timing: bool = False
+    lr_timing: float = 1e-2  # Adam lr of the timing correction, ms
     grow_grad2d: float = 2e-4  # densify when the mean normalised screen gradient exceeds this
     grow_scale3d: float = 0.01  # duplicate below / split above this max-scale (x scene_scale)
     prune_opa: float = 0.005  # prune below this opacity
@@ -91,8 +95,9 @@ class TrainConfig:
         bad = sampling_problem(**self._sampling_fields())
         if bad is not None:  # `PoseSampling`'s own check, in TrainConfig's names
             raise ValueError(f"TrainConfig.{SAMPLING_FIELDS[bad[0]]}: {bad[1]}")
-        if not self.lr_shading > 0:
-            raise ValueError(f"TrainConfig.lr_shading: expected > 0, got {self.lr_shading}")
+        for name in ("lr_shading", "lr_timing"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"TrainConfig.{name}: expected > 0, got {getattr(self, name)}")
         if len(self.background) != 3:
             raise ValueError(f"TrainConfig.background: expected 3 values, got {self.background}")
 

@@ -57,7 +57,8 @@ def requested_step() -> str:
     return value
 
 
-def unsupported_reason(spec: MethodSpec, backend: str, formation, learn_shading: bool) -> str | None:
+def unsupported_reason(spec: MethodSpec, backend: str, formation, learn_shading: bool,
+                       learn_timing: bool = False) -> str | None:
     """Why the compiled step cannot train this run (None: it can); the autograd path trains it then."""
     if backend != "cpu":
         return f"the rasterizer backend is {backend!r}, not the compiled CPU backend"
@@ -65,6 +66,8 @@ def unsupported_reason(spec: MethodSpec, backend: str, formation, learn_shading:
         return "the method optimises poses or averages exposure samples"
     if learn_shading:
         return "the run learns a lens shading"
+    if learn_timing:
+        return "the run learns a timing correction (its gradient reaches the poses)"
     if spec.formation and not _gamma_formation(formation):
         return "the formation is not the trainer's gamma exposure (exposure, vignette, no white balance)"
     return None

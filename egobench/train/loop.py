@@ -36,6 +36,7 @@ from egobench.data.recording import Recording
 from egobench.host import kernel_threads
 from egobench.io_utils import holding_run_folder, write_json
 from egobench.model.methods import MethodSpec, get_method
+from egobench.model.motion_sampling import TIMING_KEY
 from egobench.model.optim import GAUSSIAN_PARAMS
 from egobench.model.predict import (
     PoseSampleCache, RenderSettings, formation_model, frame_poses, gaussians_from_params, mean_rgb, predict_image,
@@ -109,7 +110,8 @@ def step_context(data: TrainingData, config: TrainConfig, device: torch.device, 
         raise ValueError(f"recording {data.recording.root}: the valid-pixel mask is empty at the training resolution")
     formation = formation_model(data.spec)
     compiled = step == "auto" and cpu_step.unsupported_reason(
-        data.spec, resolve_backend(config.backend, device), formation, config.learn_shading) is None
+        data.spec, resolve_backend(config.backend, device), formation, config.learn_shading,
+        config.learn_timing) is None
     inputs = (cpu_step.run_inputs(mask3, n_mask, config, data.camera, data.spec.splat_mode == "2dgs", dtype)
               if compiled else None)
     return StepContext(data=data, config=config, settings=RenderSettings.of(config, device),
@@ -147,7 +149,8 @@ def _poses(state: TrainState, ctx: StepContext, it: int, fi: int) -> tuple[Tenso
     warm = it >= ctx.config.motion_warmup_iter
     return frame_poses(data.recording, data.frames[fi], spec, data.n_samples[fi] if warm else 1,
                        ctx.row_time_ratio, **state.frame_trainables(fi),
-                       n_exposure_samples=spec.render_exposure_samples if warm else 1, cache=ctx.pose_samples)
+                       n_exposure_samples=spec.render_exposure_samples if warm else 1, cache=ctx.pose_samples,
+                       timing=state.extra.get(TIMING_KEY))
 
 
 def _forward(state: TrainState, ctx: StepContext, it: int, fi: int) -> tuple[Tensor, list, float]:

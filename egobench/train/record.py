@@ -13,6 +13,7 @@ from egobench import __version__
 from egobench.data.reader import frame_counts
 from egobench.host import host_info
 from egobench.io_utils import git_commit
+from egobench.model.motion_sampling import TIMING_KEY
 from egobench.model.shading import KEY, corner_attenuation
 from egobench.render.torch_backend import VIEWER_NEAR_PLANE
 from egobench.train.config import TrainConfig
@@ -61,6 +62,7 @@ def train_record(result: "TrainResult", state: TrainState, data: TrainingData, c
                            "step_px": config.pose_sample_step_px},
         "densification_last": state.densifier.last_counts,
         "learned_shading": _learned_shading(state, config),
+        "learned_timing": _learned_timing(state),
         "near_cameras": near_camera_count(state.params["means"], data.frames),
     }
 
@@ -85,6 +87,14 @@ def _learned_shading(state: TrainState, config: TrainConfig) -> dict | None:
     a = state.extra[KEY].detach().cpu().tolist()
     return {"coeffs_r2_r4": a, "corner_attenuation": corner_attenuation(a),
             "centre_offset": [config.shading_centre_dx, config.shading_centre_dy]}
+
+
+def _learned_timing(state: TrainState) -> dict | None:
+    """The learned timing correction (None without learn_timing): time offset and readout error, ms."""
+    if TIMING_KEY not in state.extra:
+        return None
+    offset_ms, readout_ms = state.extra[TIMING_KEY].detach().cpu().tolist()
+    return {"time_offset_ms": offset_ms, "readout_error_ms": readout_ms}
 
 
 def _image_store_stats(data: TrainingData, config: TrainConfig) -> dict:

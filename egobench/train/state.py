@@ -10,7 +10,7 @@ import torch
 from torch import Tensor
 
 from egobench.model.adam import adam_step
-from egobench.model.motion_sampling import frame_twist_camera
+from egobench.model.motion_sampling import TIMING_KEY, frame_twist_camera
 from egobench.model.optim import GAUSSIAN_PARAMS, DensifySchedule, Densifier, make_adam
 from egobench.model.shading import KEY
 from egobench.train.config import TrainConfig
@@ -29,7 +29,7 @@ class TrainState:
     params: dict[str, torch.nn.Parameter]  # means [N,3], scales [N,3], quats [N,4], opacities [N], colors [N,3]
     optimizers: Optimisers  # one Adam per parameter
     scheduler: torch.optim.lr_scheduler.ExponentialLR  # on the means' lr
-    extra: dict[str, torch.nn.Parameter]  # per frame: pose_delta [F, 6], twist [F, 6]; per run: shading [2]
+    extra: dict[str, torch.nn.Parameter]  # per frame: pose_delta [F, 6], twist [F, 6]; per run: shading [2], timing [2]
     extra_optimizers: Optimisers
     densifier: Densifier
     frame_generator: torch.Generator  # the epoch permutations of the training frames
@@ -62,7 +62,7 @@ class TrainState:
 def _learning_rates(config: TrainConfig, scene_scale: float) -> dict[str, float]:
     return {"means": config.lr_means_at * scene_scale, "scales": config.lr_scales, "quats": config.lr_quats,
             "opacities": config.lr_opacities, "colors": config.lr_colors, "pose_delta": config.lr_pose,
-            "twist": config.lr_twist, "shading": config.lr_shading}
+            "twist": config.lr_twist, "shading": config.lr_shading, TIMING_KEY: config.lr_timing}
 
 
 def _optimisers(params: dict, extra: dict, config: TrainConfig, scene_scale: float):
@@ -86,10 +86,13 @@ def _densifier(config: TrainConfig, scene_scale: float) -> Densifier:
 
 def _extra_trainables(data: TrainingData, config: TrainConfig, device: torch.device) -> dict[str, torch.nn.Parameter]:
     """pose_delta [F, 6] (zeros) for pose-optimising methods; twist [F, 6] (from the trajectory) for
-    velocity-shift methods; shading [2] (zeros: none) with ``config.learn_shading``."""
+    velocity-shift methods; shading [2] (zeros: none) with ``config.learn_shading``; timing [2] (zeros: the
+    stated timing; ms) with ``config.learn_timing``."""
     extra: dict[str, torch.nn.Parameter] = {}
     if config.learn_shading:
         extra[KEY] = torch.nn.Parameter(torch.zeros(2, device=device))
+    if config.learn_timing:
+        extra[TIMING_KEY] = torch.nn.Parameter(torch.zeros(2, device=device))
     F = len(data.frames)
     if data.spec.pose_optimisation:
         extra["pose_delta"] = torch.nn.Parameter(torch.zeros(F, 6, device=device))

@@ -199,3 +199,20 @@ def test_the_round1_tests_table_reads_the_readout_and_both_lens_calibrations(tmp
     assert sweep.round1_tests_row(tmp_path / "not_diagnosed") is None
     sweep.write_csv(tmp_path / "t.csv", [row, {"case": "x", "extra": 1}])
     assert (tmp_path / "t.csv").read_text().splitlines()[0].endswith(",extra")
+
+
+def test_a_learned_timings_names_come_first_with_its_estimates(tmp_path):
+    """A run trained with learn_timing: the diagnosis's learned_timing names (`judge_timing`) lead the case's names
+    and give the timing estimates; a photometric name of the residual follows."""
+    from egobench.diagnose.learned_timing import judge_timing
+
+    case = _case(tmp_path, "timed", [], [{"name": "vignette", "params": {}}])
+    d = json.loads((case / "diag" / "diagnosis.json").read_text())
+    d["learned_timing"] = judge_timing({"time_offset_ms": 0.2, "readout_error_ms": 3.4}, 0.008)
+    (case / "diag" / "diagnosis.json").write_text(json.dumps(d))
+    row = sweep.case_row("readout", 301, case, {})
+    assert row["named"] == "readout vignette" and row["first"] == "readout" and row["expected_named"]
+    assert row["readout_s_estimated"] == 0.0114 and row["timing_named"] == "readout"
+    assert (row["learned_time_offset_ms"], row["learned_readout_error_ms"]) == (0.2, 3.4)
+    plain = sweep.case_row("readout", 302, _case(tmp_path, "plain", [], []), {})
+    assert "learned_readout_error_ms" not in plain and not plain["named"]

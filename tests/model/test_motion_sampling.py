@@ -13,7 +13,7 @@ from egobench.camera.pinhole import Pinhole
 from egobench.data.recording import Frame, Recording, SparseDepth
 from egobench.model.motion_sampling import (
     MOTION_WINDOW_S, estimate_motion, exposure_pose_samples, frame_twist_camera, n_pose_samples,
-    pixel_pose_index, pose_samples, sample_times_ns, velocity_poses,
+    pixel_pose_index, pose_samples, sample_times_ns, timed_poses, timing_shifts_s, velocity_poses,
 )
 from egobench.model.pose_sampling import PoseSampling
 
@@ -228,6 +228,40 @@ def test_velocity_model_matches_constant_rotation():
     ref = rec.trajectory.pose(torch.round(T_C + dt * 1e9).long())
     torch.testing.assert_close(T[:, :3, :3], ref[:, :3, :3])
     torch.testing.assert_close(T[:, :3, 3], ref[:, :3, 3], atol=1e-9, rtol=0)  # world x = v_x dt at the origin
+
+
+def test_a_timing_correction_moves_each_sample_to_its_corrected_time_along_the_twist():
+    """Under a constant twist, the samples at the stated times moved by (offset + place x readout error) are the
+    constant-velocity poses at the corrected times: the rotations exactly (exp((a + b) w) = exp(a w) exp(b w)),
+    the translations to second order (the shift's step s v turns with the sample's rotation: |R(a) - I| |s v|)."""
+    uv, z = centre_points()
+    rec = make_recording(12.0, uv, z, v_x=0.5)
+    f = rec.frames[0]
+    twist = frame_twist_camera(rec, f)
+    n, readout_s = 4, 0.008
+    dt = (torch.arange(n, dtype=torch.float64) + 0.5) / n * readout_s - readout_s / 2  # the bracket centres
+    timing = torch.tensor([1.5, -2.0], dtype=torch.float64)  # +1.5 ms offset, a readout 2 ms shorter
+    shifts = timing_shifts_s(n, timing)
+    torch.testing.assert_close(shifts, 1.5e-3 + ((torch.arange(n) + 0.5) / n - 0.5).double() * -2.0e-3)
+    moved = timed_poses(velocity_poses(f.T_world_camera, twist, dt)[None], twist, timing)
+    expected = velocity_poses(f.T_world_camera, twist, dt + shifts)
+    torch.testing.assert_close(moved[0, :, :3, :3], expected[:, :3, :3], atol=1e-12, rtol=0)
+    turn = (dt.abs() * twist[3:].norm() * shifts.abs() * twist[:3].norm())  # |R(a) - I| |s v| <= |a w| |s v|
+    assert torch.all((moved[0, :, :3, 3] - expected[:, :3, 3]).norm(dim=-1) <= turn + 1e-12)
+    assert float((moved[0, :, :3, 3] - expected[:, :3, 3]).norm(dim=-1).max()) > 0.5 * float(turn.max())
+    # no correction: the poses as they were, bit for bit (exp(0) = I)
+    poses = velocity_poses(f.T_world_camera, twist, dt)[None]
+    assert torch.equal(timed_poses(poses, twist, torch.zeros(2, dtype=torch.float64)), poses)
+
+
+def test_the_timing_correction_differentiates_as_its_finite_differences():
+    uv, z = centre_points()
+    rec = make_recording(12.0, uv, z, v_x=0.5)
+    f = rec.frames[0]
+    poses = exposure_pose_samples(rec, f, 3, 1)
+    twist = frame_twist_camera(rec, f)
+    timing = torch.tensor([0.7, 1.9], dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda t: timed_poses(poses, twist, t), (timing,))
 
 
 @pytest.mark.parametrize("n", [4, 8, 16, 64])

@@ -123,6 +123,7 @@ def test_a_run_is_the_autograd_runs_parameters(plane, tmp_path, monkeypatch, met
 @pytest.mark.parametrize("method, config, reason", [
     ("on_the_move", CFG, "poses"),
     ("ours", dataclasses.replace(CFG, learn_shading=True), "lens shading"),
+    ("ours", dataclasses.replace(CFG, learn_timing=True), "timing"),
     ("ours", dataclasses.replace(CFG, backend="torch"), "backend"),
 ])
 def test_what_the_compiled_step_leaves_to_autograd(plane, method, config, reason):
@@ -131,7 +132,7 @@ def test_what_the_compiled_step_leaves_to_autograd(plane, method, config, reason
     ctx = loop.step_context(data, config, torch.device("cpu"))
     assert not ctx.compiled
     why = cpu_step.unsupported_reason(spec, loop.resolve_backend(config.backend, "cpu"), ctx.formation,
-                                      config.learn_shading)
+                                      config.learn_shading, config.learn_timing)
     assert reason in why
 
 
