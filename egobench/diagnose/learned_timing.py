@@ -31,10 +31,10 @@ FLOORS = {"time_offset": ("time_offset_ms", TIME_OFFSET_FLOOR_MS), "readout": ("
 
 def learned_timing_of(run_dir: str | Path) -> dict | None:
     """The timing correction a run learned (train.json's ``learned_timing``: time offset and readout error, ms), or
-    None when the run did not learn one."""
+    None when the run did not learn one (or has no train.json: a checkpoint alone says nothing of it)."""
     path = Path(run_dir) / "train.json"
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: the run's record is missing")
+        return None
     learned = json.loads(path.read_text()).get("learned_timing")
     if learned is None:
         return None
