@@ -16,7 +16,7 @@ from egobench.data.reader import add_input_arguments, recording_from_args
 from egobench.diagnose.absorption import hidden_testable, load_retention
 from egobench.diagnose.core import DiagnosisConfig, diagnose_residuals
 from egobench.diagnose.extension import judge_shading, learned_shading_of, load_shading_null, run_setup
-from egobench.diagnose.learned_timing import judge_timing, learned_timing_of
+from egobench.diagnose.learned_timing import judge_timing, learned_timing_of, timing_of_run
 from egobench.diagnose.lens_check import diagnose_trained_run
 from egobench.diagnose.report import write_report
 from egobench.diagnose.sources import ground_truth_source, run_source
@@ -74,6 +74,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--retention", action="append", default=None, metavar="TRAINED_SWEEP_JSON",
                         help="with a run: scale the smallest testable sizes by how much of each effect training "
                              "retained in this trained-run sweep summary (repeatable; later files win)")
+    parser.add_argument("--learn-timing", action="store_true",
+                        help="with a run that did not learn its timing (`egobench train --set learn_timing=true`): "
+                             "train the run's method once more with its config, seed and the timing into "
+                             "OUT/learn_timing, and judge the time offset and readout error it learns "
+                             "(egobench.diagnose.learned_timing)")
     parser.add_argument("--lens-check", action="store_true",
                         help="on a trained run, measure the run's retention of a lens of twice the smallest k0 "
                              "error its report calls testable (the method trained once more, on the recording "
@@ -173,8 +178,7 @@ def _diagnose_recording(args: argparse.Namespace, cfg: DiagnosisConfig, out: Pat
     if args.retention:
         _add_hidden_testable(d, args.retention)
     extra = {"method": args.method, "source": src.description}
-    learned = learned_timing_of(run_dir) if source == "run" else None
-    timing = None if learned is None else judge_timing(learned, src.context.readout_s)
+    timing = _learned_timing(args, rec, run_dir, out, src) if source == "run" else None
     record = write_report(out, d, src.measured, src.predicted, title=f"Residual diagnosis of {rec.name} ({src.description})",
                           extra=extra, shading_extension=extension, learned_timing=timing)
     summary = {"out": str(out), "verdict": record["verdict"], "psnr_gain_db": record["psnr_gain_db"]}
@@ -186,6 +190,18 @@ def _diagnose_recording(args: argparse.Namespace, cfg: DiagnosisConfig, out: Pat
             summary["shading_extension_gain_db"] = extension["held_out"]["gain_db"]
     print(json.dumps(summary))
     return 0
+
+
+def _learned_timing(args: argparse.Namespace, rec: Path, run_dir: Path, out: Path, src) -> dict | None:
+    """The timing the run learned with its scene, judged (None where it learned none and --learn-timing is off;
+    with it, the run's method trained once more with the timing, into OUT/learn_timing)."""
+    if args.learn_timing:
+        learned, learned_in = timing_of_run(rec, run_dir, out / "learn_timing", progress=not args.no_progress)
+    else:
+        learned, learned_in = learned_timing_of(run_dir), run_dir
+    if learned is None:
+        return None
+    return {**judge_timing(learned, src.context.readout_s), "learned_in": str(learned_in)}
 
 
 def _add_hidden_testable(d, paths: list[str]) -> None:

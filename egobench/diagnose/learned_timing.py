@@ -10,23 +10,25 @@ exploratory runs of set 89's seeds a hidden 3 ms offset was learned as 2.34-3.02
 2.86-4.37 ms, while nulls and 40 % vignettes learned at most 0.26 ms of offset and 0.89 ms of readout error
 ("2026-12-07: the timing learned with the scene").
 
-The floors are constants chosen on those exploratory runs, before the fresh set that tests them: they are not yet
-the run's own (issue 72's floors from the run itself). A run-derived null for a learned parameter, such as the
-timing learned along placebo twists, is the step after.
+The floors (`Effect.learned_timing`, in each effect's file) are constants chosen on those exploratory runs, before
+the fresh set that tested them (set 90): they are not yet the run's own (issue 72's floors from the run itself). A
+run-derived null for a learned parameter, such as the timing learned along placebo twists, is the step after.
 """
 
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
-#: |learned time offset| (ms) from which a time offset is named (exploratory nulls and vignettes: at most 0.26)
-TIME_OFFSET_FLOOR_MS = 1.0
-#: |learned readout error| (ms) from which a readout error is named (exploratory nulls, vignettes and time
-#: offsets: at most 1.12)
-READOUT_ERROR_FLOOR_MS = 2.0
-#: cause -> (the learned value's key in train.json's ``learned_timing``, its floor in ms)
-FLOORS = {"time_offset": ("time_offset_ms", TIME_OFFSET_FLOOR_MS), "readout": ("readout_error_ms", READOUT_ERROR_FLOOR_MS)}
+from egobench.data.reader import load_recording
+from egobench.effects import EFFECTS
+from egobench.train import train
+from egobench.train.checkpoint import load_trained_run
+
+#: effect -> (its learned value's key in train.json's ``learned_timing``, the floor in ms from which it is named):
+#: the effects learned with the scene (`Effect.learned_timing`)
+FLOORS = {name: e.learned_timing for name, e in EFFECTS.items() if e.learned_timing is not None}
 
 
 def learned_timing_of(run_dir: str | Path) -> dict | None:
@@ -44,33 +46,54 @@ def learned_timing_of(run_dir: str | Path) -> dict | None:
     return learned
 
 
+def timing_of_run(recording_dir: str | Path, run_dir: str | Path, work_dir: str | Path,
+                  progress: bool = False) -> tuple[dict, Path]:
+    """The timing ``run_dir`` learned, and where -> (learned, run folder). A run that learned none is trained once
+    more, its method with its config and seed and ``learn_timing`` on, into WORK_DIR/run (a complete run there is
+    reused, a partial one resumed): the timing that run learns is the user's run's (`egobench diagnose
+    --learn-timing`; a second training, as `--lens-check`'s)."""
+    learned = learned_timing_of(run_dir)
+    if learned is not None:
+        return learned, Path(run_dir)
+    run = load_trained_run(run_dir, None, f"learned timing of {run_dir}")
+    retrained = Path(work_dir) / "run"
+    done = retrained / "train.json"
+    if not (done.is_file() and json.loads(done.read_text()).get("complete")):
+        recording = load_recording(recording_dir, calibration=run.spec.calibration)
+        train(recording, run.spec.name, replace(run.config, learn_timing=True), retrained, resume="auto",
+              progress=progress)
+    learned = learned_timing_of(retrained)
+    if learned is None:
+        raise ValueError(f"{done}: a run trained with learn_timing recorded no learned_timing")
+    return learned, retrained
+
+
 def judge_timing(learned: dict, stated_readout_s: float) -> dict:
     """The causes a learned timing names -> the record: the learned values, the floors, the named causes (the
-    largest multiple of its floor first) and their estimates in the diagnosis's units."""
-    detail = []
+    largest multiple of its floor first), each with its estimate, and every learned effect's estimate in the
+    residual diagnosis's keys (`Effect.learned_estimate`)."""
+    detail, estimates = [], {}
     for cause, (key, floor) in FLOORS.items():
         value = float(learned[key])
+        estimate = EFFECTS[cause].learned_estimate(value, stated_readout_s)
+        estimates.update(estimate)
         if abs(value) >= floor:
-            detail.append({"cause": cause, "learned_ms": value, "floor_ms": floor, "multiple": abs(value) / floor})
+            detail.append({"cause": cause, "learned_ms": value, "floor_ms": floor, "multiple": abs(value) / floor,
+                           "estimate": estimate})
     detail.sort(key=lambda d: -d["multiple"])
-    return {"learned": {k: float(learned[k]) for k, _ in FLOORS.values()},
+    return {"learned": {key: float(learned[key]) for key, _ in FLOORS.values()},
             "floors_ms": {cause: floor for cause, (_, floor) in FLOORS.items()},
-            "named": [d["cause"] for d in detail], "detail": detail,
-            "time_offset_error_s": float(learned["time_offset_ms"]) * 1e-3,
-            "readout_s_estimated": float(stated_readout_s) + float(learned["readout_error_ms"]) * 1e-3}
+            "named": [d["cause"] for d in detail], "detail": detail, **estimates}
 
 
 def timing_markdown(judged: dict) -> str:
     """The report's section on a learned timing."""
-    lines = ["\n## The timing learned with the scene\n",
-             f"- learned time offset {judged['learned']['time_offset_ms']:+.3f} ms (named from "
-             f"{TIME_OFFSET_FLOOR_MS} ms), readout error {judged['learned']['readout_error_ms']:+.3f} ms (named from "
-             f"{READOUT_ERROR_FLOOR_MS} ms)",
-             f"- named: {', '.join(judged['named']) or 'nothing'}"]
-    if "readout" in judged["named"]:
-        lines.append(f"- readout {judged['readout_s_estimated'] * 1e3:.2f} ms")
+    lines = ["\n## The timing learned with the scene\n"]
+    lines += [f"- {cause}: learned {judged['learned'][FLOORS[cause][0]]:+.3f} ms, named from {floor} ms"
+              for cause, floor in judged["floors_ms"].items()]
+    lines.append(f"- named: {', '.join(judged['named']) or 'nothing'}")
+    lines += [f"- {d['cause']}: " + ", ".join(f"{k} {v:.6g}" for k, v in d["estimate"].items()) for d in judged["detail"]]
     return "\n".join(lines) + "\n"
 
 
-__all__ = ["FLOORS", "READOUT_ERROR_FLOOR_MS", "TIME_OFFSET_FLOOR_MS", "judge_timing", "learned_timing_of",
-           "timing_markdown"]
+__all__ = ["FLOORS", "judge_timing", "learned_timing_of", "timing_markdown", "timing_of_run"]

@@ -144,6 +144,10 @@ class Effect:
     error_unit: ClassVar[str] = "relative"
     #: Key of the diagnosis's estimate of the parameter (`retention`), when not `parameter`.
     estimate_key: ClassVar[str | None] = None
+    #: Learned with the scene (`TrainConfig.learn_timing`): the key of its learned value in train.json's
+    #: ``learned_timing`` (ms) and the floor from which the learned value names it (`egobench.diagnose.learned_timing`);
+    #: None: not learned.
+    learned_timing: ClassVar[tuple[str, float] | None] = None
 
     def sweep_magnitudes(self, fractions_of_lo: tuple[float, ...]) -> list[float]:
         """Magnitudes of the synthetic sweep (deviation from nominal, the parameter's unit; log for
@@ -206,6 +210,11 @@ class Effect:
         """Change the photometric truth in place."""
 
     # ---- the diagnosis ------------------------------------------------------------------------
+    def learned_estimate(self, learned_ms: float, stated_readout_s: float) -> dict:
+        """The diagnosis's estimate of the parameter from the value learned with the scene (`learned_timing`),
+        keyed as the residual diagnosis keys it; empty when the effect is not learned."""
+        return {}
+
     def smallest_testable(self, d: float, se: float, ctx) -> dict | None:
         """The smallest effect a run can reveal, in the parameter's unit, from the statistic's minimal
         detectable deviation ``d`` and its standard error ``se`` (None: no conversion)."""

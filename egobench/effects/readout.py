@@ -206,9 +206,17 @@ class Readout(Effect):
     trained_magnitudes = (0.4,)
     error_unit = "fraction"
     trained_placebo = "velocity_permutation"
+    # named from 2 ms: on exploratory runs without a readout error the learned one reached 1.12 ms, readouts 4 ms
+    # long were learned as 2.86-4.37 ms (results/diagnosis/README.md, "2026-12-07: the timing learned with the scene")
+    learned_timing = ("readout_error_ms", 2.0)
 
     def sim_overrides(self, value, affected_fraction=0.25):
         return {"readout_scale": 1.0 + float(value)}  # relative error e: true = stated (1 + e)
+
+    def learned_estimate(self, learned_ms, stated_readout_s):
+        readout_s = float(stated_readout_s) + float(learned_ms) * 1e-3
+        return {"readout_s_estimated": readout_s,
+                "readout_relative_error": readout_s / stated_readout_s - 1.0 if stated_readout_s > 0 else math.inf}
 
     def _parameter_error(self, value, params):
         return abs(params["readout_relative_error"] - value)

@@ -50,9 +50,15 @@ class TimeOffset(Effect):
     trained_magnitudes = (3e-3,)
     error_unit = "s"
     trained_placebo = "velocity_permutation"
+    # named from 1 ms: on exploratory runs without an offset the learned one reached 0.26 ms, 3 ms offsets were
+    # learned as 2.34-3.02 ms (results/diagnosis/README.md, "2026-12-07: the timing learned with the scene")
+    learned_timing = ("time_offset_ms", 1.0)
 
     def sim_overrides(self, value, affected_fraction=0.25):
         return {"time_offset_s": float(value)}
+
+    def learned_estimate(self, learned_ms, stated_readout_s):
+        return {"time_offset_error_s": float(learned_ms) * 1e-3}
 
     def _parameter_error(self, value, params):
         return abs(params["time_offset_error_s"] - value)
