@@ -43,8 +43,8 @@ from egobench.metrics import (
 )
 from egobench.model.methods import get_method
 from egobench.model.predict import (
-    FrameMaps, RenderSettings, formation_model, frame_poses, method_normaliser, predict_frame, run_maps,
-    render_frame, resize_map, sample_counts,
+    FrameMaps, RenderSettings, formation_model, frame_poses, learned_timing_ms, method_normaliser, predict_frame,
+    run_maps, render_frame, resize_map, sample_counts,
 )
 from egobench.train.checkpoint import TrainedRun, check_run_complete, load_trained_run, recording_for_run
 from egobench.train.normal_consistency import depth_normals
@@ -338,7 +338,8 @@ def _geometry(run: TrainedRun, geo_rec: Recording, frame: Frame, n: int, scale: 
     cam = geo_rec.camera if abs(scale - 1) < 1e-12 else geo_rec.camera.scaled(scale)
     d_path, n_path = geo_rec.ground_truth_file("depth", gf), geo_rec.ground_truth_file("normal", gf)
     pose_spec = get_method("ours") if run.spec.models_rolling_shutter else get_method("no_motion_sampling")
-    poses, ppi = frame_poses(geo_rec, gf, pose_spec, n, resize_map(geo_rec.row_time_ratio.float(), cam))
+    poses, ppi = frame_poses(geo_rec, gf, pose_spec, n, resize_map(geo_rec.row_time_ratio.float(), cam),
+                             timing=learned_timing_ms(run))
     o = render_frame(run.gaussians, cam, poses, ppi, run.spec, RenderSettings.of(run.config),
                      want_normal=n_path is not None)[0]
     in_view = resize_map(geo_rec.mask.float(), cam, "nearest") > 0.5

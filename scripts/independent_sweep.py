@@ -119,7 +119,8 @@ def case_row(effect: str, seed: int, case: Path, times: dict) -> dict:
     altered = [int(k) for k in truth["effects"]["exposure_altered_frames"]]
     flagged = params.get("exposure_metadata", {}).get("flagged_frames", [])
     other_first = bool(named) and named[0] != expected
-    contained = other_first and expected in _or_causes(d["named"][0])
+    residual_first = next((n for n in d.get("named", []) if n["name"] == named[0]), None) if named else None
+    contained = other_first and residual_first is not None and expected in _or_causes(residual_first)
     return {
         "effect": effect, "seed": seed, "named": " ".join(named), "first": named[0] if named else "",
         "expected_named": bool(expected) and expected in named,

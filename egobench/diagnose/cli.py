@@ -157,6 +157,8 @@ def _diagnose_recording(args: argparse.Namespace, cfg: DiagnosisConfig, out: Pat
         raise FileNotFoundError(f"{rec}: recording folder not found")
     run_dir = _train_for_diagnosis(args, rec, out) if args.train else (Path(args.run) if args.run else None)
     source = args.source if args.source != "auto" else ("run" if run_dir is not None else "ground_truth")
+    if args.learn_timing and source != "run":
+        raise ValueError("--learn-timing: the timing is learned with a trained run's scene; pass --run RUN_DIR or --train")
     if source == "run":
         if run_dir is None:
             raise ValueError("--run: --source run needs a trained run folder (or --train)")

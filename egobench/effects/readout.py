@@ -216,7 +216,7 @@ class Readout(Effect):
     def learned_estimate(self, learned_ms, stated_readout_s):
         readout_s = float(stated_readout_s) + float(learned_ms) * 1e-3
         return {"readout_s_estimated": readout_s,
-                "readout_relative_error": readout_s / stated_readout_s - 1.0 if stated_readout_s > 0 else math.inf}
+                "readout_relative_error": readout_s / stated_readout_s - 1.0 if stated_readout_s > 0 else None}
 
     def _parameter_error(self, value, params):
         return abs(params["readout_relative_error"] - value)

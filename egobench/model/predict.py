@@ -61,9 +61,14 @@ def run_maps(recording: Recording, run) -> FrameMaps:
     (`egobench.model.shading`; unchanged for runs without one)."""
     maps = frame_maps(recording, run.camera)
     extra = run.checkpoint.get("extra") or {}
-    timing = extra.get(motion_sampling.TIMING_KEY)
     return replace(maps, vignette=learned_vignette(maps.vignette, run.camera, extra, run.config),
-                   timing_ms=None if timing is None else timing.detach().to(torch.float32).cpu())
+                   timing_ms=learned_timing_ms(run))
+
+
+def learned_timing_ms(run) -> Tensor | None:
+    """The timing correction [2] (ms, float32, CPU) a trained run learned with its scene, or None."""
+    timing = (run.checkpoint.get("extra") or {}).get(motion_sampling.TIMING_KEY)
+    return None if timing is None else timing.detach().to(torch.float32).cpu()
 
 
 def exposure_normaliser(recording: Recording) -> Tensor:

@@ -15,7 +15,7 @@ PAPER_ITERATIONS = 30_000
 
 
 #: TrainConfig fields added after runs were trained: `TrainConfig.hash` leaves each out at its default.
-HASHED_WHEN_SET = ("pose_sample_step_px",)
+HASHED_WHEN_SET = ("pose_sample_step_px", "learn_timing", "lr_timing")
 #: TrainConfig's field of each `PoseSampling` field
 SAMPLING_FIELDS = {"max_samples": "max_pose_samples", "rule": "sample_rule", "step_px": "pose_sample_step_px"}
 

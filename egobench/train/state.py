@@ -92,6 +92,10 @@ def _extra_trainables(data: TrainingData, config: TrainConfig, device: torch.dev
     if config.learn_shading:
         extra[KEY] = torch.nn.Parameter(torch.zeros(2, device=device))
     if config.learn_timing:
+        if data.spec.motion_sampling != "adaptive":
+            raise ValueError(f"TrainConfig.learn_timing: method {data.spec.name!r} renders "
+                             f"{data.spec.motion_sampling!r} poses, not the rolling-shutter samples a timing moves; "
+                             "expected a method with adaptive motion sampling (e.g. 'ours')")
         extra[TIMING_KEY] = torch.nn.Parameter(torch.zeros(2, device=device))
     F = len(data.frames)
     if data.spec.pose_optimisation:

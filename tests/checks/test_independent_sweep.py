@@ -216,3 +216,14 @@ def test_a_learned_timings_names_come_first_with_its_estimates(tmp_path):
     assert (row["learned_time_offset_ms"], row["learned_readout_error_ms"]) == (0.2, 3.4)
     plain = sweep.case_row("readout", 302, _case(tmp_path, "plain", [], []), {})
     assert "learned_readout_error_ms" not in plain and not plain["named"]
+
+
+def test_a_timing_named_on_a_null_with_nothing_from_the_residual_is_a_wrong_first_name(tmp_path):
+    from egobench.diagnose.learned_timing import judge_timing
+
+    case = _case(tmp_path, "timed_null", [], [])
+    d = json.loads((case / "diag" / "diagnosis.json").read_text())
+    d["learned_timing"] = judge_timing({"time_offset_ms": 1.5, "readout_error_ms": 0.1}, 0.008)
+    (case / "diag" / "diagnosis.json").write_text(json.dumps(d))
+    row = sweep.case_row("null", 101, case, {})
+    assert row["first"] == "time_offset" and row["wrong_first"] and not row["contained_first"]

@@ -73,6 +73,8 @@ def test_a_run_that_learned_no_timing_is_trained_once_more_with_it_and_reused_af
         learned, where = learned_timing.timing_of_run(tmp_path / "rec", plain, tmp_path / "work")
         assert learned == {"time_offset_ms": 0.1, "readout_error_ms": 3.4} and where == tmp_path / "work" / "run"
     assert len(calls) == 1
+    with pytest.raises(ValueError, match="learn_timing.json: this folder holds the timing run of"):
+        learned_timing.timing_of_run(tmp_path / "other_rec", plain, tmp_path / "work")
     recording, method, cfg, out, resume = calls[0]
     assert recording == ("recording", tmp_path / "rec", "online") and method == "ours" and resume == "auto"
     assert cfg == dataclasses.replace(config, learn_timing=True) and cfg.seed == 1185
@@ -102,3 +104,16 @@ def test_diagnose_judges_the_timing_the_run_learned_or_trains_it_under_learn_tim
     judged = cli._learned_timing(args, tmp_path / "rec", run, tmp_path / "out", src)
     assert judged["named"] == ["time_offset"] and judged["time_offset_error_s"] == pytest.approx(0.0027)
     assert judged["learned_in"] == str(tmp_path / "out" / "learn_timing" / "run")
+
+
+def test_learn_timing_needs_a_trained_run(tmp_path):
+    import argparse
+
+    from egobench.diagnose import cli
+
+    parser = argparse.ArgumentParser()
+    cli.add_arguments(parser)
+    (tmp_path / "rec").mkdir()
+    args = parser.parse_args([str(tmp_path / "rec"), "--out", str(tmp_path / "out"), "--learn-timing", "--no-progress"])
+    with pytest.raises(ValueError, match="--learn-timing: the timing is learned with a trained run's scene"):
+        cli._diagnose_recording(args, cli.DiagnosisConfig(), tmp_path / "out")

@@ -140,3 +140,13 @@ def test_a_bad_step_choice_is_named(monkeypatch):
     monkeypatch.setenv(cpu_step.STEP_ENV, "fused")
     with pytest.raises(ValueError, match="EGOBENCH_TRAIN_STEP='fused'"):
         cpu_step.requested_step()
+
+
+def test_a_timing_is_learned_only_where_the_method_renders_rolling_shutter_samples(plane):
+    """The learned timing moves the pose samples: a velocity-shift or centre-pose method has none it could move, so
+    it would record a timing that never got a gradient."""
+    config = dataclasses.replace(CFG, learn_timing=True)
+    for method in ("on_the_move", "no_motion_sampling"):
+        with pytest.raises(ValueError, match="TrainConfig.learn_timing: method"):
+            new_state(_data(plane, method, config), config, torch.device("cpu"))
+    assert "timing" in new_state(_data(plane, "ours", config), config, torch.device("cpu")).extra
