@@ -157,6 +157,23 @@ def write_json(path: str | os.PathLike, obj: Any, indent: int = 2) -> None:
         tmp.write_text(json.dumps(obj, indent=indent, allow_nan=False) + "\n")
 
 
+def claim_work_dir(work_dir: str | os.PathLike, stamp_name: str, owner: dict, what: str) -> None:
+    """Stamp WORK_DIR with what its run is trained for (WORK_DIR/``stamp_name``: ``owner``), or raise where it holds
+    one for another, or an unstamped run: a complete run there is reused, and one trained for something else would
+    give a wrong answer without a sign. ``what`` names the folder's content in the error ("a lens check")."""
+    work_dir = Path(work_dir)
+    stamp = work_dir / stamp_name
+    if stamp.is_file():
+        have = json.loads(stamp.read_text())
+        if have != owner:
+            raise ValueError(f"{stamp}: this folder holds {what} of {have}, not {owner}; use another --out")
+    elif (work_dir / "run").exists():
+        raise ValueError(f"{work_dir / 'run'}: a run without {stamp.name} (what it was trained for unknown); "
+                         "use another --out")
+    work_dir.mkdir(parents=True, exist_ok=True)
+    stamp.write_text(json.dumps(owner) + "\n")
+
+
 def read_json(path: str | os.PathLike) -> Any:
     """Read JSON; a missing or truncated file raises ValueError naming the file."""
     path = Path(path)

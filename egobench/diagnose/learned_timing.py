@@ -23,6 +23,7 @@ from pathlib import Path
 
 from egobench.data.reader import load_recording
 from egobench.effects import EFFECTS
+from egobench.io_utils import claim_work_dir
 from egobench.train import train
 from egobench.train.checkpoint import load_trained_run
 
@@ -56,7 +57,8 @@ def timing_of_run(recording_dir: str | Path, run_dir: str | Path, work_dir: str 
     if learned is not None:
         return learned, Path(run_dir)
     run = load_trained_run(run_dir, None, f"learned timing of {run_dir}")
-    claim_work_dir(Path(work_dir), {"run": str(Path(run_dir).resolve()), "recording": str(Path(recording_dir).resolve())})
+    claim_work_dir(work_dir, "learn_timing.json",
+                   {"run": str(Path(run_dir).resolve()), "recording": str(Path(recording_dir).resolve())}, "the timing run")
     retrained = Path(work_dir) / "run"
     done = retrained / "train.json"
     if not (done.is_file() and json.loads(done.read_text()).get("complete")):
@@ -67,19 +69,6 @@ def timing_of_run(recording_dir: str | Path, run_dir: str | Path, work_dir: str 
     if learned is None:
         raise ValueError(f"{done}: a run trained with learn_timing recorded no learned_timing")
     return learned, retrained
-
-
-def claim_work_dir(work_dir: Path, owner: dict) -> None:
-    """Stamp WORK_DIR with the run and recording its timing run is trained for (WORK_DIR/learn_timing.json), or
-    raise where it holds one for another: a complete run there is reused, and another's timing would be judged."""
-    stamp = work_dir / "learn_timing.json"
-    if stamp.is_file():
-        have = json.loads(stamp.read_text())
-        if have != owner:
-            raise ValueError(f"{stamp}: this folder holds the timing run of {have}, not of {owner}; use another --out")
-        return
-    work_dir.mkdir(parents=True, exist_ok=True)
-    stamp.write_text(json.dumps(owner) + "\n")
 
 
 def judge_timing(learned: dict, stated_readout_s: float) -> dict:

@@ -36,6 +36,7 @@ from egobench.data.recording import Frame, Recording
 from egobench.diagnose.core import Diagnosis, DiagnosisConfig, diagnose_residuals
 from egobench.diagnose.sources import Sources, run_source
 from egobench.effects.distortion import LENS_RETENTION_FLOOR, DistortionCause, lens_warp, unit_displacement
+from egobench.io_utils import claim_work_dir
 from egobench.residual.estimation import ResidualData
 from egobench.residual.signatures import DiagnosisContext, frame_t_test
 from egobench.train import train
@@ -93,17 +94,8 @@ def retention_of(k_run: float, k_warped: float, k_retrained: float, injected: fl
 
 def claim_warp(work_dir: Path, warp: dict) -> None:
     """Stamp WORK_DIR with the warp its run is trained on (WORK_DIR/warp.json: injected k0, run, recording), or
-    raise where it holds a run of another warp: a run there is reused, and one trained on another lens would give
-    a wrong retention without a sign."""
-    stamp = work_dir / "warp.json"
-    if stamp.is_file():
-        have = json.loads(stamp.read_text())
-        if have != warp:
-            raise ValueError(f"{stamp}: this folder holds a lens check of {have}, not {warp}; use another --out")
-    elif (work_dir / "run").exists():
-        raise ValueError(f"{work_dir / 'run'}: a run without {stamp.name} (its warp unknown); use another --out")
-    work_dir.mkdir(parents=True, exist_ok=True)
-    stamp.write_text(json.dumps(warp) + "\n")
+    raise where it holds a run of another warp (`io_utils.claim_work_dir`)."""
+    claim_work_dir(work_dir, "warp.json", warp, "a lens check")
 
 
 def measure_lens_retention(recording_dir: str | Path, run_dir: str | Path, src: Sources, injected_k0: float,

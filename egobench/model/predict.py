@@ -161,15 +161,14 @@ def frame_poses(recording: Recording, frame: Frame, spec: MethodSpec, n: int, ro
     """
     if spec.motion_sampling == "velocity_shift":
         return _velocity_shift_poses(recording, frame, n, row_time_ratio, pose_delta, twist, n_exposure_samples)
+    cache = cache if cache is not None else PoseSampleCache()  # without a run's, a throwaway one: one code path
     if n == 1 and n_exposure_samples == 1:
         poses = frame.T_world_camera.to(torch.float32)[None, None]
         ppi = None
-    else:  # without a run's cache, a throwaway one: one code path
-        cache = cache if cache is not None else PoseSampleCache()
+    else:
         poses, ppi = cache.samples(recording, frame, n, n_exposure_samples, row_time_ratio)
     if timing is not None:
-        twist_of = (cache if cache is not None else PoseSampleCache()).twist
-        poses = motion_sampling.timed_poses(poses, twist_of(recording, frame), timing)
+        poses = motion_sampling.timed_poses(poses, cache.twist(recording, frame), timing)
     if pose_delta is not None:
         poses = poses.to(pose_delta.device) @ se3_exp(pose_delta.to(torch.float32))
     return poses, ppi
