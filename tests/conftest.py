@@ -41,13 +41,24 @@ def pytest_collection_modifyitems(config, items):
     now (`tests.background`), so that their subprocesses (a cold numba compile, the CI workflow) overlap
     the rest of the suite on a second core; each test then waits for its job. A module's
     ``background_wanted(config)``, where defined, may say that its jobs are not needed up front (a test
-    can still start its job when it asks for it)."""
+    can still start its job when it asks for it).
+
+    The tests marked slow run first, in their order, so that under pytest-xdist the long ones start while
+    short ones are left to fill both workers at the end (collected in file order, the CI workflow's 45 s
+    test came last and one worker ran it alone)."""
+    items[:] = slow_first(items)
     if background.UNDER_XDIST:
         return  # every xdist worker collects every test: a job starts when its test asks for it (`background.start`)
     for item in items:
         module = getattr(item, "module", None)
         if module is not None and getattr(module, "background_wanted", lambda config: True)(config):
             background.start(module, getattr(item, "originalname", item.name))
+
+
+def slow_first(items: list) -> list:
+    """``items`` with the ones marked slow first, each group in its own order (a stable sort: every xdist
+    worker collects the same order, as xdist requires)."""
+    return sorted(items, key=lambda item: item.get_closest_marker("slow") is None)
 
 
 @pytest.fixture(scope="session", autouse=True)

@@ -39,6 +39,7 @@ def test_learned_vignette_multiplies_only_when_the_run_learned_one():
     assert torch.allclose(out, v * torch.exp(-0.3 * radius2(CAM, (1 / 9, 0.0))))
 
 
+@pytest.mark.slow
 def test_a_learned_shading_recovers_a_vignette_the_trained_model_absorbs(tmp_path):
     # the same scene with and without a hidden lens shading; paired with the null, the learned extra
     # darkening at the view's corner is the hidden one (the null's value is the model's own corner bias)

@@ -519,6 +519,7 @@ def _real_aria_scene() -> tuple[subprocess.CompletedProcess, Path] | None:
 BACKGROUND["test_real_aria_scene_runs_end_to_end"] = _real_aria_scene
 
 
+@pytest.mark.slow
 def test_real_aria_scene_runs_end_to_end(shared_data):
     """ADT's real frames with a test-built MPS folder: preprocess (online + factory) -> train -> evaluate -> tables."""
     pytest.importorskip("projectaria_tools")
