@@ -142,8 +142,11 @@ def learned_timing_columns(timing: dict | None) -> dict:
     """The learned timing's columns (none for a run that learned none)."""
     if not timing:
         return {}
+    tests = timing.get("tests", {})
     return {"learned_time_offset_ms": timing["learned"]["time_offset_ms"],
-            "learned_readout_error_ms": timing["learned"]["readout_error_ms"], "timing_named": " ".join(timing["named"])}
+            "learned_readout_error_ms": timing["learned"]["readout_error_ms"],
+            "learned_time_offset_t": tests.get("time_offset", {}).get("t"), "learned_readout_t": tests.get("readout", {}).get("t"),
+            "timing_named": " ".join(timing["named"])}
 
 
 def lens_check_record(d: dict) -> dict:

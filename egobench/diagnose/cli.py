@@ -16,7 +16,7 @@ from egobench.data.reader import add_input_arguments, recording_from_args
 from egobench.diagnose.absorption import hidden_testable, load_retention
 from egobench.diagnose.core import DiagnosisConfig, diagnose_residuals
 from egobench.diagnose.extension import judge_shading, learned_shading_of, load_shading_null, run_setup
-from egobench.diagnose.learned_timing import judge_timing, learned_timing_of, timing_of_run
+from egobench.diagnose.learned_timing import judge_timing, learned_timing_of, timing_evidence, timing_of_run
 from egobench.diagnose.lens_check import diagnose_trained_run
 from egobench.diagnose.report import write_report
 from egobench.diagnose.sources import ground_truth_source, run_source
@@ -203,7 +203,8 @@ def _learned_timing(args: argparse.Namespace, rec: Path, run_dir: Path, out: Pat
         learned, learned_in = learned_timing_of(run_dir), run_dir
     if learned is None:
         return None
-    return {**judge_timing(learned, src.context.readout_s), "learned_in": str(learned_in)}
+    evidence = timing_evidence(rec, learned_in, progress=not args.no_progress)
+    return {**judge_timing(learned, src.context.readout_s, evidence), "learned_in": str(learned_in)}
 
 
 def _add_hidden_testable(d, paths: list[str]) -> None:

@@ -11,8 +11,12 @@ exploratory runs of set 89's seeds a hidden 3 ms offset was learned as 2.34-3.02
 ("2026-12-07: the timing learned with the scene").
 
 The floors (`Effect.learned_timing`, in each effect's file) are constants chosen on those exploratory runs, before
-the fresh set that tested them (set 90): they are not yet the run's own (issue 72's floors from the run itself). A
-run-derived null for a learned parameter, such as the timing learned along placebo twists, is the step after.
+the fresh set that tested them (set 90): they are not the run's own (issue 72's floors from the run itself). Beside
+each learned value the record gives its standard error on the run (`timing_pulls`: the training frames' pulls on
+it with the scene held as trained, a block sandwich) and t. That t does not decide, measured on 100 runs of sets
+89 and 90 (results/diagnosis/README.md, "2026-12-07: the learned timing's standard error from the run"): the
+frames' scatter leaves out what training's co-adaptation adds, so a null learned an offset of 0.19 ms at t 4.6,
+while two readout errors of 2.9-3.4 ms stood at t 2.2-2.3. A null that includes training would need trainings.
 """
 
 from __future__ import annotations
@@ -21,7 +25,11 @@ import json
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
+from scipy.stats import t as student_t
+
 from egobench.data.reader import load_recording
+from egobench.diagnose.timing_pulls import frame_pulls, sandwich_standard_error
 from egobench.effects import EFFECTS
 from egobench.io_utils import claim_work_dir
 from egobench.train import train
@@ -30,6 +38,8 @@ from egobench.train.checkpoint import load_trained_run
 #: effect -> (its learned value's key in train.json's ``learned_timing``, the floor in ms from which it is named):
 #: the effects learned with the scene (`Effect.learned_timing`)
 FLOORS = {name: e.learned_timing for name, e in EFFECTS.items() if e.learned_timing is not None}
+#: the learned values' keys in the order of the run's timing vector (`motion_sampling.timing_shifts_s`)
+TIMING_ORDER = ("time_offset_ms", "readout_error_ms")
 
 
 def learned_timing_of(run_dir: str | Path) -> dict | None:
@@ -71,32 +81,63 @@ def timing_of_run(recording_dir: str | Path, run_dir: str | Path, work_dir: str 
     return learned, retrained
 
 
-def judge_timing(learned: dict, stated_readout_s: float) -> dict:
+def timing_evidence(recording_dir: str | Path, run_dir: str | Path, progress: bool = False) -> dict:
+    """The learned timing's standard errors on its run -> {"se_ms": {key: ms}, "df", "frames"} (`timing_pulls`:
+    the run's training frames' pulls on it, the scene held as trained)."""
+    pulls, curvature = frame_pulls(recording_dir, run_dir, progress=progress)
+    se, df = sandwich_standard_error(pulls, curvature)
+    return {"se_ms": dict(zip(TIMING_ORDER, map(float, se))), "df": int(df), "frames": int(pulls.shape[0])}
+
+
+def judge_timing(learned: dict, stated_readout_s: float, evidence: dict | None = None) -> dict:
     """The causes a learned timing names -> the record: the learned values, the floors, the named causes (the
     largest multiple of its floor first), each with its estimate, and every learned effect's estimate in the
-    residual diagnosis's keys (`Effect.learned_estimate`)."""
-    detail, estimates = [], {}
+    residual diagnosis's keys (`Effect.learned_estimate`). With ``evidence`` (`timing_evidence`), each learned
+    value's standard error on the run, t and two-sided p on ``evidence["df"]`` degrees of freedom ("tests";
+    reported, not deciding: module doc)."""
+    detail, estimates, tests = [], {}, {}
     for cause, (key, floor) in FLOORS.items():
         value = float(learned[key])
         estimate = EFFECTS[cause].learned_estimate(value, stated_readout_s)
         estimates.update(estimate)
+        if evidence is not None:
+            tests[cause] = _t_test(value, evidence, key)
         if abs(value) >= floor:
             detail.append({"cause": cause, "learned_ms": value, "floor_ms": floor, "multiple": abs(value) / floor,
                            "estimate": estimate})
     detail.sort(key=lambda d: -d["multiple"])
-    return {"learned": {key: float(learned[key]) for key, _ in FLOORS.values()},
-            "floors_ms": {cause: floor for cause, (_, floor) in FLOORS.items()},
-            "named": [d["cause"] for d in detail], "detail": detail, **estimates}
+    record = {"learned": {key: float(learned[key]) for key, _ in FLOORS.values()},
+              "floors_ms": {cause: floor for cause, (_, floor) in FLOORS.items()},
+              "named": [d["cause"] for d in detail], "detail": detail, **estimates}
+    if evidence is not None:
+        record.update(tests=tests, df=int(evidence["df"]), frames=evidence.get("frames"))
+    return record
+
+
+def _t_test(value: float, evidence: dict, key: str) -> dict:
+    """A learned value against its standard error on the run -> {"se_ms", "t", "p"} (two-sided, t(df))."""
+    se = float(evidence["se_ms"][key])
+    if not (np.isfinite(se) and se > 0):
+        raise ValueError(f"learned timing evidence: field 'se_ms.{key}': expected a positive standard error (ms), "
+                         f"got {se!r}")
+    t_value = value / se
+    return {"se_ms": se, "t": t_value, "p": float(2.0 * student_t.sf(abs(t_value), int(evidence["df"])))}
 
 
 def timing_markdown(judged: dict) -> str:
     """The report's section on a learned timing."""
     lines = ["\n## The timing learned with the scene\n"]
-    lines += [f"- {cause}: learned {judged['learned'][FLOORS[cause][0]]:+.3f} ms, named from {floor} ms"
-              for cause, floor in judged["floors_ms"].items()]
+    for cause, floor in judged["floors_ms"].items():
+        line = f"- {cause}: learned {judged['learned'][FLOORS[cause][0]]:+.3f} ms, named from {floor} ms"
+        test = judged.get("tests", {}).get(cause)
+        if test is not None:
+            line += (f" (standard error {test['se_ms']:.3f} ms from the run's frames, t({judged['df']}) = "
+                     f"{test['t']:+.2f}, p {test['p']:.3g}; reported, not deciding)")
+        lines.append(line)
     lines.append(f"- named: {', '.join(judged['named']) or 'nothing'}")
     lines += [f"- {d['cause']}: " + ", ".join(f"{k} {v:.6g}" for k, v in d["estimate"].items()) for d in judged["detail"]]
     return "\n".join(lines) + "\n"
 
 
-__all__ = ["FLOORS", "judge_timing", "learned_timing_of", "timing_markdown", "timing_of_run"]
+__all__ = ["FLOORS", "TIMING_ORDER", "judge_timing", "learned_timing_of", "timing_evidence",
+           "timing_markdown", "timing_of_run"]

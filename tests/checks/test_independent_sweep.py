@@ -206,14 +206,17 @@ def test_a_learned_timings_names_come_first_with_its_estimates(tmp_path):
     and give the timing estimates; a photometric name of the residual follows."""
     from egobench.diagnose.learned_timing import judge_timing
 
+    from tests.diagnose.test_learned_timing import EVIDENCE
+
     case = _case(tmp_path, "timed", [], [{"name": "vignette", "params": {}}])
     d = json.loads((case / "diag" / "diagnosis.json").read_text())
-    d["learned_timing"] = judge_timing({"time_offset_ms": 0.2, "readout_error_ms": 3.4}, 0.008)
+    d["learned_timing"] = judge_timing({"time_offset_ms": 0.2, "readout_error_ms": 3.4}, 0.008, EVIDENCE)
     (case / "diag" / "diagnosis.json").write_text(json.dumps(d))
     row = sweep.case_row("readout", 301, case, {})
     assert row["named"] == "readout vignette" and row["first"] == "readout" and row["expected_named"]
     assert row["readout_s_estimated"] == 0.0114 and row["timing_named"] == "readout"
     assert (row["learned_time_offset_ms"], row["learned_readout_error_ms"]) == (0.2, 3.4)
+    assert (row["learned_time_offset_t"], row["learned_readout_t"]) == pytest.approx((1.0, 6.8))
     plain = sweep.case_row("readout", 302, _case(tmp_path, "plain", [], []), {})
     assert "learned_readout_error_ms" not in plain and not plain["named"]
 
@@ -221,9 +224,11 @@ def test_a_learned_timings_names_come_first_with_its_estimates(tmp_path):
 def test_a_timing_named_on_a_null_with_nothing_from_the_residual_is_a_wrong_first_name(tmp_path):
     from egobench.diagnose.learned_timing import judge_timing
 
+    from tests.diagnose.test_learned_timing import EVIDENCE
+
     case = _case(tmp_path, "timed_null", [], [])
     d = json.loads((case / "diag" / "diagnosis.json").read_text())
-    d["learned_timing"] = judge_timing({"time_offset_ms": 1.5, "readout_error_ms": 0.1}, 0.008)
+    d["learned_timing"] = judge_timing({"time_offset_ms": 1.5, "readout_error_ms": 0.1}, 0.008, EVIDENCE)
     (case / "diag" / "diagnosis.json").write_text(json.dumps(d))
     row = sweep.case_row("null", 101, case, {})
     assert row["first"] == "time_offset" and row["wrong_first"] and not row["contained_first"]

@@ -79,10 +79,12 @@ def test_a_readout_the_scene_absorbs_is_named_through_the_timing_learned_with_it
     """Seed 1185 of set 89: a readout 1.5 x the stated that the run's residual no longer shows (its frame t 2.2, not
     named at 800 iterations). Trained with `TrainConfig.learn_timing`, the run learns a readout error near the
     hidden 4 ms (3.36 ms on an Intel Xeon; results/diagnosis/README.md, "2026-12-07: the timing learned with the
-    scene") and no time offset (0.12 ms): the readout is named first, estimated within 25 %."""
+    scene") and no time offset (0.12 ms): the readout is named first, estimated within 25 %, with its standard error on the
+    run's frames beside it."""
     row = sweep.run_case(tmp_path, "readout", 1185, seed_set=89,
                          train_set=("pose_sample_step_px=0.0625", "max_pose_samples=32", "learn_timing=true"))
     timing = _diagnosis(tmp_path / "cases" / "readout_1185")["learned_timing"]
     assert timing["named"] == ["readout"] and row["first"] == "readout" and not row["wrong_first"]
+    assert timing["tests"]["readout"]["se_ms"] > 0 and timing["df"] == 13  # the run's standard error, reported
     assert abs(timing["readout_s_estimated"] - 1.5 * sweep.STATED_READOUT_S) <= 0.25 * 1.5 * sweep.STATED_READOUT_S
     assert abs(timing["learned"]["time_offset_ms"]) < 0.5

@@ -1,21 +1,26 @@
-"""egobench.diagnose.learned_timing: the timing a run learned with its scene, judged against its floors."""
+"""egobench.diagnose.learned_timing: the timing a run learned with its scene, judged against its floors, with its
+standard error on the run beside it; egobench.diagnose.timing_pulls: that standard error."""
 
 from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
+from scipy.stats import t as student_t
 
 from egobench.diagnose.learned_timing import judge_timing, learned_timing_of, timing_markdown
+from egobench.diagnose.timing_pulls import block_length, frame_pulls, sandwich_standard_error
 from egobench.effects import EFFECTS
 
 TIME_OFFSET_FLOOR_MS = EFFECTS["time_offset"].learned_timing[1]
 READOUT_ERROR_FLOOR_MS = EFFECTS["readout"].learned_timing[1]
+EVIDENCE = {"se_ms": {"time_offset_ms": 0.2, "readout_error_ms": 0.5}, "df": 13, "frames": 42}
 
 
 def test_a_learned_value_names_its_cause_from_its_floor_the_largest_multiple_first():
     quiet = judge_timing({"time_offset_ms": 0.99 * TIME_OFFSET_FLOOR_MS, "readout_error_ms": -0.99 * READOUT_ERROR_FLOOR_MS}, 0.008)
-    assert quiet["named"] == [] and "nothing" in timing_markdown(quiet)
+    assert quiet["named"] == [] and "nothing" in timing_markdown(quiet) and "tests" not in quiet
     both = judge_timing({"time_offset_ms": -1.5 * TIME_OFFSET_FLOOR_MS, "readout_error_ms": 2.5 * READOUT_ERROR_FLOOR_MS}, 0.008)
     assert both["named"] == ["readout", "time_offset"]
     assert both["time_offset_error_s"] == pytest.approx(-1.5e-3 * TIME_OFFSET_FLOOR_MS)
@@ -25,6 +30,65 @@ def test_a_learned_value_names_its_cause_from_its_floor_the_largest_multiple_fir
     assert "readout_s_estimated" in timing_markdown(both) and "named: readout, time_offset" in timing_markdown(both)
     exact = judge_timing({"time_offset_ms": TIME_OFFSET_FLOOR_MS, "readout_error_ms": 0.0}, 0.008)
     assert exact["named"] == ["time_offset"]  # from the floor on
+
+
+def test_the_runs_standard_error_is_reported_beside_the_floor_and_does_not_decide():
+    """With the run's evidence: each learned value's t and two-sided p on t(df); a value at t 15 under its floor
+    is not named, a value over its floor at t 0.5 is."""
+    judged = judge_timing({"time_offset_ms": 3.0 * EVIDENCE["se_ms"]["time_offset_ms"] * 5, "readout_error_ms": 0.25},
+                          0.008, EVIDENCE)
+    assert judged["named"] == ["time_offset"] and judged["df"] == 13 and judged["frames"] == 42
+    assert judged["tests"]["time_offset"]["t"] == pytest.approx(15.0)
+    assert judged["tests"]["readout"]["p"] == pytest.approx(2.0 * student_t.sf(0.5, 13))
+    assert "t(13) = +0.50" in timing_markdown(judged) and "not deciding" in timing_markdown(judged)
+    strong = judge_timing({"time_offset_ms": 0.0, "readout_error_ms": 0.9 * READOUT_ERROR_FLOOR_MS}, 0.008,
+                          dict(EVIDENCE, se_ms={"time_offset_ms": 0.2, "readout_error_ms": 0.01}))
+    assert strong["named"] == [] and strong["tests"]["readout"]["t"] > 100
+    with pytest.raises(ValueError, match="field 'se_ms.readout_error_ms': expected a positive standard error"):
+        judge_timing({"time_offset_ms": 0.0, "readout_error_ms": 3.4}, 0.008,
+                     dict(EVIDENCE, se_ms={"time_offset_ms": 0.2, "readout_error_ms": 0.0}))
+
+
+def test_the_block_length_is_newey_and_wests_rule_of_thumb():
+    assert [block_length(n) for n in (1, 10, 42, 100, 1000)] == [1, 2, 3, 4, 6]
+
+
+def test_the_block_sandwich_matches_the_estimators_spread_over_draws():
+    """A linear model of 42 frames in capture order whose pixels' noise is shared by neighbouring frames (a moving
+    average over 2 frames), whose frames see much the same content and differ in noise: over 4000 draws, the spread
+    of the Gauss-Newton estimate from 0 matches the block sandwich's standard error (rms over the draws), and the frames-as-independent
+    sandwich (one frame a block) is too small for such a run."""
+    rng = np.random.default_rng(7)
+    n, m, p = 42, 60, 2
+    J = rng.normal(size=(1, m, p)) + 0.3 * rng.normal(size=(n, m, p))  # frames see much the same content
+    noise_sd = rng.uniform(0.5, 2.0, size=n)[:, None]
+    H = np.einsum("nmi,nmj->nij", J, J)
+    Hi = np.linalg.inv(H.sum(0))
+    estimates, variances, iid = [], [], []
+    for _ in range(4000):
+        shared = rng.normal(size=(n + 1, m))
+        r = noise_sd * (shared[:-1] + shared[1:]) / np.sqrt(2.0)  # true value 0, evaluated at 0
+        g = np.einsum("nmi,nm->ni", J, r)
+        estimates.append(-Hi @ g.sum(0))
+        se, df = sandwich_standard_error(g, H)
+        variances.append(se ** 2)
+        gc = g - g.mean(0)
+        iid.append(np.diag(Hi @ (gc.T @ gc) @ Hi * n / (n - 1)))
+    spread = np.std(np.array(estimates), axis=0)
+    assert df == 13
+    assert np.sqrt(np.mean(variances, axis=0)) == pytest.approx(spread, rel=0.1)
+    assert np.all(np.sqrt(np.mean(iid, axis=0)) < 0.75 * spread)
+
+
+def test_the_pulls_need_a_run_that_learned_a_timing(tmp_path, monkeypatch):
+    from egobench.diagnose import timing_pulls
+
+    monkeypatch.setattr(timing_pulls, "load_trained_run", lambda run_dir, device, where: object())
+    monkeypatch.setattr(timing_pulls, "learned_timing_ms", lambda run: None)
+    with pytest.raises(ValueError, match="checkpoint.pt: field 'extra.timing': the run learned no timing"):
+        frame_pulls(tmp_path / "rec", tmp_path / "run")
+    with pytest.raises(ValueError, match="at least 3 blocks"):
+        sandwich_standard_error(np.zeros((2, 2)), np.tile(np.eye(2), (2, 1, 1)))
 
 
 def test_a_runs_learned_timing_is_read_from_its_record_or_refused_by_name(tmp_path):
@@ -99,11 +163,16 @@ def test_diagnose_judges_the_timing_the_run_learned_or_trains_it_under_learn_tim
         assert work_dir == tmp_path / "out" / "learn_timing" and not progress
         return {"time_offset_ms": 2.7, "readout_error_ms": 0.3}, work_dir / "run"
 
+    def fake_evidence(rec, run_dir, progress):
+        assert run_dir == tmp_path / "out" / "learn_timing" / "run" and not progress
+        return EVIDENCE
+
     monkeypatch.setattr(cli, "timing_of_run", fake)
+    monkeypatch.setattr(cli, "timing_evidence", fake_evidence)
     args = parser.parse_args(["rec", "--run", str(run), "--out", str(tmp_path / "out"), "--learn-timing", "--no-progress"])
     judged = cli._learned_timing(args, tmp_path / "rec", run, tmp_path / "out", src)
-    assert judged["named"] == ["time_offset"] and judged["time_offset_error_s"] == pytest.approx(0.0027)
-    assert judged["learned_in"] == str(tmp_path / "out" / "learn_timing" / "run")
+    assert judged["named"] == ["time_offset"] and judged["tests"]["time_offset"]["t"] == pytest.approx(13.5) and judged["time_offset_error_s"] == pytest.approx(0.0027)
+    assert judged["learned_in"] == str(tmp_path / "out" / "learn_timing" / "run") and judged["df"] == 13
 
 
 def test_learn_timing_needs_a_trained_run(tmp_path):
@@ -117,3 +186,45 @@ def test_learn_timing_needs_a_trained_run(tmp_path):
     args = parser.parse_args([str(tmp_path / "rec"), "--out", str(tmp_path / "out"), "--learn-timing", "--no-progress"])
     with pytest.raises(ValueError, match="--learn-timing: the timing is learned with a trained run's scene"):
         cli._diagnose_recording(args, cli.DiagnosisConfig(), tmp_path / "out")
+
+
+def test_the_pulls_and_curvatures_of_a_render_linear_in_the_timing_are_exact(tmp_path, monkeypatch):
+    """`frame_pulls` on a run whose render is linear in the timing, I_i(tau) = A_i + B_i tau on the mask: each
+    training frame's pull is B_i^T (I_i(tau) - M_i) and its curvature B_i^T B_i, in capture order (the held-out
+    frames left out)."""
+    import types
+
+    import torch
+
+    from egobench.diagnose import timing_pulls
+
+    rng = np.random.default_rng(3)
+    H, W, F = 4, 5, 10
+    mask = torch.from_numpy(rng.random((H, W)) > 0.3)
+    A, B, M = (torch.from_numpy(rng.normal(size=shape)) for shape in ((F, H, W, 3), (F, H, W, 3, 2), (F, H, W, 3)))
+    tau = torch.tensor([0.7, -1.3], dtype=torch.float64)
+    frames = [types.SimpleNamespace(index=i) for i in range(F) if i % 8 != 0]
+    cam = types.SimpleNamespace(width=W, height=H)
+    run = types.SimpleNamespace(spec=types.SimpleNamespace(calibration="online"), camera=cam, config=types.SimpleNamespace(pose_sampling=None))
+    rec = types.SimpleNamespace(camera=cam, train_frames=frames, load_image=lambda f: M[f.index])
+    for name, value in {"load_trained_run": lambda run_dir, device, where: run, "learned_timing_ms": lambda r: tau,
+                        "load_recording": lambda path, calibration: rec,
+                        "run_maps": lambda r, rr: types.SimpleNamespace(mask=mask, timing_ms=tau),
+                        "method_normaliser": lambda r, spec: {f.index: 1.0 for f in frames},
+                        "formation_model": lambda spec: None, "sample_counts": lambda *a: [1] * len(frames)}.items():
+        monkeypatch.setattr(timing_pulls, name, value)
+    monkeypatch.setattr(timing_pulls.RenderSettings, "of", staticmethod(lambda config: None))
+    monkeypatch.setattr(timing_pulls, "replace", lambda maps, timing_ms: types.SimpleNamespace(timing_ms=timing_ms))
+
+    def predict(gaussians, rec_, f, spec, camera, maps, k, n, settings, formation):
+        return types.SimpleNamespace(image=A[f.index] + B[f.index] @ maps.timing_ms)
+
+    monkeypatch.setattr(timing_pulls, "predict_frame", predict)
+    run.gaussians = None
+    pulls, curvature = frame_pulls(tmp_path / "rec", tmp_path / "run")
+    assert pulls.shape == (len(frames), 2)
+    for i, f in enumerate(frames):
+        Bm = B[f.index][mask].reshape(-1, 2)
+        r = (A[f.index] + B[f.index] @ tau - M[f.index])[mask].reshape(-1)
+        assert pulls[i] == pytest.approx((Bm.T @ r).numpy(), rel=1e-9, abs=1e-9)
+        assert curvature[i] == pytest.approx((Bm.T @ Bm).numpy(), rel=1e-9, abs=1e-9)

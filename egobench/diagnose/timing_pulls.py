@@ -1,0 +1,90 @@
+"""What each training frame says about the timing a run learned with its scene: the frame's pull on it and its
+curvature, with the scene held as trained; from them, the learned value's standard error on this run.
+
+Frame i's squared error E_i(tau) = |I_i(tau) - M_i|^2 over the recording's mask, near the learned timing tau [2]
+(time offset, readout error; ms): its gradient g_i = J_i^T r_i and Gauss-Newton curvature H_i = J_i^T J_i, with
+J_i = dI_i / dtau by central differences of STEP_MS. The learned value's variance is the sandwich
+H^-1 S H^-1 (H = sum of H_i), S the scatter of the pulls summed over blocks of consecutive frames: frames that see
+the same content pull alike, so frames are not independent draws, and the blocks are (`block_length`, Newey and
+West's rule of thumb for the lag window). The block sums' own scatter is the run's frame-to-frame model error;
+the test that uses it (`learned_timing.judge_timing`) has blocks - 1 degrees of freedom.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from egobench.data.reader import load_recording
+from egobench.model.predict import (RenderSettings, formation_model, learned_timing_ms, method_normaliser,
+                                    predict_frame, run_maps, sample_counts)
+from egobench.train.checkpoint import load_trained_run
+
+#: the timing's central difference step (ms): the render is smooth in the poses at this scale, and the step moves
+#: a row by well under a pixel at the walks' speeds
+STEP_MS = 0.25
+
+
+def block_length(n: int) -> int:
+    """Frames per block for ``n`` frames in capture order: floor(4 (n / 100)^(2/9)), at least 1 (Newey and West's
+    rule of thumb for the lag window; 3 for the 42 training frames of a 48-frame recording)."""
+    return max(1, int(4.0 * (n / 100.0) ** (2.0 / 9.0)))
+
+
+def sandwich_standard_error(pulls: np.ndarray, curvature: np.ndarray) -> tuple[np.ndarray, int]:
+    """Per-frame pulls [n, p] (capture order) and curvatures [n, p, p] -> (the standard error [p] of the value
+    that minimises the frames' summed error, its degrees of freedom): the sandwich with the pulls summed over
+    blocks of `block_length` consecutive frames, centred, and scaled by blocks / (blocks - 1)."""
+    pulls, curvature = np.asarray(pulls, dtype=np.float64), np.asarray(curvature, dtype=np.float64)
+    n = pulls.shape[0]
+    b = block_length(n)
+    blocks = np.array([pulls[i:i + b].sum(0) for i in range(0, n, b)])
+    if blocks.shape[0] < 3:
+        raise ValueError(f"the learned timing's standard error needs at least 3 blocks of {b} frames; got {n} frames")
+    centred = blocks - blocks.mean(0)
+    inverse = np.linalg.inv(curvature.sum(0))
+    k = blocks.shape[0]
+    variance = inverse @ (centred.T @ centred) @ inverse * k / (k - 1)
+    return np.sqrt(np.diag(variance)), k - 1
+
+
+def frame_pulls(recording_dir: str | Path, run_dir: str | Path, progress: bool = False
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """A run that learned a timing, on its recording's training frames in capture order -> (pulls [F, 2],
+    curvatures [F, 2, 2]) at the learned timing (module doc)."""
+    run = load_trained_run(run_dir, None, f"the learned timing's standard error, run {run_dir}")
+    timing = learned_timing_ms(run)
+    if timing is None:
+        raise ValueError(f"{Path(run_dir) / 'checkpoint.pt'}: field 'extra.timing': the run learned no timing "
+                         "(train it with learn_timing)")
+    spec, cam = run.spec, run.camera
+    rec = load_recording(recording_dir, calibration=spec.calibration)
+    if (cam.width, cam.height) != (rec.camera.width, rec.camera.height):
+        raise ValueError(f"{run_dir}: trained at {cam.width}x{cam.height}, the recording is "
+                         f"{rec.camera.width}x{rec.camera.height}; the timing's pulls need full-resolution renders")
+    maps, k_of, formation = run_maps(rec, run), method_normaliser(rec, spec), formation_model(spec)
+    settings, mask = RenderSettings.of(run.config), maps.mask
+    frames = rec.train_frames
+    counts = sample_counts(rec, frames, spec, run.config.pose_sampling, 1.0)
+    steps = [torch.tensor([STEP_MS, 0.0]), torch.tensor([0.0, STEP_MS])]
+    pulls, curvature = [], []
+    with torch.no_grad():
+        for f, n in tqdm(list(zip(frames, counts)), desc="timing pulls", unit="frame", disable=not progress):
+
+            def image(t: torch.Tensor) -> torch.Tensor:
+                p = predict_frame(run.gaussians, rec, f, spec, cam, replace(maps, timing_ms=t), k_of[f.index], n,
+                                  settings, formation)
+                return p.image[mask].reshape(-1).to(torch.float64)
+
+            r = image(timing) - rec.load_image(f)[mask].reshape(-1).to(torch.float64)
+            J = torch.stack([(image(timing + s) - image(timing - s)) / (2.0 * STEP_MS) for s in steps], 1)
+            pulls.append((J.T @ r).numpy())
+            curvature.append((J.T @ J).numpy())
+    return np.array(pulls), np.array(curvature)
+
+
+__all__ = ["STEP_MS", "block_length", "frame_pulls", "sandwich_standard_error"]
