@@ -16,7 +16,9 @@ each learned value the record gives its standard error on the run (`timing_pulls
 it with the scene held as trained, a block sandwich) and t. That t does not decide, measured on 100 runs of sets
 89 and 90 (results/diagnosis/README.md, "2026-12-07: the learned timing's standard error from the run"): the
 frames' scatter leaves out what training's co-adaptation adds, so a null learned an offset of 0.19 ms at t 4.6,
-while two readout errors of 2.9-3.4 ms stood at t 2.2-2.3. A null that includes training would need trainings.
+while two readout errors of 2.9-3.4 ms stood at t 2.2-2.3. Retrained with four other seeds, nulls learned the
+same 0.1-0.3 ms offsets again: a bias of the recording and the model, not noise, so the floors are a size, the
+smallest timing error worth naming.
 """
 
 from __future__ import annotations
