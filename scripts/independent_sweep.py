@@ -111,10 +111,14 @@ def case_row(effect: str, seed: int, case: Path, times: dict) -> dict:
     d = json.loads((case / "diag" / "diagnosis.json").read_text())
     timing = d.get("learned_timing")  # a run trained with learn_timing: its names come first
     timing_named = timing["named"] if timing else []
-    named = timing_named + [n["name"] for n in d.get("named", []) if n["name"] not in timing_named]
+    frames = d.get("learned_frames")  # a run trained with learn_frame_exposure: its names next
+    frames_named = [c for c in (frames["named"] if frames else []) if c not in timing_named]
+    learned_named = timing_named + frames_named
+    named = learned_named + [n["name"] for n in d.get("named", []) if n["name"] not in learned_named]
     params = {n["name"]: n.get("params", {}) for n in d.get("named", [])}
     params.update({cause: {"time_offset_error_s": timing["time_offset_error_s"],
                            "readout_s_estimated": timing["readout_s_estimated"]} for cause in timing_named})
+    params.update({cause: frames["detail"][cause] for cause in frames_named})
     expected = CASES[effect][1]
     altered = [int(k) for k in truth["effects"]["exposure_altered_frames"]]
     flagged = params.get("exposure_metadata", {}).get("flagged_frames", [])
@@ -134,7 +138,7 @@ def case_row(effect: str, seed: int, case: Path, times: dict) -> dict:
         "flagged_frames": " ".join(map(str, flagged)), "altered_frames": " ".join(map(str, altered)),
         "flagged_altered": len(set(flagged) & set(altered)), "flagged_wrong": len(set(flagged) - set(altered)),
         "psnr_gain_db": d.get("psnr_gain_db"), **smallest_testable_of(effect, d), **lens_check_of(d),
-        **learned_timing_columns(timing), **times,
+        **learned_timing_columns(timing), "frames_named": " ".join(frames_named), **times,
     }
 
 

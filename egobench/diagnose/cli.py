@@ -16,6 +16,7 @@ from egobench.data.reader import add_input_arguments, recording_from_args
 from egobench.diagnose.absorption import hidden_testable, load_retention
 from egobench.diagnose.core import DiagnosisConfig, diagnose_residuals
 from egobench.diagnose.extension import judge_shading, learned_shading_of, load_shading_null, run_setup
+from egobench.diagnose.learned_frames import judge_learned_frames
 from egobench.diagnose.learned_timing import judge_timing, learned_timing_of, timing_evidence, timing_of_run
 from egobench.diagnose.lens_check import diagnose_trained_run
 from egobench.diagnose.report import write_report
@@ -181,11 +182,14 @@ def _diagnose_recording(args: argparse.Namespace, cfg: DiagnosisConfig, out: Pat
         _add_hidden_testable(d, args.retention)
     extra = {"method": args.method, "source": src.description}
     timing = _learned_timing(args, rec, run_dir, out, src) if source == "run" else None
+    frames = judge_learned_frames(run_dir) if source == "run" else None
     record = write_report(out, d, src.measured, src.predicted, title=f"Residual diagnosis of {rec.name} ({src.description})",
-                          extra=extra, shading_extension=extension, learned_timing=timing)
+                          extra=extra, shading_extension=extension, learned_timing=timing, learned_frames=frames)
     summary = {"out": str(out), "verdict": record["verdict"], "psnr_gain_db": record["psnr_gain_db"]}
     if timing is not None:
         summary["learned_timing_named"] = timing["named"]
+    if frames is not None:
+        summary["learned_frames_named"] = frames["named"]
     if extension is not None:
         summary["shading_extension"] = extension["called"]
         if extension["held_out"]:

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from egobench.diagnose.core import Diagnosis
+from egobench.diagnose.learned_frames import frames_markdown
 from egobench.diagnose.learned_timing import timing_markdown
 from egobench.effects import EFFECTS
 from egobench.io_utils import atomic_path, write_json
@@ -205,10 +206,12 @@ def shading_markdown(x: dict) -> str:
 
 def write_report(out_dir: str | Path, d: Diagnosis, measured: np.ndarray, predicted: np.ndarray,
                  title: str = "Residual diagnosis", extra: dict | None = None,
-                 shading_extension: dict | None = None, learned_timing: dict | None = None) -> dict:
+                 shading_extension: dict | None = None, learned_timing: dict | None = None,
+                 learned_frames: dict | None = None) -> dict:
     """Write diagnosis.json, report.md and figures/ into out_dir; return the JSON record
     (``shading_extension``: the model extension's call, `egobench.diagnose.extension.judge_shading`;
-    ``learned_timing``: the timing a run learned with its scene, `egobench.diagnose.learned_timing.judge_timing`)."""
+    ``learned_timing``: the timing a run learned with its scene, `egobench.diagnose.learned_timing.judge_timing`;
+    ``learned_frames``: its per-frame values, `egobench.diagnose.learned_frames.judge_learned_frames`)."""
     out = Path(out_dir)
     (out / "figures").mkdir(parents=True, exist_ok=True)
     record = d.to_dict()
@@ -218,12 +221,16 @@ def write_report(out_dir: str | Path, d: Diagnosis, measured: np.ndarray, predic
         record["shading_extension"] = shading_extension
     if learned_timing is not None:
         record["learned_timing"] = learned_timing
+    if learned_frames is not None:
+        record["learned_frames"] = learned_frames
     write_json(out / "diagnosis.json", record)
     text = markdown(d, title)
     if shading_extension is not None:
         text += shading_markdown(shading_extension)
     if learned_timing is not None:
         text += timing_markdown(learned_timing)
+    if learned_frames is not None:
+        text += frames_markdown(learned_frames)
     if extra:
         text += "\n## Extra\n\n```json\n" + json.dumps(extra, indent=1, default=str)[:6000] + "\n```\n"
     with atomic_path(out / "report.md") as tmp:

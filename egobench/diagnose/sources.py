@@ -32,7 +32,7 @@ from egobench.model.formation import (
 from egobench.model.predict import (
     RenderSettings,
     formation_model,
-    method_normaliser,
+    run_normaliser,
     predict_frame,
     run_maps,
     sample_counts,
@@ -380,7 +380,7 @@ def run_source(recording_dir: str | Path, run_dir: str | Path, max_frames: int |
         raise ValueError(f"{run_dir}: trained at {cam.width}x{cam.height}, the recording is "
                          f"{rec.camera.width}x{rec.camera.height}; diagnose needs full-resolution renders")
     frames = _select(rec.frames, max_frames)
-    maps, k_of, formation = run_maps(rec, run), method_normaliser(rec, spec), formation_model(spec)
+    maps, k_of, formation = run_maps(rec, run), run_normaliser(rec, run), formation_model(spec)
     settings = RenderSettings.of(run.config)
     counts = sample_counts(rec, frames, spec, run.config.pose_sampling, 1.0)
     trained_counts = np.array(counts, dtype=np.int64)  # as in its training: the same rule at the same size

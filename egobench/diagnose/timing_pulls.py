@@ -20,7 +20,7 @@ import torch
 from tqdm import tqdm
 
 from egobench.data.reader import load_recording
-from egobench.model.predict import (RenderSettings, formation_model, learned_timing_ms, method_normaliser,
+from egobench.model.predict import (RenderSettings, formation_model, learned_timing_ms, run_normaliser,
                                     predict_frame, run_maps, sample_counts)
 from egobench.train.checkpoint import load_trained_run
 
@@ -66,7 +66,7 @@ def frame_pulls(recording_dir: str | Path, run_dir: str | Path, progress: bool =
     if (cam.width, cam.height) != (rec.camera.width, rec.camera.height):
         raise ValueError(f"{run_dir}: trained at {cam.width}x{cam.height}, the recording is "
                          f"{rec.camera.width}x{rec.camera.height}; the timing's pulls need full-resolution renders")
-    maps, k_of, formation = run_maps(rec, run), method_normaliser(rec, spec), formation_model(spec)
+    maps, k_of, formation = run_maps(rec, run), run_normaliser(rec, run), formation_model(spec)
     settings, mask = RenderSettings.of(run.config), maps.mask
     frames = rec.train_frames
     counts = sample_counts(rec, frames, spec, run.config.pose_sampling, 1.0)

@@ -148,6 +148,9 @@ class Effect:
     #: ``learned_timing`` (ms) and the floor from which the learned value names it (`egobench.diagnose.learned_timing`);
     #: None: not learned.
     learned_timing: ClassVar[tuple[str, float] | None] = None
+    #: Learned with the scene one value per training frame (`TrainConfig.learn_frame_exposure`): the key of the values
+    #: in train.json (``frames``, ``log_scale``), judged by `judge_learned_frames`; None: not learned.
+    learned_per_frame: ClassVar[str | None] = None
 
     def sweep_magnitudes(self, fractions_of_lo: tuple[float, ...]) -> list[float]:
         """Magnitudes of the synthetic sweep (deviation from nominal, the parameter's unit; log for
@@ -214,6 +217,11 @@ class Effect:
         """The diagnosis's estimate of the parameter from the value learned with the scene (`learned_timing`),
         keyed as the residual diagnosis keys it; empty when the effect is not learned."""
         return {}
+
+    def judge_learned_frames(self, frames: list[int], values: np.ndarray) -> dict:
+        """The verdict on the per-frame values learned with the scene (`learned_per_frame`): a record whose
+        ``flagged_frames`` (recording frame indices) name the effect where not empty."""
+        raise NotImplementedError(f"effect {self.name!r} learns no per-frame values")
 
     def smallest_testable(self, d: float, se: float, ctx) -> dict | None:
         """The smallest effect a run can reveal, in the parameter's unit, from the statistic's minimal

@@ -490,6 +490,28 @@ class ExposureMetadata(Effect):
         k_recorded[affected] *= 1.0 + float(value)
         return affected
 
+    learned_per_frame = "learned_frame_exposure"
+
+    def judge_learned_frames(self, frames, values):
+        """The log scales a run learned for its training frames with the scene (`egobench.model.frame_exposure`):
+        a frame is flagged where its scale departs from the bulk of the frames' (`bulk_frames`) by more than
+        FLAG_SIGMAS robust standard deviations of the bulk, the run's own frame-to-frame scatter, and by more than
+        FLAG_MIN_LOG, the single-frame model error that trained runs reach (15 %). Its record's error is estimated
+        as exp(-departure) - 1 (the record is the true exposure times 1 + e)."""
+        values = np.asarray(values, dtype=np.float64)
+        if values.ndim != 1 or values.size != len(frames) or values.size < 3 or not np.all(np.isfinite(values)):
+            raise ValueError(f"{self.learned_per_frame}: expected finite log scales, one per listed frame and at least 3, "
+                             f"got {values.size} for {len(frames)} frames")
+        bulk = bulk_frames(values)
+        centre = float(np.median(values[bulk]))
+        sd = robust_sd(values[bulk] - centre)
+        threshold = max(FLAG_SIGMAS * sd, FLAG_MIN_LOG)
+        departure = values - centre
+        flagged = np.abs(departure) > threshold
+        return {"centre": centre, "bulk_sd": sd, "threshold": threshold,
+                "flagged_frames": [int(f) for f, x in zip(frames, flagged) if x],
+                "record_error": {str(int(f)): math.exp(-d) - 1.0 for f, d, x in zip(frames, departure, flagged) if x}}
+
     def smallest_testable(self, d, se, ctx):
         """At a fixed record the run's own floor (`fixed_record_floor`: se is a quarter of it) decides a flag;
         with an exposure that varies, the bulk test's threshold with its floor FLAG_MIN_LOG."""

@@ -25,7 +25,7 @@ from egobench.data import load_recording
 from egobench.data.reader import add_input_arguments
 from egobench.io_utils import atomic_path, check_written, holding_run_folder
 from egobench.model.predict import (
-    RenderSettings, formation_model, method_normaliser, predict_frame, resize_map, run_maps, sample_counts,
+    RenderSettings, formation_model, run_normaliser, predict_frame, resize_map, run_maps, sample_counts,
 )
 from egobench.train.checkpoint import check_run_complete, load_trained_run, recording_for_run
 
@@ -49,7 +49,7 @@ def _run_panel(run_dir, recording_dir, device: str | None):
     if rec.calibration != run.spec.calibration:
         raise ValueError(f"render {run_dir}: method {run.spec.name!r} renders the {run.spec.calibration!r} stream, "
                          f"the recording was loaded with {rec.calibration!r} (pass the recording folder instead)")
-    held = argparse.Namespace(run=run, recording=rec, maps=run_maps(rec, run), k_of=method_normaliser(rec, run.spec),
+    held = argparse.Namespace(run=run, recording=rec, maps=run_maps(rec, run), k_of=run_normaliser(rec, run),
                               formation=formation_model(run.spec), settings=RenderSettings.of(run.config))
     return _Panel(label=run.spec.label, run=held, recording=rec)
 

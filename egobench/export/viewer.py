@@ -36,7 +36,7 @@ from egobench.data.recording import Recording
 from egobench.data.reader import add_input_arguments
 from egobench.io_utils import atomic_path, holding_run_folder
 from egobench.model.formation import FormationConfig, FormationModel, GammaResponse
-from egobench.model.predict import RenderSettings, formation_model, method_normaliser, predict_image, resize_map, run_maps
+from egobench.model.predict import RenderSettings, formation_model, run_normaliser, predict_image, resize_map, run_maps
 from egobench.render.torch_backend import NEAR_PLANE, quat_to_rotmat
 from egobench.train.checkpoint import TrainedRun, check_run_complete, load_trained_run, recording_for_run
 
@@ -68,7 +68,7 @@ def open_run(run_dir, recording_dir, where: str) -> ViewRun:
     if rec.calibration != run.spec.calibration:
         raise ValueError(f"{where}: method {run.spec.name!r} renders the {run.spec.calibration!r} stream, the recording "
                          f"was loaded with {rec.calibration!r} (pass the recording folder instead)")
-    return ViewRun(run, rec, run_maps(rec, run).vignette, method_normaliser(rec, run.spec),
+    return ViewRun(run, rec, run_maps(rec, run).vignette, run_normaliser(rec, run),
                    RenderSettings.of(run.config, "cpu"))
 
 

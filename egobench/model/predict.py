@@ -21,6 +21,7 @@ import egobench.render  # `egobench.render.render`, looked up at each call (test
 from egobench.camera.pinhole import Pinhole
 from egobench.data.recording import Frame, Recording
 from egobench.geometry import se3_exp
+from egobench.model import frame_exposure
 from egobench.model import motion_sampling  # its functions looked up at each call (tests replace them)
 from egobench.model.formation import FormationConfig, FormationModel, exposure_gain_normaliser
 from egobench.model.methods import MethodSpec
@@ -82,6 +83,22 @@ def method_normaliser(recording: Recording, spec: MethodSpec) -> dict[int, Tenso
     """Frame index -> the k the method predicts that frame with (1 for methods without formation)."""
     k_all = exposure_normaliser(recording) if spec.formation else torch.ones(len(recording.frames))
     return {f.index: k_all[i] for i, f in enumerate(recording.frames)}
+
+
+def run_normaliser(recording: Recording, run) -> dict[int, Tensor]:
+    """`method_normaliser` of a trained run: each training frame's k times the exposure correction the run learned
+    for it with its scene (`egobench.model.frame_exposure`; unchanged for runs without one and for held-out frames)."""
+    k_of = method_normaliser(recording, run.spec)
+    scale = (run.checkpoint.get("extra") or {}).get(frame_exposure.KEY)
+    if scale is None:
+        return k_of
+    frames = recording.train_frames
+    if len(frames) != scale.numel():
+        raise ValueError(f"{run.path}: checkpoint.pt: field 'extra.{frame_exposure.KEY}': {scale.numel()} frames, "
+                         f"the recording has {len(frames)} training frames")
+    for f, s in zip(frames, scale.detach().to(torch.float32).cpu()):
+        k_of[f.index] = k_of[f.index] * s.exp()
+    return k_of
 
 
 def sample_counts(recording: Recording, frames: list[Frame], spec: MethodSpec,

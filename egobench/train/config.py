@@ -15,7 +15,7 @@ PAPER_ITERATIONS = 30_000
 
 
 #: TrainConfig fields added after runs were trained: `TrainConfig.hash` leaves each out at its default.
-HASHED_WHEN_SET = ("pose_sample_step_px", "learn_timing", "lr_timing")
+HASHED_WHEN_SET = ("pose_sample_step_px", "learn_timing", "lr_timing", "learn_frame_exposure", "lr_frame_exposure")
 #: TrainConfig's field of each `PoseSampling` field
 SAMPLING_FIELDS = {"max_samples": "max_pose_samples", "rule": "sample_rule", "step_px": "pose_sample_step_px"}
 
@@ -49,6 +49,10 @@ class TrainConfig:
     # with the scene, moving every pose sample along its frame's twist by its time shift
     learn_timing: bool = False
     lr_timing: float = 1e-2  # Adam lr of the timing correction, ms
+    # Model extension (egobench.model.frame_exposure): each training frame's exposure x gain corrected by a log scale
+    # learned with the scene
+    learn_frame_exposure: bool = False
+    lr_frame_exposure: float = 1e-2  # Adam lr of the per-frame log scales
     grow_grad2d: float = 2e-4  # densify when the mean normalised screen gradient exceeds this
     grow_scale3d: float = 0.01  # duplicate below / split above this max-scale (x scene_scale)
     prune_opa: float = 0.005  # prune below this opacity
@@ -95,7 +99,7 @@ class TrainConfig:
         bad = sampling_problem(**self._sampling_fields())
         if bad is not None:  # `PoseSampling`'s own check, in TrainConfig's names
             raise ValueError(f"TrainConfig.{SAMPLING_FIELDS[bad[0]]}: {bad[1]}")
-        for name in ("lr_shading", "lr_timing"):
+        for name in ("lr_shading", "lr_timing", "lr_frame_exposure"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"TrainConfig.{name}: expected > 0, got {getattr(self, name)}")
         if len(self.background) != 3:

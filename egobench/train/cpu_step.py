@@ -58,7 +58,7 @@ def requested_step() -> str:
 
 
 def unsupported_reason(spec: MethodSpec, backend: str, formation, learn_shading: bool,
-                       learn_timing: bool = False) -> str | None:
+                       learn_timing: bool = False, learn_frame_exposure: bool = False) -> str | None:
     """Why the compiled step cannot train this run (None: it can); the autograd path trains it then."""
     if backend != "cpu":
         return f"the rasterizer backend is {backend!r}, not the compiled CPU backend"
@@ -68,6 +68,8 @@ def unsupported_reason(spec: MethodSpec, backend: str, formation, learn_shading:
         return "the run learns a lens shading"
     if learn_timing:
         return "the run learns a timing correction (its gradient reaches the poses)"
+    if learn_frame_exposure:
+        return "the run learns a per-frame exposure correction"
     if spec.formation and not _gamma_formation(formation):
         return "the formation is not the trainer's gamma exposure (exposure, vignette, no white balance)"
     return None

@@ -35,6 +35,7 @@ from egobench.data.reader import say_dropped
 from egobench.data.recording import Recording
 from egobench.host import kernel_threads
 from egobench.io_utils import holding_run_folder, write_json
+from egobench.model.frame_exposure import corrected_normaliser
 from egobench.model.methods import MethodSpec, get_method
 from egobench.model.motion_sampling import TIMING_KEY
 from egobench.model.optim import GAUSSIAN_PARAMS
@@ -111,7 +112,7 @@ def step_context(data: TrainingData, config: TrainConfig, device: torch.device, 
     formation = formation_model(data.spec)
     compiled = step == "auto" and cpu_step.unsupported_reason(
         data.spec, resolve_backend(config.backend, device), formation, config.learn_shading,
-        config.learn_timing) is None
+        config.learn_timing, config.learn_frame_exposure) is None
     inputs = (cpu_step.run_inputs(mask3, n_mask, config, data.camera, data.spec.splat_mode == "2dgs", dtype)
               if compiled else None)
     return StepContext(data=data, config=config, settings=RenderSettings.of(config, device),
@@ -167,7 +168,7 @@ def _forward(state: TrainState, ctx: StepContext, it: int, fi: int) -> tuple[Ten
         if o.means2d is not None and o.means2d.requires_grad:
             o.means2d.retain_grad()
     rgb = mean_rgb(outs)  # [H, W, 3] exposure samples averaged
-    pred = predict_image(rgb, spec, ctx.k[fi], _vignette(state, ctx), ctx.formation)
+    pred = predict_image(rgb, spec, corrected_normaliser(ctx.k[fi], state.extra, fi), _vignette(state, ctx), ctx.formation)
     gt = image_to_float(data.images[fi].to(ctx.settings.device, non_blocking=True))  # [H, W, 3] 0..1
     loss = photometric_loss(pred, gt, ctx.mask3, ctx.n_mask, config.ssim_lambda)
     if spec.splat_mode == "2dgs":

@@ -13,6 +13,7 @@ from egobench import __version__
 from egobench.data.reader import frame_counts
 from egobench.host import host_info
 from egobench.io_utils import git_commit
+from egobench.model import frame_exposure
 from egobench.model.motion_sampling import TIMING_KEY
 from egobench.model.shading import KEY, corner_attenuation
 from egobench.render.torch_backend import VIEWER_NEAR_PLANE
@@ -63,6 +64,7 @@ def train_record(result: "TrainResult", state: TrainState, data: TrainingData, c
         "densification_last": state.densifier.last_counts,
         "learned_shading": _learned_shading(state, config),
         "learned_timing": _learned_timing(state),
+        "learned_frame_exposure": _learned_frame_exposure(state, data),
         "near_cameras": near_camera_count(state.params["means"], data.frames),
     }
 
@@ -95,6 +97,15 @@ def _learned_timing(state: TrainState) -> dict | None:
         return None
     offset_ms, readout_ms = state.extra[TIMING_KEY].detach().cpu().tolist()
     return {"time_offset_ms": offset_ms, "readout_error_ms": readout_ms}
+
+
+def _learned_frame_exposure(state: TrainState, data: TrainingData) -> dict | None:
+    """The learned per-frame exposure corrections (None without learn_frame_exposure): each training frame's index
+    and log scale."""
+    if frame_exposure.KEY not in state.extra:
+        return None
+    return {"frames": [int(f.index) for f in data.frames],
+            "log_scale": state.extra[frame_exposure.KEY].detach().cpu().tolist()}
 
 
 def _image_store_stats(data: TrainingData, config: TrainConfig) -> dict:

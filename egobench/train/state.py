@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
+from egobench.model import frame_exposure
 from egobench.model.adam import adam_step
 from egobench.model.motion_sampling import TIMING_KEY, frame_twist_camera
 from egobench.model.optim import GAUSSIAN_PARAMS, DensifySchedule, Densifier, make_adam
@@ -62,7 +63,8 @@ class TrainState:
 def _learning_rates(config: TrainConfig, scene_scale: float) -> dict[str, float]:
     return {"means": config.lr_means_at * scene_scale, "scales": config.lr_scales, "quats": config.lr_quats,
             "opacities": config.lr_opacities, "colors": config.lr_colors, "pose_delta": config.lr_pose,
-            "twist": config.lr_twist, "shading": config.lr_shading, TIMING_KEY: config.lr_timing}
+            "twist": config.lr_twist, "shading": config.lr_shading, TIMING_KEY: config.lr_timing,
+            frame_exposure.KEY: config.lr_frame_exposure}
 
 
 def _optimisers(params: dict, extra: dict, config: TrainConfig, scene_scale: float):
@@ -87,7 +89,8 @@ def _densifier(config: TrainConfig, scene_scale: float) -> Densifier:
 def _extra_trainables(data: TrainingData, config: TrainConfig, device: torch.device) -> dict[str, torch.nn.Parameter]:
     """pose_delta [F, 6] (zeros) for pose-optimising methods; twist [F, 6] (from the trajectory) for
     velocity-shift methods; shading [2] (zeros: none) with ``config.learn_shading``; timing [2] (zeros: the
-    stated timing; ms) with ``config.learn_timing``."""
+    stated timing; ms) with ``config.learn_timing``; frame_exposure [F] (zeros: the records) with
+    ``config.learn_frame_exposure``."""
     extra: dict[str, torch.nn.Parameter] = {}
     if config.learn_shading:
         extra[KEY] = torch.nn.Parameter(torch.zeros(2, device=device))
@@ -98,6 +101,11 @@ def _extra_trainables(data: TrainingData, config: TrainConfig, device: torch.dev
                              "expected a method with adaptive motion sampling (e.g. 'ours')")
         extra[TIMING_KEY] = torch.nn.Parameter(torch.zeros(2, device=device))
     F = len(data.frames)
+    if config.learn_frame_exposure:
+        if not data.spec.formation:
+            raise ValueError(f"TrainConfig.learn_frame_exposure: method {data.spec.name!r} has no exposure in its "
+                             "image formation to correct; expected a method with formation (e.g. 'ours')")
+        extra[frame_exposure.KEY] = torch.nn.Parameter(torch.zeros(F, device=device))
     if data.spec.pose_optimisation:
         extra["pose_delta"] = torch.nn.Parameter(torch.zeros(F, 6, device=device))
     if data.spec.motion_sampling == "velocity_shift":

@@ -210,7 +210,7 @@ def test_the_pulls_and_curvatures_of_a_render_linear_in_the_timing_are_exact(tmp
     for name, value in {"load_trained_run": lambda run_dir, device, where: run, "learned_timing_ms": lambda r: tau,
                         "load_recording": lambda path, calibration: rec,
                         "run_maps": lambda r, rr: types.SimpleNamespace(mask=mask, timing_ms=tau),
-                        "method_normaliser": lambda r, spec: {f.index: 1.0 for f in frames},
+                        "run_normaliser": lambda r, rr: {f.index: 1.0 for f in frames},
                         "formation_model": lambda spec: None, "sample_counts": lambda *a: [1] * len(frames)}.items():
         monkeypatch.setattr(timing_pulls, name, value)
     monkeypatch.setattr(timing_pulls.RenderSettings, "of", staticmethod(lambda config: None))

@@ -61,11 +61,13 @@ def test_a_field_added_later_keeps_the_hash_of_runs_trained_before_it():
     import json
 
     cfg = TrainConfig.cpu()
-    later = ("pose_sample_step_px", "learn_timing", "lr_timing")  # the fields added after runs were recorded
+    later = ("pose_sample_step_px", "learn_timing", "lr_timing", "learn_frame_exposure",
+             "lr_frame_exposure")  # the fields added after runs were recorded
     before = {k: v for k, v in cfg.to_dict().items() if k not in later}
     blob = json.dumps({"method": "ours", "config": before}, sort_keys=True, separators=(",", ":"))
     assert cfg.hash("ours") == hashlib.sha1(blob.encode()).hexdigest()
     assert dataclasses.replace(cfg, learn_timing=True).hash("ours") != cfg.hash("ours")
+    assert dataclasses.replace(cfg, learn_frame_exposure=True).hash("ours") != cfg.hash("ours")
     fine = parse_overrides(cfg, ["pose_sample_step_px=0.25", "max_pose_samples=32"])
     assert fine.hash("ours") != dataclasses.replace(cfg, max_pose_samples=32).hash("ours")
     assert (fine.pose_sampling.step_px, fine.pose_sampling.max_samples, fine.pose_sampling.rule) == (0.25, 32, "code")

@@ -1,0 +1,99 @@
+"""A per-frame exposure learned with the scene (`TrainConfig.learn_frame_exposure`): the trainer's parameter, the run's
+renders, and the diagnosis's verdict on it (`egobench.diagnose.learned_frames`, `ExposureMetadata.judge_learned_frames`)."""
+
+from __future__ import annotations
+
+import json
+import math
+import types
+
+import numpy as np
+import pytest
+import torch
+
+from egobench.diagnose.learned_frames import frames_markdown, judge_learned_frames
+from egobench.effects import EFFECTS
+from egobench.effects.exposure_metadata import FLAG_MIN_LOG
+from egobench.model import frame_exposure
+from egobench.model.predict import run_normaliser
+
+METADATA = EFFECTS["exposure_metadata"]
+
+
+def test_frames_off_the_bulk_beyond_its_own_scatter_and_the_single_frame_floor_are_flagged():
+    rng = np.random.default_rng(5)
+    frames = list(range(1, 43))
+    values = rng.normal(0.0, 0.02, size=42) + 0.3  # the gauge: a shared offset is the scene's
+    altered = [3, 10, 11, 25, 40]
+    for f, e in zip(altered, (0.25, -0.2, 0.25, -0.2, 0.25)):
+        values[f - 1] = 0.3 - math.log1p(e)  # the record is the true exposure times 1 + e
+    verdict = METADATA.judge_learned_frames(frames, values)
+    assert verdict["flagged_frames"] == altered
+    assert verdict["record_error"]["3"] == pytest.approx(0.25, abs=0.03)
+    assert verdict["record_error"]["10"] == pytest.approx(-0.2, abs=0.03)
+    assert verdict["threshold"] == pytest.approx(max(4.0 * verdict["bulk_sd"], FLAG_MIN_LOG))
+    # a frame beyond four of the bulk's sds but under the 15 % single-frame floor is model error
+    quiet = rng.normal(0.0, 0.01, size=42)
+    quiet[7] = 0.9 * FLAG_MIN_LOG
+    assert METADATA.judge_learned_frames(frames, quiet)["flagged_frames"] == []
+    with pytest.raises(ValueError, match="expected finite log scales, one per listed frame"):
+        METADATA.judge_learned_frames(frames, values[:-1])
+
+
+def test_a_runs_learned_frames_are_judged_from_its_record_or_refused_by_field(tmp_path):
+    assert judge_learned_frames(tmp_path) is None
+    (tmp_path / "train.json").write_text(json.dumps({"learned_frame_exposure": None}))
+    assert judge_learned_frames(tmp_path) is None
+    values = [0.0] * 20 + [-0.3]
+    (tmp_path / "train.json").write_text(json.dumps({"learned_frame_exposure": {"frames": list(range(21)),
+                                                                                 "log_scale": values}}))
+    judged = judge_learned_frames(tmp_path)
+    assert judged["named"] == ["exposure_metadata"] and judged["detail"]["exposure_metadata"]["flagged_frames"] == [20]
+    assert "frame 20: record error +0.35" in frames_markdown(judged)
+    (tmp_path / "train.json").write_text(json.dumps({"learned_frame_exposure": {"frames": [1, 2], "log_scale": "x"}}))
+    with pytest.raises(ValueError, match="train.json: field 'learned_frame_exposure': expected"):
+        judge_learned_frames(tmp_path)
+
+
+def test_a_runs_renders_take_its_learned_exposure_on_its_training_frames_only():
+    frames = [types.SimpleNamespace(index=i, exposure_s=1e-3, gain=1.0) for i in range(10)]
+    recording = types.SimpleNamespace(frames=frames, train_frames=[f for f in frames if f.index % 8])
+    scale = torch.linspace(-0.2, 0.2, 8)
+    spec = types.SimpleNamespace(formation=True)
+    run = types.SimpleNamespace(spec=spec, path="run", checkpoint={"extra": {frame_exposure.KEY: scale}})
+    k_of = run_normaliser(recording, run)
+    trained = [f.index for f in recording.train_frames]
+    assert [float(k_of[i]) for i in trained] == pytest.approx(torch.exp(scale).tolist())
+    assert float(k_of[0]) == float(k_of[8]) == 1.0  # held out: the record
+    run.checkpoint = {"extra": {frame_exposure.KEY: scale[:5]}}
+    with pytest.raises(ValueError, match="field 'extra.frame_exposure': 5 frames, the recording has 8"):
+        run_normaliser(recording, run)
+
+
+def test_the_compiled_step_refuses_a_per_frame_exposure():
+    from egobench.train import cpu_step
+
+    reason = cpu_step.unsupported_reason(types.SimpleNamespace(pose_optimisation=False, render_exposure_samples=1),
+                                         "cpu", None, False, False, True)
+    assert reason == "the run learns a per-frame exposure correction"
+
+
+def test_training_learns_a_scale_per_training_frame_and_records_it(tmp_path):
+    """A short run of a writer recording whose records are wrong on a quarter of the frames: train.json lists every
+    training frame with its learned log scale, and the checkpoint carries them for the run's renders."""
+    from egobench.train import train
+    from egobench.train.checkpoint import load_trained_run
+    from egobench.train.config import TrainConfig
+    from tests.checks.test_independent_writer import writer
+
+    assert writer.main(["--out", str(tmp_path / "rec"), "--seed", "3", "--size", "32", "--frames", "12",
+                        "--exposure-error", "1.25", "--exposure-fraction", "0.25"]) == 0
+    rec_dir = next((tmp_path / "rec").glob("camera-rgb-rectified-*"))
+    config = TrainConfig(iterations=40, max_side=48, motion_warmup_frac=0.0, refine_start_frac=1.0, max_gaussians=2000,
+                         learn_frame_exposure=True)
+    train(rec_dir, "ours", config, tmp_path / "run", progress=False)
+    learned = json.loads((tmp_path / "run" / "train.json").read_text())["learned_frame_exposure"]
+    assert learned["frames"] == [i for i in range(12) if i % 8] and len(learned["log_scale"]) == 10
+    assert np.ptp(learned["log_scale"]) > 0  # each frame moved its own way
+    run = load_trained_run(tmp_path / "run", None, "test")
+    assert run.checkpoint["extra"][frame_exposure.KEY].tolist() == pytest.approx(learned["log_scale"])
