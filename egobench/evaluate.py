@@ -43,7 +43,7 @@ from egobench.metrics import (
 )
 from egobench.model.methods import get_method
 from egobench.model.predict import (
-    FrameMaps, RenderSettings, formation_model, frame_poses, learned_timing_ms, method_normaliser, predict_frame,
+    FrameMaps, RenderSettings, formation_model, frame_poses, learned_timing_ms, predict_frame, run_normaliser,
     run_maps, render_frame, resize_map, sample_counts,
 )
 from egobench.train.checkpoint import TrainedRun, check_run_complete, load_trained_run, recording_for_run
@@ -102,7 +102,7 @@ def _held_out(recording_dir, run_dir, device: str | None) -> _Held:
     counts = sample_counts(rec, frames, spec, run.config.pose_sampling,
                            pixel_scale=run.camera.width / rec.camera.width)
     return _Held(run=run, recording=rec, frames=frames, counts=counts, maps=run_maps(rec, run),
-                 k_of=method_normaliser(rec, spec), formation=formation_model(spec),
+                 k_of=run_normaliser(rec, run), formation=formation_model(spec),
                  settings=RenderSettings.of(run.config))
 
 

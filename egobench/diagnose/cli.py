@@ -207,8 +207,14 @@ def _learned_timing(args: argparse.Namespace, rec: Path, run_dir: Path, out: Pat
         learned, learned_in = learned_timing_of(run_dir), run_dir
     if learned is None:
         return None
-    evidence = timing_evidence(rec, learned_in, progress=not args.no_progress)
-    return {**judge_timing(learned, src.context.readout_s, evidence), "learned_in": str(learned_in)}
+    try:  # reported beside the floors, never deciding: a run it cannot be computed on is still judged
+        evidence, why_not = timing_evidence(rec, learned_in, progress=not args.no_progress), None
+    except ValueError as e:
+        evidence, why_not = None, str(e)
+    judged = {**judge_timing(learned, src.context.readout_s, evidence), "learned_in": str(learned_in)}
+    if why_not is not None:
+        judged["tests_unavailable"] = why_not
+    return judged
 
 
 def _add_hidden_testable(d, paths: list[str]) -> None:

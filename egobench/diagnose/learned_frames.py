@@ -37,7 +37,7 @@ def judge_learned_frames(run_dir: str | Path) -> dict | None:
         try:
             detail[cause] = EFFECTS[cause].judge_learned_frames(learned["frames"], learned["log_scale"])
         except ValueError as e:
-            raise ValueError(f"{path}: field '{key}': {e}") from None
+            raise ValueError(f"{path}: {e}") from None
     if not detail:
         return None
     return {"named": [cause for cause, v in detail.items() if v["flagged_frames"]], "detail": detail}

@@ -7,7 +7,9 @@ J_i = dI_i / dtau by central differences of STEP_MS. The learned value's varianc
 H^-1 S H^-1 (H = sum of H_i), S the scatter of the pulls summed over blocks of consecutive frames: frames that see
 the same content pull alike, so frames are not independent draws, and the blocks are (`block_length`, Newey and
 West's rule of thumb for the lag window). The block sums' own scatter is the run's frame-to-frame model error;
-the test that uses it (`learned_timing.judge_timing`) has blocks - 1 degrees of freedom.
+the test that uses it (`learned_timing.judge_timing`) has blocks - 1 degrees of freedom. The error is the squared
+one, a Gauss-Newton stand-in for the L1 + SSIM loss the run was trained with, so the sandwich describes that
+stand-in's estimate near the learned value, not the training's own.
 """
 
 from __future__ import annotations
@@ -46,7 +48,11 @@ def sandwich_standard_error(pulls: np.ndarray, curvature: np.ndarray) -> tuple[n
     if blocks.shape[0] < 3:
         raise ValueError(f"the learned timing's standard error needs at least 3 blocks of {b} frames; got {n} frames")
     centred = blocks - blocks.mean(0)
-    inverse = np.linalg.inv(curvature.sum(0))
+    try:
+        inverse = np.linalg.inv(curvature.sum(0))
+    except np.linalg.LinAlgError:
+        raise ValueError("the frames' summed curvature in the timing is singular (a camera that barely moves, or "
+                         "frames rendered with one pose sample): no standard error") from None
     k = blocks.shape[0]
     variance = inverse @ (centred.T @ centred) @ inverse * k / (k - 1)
     return np.sqrt(np.diag(variance)), k - 1

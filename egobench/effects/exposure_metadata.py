@@ -500,7 +500,7 @@ class ExposureMetadata(Effect):
         as exp(-departure) - 1 (the record is the true exposure times 1 + e)."""
         values = np.asarray(values, dtype=np.float64)
         if values.ndim != 1 or values.size != len(frames) or values.size < 3 or not np.all(np.isfinite(values)):
-            raise ValueError(f"{self.learned_per_frame}: expected finite log scales, one per listed frame and at least 3, "
+            raise ValueError(f"field '{self.learned_per_frame}': expected finite log scales, one per listed frame and at least 3, "
                              f"got {values.size} for {len(frames)} frames")
         bulk = bulk_frames(values)
         centre = float(np.median(values[bulk]))

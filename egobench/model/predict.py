@@ -86,19 +86,27 @@ def method_normaliser(recording: Recording, spec: MethodSpec) -> dict[int, Tenso
 
 
 def run_normaliser(recording: Recording, run) -> dict[int, Tensor]:
-    """`method_normaliser` of a trained run: each training frame's k times the exposure correction the run learned
-    for it with its scene (`egobench.model.frame_exposure`; unchanged for runs without one and for held-out frames)."""
+    """`method_normaliser` of a trained run, with the exposure corrections the run learned with its scene
+    (`egobench.model.frame_exposure`): each training frame's k times its own, and every other frame's (held out)
+    times the median one. A scale shared by every frame is the scene's to take (the frames' scales have no zero
+    of their own), so the median carries that share to the frames that learned none (frames matched by the
+    checkpoint's ``extra_frames``). Unchanged for runs without one."""
     k_of = method_normaliser(recording, run.spec)
     scale = (run.checkpoint.get("extra") or {}).get(frame_exposure.KEY)
     if scale is None:
         return k_of
-    frames = recording.train_frames
-    if len(frames) != scale.numel():
-        raise ValueError(f"{run.path}: checkpoint.pt: field 'extra.{frame_exposure.KEY}': {scale.numel()} frames, "
-                         f"the recording has {len(frames)} training frames")
-    for f, s in zip(frames, scale.detach().to(torch.float32).cpu()):
-        k_of[f.index] = k_of[f.index] * s.exp()
-    return k_of
+    where = f"{run.path}: checkpoint.pt"
+    trained = [int(i) for i in run.checkpoint.get("extra_frames", [f.index for f in recording.train_frames])]
+    if len(trained) != scale.numel():
+        raise ValueError(f"{where}: field 'extra.{frame_exposure.KEY}': {scale.numel()} values for "
+                         f"{len(trained)} frames in 'extra_frames'")
+    missing = sorted(set(trained) - set(k_of))
+    if missing:
+        raise ValueError(f"{where}: field 'extra_frames': frames {missing[:5]} are not in the recording")
+    scale = scale.detach().to(torch.float32).cpu()
+    shared = scale.median().exp()
+    learned = dict(zip(trained, scale.exp()))
+    return {i: k * learned.get(i, shared) for i, k in k_of.items()}
 
 
 def sample_counts(recording: Recording, frames: list[Frame], spec: MethodSpec,

@@ -19,7 +19,8 @@ from egobench.train.data import TrainingData
 from egobench.train.initialise import init_params
 
 Optimisers = dict[str, torch.optim.Adam]
-#: The extra trainables that hold one row per training frame.
+#: The extra trainables that hold one row per training frame and move its poses (`frame_poses`); the per-frame
+#: exposure correction (`frame_exposure.KEY`) scales its normaliser instead (`frame_exposure.corrected_normaliser`).
 PER_FRAME = ("pose_delta", "twist")
 
 

@@ -9,6 +9,8 @@ from pathlib import Path
 
 import pytest
 
+from egobench.diagnose.learned_frames import judge_learned_frames
+
 SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "independent_sweep.py"
 
 
@@ -232,3 +234,22 @@ def test_a_timing_named_on_a_null_with_nothing_from_the_residual_is_a_wrong_firs
     (case / "diag" / "diagnosis.json").write_text(json.dumps(d))
     row = sweep.case_row("null", 101, case, {})
     assert row["first"] == "time_offset" and row["wrong_first"] and not row["contained_first"]
+
+
+def test_the_per_frame_exposures_names_follow_the_timings_and_give_the_flagged_frames(tmp_path):
+    """A run trained with learn_frame_exposure: the names of its learned frames come after the learned timing's and
+    before the residual's, and their flagged frames are the case's (the residual's own flags are not counted)."""
+    case = _case(tmp_path, "frames", [3, 9, 17, 30], [
+        {"name": "exposure_metadata", "params": {"flagged_frames": [5, 6, 7]}}, {"name": "vignette", "params": {}}])
+    d = json.loads((case / "diag" / "diagnosis.json").read_text())
+    values = [0.0] * 30 + [0.0]
+    for f in (3, 9, 17):
+        values[f] = -0.25
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "train.json").write_text(json.dumps({"learned_frame_exposure": {
+        "frames": list(range(len(values))), "log_scale": values}}))
+    d["learned_frames"] = judge_learned_frames(tmp_path / "run")
+    (case / "diag" / "diagnosis.json").write_text(json.dumps(d))
+    row = sweep.case_row("exposure_metadata", 401, case, {})
+    assert row["named"] == "exposure_metadata vignette" and row["frames_named"] == "exposure_metadata"
+    assert (row["flagged_altered"], row["flagged_wrong"]) == (3, 0) and not row["wrong_first"]

@@ -55,18 +55,24 @@ def test_a_runs_learned_frames_are_judged_from_its_record_or_refused_by_field(tm
         judge_learned_frames(tmp_path)
 
 
-def test_a_runs_renders_take_its_learned_exposure_on_its_training_frames_only():
+def test_a_runs_renders_take_its_learned_exposure_and_the_frames_that_learned_none_the_median():
+    """Training frames (matched by the checkpoint's ``extra_frames``) take their own learned scale; held-out frames,
+    which learned none, the median one (the share every frame has, which the scene could have taken instead)."""
     frames = [types.SimpleNamespace(index=i, exposure_s=1e-3, gain=1.0) for i in range(10)]
     recording = types.SimpleNamespace(frames=frames, train_frames=[f for f in frames if f.index % 8])
-    scale = torch.linspace(-0.2, 0.2, 8)
-    spec = types.SimpleNamespace(formation=True)
-    run = types.SimpleNamespace(spec=spec, path="run", checkpoint={"extra": {frame_exposure.KEY: scale}})
-    k_of = run_normaliser(recording, run)
+    scale = torch.tensor([-0.2, 0.1, 0.0, 0.05, -0.1, 0.3, -0.05, 0.2])
     trained = [f.index for f in recording.train_frames]
-    assert [float(k_of[i]) for i in trained] == pytest.approx(torch.exp(scale).tolist())
-    assert float(k_of[0]) == float(k_of[8]) == 1.0  # held out: the record
+    spec = types.SimpleNamespace(formation=True)
+    run = types.SimpleNamespace(spec=spec, path="run", checkpoint={"extra": {frame_exposure.KEY: scale},
+                                                                   "extra_frames": trained[::-1]})
+    k_of = run_normaliser(recording, run)
+    assert [float(k_of[i]) for i in trained[::-1]] == pytest.approx(torch.exp(scale).tolist())
+    assert float(k_of[0]) == float(k_of[8]) == pytest.approx(math.exp(float(scale.median())))
     run.checkpoint = {"extra": {frame_exposure.KEY: scale[:5]}}
-    with pytest.raises(ValueError, match="field 'extra.frame_exposure': 5 frames, the recording has 8"):
+    with pytest.raises(ValueError, match="field 'extra.frame_exposure': 5 values for 8 frames in 'extra_frames'"):
+        run_normaliser(recording, run)
+    run.checkpoint = {"extra": {frame_exposure.KEY: scale}, "extra_frames": [20] + trained[1:]}
+    with pytest.raises(ValueError, match=r"field 'extra_frames': frames \[20\] are not in the recording"):
         run_normaliser(recording, run)
 
 

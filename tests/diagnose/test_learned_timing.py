@@ -174,6 +174,13 @@ def test_diagnose_judges_the_timing_the_run_learned_or_trains_it_under_learn_tim
     assert judged["named"] == ["time_offset"] and judged["tests"]["time_offset"]["t"] == pytest.approx(13.5) and judged["time_offset_error_s"] == pytest.approx(0.0027)
     assert judged["learned_in"] == str(tmp_path / "out" / "learn_timing" / "run") and judged["df"] == 13
 
+    def no_evidence(rec, run_dir, progress):
+        raise ValueError("the frames' summed curvature in the timing is singular")
+
+    monkeypatch.setattr(cli, "timing_evidence", no_evidence)  # reported only: the floors still judge
+    judged = cli._learned_timing(args, tmp_path / "rec", run, tmp_path / "out", src)
+    assert judged["named"] == ["time_offset"] and "tests" not in judged and "singular" in judged["tests_unavailable"]
+
 
 def test_learn_timing_needs_a_trained_run(tmp_path):
     import argparse
