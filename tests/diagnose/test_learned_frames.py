@@ -16,6 +16,10 @@ from egobench.effects import EFFECTS
 from egobench.effects.exposure_metadata import FLAG_MIN_LOG
 from egobench.model import frame_exposure
 from egobench.model.predict import run_normaliser
+from egobench.train import cpu_step, train
+from egobench.train.checkpoint import load_trained_run
+from egobench.train.config import TrainConfig
+from tests.checks.test_independent_writer import writer
 
 METADATA = EFFECTS["exposure_metadata"]
 
@@ -77,8 +81,6 @@ def test_a_runs_renders_take_its_learned_exposure_and_the_frames_that_learned_no
 
 
 def test_the_compiled_step_refuses_a_per_frame_exposure():
-    from egobench.train import cpu_step
-
     reason = cpu_step.unsupported_reason(types.SimpleNamespace(pose_optimisation=False, render_exposure_samples=1),
                                          "cpu", None, False, False, True)
     assert reason == "the run learns a per-frame exposure correction"
@@ -87,11 +89,6 @@ def test_the_compiled_step_refuses_a_per_frame_exposure():
 def test_training_learns_a_scale_per_training_frame_and_records_it(tmp_path):
     """A short run of a writer recording whose records are wrong on a quarter of the frames: train.json lists every
     training frame with its learned log scale, and the checkpoint carries them for the run's renders."""
-    from egobench.train import train
-    from egobench.train.checkpoint import load_trained_run
-    from egobench.train.config import TrainConfig
-    from tests.checks.test_independent_writer import writer
-
     assert writer.main(["--out", str(tmp_path / "rec"), "--seed", "3", "--size", "32", "--frames", "12",
                         "--exposure-error", "1.25", "--exposure-fraction", "0.25"]) == 0
     rec_dir = next((tmp_path / "rec").glob("camera-rgb-rectified-*"))

@@ -3,15 +3,21 @@ standard error on the run beside it; egobench.diagnose.timing_pulls: that standa
 
 from __future__ import annotations
 
+import argparse
+import dataclasses
 import json
+import types
 
 import numpy as np
 import pytest
+import torch
 from scipy.stats import t as student_t
 
+from egobench.diagnose import cli, learned_timing, timing_pulls
 from egobench.diagnose.learned_timing import judge_timing, learned_timing_of, timing_markdown
 from egobench.diagnose.timing_pulls import block_length, frame_pulls, sandwich_standard_error
 from egobench.effects import EFFECTS
+from egobench.train.config import TrainConfig
 
 TIME_OFFSET_FLOOR_MS = EFFECTS["time_offset"].learned_timing[1]
 READOUT_ERROR_FLOOR_MS = EFFECTS["readout"].learned_timing[1]
@@ -81,8 +87,6 @@ def test_the_block_sandwich_matches_the_estimators_spread_over_draws():
 
 
 def test_the_pulls_need_a_run_that_learned_a_timing(tmp_path, monkeypatch):
-    from egobench.diagnose import timing_pulls
-
     monkeypatch.setattr(timing_pulls, "load_trained_run", lambda run_dir, device, where: object())
     monkeypatch.setattr(timing_pulls, "learned_timing_ms", lambda run: None)
     with pytest.raises(ValueError, match="checkpoint.pt: field 'extra.timing': the run learned no timing"):
@@ -105,11 +109,6 @@ def test_a_runs_learned_timing_is_read_from_its_record_or_refused_by_name(tmp_pa
 def test_a_run_that_learned_no_timing_is_trained_once_more_with_it_and_reused_after(tmp_path, monkeypatch):
     """`timing_of_run`: the run's own learned timing where it has one; otherwise its method, config and seed trained
     with learn_timing into WORK_DIR/run, once (a complete run there is reused)."""
-    import dataclasses
-
-    from egobench.diagnose import learned_timing
-    from egobench.train.config import TrainConfig
-
     own = tmp_path / "own"
     own.mkdir()
     (own / "train.json").write_text(json.dumps({"learned_timing": {"time_offset_ms": 2.9, "readout_error_ms": 0.1}}))
@@ -145,11 +144,6 @@ def test_a_run_that_learned_no_timing_is_trained_once_more_with_it_and_reused_af
 
 
 def test_diagnose_judges_the_timing_the_run_learned_or_trains_it_under_learn_timing(tmp_path, monkeypatch):
-    import argparse
-    import types
-
-    from egobench.diagnose import cli
-
     parser = argparse.ArgumentParser()
     cli.add_arguments(parser)
     src = types.SimpleNamespace(context=types.SimpleNamespace(readout_s=0.008))
@@ -183,10 +177,6 @@ def test_diagnose_judges_the_timing_the_run_learned_or_trains_it_under_learn_tim
 
 
 def test_learn_timing_needs_a_trained_run(tmp_path):
-    import argparse
-
-    from egobench.diagnose import cli
-
     parser = argparse.ArgumentParser()
     cli.add_arguments(parser)
     (tmp_path / "rec").mkdir()
@@ -199,12 +189,6 @@ def test_the_pulls_and_curvatures_of_a_render_linear_in_the_timing_are_exact(tmp
     """`frame_pulls` on a run whose render is linear in the timing, I_i(tau) = A_i + B_i tau on the mask: each
     training frame's pull is B_i^T (I_i(tau) - M_i) and its curvature B_i^T B_i, in capture order (the held-out
     frames left out)."""
-    import types
-
-    import torch
-
-    from egobench.diagnose import timing_pulls
-
     rng = np.random.default_rng(3)
     H, W, F = 4, 5, 10
     mask = torch.from_numpy(rng.random((H, W)) > 0.3)
