@@ -34,14 +34,13 @@ from egobench.data.reader import load_recording
 from egobench.diagnose.timing_pulls import frame_pulls, sandwich_standard_error
 from egobench.effects import EFFECTS
 from egobench.io_utils import claim_work_dir
+from egobench.model.motion_sampling import TIMING_FIELDS
 from egobench.train import train
 from egobench.train.checkpoint import load_trained_run
 
 #: effect -> (its learned value's key in train.json's ``learned_timing``, the floor in ms from which it is named):
 #: the effects learned with the scene (`Effect.learned_timing`)
 FLOORS = {name: e.learned_timing for name, e in EFFECTS.items() if e.learned_timing is not None}
-#: the learned values' keys in the order of the run's timing vector (`motion_sampling.timing_shifts_s`)
-TIMING_ORDER = ("time_offset_ms", "readout_error_ms")
 
 
 def learned_timing_of(run_dir: str | Path) -> dict | None:
@@ -88,7 +87,7 @@ def timing_evidence(recording_dir: str | Path, run_dir: str | Path, progress: bo
     the run's training frames' pulls on it, the scene held as trained)."""
     pulls, curvature = frame_pulls(recording_dir, run_dir, progress=progress)
     se, df = sandwich_standard_error(pulls, curvature)
-    return {"se_ms": dict(zip(TIMING_ORDER, map(float, se))), "df": int(df), "frames": int(pulls.shape[0])}
+    return {"se_ms": dict(zip(TIMING_FIELDS, map(float, se))), "df": int(df), "frames": int(pulls.shape[0])}
 
 
 def judge_timing(learned: dict, stated_readout_s: float, evidence: dict | None = None) -> dict:
@@ -141,5 +140,5 @@ def timing_markdown(judged: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-__all__ = ["FLOORS", "TIMING_ORDER", "judge_timing", "learned_timing_of", "timing_evidence",
+__all__ = ["FLOORS", "judge_timing", "learned_timing_of", "timing_evidence",
            "timing_markdown", "timing_of_run"]

@@ -45,6 +45,8 @@ from egobench.model.pose_sampling import PoseSampling
 MOTION_WINDOW_S = 2e-3
 #: The name of a run's learned timing correction among its trainables (`TrainConfig.learn_timing`; [2], ms)
 TIMING_KEY = "timing"
+#: The learned timing's entries, in its vector's order (`timing_shifts_s`), as train.json's ``learned_timing`` names them
+TIMING_FIELDS = ("time_offset_ms", "readout_error_ms")
 
 
 @dataclass

@@ -57,19 +57,21 @@ def requested_step() -> str:
     return value
 
 
-def unsupported_reason(spec: MethodSpec, backend: str, formation, learn_shading: bool,
-                       learn_timing: bool = False, learn_frame_exposure: bool = False) -> str | None:
-    """Why the compiled step cannot train this run (None: it can); the autograd path trains it then."""
+#: TrainConfig's model extensions learned with the scene, which the compiled step does not carry -> what each learns
+LEARNED_EXTENSIONS = {"learn_shading": "a lens shading",
+                      "learn_timing": "a timing correction (its gradient reaches the poses)",
+                      "learn_frame_exposure": "a per-frame exposure correction"}
+
+
+def unsupported_reason(spec: MethodSpec, backend: str, formation, config) -> str | None:
+    """Why the compiled step cannot train this run of ``config`` (None: it can); the autograd path trains it then."""
     if backend != "cpu":
         return f"the rasterizer backend is {backend!r}, not the compiled CPU backend"
     if spec.pose_optimisation or spec.render_exposure_samples != 1:
         return "the method optimises poses or averages exposure samples"
-    if learn_shading:
-        return "the run learns a lens shading"
-    if learn_timing:
-        return "the run learns a timing correction (its gradient reaches the poses)"
-    if learn_frame_exposure:
-        return "the run learns a per-frame exposure correction"
+    learned = next((what for flag, what in LEARNED_EXTENSIONS.items() if getattr(config, flag)), None)
+    if learned is not None:
+        return f"the run learns {learned}"
     if spec.formation and not _gamma_formation(formation):
         return "the formation is not the trainer's gamma exposure (exposure, vignette, no white balance)"
     return None

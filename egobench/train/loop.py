@@ -111,8 +111,7 @@ def step_context(data: TrainingData, config: TrainConfig, device: torch.device, 
         raise ValueError(f"recording {data.recording.root}: the valid-pixel mask is empty at the training resolution")
     formation = formation_model(data.spec)
     compiled = step == "auto" and cpu_step.unsupported_reason(
-        data.spec, resolve_backend(config.backend, device), formation, config.learn_shading,
-        config.learn_timing, config.learn_frame_exposure) is None
+        data.spec, resolve_backend(config.backend, device), formation, config) is None
     inputs = (cpu_step.run_inputs(mask3, n_mask, config, data.camera, data.spec.splat_mode == "2dgs", dtype)
               if compiled else None)
     return StepContext(data=data, config=config, settings=RenderSettings.of(config, device),

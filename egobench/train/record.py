@@ -14,7 +14,7 @@ from egobench.data.reader import frame_counts
 from egobench.host import host_info
 from egobench.io_utils import git_commit
 from egobench.model import frame_exposure
-from egobench.model.motion_sampling import TIMING_KEY
+from egobench.model.motion_sampling import TIMING_FIELDS, TIMING_KEY
 from egobench.model.shading import KEY, corner_attenuation
 from egobench.render.torch_backend import VIEWER_NEAR_PLANE
 from egobench.train.config import TrainConfig
@@ -95,8 +95,7 @@ def _learned_timing(state: TrainState) -> dict | None:
     """The learned timing correction (None without learn_timing): time offset and readout error, ms."""
     if TIMING_KEY not in state.extra:
         return None
-    offset_ms, readout_ms = state.extra[TIMING_KEY].detach().cpu().tolist()
-    return {"time_offset_ms": offset_ms, "readout_error_ms": readout_ms}
+    return dict(zip(TIMING_FIELDS, state.extra[TIMING_KEY].detach().cpu().tolist()))
 
 
 def _learned_frame_exposure(state: TrainState, data: TrainingData) -> dict | None:

@@ -82,7 +82,7 @@ def test_a_runs_renders_take_its_learned_exposure_and_the_frames_that_learned_no
 
 def test_the_compiled_step_refuses_a_per_frame_exposure():
     reason = cpu_step.unsupported_reason(types.SimpleNamespace(pose_optimisation=False, render_exposure_samples=1),
-                                         "cpu", None, False, False, True)
+                                         "cpu", None, TrainConfig(learn_frame_exposure=True))
     assert reason == "the run learns a per-frame exposure correction"
 
 

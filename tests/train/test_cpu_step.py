@@ -131,8 +131,7 @@ def test_what_the_compiled_step_leaves_to_autograd(plane, method, config, reason
     data = _data(plane, method, config)
     ctx = loop.step_context(data, config, torch.device("cpu"))
     assert not ctx.compiled
-    why = cpu_step.unsupported_reason(spec, loop.resolve_backend(config.backend, "cpu"), ctx.formation,
-                                      config.learn_shading, config.learn_timing)
+    why = cpu_step.unsupported_reason(spec, loop.resolve_backend(config.backend, "cpu"), ctx.formation, config)
     assert reason in why
 
 
