@@ -138,8 +138,14 @@ def case_row(effect: str, seed: int, case: Path, times: dict) -> dict:
         "flagged_frames": " ".join(map(str, flagged)), "altered_frames": " ".join(map(str, altered)),
         "flagged_altered": len(set(flagged) & set(altered)), "flagged_wrong": len(set(flagged) - set(altered)),
         "psnr_gain_db": d.get("psnr_gain_db"), **smallest_testable_of(effect, d), **lens_check_of(d),
-        **learned_timing_columns(timing), "frames_named": " ".join(frames_named), **times,
+        **learned_timing_columns(timing), "frames_named": " ".join(frames_named),
+        "frames_within_frame_gain_db": _frames_gain(frames), **times,
     }
+
+
+def _frames_gain(frames: dict | None) -> float | None:
+    """The learned per-frame exposure's within-frame gain (None where it flagged nothing or learned none)."""
+    return ((frames or {}).get("detail", {}).get("exposure_metadata") or {}).get("within_frame_gain_db")
 
 
 def learned_timing_columns(timing: dict | None) -> dict:
@@ -150,7 +156,7 @@ def learned_timing_columns(timing: dict | None) -> dict:
     return {"learned_time_offset_ms": timing["learned"]["time_offset_ms"],
             "learned_readout_error_ms": timing["learned"]["readout_error_ms"],
             "learned_time_offset_t": tests.get("time_offset", {}).get("t"), "learned_readout_t": tests.get("readout", {}).get("t"),
-            "timing_named": " ".join(timing["named"])}
+            "timing_named": " ".join(timing["named"]), "learned_timing_held_out_db": (timing.get("held_out") or {}).get("gain_db")}
 
 
 def lens_check_record(d: dict) -> dict:

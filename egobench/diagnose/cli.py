@@ -21,6 +21,7 @@ from egobench.diagnose.learned_timing import judge_timing, learned_timing_of, ti
 from egobench.diagnose.lens_check import diagnose_trained_run
 from egobench.diagnose.report import write_report
 from egobench.diagnose.sources import ground_truth_source, run_source
+from egobench.diagnose.timing_pulls import held_out_timing_gain
 from egobench.diagnose.trained_sweep import PHOTOMETRIC, TrainedSweepConfig, extension_gain, run_trained_sweep
 from egobench.model.methods import get_method
 
@@ -182,7 +183,7 @@ def _diagnose_recording(args: argparse.Namespace, cfg: DiagnosisConfig, out: Pat
         _add_hidden_testable(d, args.retention)
     extra = {"method": args.method, "source": src.description}
     timing = _learned_timing(args, rec, run_dir, out, src) if source == "run" else None
-    frames = judge_learned_frames(run_dir) if source == "run" else None
+    frames = judge_learned_frames(run_dir, src, cfg.border_px) if source == "run" else None
     record = write_report(out, d, src.measured, src.predicted, title=f"Residual diagnosis of {rec.name} ({src.description})",
                           extra=extra, shading_extension=extension, learned_timing=timing, learned_frames=frames)
     summary = {"out": str(out), "verdict": record["verdict"], "psnr_gain_db": record["psnr_gain_db"]}
@@ -214,6 +215,10 @@ def _learned_timing(args: argparse.Namespace, rec: Path, run_dir: Path, out: Pat
     judged = {**judge_timing(learned, src.context.readout_s, evidence), "learned_in": str(learned_in)}
     if why_not is not None:
         judged["tests_unavailable"] = why_not
+    try:  # reported too (egobench.diagnose.learned_timing)
+        judged["held_out"] = held_out_timing_gain(rec, learned_in, progress=not args.no_progress)
+    except ValueError as e:
+        judged["held_out_unavailable"] = str(e)
     return judged
 
 

@@ -222,8 +222,15 @@ def _split_frames(ctx: DiagnosisContext, cfg: DiagnosisConfig, F: int, H: int, W
     if eval_idx.size == 0:  # nothing held out: fit on even, score on odd checkerboard pixels of every frame
         eval_idx = np.arange(F)
         fit_pixels = checkerboard(H, W, 0)
-    valid_eval = erode(ctx.valid, cfg.border_px)
-    return _Split(fit_idx, eval_idx, fit_pixels, valid_eval & checkerboard(H, W, 1), checkerboard(H, W, 0))
+    fit_mask, eval_mask = within_frame_masks(ctx, cfg.border_px)
+    return _Split(fit_idx, eval_idx, fit_pixels, eval_mask, fit_mask)
+
+
+def within_frame_masks(ctx: DiagnosisContext, border_px: int) -> tuple[np.ndarray, np.ndarray]:
+    """[H, W] bool pixel masks of a frame-local correction -> (fit: the even checkerboard; score: the odd
+    checkerboard inside the valid region eroded by ``border_px``)."""
+    H, W = ctx.valid.shape
+    return checkerboard(H, W, 0), erode(ctx.valid, border_px) & checkerboard(H, W, 1)
 
 
 def _adjust_and_rank(testable: list[CauseResult], cfg: DiagnosisConfig) -> None:

@@ -135,6 +135,10 @@ def timing_markdown(judged: dict) -> str:
             line += (f" (standard error {test['se_ms']:.3f} ms from the run's frames, t({judged['df']}) = "
                      f"{test['t']:+.2f}, p {test['p']:.3g}; reported, not deciding)")
         lines.append(line)
+    held_out = judged.get("held_out")
+    if held_out is not None:
+        lines.append(f"- held-out gain of rendering with the learned timing rather than the stated one: "
+                     f"{held_out['gain_db']:+.4f} dB over {held_out['frames']} frames (reported, not deciding)")
     lines.append(f"- named: {', '.join(judged['named']) or 'nothing'}")
     lines += [f"- {d['cause']}: " + ", ".join(f"{k} {v:.6g}" for k, v in d["estimate"].items()) for d in judged["detail"]]
     return "\n".join(lines) + "\n"

@@ -223,6 +223,13 @@ class Effect:
         ``flagged_frames`` (recording frame indices) name the effect where not empty."""
         raise NotImplementedError(f"effect {self.name!r} learns no per-frame values")
 
+    def learned_frames_gain(self, measured: np.ndarray, predicted: np.ndarray, ctx, verdict: dict, learned: dict,
+                            fit_mask: np.ndarray, eval_mask: np.ndarray) -> float:
+        """The within-frame PSNR gain (dB) of correcting the frames ``verdict`` (`judge_learned_frames`) flags, on
+        a trained run's renders [F, H, W, 3] of the recording's ``measured`` frames; ``learned``: frame index ->
+        learned value; each frame's correction from its fit_mask pixels, scored on eval_mask."""
+        raise NotImplementedError(f"effect {self.name!r} learns no per-frame values")
+
     def smallest_testable(self, d: float, se: float, ctx) -> dict | None:
         """The smallest effect a run can reveal, in the parameter's unit, from the statistic's minimal
         detectable deviation ``d`` and its standard error ``se`` (None: no conversion)."""

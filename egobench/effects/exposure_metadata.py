@@ -11,7 +11,7 @@ from egobench.effects.base import Effect
 from egobench.residual.calibration import OWN_P, Cells, PlaceboRecord, TrainedRunEvidence
 from egobench.residual.estimation import (DISPLAY_MAX, DISPLAY_MIN, Cause, CauseResult, PhotometricFit, ResidualData,
                                           own_term, photometric_apply)
-from egobench.residual.signatures import decode, robust_sd
+from egobench.residual.signatures import decode, psnr, robust_sd
 
 #: A frame of a trained run is flagged when both halves of it deviate beyond this many robust standard
 #: deviations of the model's frame-to-frame error, and beyond FLAG_MIN_LOG. The floor is the largest
@@ -511,6 +511,25 @@ class ExposureMetadata(Effect):
         return {"centre": centre, "bulk_sd": sd, "threshold": threshold,
                 "flagged_frames": [int(f) for f, x in zip(frames, flagged) if x],
                 "record_error": {str(int(f)): math.exp(-d) - 1.0 for f, d, x in zip(frames, departure, flagged) if x}}
+
+    def learned_frames_gain(self, measured, predicted, ctx, verdict, learned, fit_mask, eval_mask):
+        """The within-frame gain of the frames ``verdict`` flags, the learned route's counterpart of
+        `apply_within_frames`: each flagged frame of the stack [F, H, W, 3] (rendered at its learned log scale,
+        ``learned``: frame index -> log scale) is taken to the bulk's centre (its record as stated), then scaled by
+        the log ratio of its own fit_mask pixels (`_pixel_log_scales`) and scored on eval_mask -> PSNR gain (dB,
+        mean over the stack's frames, `signatures.psnr`, as the residual route's within-frame gain)."""
+        position = {int(f): j for j, f in enumerate(ctx.frame_index)}
+        current, extended = predicted.copy(), predicted.copy()
+        for f in verdict["flagged_frames"]:
+            j = position.get(int(f))
+            if j is None:  # a frame the diagnosis did not render (max_frames)
+                continue
+            to_centre = np.full((1, 1, 1, 1), verdict["centre"] - learned[int(f)])
+            at_centre = photometric_apply(predicted[j:j + 1], to_centre, ctx.gamma_assumed)
+            own = _pixel_log_scales(measured[j], at_centre[0], ctx, fit_mask, 0.0)[2]
+            current[j] = at_centre[0]
+            extended[j] = photometric_apply(at_centre, np.full((1, 1, 1, 1), own), ctx.gamma_assumed)[0]
+        return psnr(extended, measured, eval_mask) - psnr(current, measured, eval_mask)
 
     def smallest_testable(self, d, se, ctx):
         """At a fixed record the run's own floor (`fixed_record_floor`: se is a quarter of it) decides a flag;

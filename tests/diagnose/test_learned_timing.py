@@ -15,7 +15,7 @@ from scipy.stats import t as student_t
 
 from egobench.diagnose import cli, learned_timing, timing_pulls
 from egobench.diagnose.learned_timing import judge_timing, learned_timing_of, timing_markdown
-from egobench.diagnose.timing_pulls import block_length, frame_pulls, sandwich_standard_error
+from egobench.diagnose.timing_pulls import block_length, frame_pulls, held_out_timing_gain, sandwich_standard_error
 from egobench.effects import EFFECTS
 from egobench.train.config import TrainConfig
 
@@ -163,10 +163,12 @@ def test_diagnose_judges_the_timing_the_run_learned_or_trains_it_under_learn_tim
 
     monkeypatch.setattr(cli, "timing_of_run", fake)
     monkeypatch.setattr(cli, "timing_evidence", fake_evidence)
+    monkeypatch.setattr(cli, "held_out_timing_gain", lambda rec, run_dir, progress: {"gain_db": 0.02, "frames": 6})
     args = parser.parse_args(["rec", "--run", str(run), "--out", str(tmp_path / "out"), "--learn-timing", "--no-progress"])
     judged = cli._learned_timing(args, tmp_path / "rec", run, tmp_path / "out", src)
     assert judged["named"] == ["time_offset"] and judged["tests"]["time_offset"]["t"] == pytest.approx(13.5) and judged["time_offset_error_s"] == pytest.approx(0.0027)
     assert judged["learned_in"] == str(tmp_path / "out" / "learn_timing" / "run") and judged["df"] == 13
+    assert judged["held_out"] == {"gain_db": 0.02, "frames": 6} and "+0.0200 dB over 6 frames" in timing_markdown(judged)
 
     def no_evidence(rec, run_dir, progress):
         raise ValueError("the frames' summed curvature in the timing is singular")
@@ -185,33 +187,42 @@ def test_learn_timing_needs_a_trained_run(tmp_path):
         cli._diagnose_recording(args, cli.DiagnosisConfig(), tmp_path / "out")
 
 
-def test_the_pulls_and_curvatures_of_a_render_linear_in_the_timing_are_exact(tmp_path, monkeypatch):
-    """`frame_pulls` on a run whose render is linear in the timing, I_i(tau) = A_i + B_i tau on the mask: each
-    training frame's pull is B_i^T (I_i(tau) - M_i) and its curvature B_i^T B_i, in capture order (the held-out
-    frames left out)."""
+def _linear_run(monkeypatch, F: int = 10):
+    """A run whose render is linear in the timing, I_i(tau) = A_i + B_i tau on the mask (the stated timing: A_i),
+    patched into `timing_pulls` -> (A, B, M, tau, mask, training frames, held-out frames)."""
     rng = np.random.default_rng(3)
-    H, W, F = 4, 5, 10
+    H, W = 4, 5
     mask = torch.from_numpy(rng.random((H, W)) > 0.3)
     A, B, M = (torch.from_numpy(rng.normal(size=shape)) for shape in ((F, H, W, 3), (F, H, W, 3, 2), (F, H, W, 3)))
     tau = torch.tensor([0.7, -1.3], dtype=torch.float64)
     frames = [types.SimpleNamespace(index=i) for i in range(F) if i % 8 != 0]
+    held_out = [types.SimpleNamespace(index=i) for i in range(F) if i % 8 == 0]
     cam = types.SimpleNamespace(width=W, height=H)
-    run = types.SimpleNamespace(spec=types.SimpleNamespace(calibration="online"), camera=cam, config=types.SimpleNamespace(pose_sampling=None))
-    rec = types.SimpleNamespace(camera=cam, train_frames=frames, load_image=lambda f: M[f.index])
+    run = types.SimpleNamespace(spec=types.SimpleNamespace(calibration="online"), camera=cam,
+                                config=types.SimpleNamespace(pose_sampling=None), gaussians=None)
+    rec = types.SimpleNamespace(camera=cam, train_frames=frames, test_frames=held_out, load_image=lambda f: M[f.index])
     for name, value in {"load_trained_run": lambda run_dir, device, where: run, "learned_timing_ms": lambda r: tau,
                         "load_recording": lambda path, calibration: rec,
                         "run_maps": lambda r, rr: types.SimpleNamespace(mask=mask, timing_ms=tau),
-                        "run_normaliser": lambda r, rr: {f.index: 1.0 for f in frames},
-                        "formation_model": lambda spec: None, "sample_counts": lambda *a: [1] * len(frames)}.items():
+                        "run_normaliser": lambda r, rr: {i: 1.0 for i in range(F)},
+                        "formation_model": lambda spec: None, "sample_counts": lambda r, fs, *a: [1] * len(fs)}.items():
         monkeypatch.setattr(timing_pulls, name, value)
     monkeypatch.setattr(timing_pulls.RenderSettings, "of", staticmethod(lambda config: None))
     monkeypatch.setattr(timing_pulls, "replace", lambda maps, timing_ms: types.SimpleNamespace(timing_ms=timing_ms))
 
     def predict(gaussians, rec_, f, spec, camera, maps, k, n, settings, formation):
-        return types.SimpleNamespace(image=A[f.index] + B[f.index] @ maps.timing_ms)
+        shift = 0.0 if maps.timing_ms is None else B[f.index] @ maps.timing_ms
+        return types.SimpleNamespace(image=A[f.index] + shift)
 
     monkeypatch.setattr(timing_pulls, "predict_frame", predict)
-    run.gaussians = None
+    return A, B, M, tau, mask, frames, held_out
+
+
+def test_the_pulls_and_curvatures_of_a_render_linear_in_the_timing_are_exact(tmp_path, monkeypatch):
+    """`frame_pulls` on a run whose render is linear in the timing, I_i(tau) = A_i + B_i tau on the mask: each
+    training frame's pull is B_i^T (I_i(tau) - M_i) and its curvature B_i^T B_i, in capture order (the held-out
+    frames left out)."""
+    A, B, M, tau, mask, frames, _ = _linear_run(monkeypatch)
     pulls, curvature = frame_pulls(tmp_path / "rec", tmp_path / "run")
     assert pulls.shape == (len(frames), 2)
     for i, f in enumerate(frames):
@@ -219,3 +230,14 @@ def test_the_pulls_and_curvatures_of_a_render_linear_in_the_timing_are_exact(tmp
         r = (A[f.index] + B[f.index] @ tau - M[f.index])[mask].reshape(-1)
         assert pulls[i] == pytest.approx((Bm.T @ r).numpy(), rel=1e-9, abs=1e-9)
         assert curvature[i] == pytest.approx((Bm.T @ Bm).numpy(), rel=1e-9, abs=1e-9)
+
+
+def test_the_held_out_gain_of_a_learned_timing_compares_the_held_out_frames_with_and_without_it(tmp_path, monkeypatch):
+    """`held_out_timing_gain` on the linear run: the mean over the held-out frames (and only them) of
+    10 log10(MSE without the timing / MSE with it) on the mask."""
+    A, B, M, tau, mask, _, held_out = _linear_run(monkeypatch, F=17)
+    expected = [10.0 * np.log10(((A[i] - M[i])[mask] ** 2).mean().item() /
+                                ((A[i] + B[i] @ tau - M[i])[mask] ** 2).mean().item()) for i in (0, 8, 16)]
+    gain = held_out_timing_gain(tmp_path / "rec", tmp_path / "run")
+    assert [f.index for f in held_out] == [0, 8, 16] and gain["frames"] == 3
+    assert gain["gain_db"] == pytest.approx(float(np.mean(expected)), rel=1e-12)
