@@ -156,7 +156,8 @@ def learned_timing_columns(timing: dict | None) -> dict:
     return {"learned_time_offset_ms": timing["learned"]["time_offset_ms"],
             "learned_readout_error_ms": timing["learned"]["readout_error_ms"],
             "learned_time_offset_t": tests.get("time_offset", {}).get("t"), "learned_readout_t": tests.get("readout", {}).get("t"),
-            "timing_named": " ".join(timing["named"]), "learned_timing_held_out_db": (timing.get("held_out") or {}).get("gain_db")}
+            "timing_named": " ".join(timing["named"]),
+            "learned_timing_held_out_db": (timing.get("held_out") or {}).get("gain_db")}
 
 
 def lens_check_record(d: dict) -> dict:

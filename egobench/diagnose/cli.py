@@ -208,16 +208,17 @@ def _learned_timing(args: argparse.Namespace, rec: Path, run_dir: Path, out: Pat
         learned, learned_in = learned_timing_of(run_dir), run_dir
     if learned is None:
         return None
+    inputs = {"device": args.device, "trajectory_path": args.trajectory, "semidense_path": args.points}
     try:  # reported beside the floors, never deciding: a run it cannot be computed on is still judged
-        evidence, why_not = timing_evidence(rec, learned_in, progress=not args.no_progress), None
+        evidence, why_not = timing_evidence(rec, learned_in, progress=not args.no_progress, **inputs), None
     except ValueError as e:
         evidence, why_not = None, str(e)
     judged = {**judge_timing(learned, src.context.readout_s, evidence), "learned_in": str(learned_in)}
     if why_not is not None:
         judged["tests_unavailable"] = why_not
     try:  # reported too (egobench.diagnose.learned_timing)
-        judged["held_out"] = held_out_timing_gain(rec, learned_in, progress=not args.no_progress)
-    except ValueError as e:
+        judged["held_out"] = held_out_timing_gain(rec, learned_in, progress=not args.no_progress, **inputs)
+    except (ValueError, OSError) as e:
         judged["held_out_unavailable"] = str(e)
     return judged
 

@@ -7,22 +7,29 @@ something the shared scene absorbs; on 60 exploratory runs of set 90's seeds the
 stood out where the residual's records test had named 6 of 10 (results/diagnosis/README.md, "2026-12-07: the
 exposure learned per frame").
 
-The gain: as the residual route's frame-local causes (`egobench.diagnose.gain`), a flagged frame's correction is
-estimated on its even pixels and scored on its odd ones, the run's renders otherwise as trained
-(`Effect.learned_frames_gain`), and the cause is named only where that within-frame gain exceeds
-`gain.FRAME_LOCAL_GAIN_FLOOR_DB` (the same floor, the same mean over the diagnosis's frames). Without renders
-(`judge_learned_frames` with no source) the verdict is the flags alone and says so.
+The gain: as the residual route's frame-local causes (`egobench.diagnose.gain`), a flagged frame's correction (one
+scale) is estimated on its even pixels and scored on its odd ones (`Effect.learned_frames_gain`), and the cause is
+named only where that within-frame gain exceeds `gain.FRAME_LOCAL_GAIN_FLOOR_DB` (the same floor, the same mean
+over the diagnosis's frames). What is held out is the correction, not the scene: the run, and the scale it learned,
+saw every pixel, as the residual route's run did. A flagged frame at the bulk's centre that its own pixels ask no
+scale of gains nothing, and is model error the scale traded against the scene's colours (measured on a null's last
+frame: results/diagnosis/README.md, "2026-12-07: the learned per-frame exposure's within-frame gain"). Without
+renders (`judge_learned_frames` with no source) the verdict is the flags alone and says so; where the gain cannot
+be measured, nothing is named, with the reason.
 """
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from egobench.diagnose.core import within_frame_masks
 from egobench.diagnose.gain import FRAME_LOCAL_GAIN_FLOOR_DB, refusal
-from egobench.diagnose.sources import Sources
 from egobench.effects import EFFECTS
+
+if TYPE_CHECKING:  # the renders' type only: the module reads nothing of the source's own
+    from egobench.diagnose.sources import Sources
 
 #: effect -> its learned values' key in train.json
 LEARNED = {name: e.learned_per_frame for name, e in EFFECTS.items() if e.learned_per_frame is not None}
@@ -67,10 +74,19 @@ def _earns_name(cause: str, verdict: dict, learned: dict, source: Sources | None
         return True
     fit_mask, eval_mask = within_frame_masks(source.context, border_px)
     by_frame = {int(f): float(v) for f, v in zip(learned["frames"], learned["log_scale"])}
-    gain = float(EFFECTS[cause].learned_frames_gain(source.measured, source.predicted, source.context, verdict,
-                                                    by_frame, fit_mask, eval_mask))
-    verdict.update(within_frame_gain_db=gain, gain_floor_db=FRAME_LOCAL_GAIN_FLOOR_DB)
-    reason = refusal(gain, None, 0.0, SCORED_ON, FRAME_LOCAL_GAIN_FLOOR_DB)
+    try:
+        gain = EFFECTS[cause].learned_frames_gain(source.measured, source.predicted, source.context, verdict,
+                                                  by_frame, fit_mask, eval_mask)
+    except ValueError as e:
+        gain, why = None, f"the within-frame gain could not be measured ({e}): not named"
+    else:
+        why = "none of the flagged frames is among the diagnosed frames (--max-frames): no gain measured, not named"
+    if gain is None:
+        verdict["not_named"] = why
+        return False
+    verdict.update(within_frame_gain_db=float(gain["gain_db"]), gain_frames=int(gain["frames"]),
+                   gain_floor_db=FRAME_LOCAL_GAIN_FLOOR_DB)
+    reason = refusal(verdict["within_frame_gain_db"], None, 0.0, SCORED_ON, FRAME_LOCAL_GAIN_FLOOR_DB)
     if reason is not None:
         verdict["not_named"] = reason
     return reason is None
@@ -85,7 +101,9 @@ def frames_markdown(judged: dict) -> str:
         lines += [f"  - frame {f}: record error {e:+.2f}" for f, e in v["record_error"].items()]
         if "within_frame_gain_db" in v:
             lines.append(f"  - within-frame gain of correcting them {v['within_frame_gain_db']:+.4f} dB "
-                         f"(named above {v['gain_floor_db']} dB)" + (f": {v['not_named']}" if "not_named" in v else ""))
+                         f"(named above {v['gain_floor_db']} dB)")
+        if "not_named" in v:
+            lines.append(f"  - {v['not_named']}")
     lines.append(f"- named: {', '.join(judged['named']) or 'nothing'}")
     return "\n".join(lines) + "\n"
 

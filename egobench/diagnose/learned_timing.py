@@ -82,10 +82,10 @@ def timing_of_run(recording_dir: str | Path, run_dir: str | Path, work_dir: str 
     return learned, retrained
 
 
-def timing_evidence(recording_dir: str | Path, run_dir: str | Path, progress: bool = False) -> dict:
+def timing_evidence(recording_dir: str | Path, run_dir: str | Path, progress: bool = False, **inputs) -> dict:
     """The learned timing's standard errors on its run -> {"se_ms": {key: ms}, "df", "frames"} (`timing_pulls`:
-    the run's training frames' pulls on it, the scene held as trained)."""
-    pulls, curvature = frame_pulls(recording_dir, run_dir, progress=progress)
+    the run's training frames' pulls on it, the scene held as trained; ``inputs``: its device and inputs)."""
+    pulls, curvature = frame_pulls(recording_dir, run_dir, progress=progress, **inputs)
     se, df = sandwich_standard_error(pulls, curvature)
     return {"se_ms": dict(zip(TIMING_FIELDS, map(float, se))), "df": int(df), "frames": int(pulls.shape[0])}
 

@@ -22,6 +22,7 @@ import torch
 from tqdm import tqdm
 
 from egobench.data.reader import load_recording
+from egobench.data.recording import Frame
 from egobench.model.predict import (RenderSettings, formation_model, learned_timing_ms, run_normaliser,
                                     predict_frame, run_maps, sample_counts)
 from egobench.train.checkpoint import load_trained_run
@@ -58,11 +59,11 @@ def sandwich_standard_error(pulls: np.ndarray, curvature: np.ndarray) -> tuple[n
     return np.sqrt(np.diag(variance)), k - 1
 
 
-def frame_pulls(recording_dir: str | Path, run_dir: str | Path, progress: bool = False
+def frame_pulls(recording_dir: str | Path, run_dir: str | Path, progress: bool = False, **inputs
                 ) -> tuple[np.ndarray, np.ndarray]:
     """A run that learned a timing, on its recording's training frames in capture order -> (pulls [F, 2],
-    curvatures [F, 2, 2]) at the learned timing (module doc)."""
-    t = _TimedRun(recording_dir, run_dir, "the learned timing's standard error")
+    curvatures [F, 2, 2]) at the learned timing (module doc); ``inputs``: `_TimedRun`'s device and inputs."""
+    t = _TimedRun(recording_dir, run_dir, "the learned timing's standard error", **inputs)
     steps = [torch.tensor([STEP_MS, 0.0]), torch.tensor([0.0, STEP_MS])]
     pulls, curvature = [], []
     with torch.no_grad():
@@ -75,11 +76,12 @@ def frame_pulls(recording_dir: str | Path, run_dir: str | Path, progress: bool =
     return np.array(pulls), np.array(curvature)
 
 
-def held_out_timing_gain(recording_dir: str | Path, run_dir: str | Path, progress: bool = False) -> dict:
+def held_out_timing_gain(recording_dir: str | Path, run_dir: str | Path, progress: bool = False, **inputs) -> dict:
     """The learned timing's held-out gain: the run's held-out frames rendered with it and without it (the stated
-    timing), the scene as trained -> {"gain_db": mean over the frames of the PSNR gain over the recording's mask,
-    "frames": how many}. Reported beside the learned timing, not deciding (`learned_timing`)."""
-    t = _TimedRun(recording_dir, run_dir, "the learned timing's held-out gain")
+    timing), the scene as trained with it, each frame with the pose samples of the run's own rule (those the timing
+    was learned at) -> {"gain_db": mean over the frames of the PSNR gain over the recording's mask, "frames": how
+    many}. Reported beside the learned timing, not deciding (`learned_timing`); ``inputs``: `_TimedRun`'s."""
+    t = _TimedRun(recording_dir, run_dir, "the learned timing's held-out gain", **inputs)
     gains = []
     with torch.no_grad():
         for f, n in tqdm(t.frames(t.rec.test_frames), desc="timing held out", unit="frame", disable=not progress):
@@ -92,16 +94,20 @@ def held_out_timing_gain(recording_dir: str | Path, run_dir: str | Path, progres
 
 
 class _TimedRun:
-    """A run that learned a timing, on its recording, rendered at any timing over the recording's mask."""
+    """A run that learned a timing, on its recording, rendered at any timing over the recording's mask, on
+    ``device`` (None: the run's training device), the recording read with ``trajectory_path`` / ``semidense_path``
+    as `load_recording` reads them (the diagnosis's --device, --trajectory, --points)."""
 
-    def __init__(self, recording_dir: str | Path, run_dir: str | Path, what: str):
-        run = load_trained_run(run_dir, None, f"{what}, run {run_dir}")
+    def __init__(self, recording_dir: str | Path, run_dir: str | Path, what: str, device: str | None = None,
+                 trajectory_path: str | Path | None = None, semidense_path: str | Path | None = None):
+        run = load_trained_run(run_dir, device, f"{what}, run {run_dir}")
         self.timing = learned_timing_ms(run)
         if self.timing is None:
             raise ValueError(f"{Path(run_dir) / 'checkpoint.pt'}: field 'extra.timing': the run learned no timing "
                              "(train it with learn_timing)")
         spec, cam = run.spec, run.camera
-        self.rec = load_recording(recording_dir, calibration=spec.calibration)
+        self.rec = load_recording(recording_dir, calibration=spec.calibration, trajectory_path=trajectory_path,
+                                  semidense_path=semidense_path)
         if (cam.width, cam.height) != (self.rec.camera.width, self.rec.camera.height):
             raise ValueError(f"{run_dir}: trained at {cam.width}x{cam.height}, the recording is "
                              f"{self.rec.camera.width}x{self.rec.camera.height}; {what} needs full-resolution renders")
@@ -112,13 +118,14 @@ class _TimedRun:
         """[(frame, its pose samples as in training)]."""
         return list(zip(frames, sample_counts(self.rec, frames, self.run.spec, self.run.config.pose_sampling, 1.0)))
 
-    def image(self, f, n: int, timing: torch.Tensor | None) -> torch.Tensor:
+    def image(self, f: Frame, n: int, timing: torch.Tensor | None) -> torch.Tensor:
         """Frame f rendered with n pose samples at ``timing`` (None: the stated one), masked, flat, float64."""
         p = predict_frame(self.run.gaussians, self.rec, f, self.run.spec, self.run.camera,
                           replace(self.maps, timing_ms=timing), self.k_of[f.index], n, self.settings, self.formation)
         return p.image[self.maps.mask].reshape(-1).to(torch.float64)
 
-    def measured(self, f) -> torch.Tensor:
+    def measured(self, f: Frame) -> torch.Tensor:
+        """Frame f's captured image, masked, flat, float64."""
         return self.rec.load_image(f)[self.maps.mask].reshape(-1).to(torch.float64)
 
 

@@ -224,10 +224,12 @@ class Effect:
         raise NotImplementedError(f"effect {self.name!r} learns no per-frame values")
 
     def learned_frames_gain(self, measured: np.ndarray, predicted: np.ndarray, ctx, verdict: dict, learned: dict,
-                            fit_mask: np.ndarray, eval_mask: np.ndarray) -> float:
-        """The within-frame PSNR gain (dB) of correcting the frames ``verdict`` (`judge_learned_frames`) flags, on
-        a trained run's renders [F, H, W, 3] of the recording's ``measured`` frames; ``learned``: frame index ->
-        learned value; each frame's correction from its fit_mask pixels, scored on eval_mask."""
+                            fit_mask: np.ndarray, eval_mask: np.ndarray) -> dict | None:
+        """The within-frame gain of correcting the frames ``verdict`` (`judge_learned_frames`) flags, on a trained
+        run's renders [F, H, W, 3] of the recording's ``measured`` frames (``learned``: frame index -> learned
+        value; each frame's correction from its fit_mask pixels, scored on eval_mask) -> {"gain_db": PSNR gain, mean
+        over the F frames, "frames": flagged frames scored}, or None where the stack holds none of them. An effect
+        with `learned_per_frame` defines it with `judge_learned_frames`."""
         raise NotImplementedError(f"effect {self.name!r} learns no per-frame values")
 
     def smallest_testable(self, d: float, se: float, ctx) -> dict | None:

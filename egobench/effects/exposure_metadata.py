@@ -516,20 +516,22 @@ class ExposureMetadata(Effect):
         """The within-frame gain of the frames ``verdict`` flags, the learned route's counterpart of
         `apply_within_frames`: each flagged frame of the stack [F, H, W, 3] (rendered at its learned log scale,
         ``learned``: frame index -> log scale) is taken to the bulk's centre (its record as stated), then scaled by
-        the log ratio of its own fit_mask pixels (`_pixel_log_scales`) and scored on eval_mask -> PSNR gain (dB,
-        mean over the stack's frames, `signatures.psnr`, as the residual route's within-frame gain)."""
+        the log ratio of its own fit_mask pixels (`_pixel_log_scales`; pixels the render clipped left out) and
+        scored on eval_mask -> {"gain_db": PSNR gain, mean over the stack's F frames as `signatures.psnr`'s,
+        "frames": the flagged frames scored}, or None where the stack holds none of them (max_frames)."""
         position = {int(f): j for j, f in enumerate(ctx.frame_index)}
-        current, extended = predicted.copy(), predicted.copy()
-        for f in verdict["flagged_frames"]:
-            j = position.get(int(f))
-            if j is None:  # a frame the diagnosis did not render (max_frames)
-                continue
-            to_centre = np.full((1, 1, 1, 1), verdict["centre"] - learned[int(f)])
+        scored = [(int(f), position[int(f)]) for f in verdict["flagged_frames"] if int(f) in position]
+        if not scored:
+            return None
+        total = 0.0
+        for f, j in scored:
+            to_centre = np.full((1, 1, 1, 1), verdict["centre"] - learned[f])
             at_centre = photometric_apply(predicted[j:j + 1], to_centre, ctx.gamma_assumed)
-            own = _pixel_log_scales(measured[j], at_centre[0], ctx, fit_mask, 0.0)[2]
-            current[j] = at_centre[0]
-            extended[j] = photometric_apply(at_centre, np.full((1, 1, 1, 1), own), ctx.gamma_assumed)[0]
-        return psnr(extended, measured, eval_mask) - psnr(current, measured, eval_mask)
+            unclipped = fit_mask & (predicted[j] < DISPLAY_MAX).all(-1)
+            own = _pixel_log_scales(measured[j], at_centre[0], ctx, unclipped, 0.0)[2]
+            extended = photometric_apply(at_centre, np.full((1, 1, 1, 1), own), ctx.gamma_assumed)
+            total += psnr(extended, measured[j:j + 1], eval_mask) - psnr(at_centre, measured[j:j + 1], eval_mask)
+        return {"gain_db": total / predicted.shape[0], "frames": len(scored)}
 
     def smallest_testable(self, d, se, ctx):
         """At a fixed record the run's own floor (`fixed_record_floor`: se is a quarter of it) decides a flag;

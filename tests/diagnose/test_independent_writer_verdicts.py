@@ -17,6 +17,8 @@ from pathlib import Path
 
 import pytest
 
+from egobench.diagnose.gain import FRAME_LOCAL_GAIN_FLOOR_DB
+
 SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "independent_sweep.py"
 
 
@@ -88,18 +90,20 @@ def test_a_readout_the_scene_absorbs_is_named_through_the_timing_learned_with_it
     assert timing["tests"]["readout"]["se_ms"] > 0 and timing["df"] == 13  # the run's standard error, reported
     assert abs(timing["readout_s_estimated"] - 1.5 * sweep.STATED_READOUT_S) <= 0.25 * 1.5 * sweep.STATED_READOUT_S
     assert abs(timing["learned"]["time_offset_ms"]) < 0.5
+    assert timing["held_out"]["frames"] == 6  # its held-out gain, reported beside it
 
 
 @pytest.mark.slow
 def test_wrong_records_the_scene_absorbs_are_named_through_the_exposure_learned_per_frame(tmp_path):
     """Seed 1294 of set 90: records x 1.25 or x 0.75 on a quarter of the frames, which the residual's records test
     did not name there (p_adj 0.071). Trained with `TrainConfig.learn_frame_exposure`, each altered training frame's
-    learned scale stands out of the bulk (results/diagnosis/README.md, "2026-12-07: the exposure learned per frame"):
-    the records are named first, with at least half the altered frames flagged and at most 2 wrong."""
+    learned scale stands out of the bulk (results/diagnosis/README.md, "2026-12-07: the exposure learned per frame")
+    and correcting them gains within their frames: the records are named first, with at least half the altered frames flagged and at most 2 wrong."""
     row = sweep.run_case(tmp_path, "exposure_metadata", 1294, seed_set=90,
                          train_set=("pose_sample_step_px=0.0625", "max_pose_samples=32", "learn_timing=true",
                                     "learn_frame_exposure=true"))
     frames = _diagnosis(tmp_path / "cases" / "exposure_metadata_1294")["learned_frames"]
     assert frames["named"] == ["exposure_metadata"] and row["first"] == "exposure_metadata" and not row["wrong_first"]
+    assert frames["detail"]["exposure_metadata"]["within_frame_gain_db"] > FRAME_LOCAL_GAIN_FLOOR_DB  # what names it
     altered = set(map(int, row["altered_frames"].split()))
     assert row["flagged_altered"] >= 0.5 * len(altered) and row["flagged_wrong"] <= 2

@@ -60,9 +60,11 @@ def test_a_runs_learned_frames_are_judged_from_its_record_or_refused_by_field(tm
 
 
 def _stack(rng, n_frames: int = 8, size: int = 16):
-    """Linear radiance [F, H, W, 3] of a scene, its display (gamma 2.2) and a diagnosis context for it."""
+    """Linear radiance [F, H, W, 3] of a scene and a diagnosis context for it; the stack's frames are the
+    recording's odd ones (index 2 j + 1), so a position taken for an index shows."""
     linear = rng.uniform(0.05, 0.5, size=(n_frames, size, size, 3))
-    ctx = types.SimpleNamespace(frame_index=np.arange(n_frames), gamma_assumed=2.2, valid=np.ones((size, size), bool))
+    ctx = types.SimpleNamespace(frame_index=2 * np.arange(n_frames) + 1, gamma_assumed=2.2,
+                                valid=np.ones((size, size), bool))
     return linear, ctx
 
 
@@ -71,50 +73,61 @@ def _display(linear):
 
 
 def test_the_within_frame_gain_of_a_wrong_record_learned_per_frame_is_its_frames_psnr_gain():
-    """Frame 3's record is 25 % off and the run learned it (its render matches the capture); frame 5 learned a scale
-    its capture does not need (model error). Taken to the centre and re-scaled from its even pixels, frame 3 gains
-    what an independent PSNR says, frame 5 next to nothing, each averaged over the stack's frames."""
+    """Recording frame 7 (the stack's fourth) has a record 25 % off, and the run learned it: its render matches the
+    capture. Recording frame 11 learned a scale its capture does not need (model error). Every frame carries the
+    bulk's shared scale c, the scene's share. Taken to the centre and re-scaled from its even pixels, frame 7 gains
+    what an independent PSNR says, frame 11 next to nothing, each averaged over the stack's frames; a flagged frame
+    outside the stack is not scored."""
     rng = np.random.default_rng(8)
     linear, ctx = _stack(rng)
+    c = 0.3
     noise = rng.normal(0.0, 0.01, size=linear.shape)
     measured = np.clip(_display(linear) + noise, 0.0, 1.0)
     measured[3] = np.clip(_display(linear[3] * 1.25) + noise[3], 0.0, 1.0)
     predicted = _display(linear).copy()
     predicted[3], predicted[5] = _display(linear[3] * 1.25), _display(linear[5] * math.exp(0.2))
-    learned = {f: 0.0 for f in range(8)} | {3: math.log(1.25), 5: 0.2}
+    learned = {int(f): c for f in ctx.frame_index} | {7: c + math.log(1.25), 11: c + 0.2}
     even = (np.add.outer(np.arange(16), np.arange(16)) % 2) == 0
     score = ~even
 
     def frame_psnr(a, b):
         return -10.0 * np.log10(((a - b)[score] ** 2).mean())
 
-    gain = METADATA.learned_frames_gain(measured, predicted, ctx, {"centre": 0.0, "flagged_frames": [3]}, learned,
+    gain = METADATA.learned_frames_gain(measured, predicted, ctx, {"centre": c, "flagged_frames": [7, 4]}, learned,
                                         even, score)
     expected = (frame_psnr(_display(linear[3] * 1.25), measured[3]) - frame_psnr(_display(linear[3]), measured[3])) / 8
-    assert gain == pytest.approx(expected, rel=1e-3) and gain > 0.5
-    model_error = METADATA.learned_frames_gain(measured, predicted, ctx, {"centre": 0.0, "flagged_frames": [5]},
+    assert gain["frames"] == 1 and gain["gain_db"] == pytest.approx(expected, rel=1e-3) and gain["gain_db"] > 0.5
+    model_error = METADATA.learned_frames_gain(measured, predicted, ctx, {"centre": c, "flagged_frames": [11]},
                                                learned, even, score)
-    assert abs(model_error) < 0.01 * gain
+    assert abs(model_error["gain_db"]) < 0.01 * gain["gain_db"]
+    assert METADATA.learned_frames_gain(measured, predicted, ctx, {"centre": c, "flagged_frames": [4]}, learned,
+                                        even, score) is None
 
 
 def test_learned_frames_are_named_only_where_their_within_frame_gain_clears_the_floor(tmp_path):
     """With the run's renders, the frames' flags name the cause only above `gain.FRAME_LOCAL_GAIN_FLOOR_DB`: a
-    frame whose learned scale the capture does not need is refused, with the reason and its gain recorded."""
+    frame whose learned scale the capture does not need is refused, with the reason and its gain recorded; a flagged
+    frame the diagnosis did not render names nothing, saying so."""
     rng = np.random.default_rng(9)
     linear, ctx = _stack(rng, n_frames=21)
     measured = np.clip(_display(linear) + rng.normal(0.0, 0.01, size=linear.shape), 0.0, 1.0)
     predicted = _display(linear).copy()
     predicted[20] = _display(linear[20] * math.exp(-0.3))  # learned, not needed
-    (tmp_path / "train.json").write_text(json.dumps({"learned_frame_exposure": {"frames": list(range(21)),
+    frames = [int(f) for f in ctx.frame_index]
+    (tmp_path / "train.json").write_text(json.dumps({"learned_frame_exposure": {"frames": frames,
                                                                                  "log_scale": [0.0] * 20 + [-0.3]}}))
     source = types.SimpleNamespace(measured=measured, predicted=predicted, context=ctx)
     judged = judge_learned_frames(tmp_path, source, border_px=0)
     verdict = judged["detail"]["exposure_metadata"]
-    assert judged["named"] == [] and verdict["flagged_frames"] == [20] and abs(verdict["within_frame_gain_db"]) < 0.01
+    assert judged["named"] == [] and verdict["flagged_frames"] == [41] and abs(verdict["within_frame_gain_db"]) < 0.01
     assert "FRAME_LOCAL_GAIN_FLOOR_DB" in verdict["not_named"] and "within-frame gain" in frames_markdown(judged)
     measured[20] = np.clip(_display(linear[20] * math.exp(-0.3)) + rng.normal(0.0, 0.01, size=linear[20].shape), 0, 1)
     judged = judge_learned_frames(tmp_path, source, border_px=0)  # now the capture is that much darker: a record
     assert judged["named"] == ["exposure_metadata"] and judged["detail"]["exposure_metadata"]["within_frame_gain_db"] > 0.05
+    shorter = types.SimpleNamespace(measured=measured[:20], predicted=predicted[:20],
+                                    context=types.SimpleNamespace(**{**vars(ctx), "frame_index": ctx.frame_index[:20]}))
+    judged = judge_learned_frames(tmp_path, shorter, border_px=0)
+    assert judged["named"] == [] and "--max-frames" in judged["detail"]["exposure_metadata"]["not_named"]
 
 
 def test_a_runs_renders_take_its_learned_exposure_and_the_frames_that_learned_none_the_median():

@@ -157,20 +157,21 @@ def test_diagnose_judges_the_timing_the_run_learned_or_trains_it_under_learn_tim
         assert work_dir == tmp_path / "out" / "learn_timing" and not progress
         return {"time_offset_ms": 2.7, "readout_error_ms": 0.3}, work_dir / "run"
 
-    def fake_evidence(rec, run_dir, progress):
+    def fake_evidence(rec, run_dir, progress, **inputs):
         assert run_dir == tmp_path / "out" / "learn_timing" / "run" and not progress
+        assert inputs == {"device": None, "trajectory_path": None, "semidense_path": None}
         return EVIDENCE
 
     monkeypatch.setattr(cli, "timing_of_run", fake)
     monkeypatch.setattr(cli, "timing_evidence", fake_evidence)
-    monkeypatch.setattr(cli, "held_out_timing_gain", lambda rec, run_dir, progress: {"gain_db": 0.02, "frames": 6})
+    monkeypatch.setattr(cli, "held_out_timing_gain", lambda rec, run_dir, progress, **inputs: {"gain_db": 0.02, "frames": 6})
     args = parser.parse_args(["rec", "--run", str(run), "--out", str(tmp_path / "out"), "--learn-timing", "--no-progress"])
     judged = cli._learned_timing(args, tmp_path / "rec", run, tmp_path / "out", src)
     assert judged["named"] == ["time_offset"] and judged["tests"]["time_offset"]["t"] == pytest.approx(13.5) and judged["time_offset_error_s"] == pytest.approx(0.0027)
     assert judged["learned_in"] == str(tmp_path / "out" / "learn_timing" / "run") and judged["df"] == 13
     assert judged["held_out"] == {"gain_db": 0.02, "frames": 6} and "+0.0200 dB over 6 frames" in timing_markdown(judged)
 
-    def no_evidence(rec, run_dir, progress):
+    def no_evidence(rec, run_dir, progress, **inputs):
         raise ValueError("the frames' summed curvature in the timing is singular")
 
     monkeypatch.setattr(cli, "timing_evidence", no_evidence)  # reported only: the floors still judge
@@ -202,15 +203,17 @@ def _linear_run(monkeypatch, F: int = 10):
                                 config=types.SimpleNamespace(pose_sampling=None), gaussians=None)
     rec = types.SimpleNamespace(camera=cam, train_frames=frames, test_frames=held_out, load_image=lambda f: M[f.index])
     for name, value in {"load_trained_run": lambda run_dir, device, where: run, "learned_timing_ms": lambda r: tau,
-                        "load_recording": lambda path, calibration: rec,
+                        "load_recording": lambda path, calibration, **inputs: rec,
                         "run_maps": lambda r, rr: types.SimpleNamespace(mask=mask, timing_ms=tau),
                         "run_normaliser": lambda r, rr: {i: 1.0 for i in range(F)},
-                        "formation_model": lambda spec: None, "sample_counts": lambda r, fs, *a: [1] * len(fs)}.items():
+                        "formation_model": lambda spec: None,
+                        "sample_counts": lambda r, fs, *a: [f.index + 1 for f in fs]}.items():
         monkeypatch.setattr(timing_pulls, name, value)
     monkeypatch.setattr(timing_pulls.RenderSettings, "of", staticmethod(lambda config: None))
     monkeypatch.setattr(timing_pulls, "replace", lambda maps, timing_ms: types.SimpleNamespace(timing_ms=timing_ms))
 
     def predict(gaussians, rec_, f, spec, camera, maps, k, n, settings, formation):
+        assert n == f.index + 1  # the frame's own pose samples
         shift = 0.0 if maps.timing_ms is None else B[f.index] @ maps.timing_ms
         return types.SimpleNamespace(image=A[f.index] + shift)
 
