@@ -20,6 +20,7 @@ iterations (the issue's: 800); everything else unchanged.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
 import json
 import os
@@ -56,15 +57,51 @@ CASES = {
 }
 
 
-def _run(cmd: list[str], log: Path) -> float:
-    """Run ``cmd`` with one compute thread, its output to ``log``; seconds taken. Raises on failure."""
-    env = {**os.environ, "EGOBENCH_RASTER_THREADS": "1", "OMP_NUM_THREADS": "1"}
+#: The egobench command as the harness runs it.
+EGOBENCH = [sys.executable, "-m", "egobench.cli"]
+#: One compute thread per case (two cases side by side on two cores).
+ONE_THREAD = {"EGOBENCH_RASTER_THREADS": "1", "OMP_NUM_THREADS": "1"}
+
+
+def _run(cmd: list[str], log: Path, in_process: bool = False) -> float:
+    """Run ``cmd`` with one compute thread, its output to ``log``; seconds taken. Raises on failure. With
+    ``in_process``, an egobench command runs in this process (`_run_here`), the same command at the same thread
+    count: what a test of the harness runs, without a process's start-up (imports, kernel loads) each time."""
     t0 = time.perf_counter()
     with open(log, "w") as fh:
-        rc = subprocess.run(cmd, stdout=fh, stderr=subprocess.STDOUT, env=env, cwd=REPO).returncode
+        if in_process and cmd[:len(EGOBENCH)] == EGOBENCH:
+            rc = _run_here(cmd[len(EGOBENCH):], fh)
+        else:
+            rc = subprocess.run(cmd, stdout=fh, stderr=subprocess.STDOUT, env={**os.environ, **ONE_THREAD},
+                                cwd=REPO).returncode
     if rc != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed ({rc}); see {log}")
     return time.perf_counter() - t0
+
+
+def _run_here(argv: list[str], fh) -> int:
+    """`egobench.cli.main(argv)` in this process, on one torch and one kernel thread, its output to ``fh``; the
+    process's thread settings and environment restored after."""
+    import torch  # the in-process boundary: the harness itself runs without torch or egobench loaded
+
+    from egobench.cli import main
+
+    saved_env = {k: os.environ.get(k) for k in ONE_THREAD}
+    saved_threads = torch.get_num_threads()
+    os.environ.update(ONE_THREAD)
+    torch.set_num_threads(1)
+    try:
+        with contextlib.redirect_stdout(fh), contextlib.redirect_stderr(fh):
+            return main(argv)
+    except SystemExit as e:  # argparse's usage errors and --help, as the command's exit status
+        return e.code if isinstance(e.code, int) else 1
+    finally:
+        torch.set_num_threads(saved_threads)
+        for k, v in saved_env.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
 
 
 def seeds_of(effect: str, seed_set: int = 1) -> range:
@@ -75,14 +112,16 @@ def seeds_of(effect: str, seed_set: int = 1) -> range:
 
 
 def run_case(out: Path, effect: str, seed: int, seed_set: int = 1, size: int = ISSUE_SIZE,
-             iterations: int = ISSUE_ITERATIONS, train_set: tuple[str, ...] = (), lens_check: bool = False) -> dict:
+             iterations: int = ISSUE_ITERATIONS, train_set: tuple[str, ...] = (), lens_check: bool = False,
+             in_process: bool = False) -> dict:
     """Write, train (``iterations`` at ``size`` px, ``train_set``: further ``--set`` items) and diagnose one case
-    (each stage skipped when done); its row of cases.csv."""
+    (each stage skipped when done); its row of cases.csv. ``in_process``: train and diagnose in this process
+    (`_run`)."""
     flags, seeds = CASES[effect][0], seeds_of(effect, seed_set)
     case = out / "cases" / f"{effect}_{seed}"
     case.mkdir(parents=True, exist_ok=True)
     rec, run, diag = case / "rec", case / "run", case / "diag"
-    egobench = [sys.executable, "-m", "egobench.cli"]
+    egobench = EGOBENCH
     times = {}
     if not (rec / "truth.json").is_file():
         times["write_s"] = _run([sys.executable, str(WRITER), "--out", str(rec), "--seed", str(seed),
@@ -92,11 +131,11 @@ def run_case(out: Path, effect: str, seed: int, seed_set: int = 1, size: int = I
                                  "--iterations", str(iterations), "--set", f"max_side={size}",
                                  *[a for item in train_set for a in ("--set", item)], "--seed", str(seed),
                                  "--out", str(run), "--no-progress"],
-                                case / "train.log")
+                                case / "train.log", in_process)
     if not (diag / "diagnosis.json").is_file():
         times["diagnose_s"] = _run([*egobench, "diagnose", str(rec), "--run", str(run), "--method", "ours",
                                     *(["--lens-check"] if lens_check else []), "--out", str(diag), "--no-progress"],
-                                   case / "diagnose.log")
+                                   case / "diagnose.log", in_process)
     return case_row(effect, seed, case, times)
 
 

@@ -104,7 +104,7 @@ def test_a_case_is_written_and_trained_at_the_size_asked(tmp_path, monkeypatch):
     --iterations N: the training's iterations (the issue's 800)."""
     commands = []
 
-    def run(cmd, log):
+    def run(cmd, log, in_process=False):
         commands.append(cmd)
         out = Path(cmd[cmd.index("--out") + 1])
         out.mkdir(parents=True)
@@ -126,6 +126,25 @@ def test_a_case_is_written_and_trained_at_the_size_asked(tmp_path, monkeypatch):
     train = commands[1]
     sets = [train[i + 1] for i, a in enumerate(train) if a == "--set"]
     assert sets == ["max_side=256", "pose_sample_step_px=0.25", "max_pose_samples=32"]
+
+
+def test_an_egobench_stage_run_in_process_logs_fails_and_restores_the_threads_as_a_process_would(tmp_path, monkeypatch):
+    """`_run(..., in_process=True)`: the egobench command's output goes to its log, a failure raises naming the log,
+    argparse's exit is the status, and the process's torch threads and environment are as before."""
+    import os
+
+    import torch
+
+    monkeypatch.delenv("EGOBENCH_RASTER_THREADS", raising=False)
+    threads = torch.get_num_threads()
+    log = tmp_path / "diagnose.log"
+    with pytest.raises(RuntimeError, match="diagnose.log"):
+        sweep._run([*sweep.EGOBENCH, "diagnose", str(tmp_path / "missing"), "--out", str(tmp_path / "d"), "--no-progress"],
+                   log, in_process=True)
+    assert "egobench diagnose: error:" in log.read_text() and "recording folder not found" in log.read_text()
+    assert sweep._run([*sweep.EGOBENCH, "tables", "--help"], tmp_path / "help.log", in_process=True) >= 0
+    assert "usage: egobench tables" in (tmp_path / "help.log").read_text()
+    assert torch.get_num_threads() == threads and "EGOBENCH_RASTER_THREADS" not in os.environ
 
 
 def test_a_sweep_folder_keeps_the_conditions_of_its_cases(tmp_path):

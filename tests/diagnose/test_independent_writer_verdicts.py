@@ -1,13 +1,13 @@
 """Verdicts on recordings egobench did not write: each test hides one effect (or none) in a recording of
 scripts/independent_writer.py at the conditions of the independent-writer sweeps (64 px, 48 frames, a fixed
 1 ms exposure at gain 1, a flat stated vignette, a stated 8 ms readout), trains 'ours' for 800 iterations and
-diagnoses the run, all through scripts/independent_sweep.py's own harness (one thread each, as in the sweeps),
-and requires the verdict. The seeds are cases of the third seed set (results/diagnosis/README.md, "2026-12-05: geometric causes beside
-the structure the run leaves"), chosen where the verdict has a margin (gains of +0.2 to +1.8 dB, 11 of 12
-altered frames flagged), so that a run on another x86-64 machine, whose training moves by its float rounding,
-keeps it.
+diagnoses the run, all through scripts/independent_sweep.py's own harness (one thread each, as in the sweeps;
+training and diagnosis in the test's process, the sweep's commands and bits without a process start-up each),
+and requires the verdict. The seeds are cases of the third seed set (results/diagnosis/README.md, "2026-12-05:
+geometric causes beside the structure the run leaves"), chosen where the verdict has a margin (gains of +0.2 to
++1.8 dB, 11 of 12 altered frames flagged), so that a run on another x86-64 machine, whose training moves by its
+float rounding, keeps it.
 """
-
 from __future__ import annotations
 
 import importlib.util
@@ -42,7 +42,7 @@ def _diagnosis(case_dir: Path) -> dict:
 @pytest.mark.parametrize("effect,seed", [("null", 141), ("vignette", 228), ("exposure_metadata", 423),
                                          ("time_offset", 522)])
 def test_the_diagnosis_gives_the_verdict_on_an_independent_writers_recording(tmp_path, effect, seed):
-    row = sweep.run_case(tmp_path, effect, seed, seed_set=3)
+    row = sweep.run_case(tmp_path, effect, seed, seed_set=3, in_process=True)
     d = _diagnosis(tmp_path / "cases" / f"{effect}_{seed}")
     named = [n["name"] for n in d["named"]]
     if effect == "null":  # nothing hidden: nothing named
@@ -66,7 +66,7 @@ def test_a_readout_is_named_where_the_run_renders_the_shutter_in_sub_pixel_steps
     about 14 samples a moving frame where the released rule gives about one): a readout 1.5 x the stated is testable,
     named first and estimated within 25 %. Seed 1140 of set 84 (results/diagnosis/README.md, "2026-12-06: the shutter
     rendered in sub-pixel steps", exploratory): t 9.9, +0.18 dB beating every placebo extension, 10.2 ms of 12."""
-    row = sweep.run_case(tmp_path, "readout", 1140, seed_set=84,
+    row = sweep.run_case(tmp_path, "readout", 1140, seed_set=84, in_process=True,
                          train_set=("pose_sample_step_px=0.0625", "max_pose_samples=32"))
     d = _diagnosis(tmp_path / "cases" / "readout_1140")
     named = [n["name"] for n in d["named"]]
@@ -83,7 +83,7 @@ def test_a_readout_the_scene_absorbs_is_named_through_the_timing_learned_with_it
     hidden 4 ms (3.36 ms on an Intel Xeon; results/diagnosis/README.md, "2026-12-07: the timing learned with the
     scene") and no time offset (0.12 ms): the readout is named first, estimated within 25 %, with its standard error on the
     run's frames beside it."""
-    row = sweep.run_case(tmp_path, "readout", 1185, seed_set=89,
+    row = sweep.run_case(tmp_path, "readout", 1185, seed_set=89, in_process=True,
                          train_set=("pose_sample_step_px=0.0625", "max_pose_samples=32", "learn_timing=true"))
     timing = _diagnosis(tmp_path / "cases" / "readout_1185")["learned_timing"]
     assert timing["named"] == ["readout"] and row["first"] == "readout" and not row["wrong_first"]
@@ -99,7 +99,7 @@ def test_wrong_records_the_scene_absorbs_are_named_through_the_exposure_learned_
     did not name there (p_adj 0.071). Trained with `TrainConfig.learn_frame_exposure`, each altered training frame's
     learned scale stands out of the bulk (results/diagnosis/README.md, "2026-12-07: the exposure learned per frame")
     and correcting them gains within their frames: the records are named first, with at least half the altered frames flagged and at most 2 wrong."""
-    row = sweep.run_case(tmp_path, "exposure_metadata", 1294, seed_set=90,
+    row = sweep.run_case(tmp_path, "exposure_metadata", 1294, seed_set=90, in_process=True,
                          train_set=("pose_sample_step_px=0.0625", "max_pose_samples=32", "learn_timing=true",
                                     "learn_frame_exposure=true"))
     frames = _diagnosis(tmp_path / "cases" / "exposure_metadata_1294")["learned_frames"]
