@@ -129,22 +129,47 @@ def test_a_case_is_written_and_trained_at_the_size_asked(tmp_path, monkeypatch):
 
 
 def test_an_egobench_stage_run_in_process_logs_fails_and_restores_the_threads_as_a_process_would(tmp_path, monkeypatch):
-    """`_run(..., in_process=True)`: the egobench command's output goes to its log, a failure raises naming the log,
-    argparse's exit is the status, and the process's torch threads and environment are as before."""
+    """`_run(..., in_process=True)`: the egobench command runs here (no subprocess), on one torch and one kernel
+    thread while it runs; its output goes to its log, a failure raises naming the log, argparse's exit is the status,
+    and the process's torch threads and environment are as before, also after an exception."""
     import os
 
     import torch
 
+    from egobench import host
+    from egobench.diagnose import cli as diagnose_cli
+
+    def no_subprocess(*args, **kwargs):
+        raise AssertionError("an in-process stage started a process")
+
+    monkeypatch.setattr(sweep.subprocess, "run", no_subprocess)
+    monkeypatch.setenv("OMP_NUM_THREADS", "3")
     monkeypatch.delenv("EGOBENCH_RASTER_THREADS", raising=False)
     threads = torch.get_num_threads()
-    log = tmp_path / "diagnose.log"
-    with pytest.raises(RuntimeError, match="diagnose.log"):
-        sweep._run([*sweep.EGOBENCH, "diagnose", str(tmp_path / "missing"), "--out", str(tmp_path / "d"), "--no-progress"],
-                   log, in_process=True)
-    assert "egobench diagnose: error:" in log.read_text() and "recording folder not found" in log.read_text()
-    assert sweep._run([*sweep.EGOBENCH, "tables", "--help"], tmp_path / "help.log", in_process=True) >= 0
-    assert "usage: egobench tables" in (tmp_path / "help.log").read_text()
-    assert torch.get_num_threads() == threads and "EGOBENCH_RASTER_THREADS" not in os.environ
+    torch.set_num_threads(2)
+    seen = {}
+
+    def stub(args):
+        seen.update(torch=torch.get_num_threads(), kernels=host.kernel_threads(), omp=os.environ["OMP_NUM_THREADS"])
+        print("the stub ran")
+        raise ValueError("the stub's error")
+
+    monkeypatch.setattr(diagnose_cli, "run", stub)
+    try:
+        log = tmp_path / "diagnose.log"
+        with pytest.raises(RuntimeError, match="diagnose.log"):
+            sweep._run([*sweep.EGOBENCH, "diagnose", "rec", "--out", str(tmp_path / "d")], log, in_process=True)
+        assert seen == {"torch": 1, "kernels": 1, "omp": "1"}
+        assert "the stub ran" in log.read_text() and "egobench diagnose: error: the stub's error" in log.read_text()
+        assert torch.get_num_threads() == 2 and os.environ["OMP_NUM_THREADS"] == "3"
+        assert "EGOBENCH_RASTER_THREADS" not in os.environ
+        with open(tmp_path / "help.log", "w") as fh:
+            assert sweep._run_here(["tables", "--help"], fh) == 0
+        with open(tmp_path / "bad.log", "w") as fh:
+            assert sweep._run_here(["tables", "--no-such-flag"], fh) == 2
+        assert "usage: egobench tables" in (tmp_path / "help.log").read_text()
+    finally:
+        torch.set_num_threads(threads)
 
 
 def test_a_sweep_folder_keeps_the_conditions_of_its_cases(tmp_path):
