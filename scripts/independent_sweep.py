@@ -130,19 +130,18 @@ def run_case(out: Path, effect: str, seed: int, seed_set: int = 1, size: int = I
     case = out / "cases" / f"{effect}_{seed}"
     case.mkdir(parents=True, exist_ok=True)
     rec, run, diag = case / "rec", case / "run", case / "diag"
-    egobench = EGOBENCH
     times = {}
     if not (rec / "truth.json").is_file():
         times["write_s"] = _run([sys.executable, str(WRITER), "--out", str(rec), "--seed", str(seed),
                                  "--size", str(size), *flags(seed - seeds.start)], case / "write.log")
     if not (run / "train.json").is_file():
-        times["train_s"] = _run([*egobench, "train", "--recording", str(rec), "--method", "ours", "--preset", "cpu",
+        times["train_s"] = _run([*EGOBENCH, "train", "--recording", str(rec), "--method", "ours", "--preset", "cpu",
                                  "--iterations", str(iterations), "--set", f"max_side={size}",
                                  *[a for item in train_set for a in ("--set", item)], "--seed", str(seed),
                                  "--out", str(run), "--no-progress"],
                                 case / "train.log", in_process)
     if not (diag / "diagnosis.json").is_file():
-        times["diagnose_s"] = _run([*egobench, "diagnose", str(rec), "--run", str(run), "--method", "ours",
+        times["diagnose_s"] = _run([*EGOBENCH, "diagnose", str(rec), "--run", str(run), "--method", "ours",
                                     *(["--lens-check"] if lens_check else []), "--out", str(diag), "--no-progress"],
                                    case / "diagnose.log", in_process)
     return case_row(effect, seed, case, times)
