@@ -20,7 +20,7 @@ evaluated at the trajectory poses with velocities from the trajectory).
 from __future__ import annotations
 
 import argparse
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -43,8 +43,7 @@ from egobench.metrics import (
 )
 from egobench.model.methods import get_method
 from egobench.model.predict import (
-    FrameMaps, RenderSettings, formation_model, frame_poses, learned_timing_ms, predict_frame, run_normaliser,
-    run_maps, render_frame, resize_map, sample_counts,
+    RenderSettings, RunRenderer, frame_poses, learned_timing_ms, render_frame, resize_map,
 )
 from egobench.train.checkpoint import TrainedRun, check_run_complete, load_trained_run, recording_for_run
 from egobench.train.normal_consistency import depth_normals
@@ -76,17 +75,12 @@ def _load(recording_dir, calibration: str) -> Recording:
 
 
 @dataclass
-class _Held:
-    """A trained run set up to predict the held-out frames of a recording."""
+class _Held(RunRenderer):
+    """A trained run set up to predict the held-out frames of a recording (its maps at the run's training
+    resolution)."""
 
-    run: TrainedRun
-    recording: Recording
-    frames: list[Frame]  # held-out frames
-    counts: list[int]  # rolling-shutter pose samples of each (always adaptive at evaluation)
-    maps: FrameMaps  # at the run's training resolution
-    k_of: dict[int, Tensor]  # frame index -> exposure*gain normaliser
-    formation: object
-    settings: RenderSettings
+    frames: list[Frame] = field(default_factory=list)  # held-out frames
+    counts: list[int] = field(default_factory=list)  # rolling-shutter pose samples of each (adaptive at evaluation)
 
 
 def _held_out(recording_dir, run_dir, device: str | None) -> _Held:
@@ -99,11 +93,8 @@ def _held_out(recording_dir, run_dir, device: str | None) -> _Held:
     frames = rec.test_frames
     if not frames:
         raise ValueError(f"recording {rec.root}: no held-out frames (every 8th frame, from index 0)")
-    counts = sample_counts(rec, frames, spec, run.config.pose_sampling,
-                           pixel_scale=run.camera.width / rec.camera.width)
-    return _Held(run=run, recording=rec, frames=frames, counts=counts, maps=run_maps(rec, run),
-                 k_of=run_normaliser(rec, run), formation=formation_model(spec),
-                 settings=RenderSettings.of(run.config))
+    held = _Held.of(rec, run)
+    return replace(held, frames=frames, counts=held.pose_samples(frames))
 
 
 def _geometry_recording(held: _Held, recording_dir, geometry_recording, notes: dict) -> Recording | None:
@@ -145,9 +136,7 @@ def _evaluate_frame(held: _Held, f: Frame, n: int, geo_rec: Recording | None, re
 
 def _predict(held: _Held, f: Frame, n: int):
     """The run's prediction of held-out frame ``f`` with ``n`` pose samples."""
-    run = held.run
-    return predict_frame(run.gaussians, held.recording, f, run.spec, run.camera, held.maps, held.k_of[f.index], n,
-                         held.settings, held.formation)
+    return held.predict(f, n)
 
 
 def _render_pair(held: _Held, f: Frame, n: int):

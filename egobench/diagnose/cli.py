@@ -21,7 +21,7 @@ from egobench.diagnose.learned_timing import judge_timing, learned_timing_of, ti
 from egobench.diagnose.lens_check import diagnose_trained_run
 from egobench.diagnose.report import write_report
 from egobench.diagnose.sources import ground_truth_source, run_source
-from egobench.diagnose.timing_pulls import held_out_timing_gain
+from egobench.diagnose.timing_pulls import TimedRun, held_out_timing_gain
 from egobench.diagnose.trained_sweep import PHOTOMETRIC, TrainedSweepConfig, extension_gain, run_trained_sweep
 from egobench.model.methods import get_method
 
@@ -208,19 +208,30 @@ def _learned_timing(args: argparse.Namespace, rec: Path, run_dir: Path, out: Pat
         learned, learned_in = learned_timing_of(run_dir), run_dir
     if learned is None:
         return None
-    inputs = {"device": args.device, "trajectory_path": args.trajectory, "semidense_path": args.points}
-    try:  # reported beside the floors, never deciding: a run it cannot be computed on is still judged
-        evidence, why_not = timing_evidence(rec, learned_in, progress=not args.no_progress, **inputs), None
+    try:  # the run loaded once for both reports beside the floors; a run they cannot be made on is still judged
+        timed = TimedRun(rec, learned_in, device=args.device, trajectory_path=args.trajectory,
+                         semidense_path=args.points)
     except ValueError as e:
-        evidence, why_not = None, str(e)
-    judged = {**judge_timing(learned, src.context.readout_s, evidence), "learned_in": str(learned_in)}
-    if why_not is not None:
-        judged["tests_unavailable"] = why_not
-    try:  # reported too (egobench.diagnose.learned_timing)
-        judged["held_out"] = held_out_timing_gain(rec, learned_in, progress=not args.no_progress, **inputs)
+        evidence, reports = None, {"tests_unavailable": str(e), "held_out_unavailable": str(e)}
+    else:
+        evidence, reports = _timing_reports(timed, progress=not args.no_progress)
+    return {**judge_timing(learned, src.context.readout_s, evidence), "learned_in": str(learned_in), **reports}
+
+
+def _timing_reports(timed: TimedRun, progress: bool) -> tuple[dict | None, dict]:
+    """The learned timing's standard errors on its run and its held-out gain, reported beside its floors, never
+    deciding (egobench.diagnose.learned_timing) -> (the evidence, or None where it cannot be computed; the record's
+    "held_out", with "tests_unavailable" / "held_out_unavailable" saying why where one cannot be)."""
+    reports = {}
+    try:
+        evidence = timing_evidence(timed, progress=progress)
+    except ValueError as e:
+        evidence, reports["tests_unavailable"] = None, str(e)
+    try:
+        reports["held_out"] = held_out_timing_gain(timed, progress=progress)
     except (ValueError, OSError) as e:
-        judged["held_out_unavailable"] = str(e)
-    return judged
+        reports["held_out_unavailable"] = str(e)
+    return evidence, reports
 
 
 def _add_hidden_testable(d, paths: list[str]) -> None:

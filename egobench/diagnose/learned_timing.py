@@ -31,7 +31,7 @@ import numpy as np
 from scipy.stats import t as student_t
 
 from egobench.data.reader import load_recording
-from egobench.diagnose.timing_pulls import frame_pulls, sandwich_standard_error
+from egobench.diagnose.timing_pulls import TimedRun, frame_pulls, sandwich_standard_error
 from egobench.effects import EFFECTS
 from egobench.io_utils import claim_work_dir
 from egobench.model.motion_sampling import TIMING_FIELDS
@@ -82,10 +82,10 @@ def timing_of_run(recording_dir: str | Path, run_dir: str | Path, work_dir: str 
     return learned, retrained
 
 
-def timing_evidence(recording_dir: str | Path, run_dir: str | Path, progress: bool = False, **inputs) -> dict:
+def timing_evidence(timed: TimedRun, progress: bool = False) -> dict:
     """The learned timing's standard errors on its run -> {"se_ms": {key: ms}, "df", "frames"} (`timing_pulls`:
-    the run's training frames' pulls on it, the scene held as trained; ``inputs``: its device and inputs)."""
-    pulls, curvature = frame_pulls(recording_dir, run_dir, progress=progress, **inputs)
+    the run's training frames' pulls on it, the scene held as trained)."""
+    pulls, curvature = frame_pulls(timed, progress=progress)
     se, df = sandwich_standard_error(pulls, curvature)
     return {"se_ms": dict(zip(TIMING_FIELDS, map(float, se))), "df": int(df), "frames": int(pulls.shape[0])}
 

@@ -29,14 +29,7 @@ from egobench.model.formation import (
     quantise,
     radial_vignette,
 )
-from egobench.model.predict import (
-    RenderSettings,
-    formation_model,
-    run_normaliser,
-    predict_frame,
-    run_maps,
-    sample_counts,
-)
+from egobench.model.predict import RunRenderer
 from egobench.residual.signatures import DiagnosisContext
 from egobench.sim.camera_calibration import make_calibrations
 from egobench.sim.capture import RawCamera, capture_irradiance, sampled_raw_pixels, view_readout_rows
@@ -362,6 +355,20 @@ def ground_truth_source(recording_dir: str | Path, max_frames: int | None = None
     return Sources(np.stack(measured), np.stack(predicted), ctx, meta["source"])
 
 
+def run_renderer(recording_dir: str | Path, run, what: str, trajectory_path: str | Path | None = None,
+                 semidense_path: str | Path | None = None) -> RunRenderer:
+    """A loaded trained run (`load_trained_run`) set up to render its recording at full resolution: the recording
+    read in the run's calibration, with ``trajectory_path`` / ``semidense_path`` as `load_recording` reads them (the
+    CLI's --trajectory / --points). A ValueError naming ``what`` where the run was trained at another size."""
+    cam = run.camera
+    rec = load_recording(recording_dir, calibration=run.spec.calibration, trajectory_path=trajectory_path,
+                         semidense_path=semidense_path)
+    if (cam.width, cam.height) != (rec.camera.width, rec.camera.height):
+        raise ValueError(f"{run.path}: trained at {cam.width}x{cam.height}, the recording is "
+                         f"{rec.camera.width}x{rec.camera.height}; {what} needs full-resolution renders")
+    return RunRenderer.of(rec, run)
+
+
 def run_source(recording_dir: str | Path, run_dir: str | Path, max_frames: int | None = None,
                progress: bool = True, device: str | None = None, trajectory_path: str | Path | None = None,
                semidense_path: str | Path | None = None, pose_samples: int | None = None) -> Sources:
@@ -373,26 +380,32 @@ def run_source(recording_dir: str | Path, run_dir: str | Path, max_frames: int |
     effective readout by about 1/N (`motion_sampling.pixel_pose_index`), which the readout test
     measures as a readout error; a fine staircase leaves the recording's timing alone in the residual."""
     run = load_trained_run(run_dir, device, f"diagnose run {run_dir}")
-    spec, cam = run.spec, run.camera
-    rec = load_recording(recording_dir, calibration=spec.calibration, trajectory_path=trajectory_path,
-                         semidense_path=semidense_path)
-    if (cam.width, cam.height) != (rec.camera.width, rec.camera.height):
-        raise ValueError(f"{run_dir}: trained at {cam.width}x{cam.height}, the recording is "
-                         f"{rec.camera.width}x{rec.camera.height}; diagnose needs full-resolution renders")
+    r = run_renderer(recording_dir, run, "diagnose", trajectory_path, semidense_path)
+    rec, spec = r.recording, run.spec
     frames = _select(rec.frames, max_frames)
-    maps, k_of, formation = run_maps(rec, run), run_normaliser(rec, run), formation_model(spec)
-    settings = RenderSettings.of(run.config)
-    counts = sample_counts(rec, frames, spec, run.config.pose_sampling, 1.0)
+    counts = r.pose_samples(frames)
     trained_counts = np.array(counts, dtype=np.int64)  # as in its training: the same rule at the same size
     if pose_samples is not None:
         if int(pose_samples) != pose_samples or pose_samples < 1:
             raise ValueError(f"pose_samples: expected a positive integer, got {pose_samples!r}")
         counts = [int(pose_samples) if n > 1 else 1 for n in counts]
+    measured, predicted, velocity, coverage, views = _run_renders(r, list(zip(frames, counts)), progress)
+    meta = {"recording": str(recording_dir), "run": str(run_dir), "method": spec.name,
+            "source": f"renders of trained run ({spec.name})", "pose_samples": pose_samples or "the run's own"}
+    ctx = run_context(recording_dir, rec, frames, predicted, velocity, float(getattr(spec, "response_gamma", 2.2)),
+                      spec.calibration, meta)
+    ctx.render_alpha, ctx.train_view_count, ctx.model_pose_samples = coverage, views, trained_counts
+    return Sources(measured, predicted, ctx, meta["source"])
+
+
+def _run_renders(r: RunRenderer, pairs: list, progress: bool) -> tuple[np.ndarray, ...]:
+    """[(frame, pose samples)] rendered by ``r`` -> (measured, predicted [F, H, W, 3], image velocity [F, H, W, 2]
+    of the rendered surface, render coverage (alpha) [F, H, W], training views of the surface [F, H, W])."""
+    rec = r.recording
     measured, predicted, velocity, coverage, views = [], [], [], [], []
-    pairs = list(zip(frames, counts))
     with torch.no_grad():
         for f, n in tqdm(pairs, desc="render run", unit="frame", disable=not progress):
-            p = predict_frame(run.gaussians, rec, f, spec, cam, maps, k_of[f.index], n, settings, formation)
+            p = r.predict(f, n)
             predicted.append(p.image.numpy())
             measured.append(rec.load_image(f).numpy())
             depth = p.outs[0].depth[0, ..., 0].cpu().numpy().astype(np.float64)
@@ -401,12 +414,4 @@ def run_source(recording_dir: str | Path, run_dir: str | Path, max_frames: int |
             surface_depth = np.where(alpha > 0.5, depth, 0.0)  # where the model renders a surface
             velocity.append(pixel_velocity(rec, f, surface_depth))
             views.append(training_view_count(rec, f, surface_depth))
-    meta = {"recording": str(recording_dir), "run": str(run_dir), "method": spec.name,
-            "source": f"renders of trained run ({spec.name})", "pose_samples": pose_samples or "the run's own"}
-    pred = np.stack(predicted)
-    ctx = run_context(recording_dir, rec, frames, pred, np.stack(velocity), float(getattr(spec, "response_gamma", 2.2)),
-                      spec.calibration, meta)
-    ctx.render_alpha = np.stack(coverage)
-    ctx.train_view_count = np.stack(views)
-    ctx.model_pose_samples = trained_counts
-    return Sources(np.stack(measured), pred, ctx, meta["source"])
+    return tuple(np.stack(x) for x in (measured, predicted, velocity, coverage, views))

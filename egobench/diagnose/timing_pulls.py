@@ -21,10 +21,9 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from egobench.data.reader import load_recording
-from egobench.data.recording import Frame
-from egobench.model.predict import (RenderSettings, formation_model, learned_timing_ms, run_normaliser,
-                                    predict_frame, run_maps, sample_counts)
+from egobench.data.recording import Frame, Recording
+from egobench.diagnose.sources import run_renderer
+from egobench.model.predict import learned_timing_ms
 from egobench.train.checkpoint import load_trained_run
 
 #: the timing's central difference step (ms): the render is smooth in the poses at this scale, and the step moves
@@ -59,11 +58,9 @@ def sandwich_standard_error(pulls: np.ndarray, curvature: np.ndarray) -> tuple[n
     return np.sqrt(np.diag(variance)), k - 1
 
 
-def frame_pulls(recording_dir: str | Path, run_dir: str | Path, progress: bool = False, **inputs
-                ) -> tuple[np.ndarray, np.ndarray]:
+def frame_pulls(t: TimedRun, progress: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """A run that learned a timing, on its recording's training frames in capture order -> (pulls [F, 2],
-    curvatures [F, 2, 2]) at the learned timing (module doc); ``inputs``: `_TimedRun`'s device and inputs."""
-    t = _TimedRun(recording_dir, run_dir, "the learned timing's standard error", **inputs)
+    curvatures [F, 2, 2]) at the learned timing (module doc)."""
     steps = [torch.tensor([STEP_MS, 0.0]), torch.tensor([0.0, STEP_MS])]
     pulls, curvature = [], []
     with torch.no_grad():
@@ -76,12 +73,11 @@ def frame_pulls(recording_dir: str | Path, run_dir: str | Path, progress: bool =
     return np.array(pulls), np.array(curvature)
 
 
-def held_out_timing_gain(recording_dir: str | Path, run_dir: str | Path, progress: bool = False, **inputs) -> dict:
+def held_out_timing_gain(t: TimedRun, progress: bool = False) -> dict:
     """The learned timing's held-out gain: the run's held-out frames rendered with it and without it (the stated
     timing), the scene as trained with it, each frame with the pose samples of the run's own rule (those the timing
     was learned at) -> {"gain_db": mean over the frames of the PSNR gain over the recording's mask, "frames": how
-    many}. Reported beside the learned timing, not deciding (`learned_timing`); ``inputs``: `_TimedRun`'s."""
-    t = _TimedRun(recording_dir, run_dir, "the learned timing's held-out gain", **inputs)
+    many}. Reported beside the learned timing, not deciding (`learned_timing`)."""
     gains = []
     with torch.no_grad():
         for f, n in tqdm(t.frames(t.rec.test_frames), desc="timing held out", unit="frame", disable=not progress):
@@ -89,44 +85,45 @@ def held_out_timing_gain(recording_dir: str | Path, run_dir: str | Path, progres
             with_it, without = (((t.image(f, n, timing) - m) ** 2).mean().item() for timing in (t.timing, None))
             gains.append(10.0 * np.log10(max(without, 1e-20) / max(with_it, 1e-20)))
     if not gains:
-        raise ValueError(f"{recording_dir}: no held-out frames: the learned timing's held-out gain needs some")
+        raise ValueError(f"{t.recording_dir}: no held-out frames: the learned timing's held-out gain needs some")
     return {"gain_db": float(np.mean(gains)), "frames": len(gains)}
 
 
-class _TimedRun:
+class TimedRun:
     """A run that learned a timing, on its recording, rendered at any timing over the recording's mask, on
     ``device`` (None: the run's training device), the recording read with ``trajectory_path`` / ``semidense_path``
-    as `load_recording` reads them (the diagnosis's --device, --trajectory, --points)."""
+    as `load_recording` reads them (the diagnosis's --device, --trajectory, --points); loaded once for
+    `frame_pulls` and `held_out_timing_gain`."""
 
-    def __init__(self, recording_dir: str | Path, run_dir: str | Path, what: str, device: str | None = None,
+    def __init__(self, recording_dir: str | Path, run_dir: str | Path, device: str | None = None,
                  trajectory_path: str | Path | None = None, semidense_path: str | Path | None = None):
+        what = "the learned timing's standard error and held-out gain"
         run = load_trained_run(run_dir, device, f"{what}, run {run_dir}")
         self.timing = learned_timing_ms(run)
         if self.timing is None:
             raise ValueError(f"{Path(run_dir) / 'checkpoint.pt'}: field 'extra.timing': the run learned no timing "
                              "(train it with learn_timing)")
-        spec, cam = run.spec, run.camera
-        self.rec = load_recording(recording_dir, calibration=spec.calibration, trajectory_path=trajectory_path,
-                                  semidense_path=semidense_path)
-        if (cam.width, cam.height) != (self.rec.camera.width, self.rec.camera.height):
-            raise ValueError(f"{run_dir}: trained at {cam.width}x{cam.height}, the recording is "
-                             f"{self.rec.camera.width}x{self.rec.camera.height}; {what} needs full-resolution renders")
-        self.run, self.maps, self.k_of = run, run_maps(self.rec, run), run_normaliser(self.rec, run)
-        self.formation, self.settings = formation_model(spec), RenderSettings.of(run.config)
+        self.recording_dir = recording_dir
+        self.renderer = run_renderer(recording_dir, run, what, trajectory_path, semidense_path)
+
+    @property
+    def rec(self) -> Recording:
+        """The run's recording."""
+        return self.renderer.recording
 
     def frames(self, frames: list) -> list:
         """[(frame, its pose samples as in training)]."""
-        return list(zip(frames, sample_counts(self.rec, frames, self.run.spec, self.run.config.pose_sampling, 1.0)))
+        return list(zip(frames, self.renderer.pose_samples(frames)))
 
     def image(self, f: Frame, n: int, timing: torch.Tensor | None) -> torch.Tensor:
         """Frame f rendered with n pose samples at ``timing`` (None: the stated one), masked, flat, float64."""
-        p = predict_frame(self.run.gaussians, self.rec, f, self.run.spec, self.run.camera,
-                          replace(self.maps, timing_ms=timing), self.k_of[f.index], n, self.settings, self.formation)
-        return p.image[self.maps.mask].reshape(-1).to(torch.float64)
+        maps = self.renderer.maps
+        p = self.renderer.predict(f, n, replace(maps, timing_ms=timing))
+        return p.image[maps.mask].reshape(-1).to(torch.float64)
 
     def measured(self, f: Frame) -> torch.Tensor:
         """Frame f's captured image, masked, flat, float64."""
-        return self.rec.load_image(f)[self.maps.mask].reshape(-1).to(torch.float64)
+        return self.rec.load_image(f)[self.renderer.maps.mask].reshape(-1).to(torch.float64)
 
 
-__all__ = ["STEP_MS", "block_length", "frame_pulls", "held_out_timing_gain", "sandwich_standard_error"]
+__all__ = ["STEP_MS", "TimedRun", "block_length", "frame_pulls", "held_out_timing_gain", "sandwich_standard_error"]

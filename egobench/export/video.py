@@ -24,9 +24,7 @@ from tqdm import tqdm
 from egobench.data import load_recording
 from egobench.data.reader import add_input_arguments
 from egobench.io_utils import atomic_path, check_written, holding_run_folder
-from egobench.model.predict import (
-    RenderSettings, formation_model, run_normaliser, predict_frame, resize_map, run_maps, sample_counts,
-)
+from egobench.model.predict import RunRenderer, resize_map
 from egobench.train.checkpoint import check_run_complete, load_trained_run, recording_for_run
 
 #: Panels are enlarged (nearest neighbour) to at least this height, with a label bar above.
@@ -38,7 +36,7 @@ class _Panel:
     """What one panel shows: a run set up to predict frames, or the captured images."""
 
     label: str
-    run: object | None  # egobench.evaluate._Held-like: run, recording, maps, k_of, formation, settings
+    run: RunRenderer | None  # None: the captured images
     recording: object
 
 
@@ -49,9 +47,7 @@ def _run_panel(run_dir, recording_dir, device: str | None):
     if rec.calibration != run.spec.calibration:
         raise ValueError(f"render {run_dir}: method {run.spec.name!r} renders the {run.spec.calibration!r} stream, "
                          f"the recording was loaded with {rec.calibration!r} (pass the recording folder instead)")
-    held = argparse.Namespace(run=run, recording=rec, maps=run_maps(rec, run), k_of=run_normaliser(rec, run),
-                              formation=formation_model(run.spec), settings=RenderSettings.of(run.config))
-    return _Panel(label=run.spec.label, run=held, recording=rec)
+    return _Panel(label=run.spec.label, run=RunRenderer.of(rec, run), recording=rec)
 
 
 def _predict(panel: _Panel, timestamp_ns: int) -> np.ndarray:
@@ -64,11 +60,7 @@ def _predict(panel: _Panel, timestamp_ns: int) -> np.ndarray:
         cam = panel.recording.camera if panel.label != "captured" else panel.camera
         img = resize_map(panel.recording.load_image(frame), cam)
     else:
-        run = held.run
-        n = sample_counts(held.recording, [frame], run.spec, run.config.pose_sampling,
-                          pixel_scale=run.camera.width / held.recording.camera.width)[0]
-        img = predict_frame(run.gaussians, held.recording, frame, run.spec, run.camera, held.maps,
-                            held.k_of[frame.index], n, held.settings, held.formation).image
+        img = held.predict(frame, held.pose_samples([frame])[0]).image
     return (img.clamp(0, 1) * 255.0).round().to(torch.uint8).numpy()
 
 

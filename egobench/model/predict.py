@@ -275,3 +275,34 @@ def predict_frame(gaussians, recording: Recording, frame: Frame, spec: MethodSpe
     rgb = mean_rgb(outs).cpu()
     image = predict_image(rgb, spec, k, maps.vignette, formation)
     return FramePrediction(image=image, rgb=rgb, outs=outs)
+
+
+@dataclass
+class RunRenderer:
+    """A trained run set up to render a recording's frames as it was trained to: the recording's maps at the run's
+    camera (`run_maps`), its normaliser (`run_normaliser`), formation (`formation_model`) and render settings."""
+
+    run: object  # the trained run (`egobench.train.checkpoint.TrainedRun`)
+    recording: Recording
+    maps: FrameMaps
+    k_of: dict[int, Tensor]  # frame index -> k
+    formation: FormationModel
+    settings: RenderSettings
+
+    @classmethod
+    def of(cls, recording: Recording, run) -> "RunRenderer":
+        """``run``'s renderer of ``recording``."""
+        return cls(run, recording, run_maps(recording, run), run_normaliser(recording, run), formation_model(run.spec),
+                   RenderSettings.of(run.config))
+
+    def pose_samples(self, frames: list[Frame]) -> list[int]:
+        """The frames' rolling-shutter pose samples by the run's rule (`sample_counts`), at the run's size: the
+        recording's pixel motion scaled by the run's width over the recording's (1 where they match)."""
+        return sample_counts(self.recording, frames, self.run.spec, self.run.config.pose_sampling,
+                             self.run.camera.width / self.recording.camera.width)
+
+    def predict(self, frame: Frame, n_samples: int, maps: FrameMaps | None = None) -> FramePrediction:
+        """`predict_frame` of ``frame`` with ``n_samples`` pose samples, with ``maps`` in place of the run's own."""
+        return predict_frame(self.run.gaussians, self.recording, frame, self.run.spec, self.run.camera,
+                             self.maps if maps is None else maps, self.k_of[frame.index], n_samples, self.settings,
+                             self.formation)

@@ -15,7 +15,8 @@ from scipy.stats import t as student_t
 
 from egobench.diagnose import cli, learned_timing, timing_pulls
 from egobench.diagnose.learned_timing import judge_timing, learned_timing_of, timing_markdown
-from egobench.diagnose.timing_pulls import block_length, frame_pulls, held_out_timing_gain, sandwich_standard_error
+from egobench.diagnose.timing_pulls import (TimedRun, block_length, frame_pulls, held_out_timing_gain,
+                                            sandwich_standard_error)
 from egobench.effects import EFFECTS
 from egobench.train.config import TrainConfig
 
@@ -90,7 +91,7 @@ def test_the_pulls_need_a_run_that_learned_a_timing(tmp_path, monkeypatch):
     monkeypatch.setattr(timing_pulls, "load_trained_run", lambda run_dir, device, where: object())
     monkeypatch.setattr(timing_pulls, "learned_timing_ms", lambda run: None)
     with pytest.raises(ValueError, match="checkpoint.pt: field 'extra.timing': the run learned no timing"):
-        frame_pulls(tmp_path / "rec", tmp_path / "run")
+        TimedRun(tmp_path / "rec", tmp_path / "run")
     with pytest.raises(ValueError, match="at least 3 blocks"):
         sandwich_standard_error(np.zeros((2, 2)), np.tile(np.eye(2), (2, 1, 1)))
 
@@ -157,26 +158,44 @@ def test_diagnose_judges_the_timing_the_run_learned_or_trains_it_under_learn_tim
         assert work_dir == tmp_path / "out" / "learn_timing" and not progress
         return {"time_offset_ms": 2.7, "readout_error_ms": 0.3}, work_dir / "run"
 
-    def fake_evidence(rec, run_dir, progress, **inputs):
-        assert run_dir == tmp_path / "out" / "learn_timing" / "run" and not progress
+    loaded = []
+
+    def fake_timed_run(rec, run_dir, **inputs):  # loaded once, for both the evidence and the held-out gain
+        assert run_dir == tmp_path / "out" / "learn_timing" / "run"
         assert inputs == {"device": None, "trajectory_path": None, "semidense_path": None}
+        loaded.append(run_dir)
+        return "timed run"
+
+    def fake_evidence(timed, progress):
+        assert timed == "timed run" and not progress
         return EVIDENCE
 
     monkeypatch.setattr(cli, "timing_of_run", fake)
+    monkeypatch.setattr(cli, "TimedRun", fake_timed_run)
     monkeypatch.setattr(cli, "timing_evidence", fake_evidence)
-    monkeypatch.setattr(cli, "held_out_timing_gain", lambda rec, run_dir, progress, **inputs: {"gain_db": 0.02, "frames": 6})
+    monkeypatch.setattr(cli, "held_out_timing_gain", lambda timed, progress: {"gain_db": 0.02, "frames": 6})
     args = parser.parse_args(["rec", "--run", str(run), "--out", str(tmp_path / "out"), "--learn-timing", "--no-progress"])
     judged = cli._learned_timing(args, tmp_path / "rec", run, tmp_path / "out", src)
     assert judged["named"] == ["time_offset"] and judged["tests"]["time_offset"]["t"] == pytest.approx(13.5) and judged["time_offset_error_s"] == pytest.approx(0.0027)
     assert judged["learned_in"] == str(tmp_path / "out" / "learn_timing" / "run") and judged["df"] == 13
     assert judged["held_out"] == {"gain_db": 0.02, "frames": 6} and "+0.0200 dB over 6 frames" in timing_markdown(judged)
+    assert len(loaded) == 1
 
-    def no_evidence(rec, run_dir, progress, **inputs):
+    def no_evidence(timed, progress):
         raise ValueError("the frames' summed curvature in the timing is singular")
 
     monkeypatch.setattr(cli, "timing_evidence", no_evidence)  # reported only: the floors still judge
     judged = cli._learned_timing(args, tmp_path / "rec", run, tmp_path / "out", src)
     assert judged["named"] == ["time_offset"] and "tests" not in judged and "singular" in judged["tests_unavailable"]
+    assert judged["held_out"] == {"gain_db": 0.02, "frames": 6}
+
+    def unloadable(rec, run_dir, **inputs):
+        raise ValueError("trained at 32x32, the recording is 64x64")
+
+    monkeypatch.setattr(cli, "TimedRun", unloadable)  # neither report: both say why, the floors still judge
+    judged = cli._learned_timing(args, tmp_path / "rec", run, tmp_path / "out", src)
+    assert judged["named"] == ["time_offset"] and "tests" not in judged and "held_out" not in judged
+    assert "32x32" in judged["tests_unavailable"] and "32x32" in judged["held_out_unavailable"]
 
 
 def test_learn_timing_needs_a_trained_run(tmp_path):
@@ -190,7 +209,7 @@ def test_learn_timing_needs_a_trained_run(tmp_path):
 
 def _linear_run(monkeypatch, F: int = 10):
     """A run whose render is linear in the timing, I_i(tau) = A_i + B_i tau on the mask (the stated timing: A_i),
-    patched into `timing_pulls` -> (A, B, M, tau, mask, training frames, held-out frames)."""
+    patched into `timing_pulls` -> (its `TimedRun`, A, B, M, tau, mask, training frames, held-out frames)."""
     rng = np.random.default_rng(3)
     H, W = 4, 5
     mask = torch.from_numpy(rng.random((H, W)) > 0.3)
@@ -198,35 +217,28 @@ def _linear_run(monkeypatch, F: int = 10):
     tau = torch.tensor([0.7, -1.3], dtype=torch.float64)
     frames = [types.SimpleNamespace(index=i) for i in range(F) if i % 8 != 0]
     held_out = [types.SimpleNamespace(index=i) for i in range(F) if i % 8 == 0]
-    cam = types.SimpleNamespace(width=W, height=H)
-    run = types.SimpleNamespace(spec=types.SimpleNamespace(calibration="online"), camera=cam,
-                                config=types.SimpleNamespace(pose_sampling=None), gaussians=None)
-    rec = types.SimpleNamespace(camera=cam, train_frames=frames, test_frames=held_out, load_image=lambda f: M[f.index])
-    for name, value in {"load_trained_run": lambda run_dir, device, where: run, "learned_timing_ms": lambda r: tau,
-                        "load_recording": lambda path, calibration, **inputs: rec,
-                        "run_maps": lambda r, rr: types.SimpleNamespace(mask=mask, timing_ms=tau),
-                        "run_normaliser": lambda r, rr: {i: 1.0 for i in range(F)},
-                        "formation_model": lambda spec: None,
-                        "sample_counts": lambda r, fs, *a: [f.index + 1 for f in fs]}.items():
-        monkeypatch.setattr(timing_pulls, name, value)
-    monkeypatch.setattr(timing_pulls.RenderSettings, "of", staticmethod(lambda config: None))
-    monkeypatch.setattr(timing_pulls, "replace", lambda maps, timing_ms: types.SimpleNamespace(timing_ms=timing_ms))
+    rec = types.SimpleNamespace(train_frames=frames, test_frames=held_out, load_image=lambda f: M[f.index])
 
-    def predict(gaussians, rec_, f, spec, camera, maps, k, n, settings, formation):
+    def predict(f, n, maps):
         assert n == f.index + 1  # the frame's own pose samples
         shift = 0.0 if maps.timing_ms is None else B[f.index] @ maps.timing_ms
         return types.SimpleNamespace(image=A[f.index] + shift)
 
-    monkeypatch.setattr(timing_pulls, "predict_frame", predict)
-    return A, B, M, tau, mask, frames, held_out
+    renderer = types.SimpleNamespace(recording=rec, maps=types.SimpleNamespace(mask=mask, timing_ms=tau),
+                                     pose_samples=lambda fs: [f.index + 1 for f in fs], predict=predict)
+    for name, value in {"load_trained_run": lambda run_dir, device, where: "run", "learned_timing_ms": lambda r: tau,
+                        "run_renderer": lambda path, run, what, *inputs: renderer,
+                        "replace": lambda maps, timing_ms: types.SimpleNamespace(timing_ms=timing_ms)}.items():
+        monkeypatch.setattr(timing_pulls, name, value)
+    return TimedRun("rec", "run"), A, B, M, tau, mask, frames, held_out
 
 
-def test_the_pulls_and_curvatures_of_a_render_linear_in_the_timing_are_exact(tmp_path, monkeypatch):
+def test_the_pulls_and_curvatures_of_a_render_linear_in_the_timing_are_exact(monkeypatch):
     """`frame_pulls` on a run whose render is linear in the timing, I_i(tau) = A_i + B_i tau on the mask: each
     training frame's pull is B_i^T (I_i(tau) - M_i) and its curvature B_i^T B_i, in capture order (the held-out
     frames left out)."""
-    A, B, M, tau, mask, frames, _ = _linear_run(monkeypatch)
-    pulls, curvature = frame_pulls(tmp_path / "rec", tmp_path / "run")
+    timed, A, B, M, tau, mask, frames, _ = _linear_run(monkeypatch)
+    pulls, curvature = frame_pulls(timed)
     assert pulls.shape == (len(frames), 2)
     for i, f in enumerate(frames):
         Bm = B[f.index][mask].reshape(-1, 2)
@@ -235,12 +247,12 @@ def test_the_pulls_and_curvatures_of_a_render_linear_in_the_timing_are_exact(tmp
         assert curvature[i] == pytest.approx((Bm.T @ Bm).numpy(), rel=1e-9, abs=1e-9)
 
 
-def test_the_held_out_gain_of_a_learned_timing_compares_the_held_out_frames_with_and_without_it(tmp_path, monkeypatch):
+def test_the_held_out_gain_of_a_learned_timing_compares_the_held_out_frames_with_and_without_it(monkeypatch):
     """`held_out_timing_gain` on the linear run: the mean over the held-out frames (and only them) of
     10 log10(MSE without the timing / MSE with it) on the mask."""
-    A, B, M, tau, mask, _, held_out = _linear_run(monkeypatch, F=17)
+    timed, A, B, M, tau, mask, _, held_out = _linear_run(monkeypatch, F=17)
     expected = [10.0 * np.log10(((A[i] - M[i])[mask] ** 2).mean().item() /
                                 ((A[i] + B[i] @ tau - M[i])[mask] ** 2).mean().item()) for i in (0, 8, 16)]
-    gain = held_out_timing_gain(tmp_path / "rec", tmp_path / "run")
+    gain = held_out_timing_gain(timed)
     assert [f.index for f in held_out] == [0, 8, 16] and gain["frames"] == 3
     assert gain["gain_db"] == pytest.approx(float(np.mean(expected)), rel=1e-12)
