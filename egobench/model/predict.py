@@ -96,7 +96,10 @@ def run_normaliser(recording: Recording, run) -> dict[int, Tensor]:
     if scale is None:
         return k_of
     where = f"{run.path}: checkpoint.pt"
-    trained = [int(i) for i in run.checkpoint.get("extra_frames", [f.index for f in recording.train_frames])]
+    if "extra_frames" not in run.checkpoint:
+        raise ValueError(f"{where}: field 'extra_frames' is missing: expected the recording's frame indices that "
+                         f"the {scale.numel()} values of 'extra.{frame_exposure.KEY}' belong to")
+    trained = [int(i) for i in run.checkpoint["extra_frames"]]
     if len(trained) != scale.numel():
         raise ValueError(f"{where}: field 'extra.{frame_exposure.KEY}': {scale.numel()} values for "
                          f"{len(trained)} frames in 'extra_frames'")

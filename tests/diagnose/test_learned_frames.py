@@ -143,8 +143,11 @@ def test_a_runs_renders_take_its_learned_exposure_and_the_frames_that_learned_no
     k_of = run_normaliser(recording, run)
     assert [float(k_of[i]) for i in trained[::-1]] == pytest.approx(torch.exp(scale).tolist())
     assert float(k_of[0]) == float(k_of[8]) == pytest.approx(math.exp(float(scale.median())))
-    run.checkpoint = {"extra": {frame_exposure.KEY: scale[:5]}}
+    run.checkpoint = {"extra": {frame_exposure.KEY: scale[:5]}, "extra_frames": trained}
     with pytest.raises(ValueError, match="field 'extra.frame_exposure': 5 values for 8 frames in 'extra_frames'"):
+        run_normaliser(recording, run)
+    run.checkpoint = {"extra": {frame_exposure.KEY: scale}}
+    with pytest.raises(ValueError, match="field 'extra_frames' is missing: expected the recording's frame indices"):
         run_normaliser(recording, run)
     run.checkpoint = {"extra": {frame_exposure.KEY: scale}, "extra_frames": [20] + trained[1:]}
     with pytest.raises(ValueError, match=r"field 'extra_frames': frames \[20\] are not in the recording"):
