@@ -365,7 +365,7 @@ def run_renderer(recording_dir: str | Path, run, what: str, trajectory_path: str
                          semidense_path=semidense_path)
     if (cam.width, cam.height) != (rec.camera.width, rec.camera.height):
         raise ValueError(f"{run.path}: trained at {cam.width}x{cam.height}, the recording is "
-                         f"{rec.camera.width}x{rec.camera.height}; {what} needs full-resolution renders")
+                         f"{rec.camera.width}x{rec.camera.height}; full-resolution renders are needed for {what}")
     return RunRenderer.of(rec, run)
 
 
@@ -380,7 +380,7 @@ def run_source(recording_dir: str | Path, run_dir: str | Path, max_frames: int |
     effective readout by about 1/N (`motion_sampling.pixel_pose_index`), which the readout test
     measures as a readout error; a fine staircase leaves the recording's timing alone in the residual."""
     run = load_trained_run(run_dir, device, f"diagnose run {run_dir}")
-    r = run_renderer(recording_dir, run, "diagnose", trajectory_path, semidense_path)
+    r = run_renderer(recording_dir, run, "the diagnosis", trajectory_path, semidense_path)
     rec, spec = r.recording, run.spec
     frames = _select(rec.frames, max_frames)
     counts = r.pose_samples(frames)
