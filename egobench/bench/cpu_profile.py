@@ -22,10 +22,10 @@ import torch
 import torch.nn.functional as F
 
 from egobench import bench
-from egobench.host import host_info, setup_threads, start_kernel_pool
+from egobench.host import host_info, setup_threads
 from egobench.render import cpu as ck
 from egobench.render import cpu_backend as cb
-from egobench.render import kernel_build, render
+from egobench.render import render
 from egobench.render.cpu import surfels as k2
 
 
@@ -167,8 +167,7 @@ def stage_times(sigma_px: float = 2.5, width: int = 128, n: int = 20000, repeats
     spec = bench._case_spec((width, n, sigma_px))
     cam, g = bench.bench_camera(spec), bench.bench_scene(spec)
     cb.set_threads()
-    start_kernel_pool()
-    kernel_build.ensure_built(g.means.dtype, mode)  # time the cached kernels that every render runs
+    cb.prepare_kernels(g.means.dtype, mode)  # time the cached kernels that every render runs
     stages = {"3dgs": _stages_3dgs, "2dgs": _stages_2dgs}[mode]
     out, work = stages(g, cam, width, n, tile_size, repeats)
     out["sum_of_stages"] = sum(out[k] for k in STAGES)

@@ -189,12 +189,17 @@ def render(
         return gsplat_backend.render_gsplat(gaussians, camera, viewmats, pixel_pose_index=pixel_pose_index,
                                             mode=mode, background=background, want_normal=want_normal,
                                             tile_size=tile_size, absgrad=absgrad)
+    if chosen == "cpu" and mode == "2dgs":
+        from egobench.render import cpu_backend_2dgs
+
+        return cpu_backend_2dgs.render_cpu_2dgs(gaussians, camera, viewmats, pixel_pose_index=pixel_pose_index,
+                                                background=background, tile_size=tile_size, absgrad=absgrad)
     if chosen == "cpu":
         from egobench.render import cpu_backend
 
         return cpu_backend.render_cpu(gaussians, camera, viewmats, pixel_pose_index=pixel_pose_index,
                                       background=background, want_normal=want_normal, tile_size=tile_size,
-                                      absgrad=absgrad, mode=mode)
+                                      absgrad=absgrad)
     from egobench.render import torch_backend
 
     res = torch_backend.rasterize(

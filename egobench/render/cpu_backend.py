@@ -33,7 +33,6 @@ except Exception as _exc:  # ImportError (numba missing), llvmlite load failure
     ck, _LOAD_ERROR = None, f"{type(_exc).__name__}: {_exc}".splitlines()[0]
 else:
     _LOAD_ERROR = None
-    from egobench.render import cpu_backend_2dgs  # it imports this module back (as `cb`)
     from egobench.render.cpu import surfels as k2
 
 #: gsplat 1.5.3 projection constants (as torch_backend)
@@ -358,16 +357,19 @@ class _Rasterize(torch.autograd.Function):
                 g_normals, None, None, None, None, None)
 
 
+def prepare_kernels(dtype: torch.dtype, mode: str) -> None:
+    """Before a render's first kernel: numba's pool started (loading a parallel kernel starts it) and the kernel
+    set of ``dtype`` and ``mode`` ("3dgs" or "2dgs") built in a child and loaded here, so every process runs the
+    same machine code (`kernel_build`)."""
+    start_kernel_pool()
+    kernel_build.ensure_built(dtype, mode)
+
+
 def render_cpu(gaussians: Gaussians, camera: Pinhole, viewmats: Tensor, *, pixel_pose_index: Tensor | None,
-               background: Tensor | None, want_normal: bool, tile_size: int, absgrad: bool,
-               mode: str = "3dgs") -> RenderOutput:
-    """Render with the compiled kernels; same contract as the torch path of `render`.
-    viewmats [I, 4, 4] world-to-camera; pixel_pose_index [H, W] or None; mode "3dgs" or "2dgs"."""
-    start_kernel_pool()  # before a parallel kernel loads (loading one starts numba's pool)
-    kernel_build.ensure_built(gaussians.means.dtype, mode)  # compiled in a child, loaded here: same code everywhere
-    if mode == "2dgs":
-        return cpu_backend_2dgs.render_cpu_2dgs(gaussians, camera, viewmats, pixel_pose_index=pixel_pose_index,
-                                                background=background, tile_size=tile_size, absgrad=absgrad)
+               background: Tensor | None, want_normal: bool, tile_size: int, absgrad: bool) -> RenderOutput:
+    """3DGS render with the compiled kernels; same contract as the torch path of `render` (2DGS:
+    `cpu_backend_2dgs.render_cpu_2dgs`). viewmats [I, 4, 4] world-to-camera; pixel_pose_index [H, W] or None."""
+    prepare_kernels(gaussians.means.dtype, "3dgs")
     means = gaussians.means
     H, W = camera.height, camera.width
     I = viewmats.shape[0]

@@ -18,7 +18,7 @@ from torch import Tensor
 
 from egobench.camera.pinhole import Pinhole
 from egobench.render import cpu as ck
-from egobench.render import cpu_backend as cb  # the module, not its names: it imports this one
+from egobench.render import cpu_backend as cb
 from egobench.render.cpu import surfels as k2
 from egobench.render.types import Gaussians, RenderOutput
 
@@ -118,6 +118,7 @@ def render_cpu_2dgs(gaussians: Gaussians, camera: Pinhole, viewmats: Tensor, *, 
                     background: Tensor | None, tile_size: int, absgrad: bool) -> RenderOutput:
     """2DGS render with the compiled kernels; same contract as the torch path of `render` for
     mode="2dgs". viewmats [I, 4, 4] world-to-camera; pixel_pose_index [H, W] or None."""
+    cb.prepare_kernels(gaussians.means.dtype, "2dgs")
     H, W = camera.height, camera.width
     I = viewmats.shape[0]
     means2d_out, tsl, depths, normals, radii = _Project2DGS.apply(  # means2d_out: egobench's pixels

@@ -23,7 +23,7 @@ _EXPORTS = {
     "CHECKPOINT_FORMAT": "checkpoint", "TrainedRun": "checkpoint", "load_trained_run": "checkpoint",
     "read_run_checkpoint": "checkpoint", "PAPER_ITERATIONS": "config", "PRESETS": "config", "TrainConfig": "config",
     "parse_overrides": "config", "preset_config": "config", "TrainingData": "data", "load_image_store": "data",
-    "prepare_data": "data", "TrainingDiverged": "loop", "TrainResult": "loop", "train": "loop",
+    "prepare_data": "data", "TrainingDiverged": "loop", "TrainResult": "record", "train": "loop",
 }
 __all__ = sorted(_EXPORTS)
 

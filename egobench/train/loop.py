@@ -52,28 +52,13 @@ from egobench.train.config import TrainConfig
 from egobench.train.data import TrainingData, image_to_float, prepare_data
 from egobench.train.losses import twodgs_regularisers
 from egobench.train.photometric import photometric_loss
-from egobench.train.record import train_record
+from egobench.train.record import TrainResult, train_record
 from egobench.train.state import TrainState, load_state, new_state, state_dict
 
 
 class TrainingDiverged(RuntimeError):
     """Raised when a loss or parameter becomes non-finite, or refinement prunes every Gaussian
     (names the iteration and quantity)."""
-
-
-@dataclass
-class TrainResult:
-    """What `train` returns (and writes to train.json)."""
-
-    run_dir: Path
-    checkpoint: Path
-    iterations: int  # completed iterations
-    num_gaussians: int
-    time_s: float  # wall time of the iterations (all resumed segments, excluding setup and checkpoints)
-    iters_per_s: float
-    raster_time_share: float
-    final_loss: float
-    record: dict = field(default_factory=dict)
 
 
 @dataclass

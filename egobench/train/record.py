@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
+from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -21,10 +22,22 @@ from egobench.train.config import TrainConfig
 from egobench.train.data import TrainingData
 from egobench.train.state import TrainState
 
-if TYPE_CHECKING:  # pragma: no cover
-    from egobench.train.loop import TrainResult
-
 TRAIN_SCHEMA = "egobench.train/1"
+
+
+@dataclass
+class TrainResult:
+    """What `train` returns (and writes to train.json)."""
+
+    run_dir: Path
+    checkpoint: Path
+    iterations: int  # completed iterations
+    num_gaussians: int
+    time_s: float  # wall time of the iterations (all resumed segments, excluding setup and checkpoints)
+    iters_per_s: float
+    raster_time_share: float
+    final_loss: float
+    record: dict = field(default_factory=dict)
 
 
 #: how `raster_time_share` is timed, by the step that ran
@@ -32,7 +45,7 @@ _TIMING = {False: "render() wall time + backward from the rgb hook to the end of
            True: "the compiled step's render forward + its render backward (egobench.train.cpu_render), over iteration wall time"}
 
 
-def train_record(result: "TrainResult", state: TrainState, data: TrainingData, config: TrainConfig,
+def train_record(result: TrainResult, state: TrainState, data: TrainingData, config: TrainConfig,
                  method: str, backend: str, core_sharing: dict | None, compiled_step: bool = False) -> dict:
     """The train.json record of a run (``complete`` once every iteration has run). ``core_sharing``: the
     probes around this process's iterations (`egobench.core_sharing.bracket`; a resumed run: its last
