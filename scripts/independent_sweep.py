@@ -30,6 +30,7 @@ import time
 import traceback
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from unittest import mock
 
 REPO = Path(__file__).resolve().parents[1]
 WRITER = REPO / "scripts" / "independent_writer.py"
@@ -81,36 +82,26 @@ def _run(cmd: list[str], log: Path, in_process: bool = False) -> float:
 
 
 def _run_here(argv: list[str], fh) -> int:
-    """`egobench.cli.main(argv)` in this process on one torch and one kernel thread, its output (what Python writes)
-    to ``fh``; the process's torch threads and environment restored after. The sweep's bits where this process's
-    own libraries run on one thread too (numpy's BLAS reads OMP_NUM_THREADS when it loads: the test suite sets 1
-    first); an exception other than the command's own errors is written to ``fh`` and raised."""
-    import torch  # the in-process boundary: the harness itself runs without torch or egobench loaded
-
+    """`egobench.cli.main(argv)` in this process on one torch and one kernel thread (`bench.cpu_threads`) with the
+    subprocess's environment (`ONE_THREAD`), its output (what Python writes) to ``fh``; threads and environment
+    restored after. The sweep's bits where this process's own libraries run on one thread too (numpy's BLAS reads
+    OMP_NUM_THREADS when it loads: the test suite sets 1 first); an exception other than the command's own errors
+    is written to ``fh`` and raised."""
+    from egobench.bench import cpu_threads  # the in-process boundary: the harness itself runs without egobench loaded
     from egobench.cli import main
 
-    saved_env, saved_threads = {k: os.environ.get(k) for k in ONE_THREAD}, torch.get_num_threads()
-    try:
-        os.environ.update(ONE_THREAD)
-        torch.set_num_threads(1)
-        with contextlib.redirect_stdout(fh), contextlib.redirect_stderr(fh):
-            try:
-                return main(argv)
-            except SystemExit as e:  # argparse's usage errors and --help, as a process's exit status
-                if e.code is None or isinstance(e.code, int):
-                    return e.code or 0
-                print(e.code, file=fh)
-                return 1
-            except Exception:
-                traceback.print_exc(file=fh)
-                raise
-    finally:
-        torch.set_num_threads(saved_threads)
-        for k, v in saved_env.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
+    with mock.patch.dict(os.environ, ONE_THREAD), cpu_threads(1), contextlib.redirect_stdout(fh), \
+            contextlib.redirect_stderr(fh):
+        try:
+            return main(argv)
+        except SystemExit as e:  # argparse's usage errors and --help, as a process's exit status
+            if e.code is None or isinstance(e.code, int):
+                return e.code or 0
+            print(e.code, file=fh)
+            return 1
+        except Exception:
+            traceback.print_exc(file=fh)
+            raise
 
 
 def seeds_of(effect: str, seed_set: int = 1) -> range:
