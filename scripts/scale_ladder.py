@@ -11,9 +11,11 @@ Gaussian's travel and the Gaussians per pixel as at 128 px). Jobs run rung by ru
 
 OUT keeps only the small records: OUT/ladder.csv (one row per finished job: held-out PSNR, resolved wavelength,
 the budget, the recordings' size and frames, the training time and Gaussians as `egobench train` recorded them,
-the device and backend), OUT/ladder.md (per kind and rung: 'ours', each ablation's delta, the resolved
-wavelength, beside the paper's mean delta over its Table 1 scenes of that kind) and OUT/logs/ (each command's
-output; a failed job's is kept there and the ladder goes on). A job in OUT/ladder.csv is not run again: commit
+the device and backend, and the held-out PSNR frame by frame), OUT/ladder.md (per kind and rung: 'ours', each
+ablation's delta with its 95 % t-interval over the held-out frames, paired by frame, and the resolved wavelength,
+beside the paper's mean delta over its Table 1 scenes of that kind; how many deltas survive Holm in the paper's
+direction; each delta's line against log2(rung), frame by frame, read at the paper's 2400 px) and OUT/logs/
+(each command's output; a failed job's is kept there and the ladder goes on). A job in OUT/ladder.csv is not run again: commit
 OUT after a call and the next call (a fresh machine, WORK lost) continues the ladder. A job starts only where
 its estimated time (`estimate_s`) fits in what is left of the budget.
 """
@@ -23,23 +25,28 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import math
 import subprocess
 import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 from egobench.report import paper_numbers as pn
-from egobench.report.gains import paper_deltas
+from egobench.report.gains import ci95, holm, p_in_direction, paper_deltas
 
 KINDS = ("outdoor", "indoor")
 METHODS = ("ours", "no_motion_sampling", "no_viba")
 ABLATIONS = METHODS[1:]
 ITERATIONS_AT_128 = 1000
 GAUSSIANS_AT_128 = 8000
+#: the paper's image size, px: where `trend_lines` reads each delta's line
+PAPER_SIDE = 2400
 #: the smallest time a job is given before any has been timed, s
 MIN_JOB_S = 60
 FIELDS = ("kind", "rung", "method", "top", "frames", "iterations", "max_gaussians", "held_out_psnr",
-          "resolved_wavelength_px", "train_s", "gaussians", "device", "backend")
+          "held_out_psnr_by_frame", "resolved_wavelength_px", "train_s", "gaussians", "device", "backend")
 PAPER_TABLE = {"outdoor": pn.TABLE1_OUTDOOR, "indoor": pn.TABLE1_INDOOR}
 
 
@@ -108,6 +115,7 @@ def run_job(work: Path, logs: Path, rec: Path, job: tuple[str, int, str], top: i
     trained = json.loads((run / "train.json").read_text())["train"]
     return {"kind": kind, "rung": rung, "method": method, "top": top, "frames": frames, "iterations": iterations,
             "max_gaussians": gaussians, "held_out_psnr": record["metrics"][pn.PSNR],
+            "held_out_psnr_by_frame": " ".join(f"{e['frame']}:{e[pn.PSNR]!r}" for e in record["per_image"]),
             "resolved_wavelength_px": (record.get("fidelity") or {}).get("resolved_wavelength_px"),
             "train_s": round(float(trained["time_s"]), 1), "gaussians": trained.get("num_gaussians"),
             "device": trained.get("device", device), "backend": trained.get("backend", "")}
@@ -125,13 +133,71 @@ def estimate_s(rows: list[dict], rung: int) -> float:
     return slowest * (rung / base) ** 3 + MIN_JOB_S
 
 
+def by_frame(row: dict) -> dict[int, float]:
+    """A row's held-out PSNR per frame index (its `held_out_psnr_by_frame`: "frame:psnr" pairs)."""
+    pairs = (item.split(":") for item in row["held_out_psnr_by_frame"].split())
+    return {int(f): float(v) for f, v in pairs}
+
+
+def frame_diffs(ours: dict, other: dict) -> list[float]:
+    """'ours' minus the ablation, held-out PSNR dB, frame by frame (refused where their frames differ)."""
+    a, b = by_frame(ours), by_frame(other)
+    if set(a) != set(b):
+        raise SystemExit(f"ladder.csv: {ours['kind']} {ours['rung']} px: 'ours' and {other['method']} were evaluated "
+                         f"on different held-out frames ({sorted(a)} against {sorted(b)})")
+    return [a[f] - b[f] for f in sorted(a)]
+
+
+def delta_cell(ours: dict, other: dict) -> str:
+    """'ours' minus the ablation, dB, with its 95 % t-interval over the held-out frames (paired by frame)."""
+    lo, hi = ci95(frame_diffs(ours, other))
+    spread = "" if lo is None else f" [{lo:+.2f}, {hi:+.2f}]"
+    return f"{float(ours['held_out_psnr']) - float(other['held_out_psnr']):+.2f}{spread}"
+
+
+def holm_line(rows: list[dict]) -> str:
+    """How many deltas are in the paper's direction after Holm over all of them (one-sided paired t over the
+    held-out frames)."""
+    by = {(r["kind"], int(r["rung"]), r["method"]): r for r in rows}
+    p = [p_in_direction(frame_diffs(ours, by[(k, g, a)]), paper_delta(k, a))
+         for (k, g, m), ours in by.items() if m == "ours" for a in ABLATIONS if (k, g, a) in by]
+    adjusted = [q for q in holm(p) if q is not None]
+    return (f"Holm over the {len(adjusted)} deltas (one-sided paired t over the held-out frames, in the paper's "
+            f"direction): {sum(q < 0.05 for q in adjusted)} below 0.05.")
+
+
+def trend_lines(rows: list[dict]) -> list[str]:
+    """Per kind and ablation over two or more rungs: the delta's least-squares line against log2(rung), frame by
+    frame; its slope per doubling and its value at `PAPER_SIDE`, each the mean over the frames with its 95 %
+    t-interval (an extrapolation from this ladder's rungs, not a measurement)."""
+    by = {(r["kind"], int(r["rung"]), r["method"]): r for r in rows}
+    out = []
+    for kind in KINDS:
+        for a in ABLATIONS:
+            rungs = sorted(g for k, g, m in by if k == kind and m == "ours" and (kind, g, a) in by)
+            if len(rungs) < 2:
+                continue
+            x = np.log2(np.asarray(rungs, dtype=float) / rungs[0])
+            d = np.array([frame_diffs(by[(kind, g, "ours")], by[(kind, g, a)]) for g in rungs])  # [rungs, frames]
+            slope, intercept = np.polyfit(x, d, 1)  # one line per frame
+            at_paper = intercept + slope * math.log2(PAPER_SIDE / rungs[0])
+            cells = []
+            for name, v in (("per doubling", slope), (f"at {PAPER_SIDE} px", at_paper)):
+                lo, hi = ci95(v)
+                cells.append(f"{name} {np.mean(v):+.2f}" + ("" if lo is None else f" [{lo:+.2f}, {hi:+.2f}]"))
+            out.append(f"- {kind}, ours - {a} over {', '.join(map(str, rungs))} px: {'; '.join(cells)} "
+                       f"(paper {paper_delta(kind, a):+.2f})")
+    return out
+
+
 def table(rows: list[dict]) -> str:
     """OUT/ladder.md: per kind and rung, 'ours', each ablation's delta and the resolved wavelength, beside the
     paper's mean delta."""
     by = {(r["kind"], int(r["rung"]), r["method"]): r for r in rows}
     head = ["kind", "rung px", "iterations", "Gaussians", "'ours' PSNR", "resolved wavelength px",
             *[f"ours - {a} (paper)" for a in ABLATIONS]]
-    out = ["delta: 'ours' minus the ablation, held-out PSNR dB, one seed; in brackets the paper's mean over its "
+    out = ["delta: 'ours' minus the ablation, held-out PSNR dB, one seed, with its 95 % t-interval over the held-out "
+           "frames (paired by frame: the views' spread, not the seeds'); in parentheses the paper's mean over its "
            "Table 1 scenes of the kind.", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for kind, rung in sorted({(k, g) for k, g, _ in by}, key=lambda x: (KINDS.index(x[0]), x[1])):
         ours = by.get((kind, rung, "ours"))
@@ -141,10 +207,14 @@ def table(rows: list[dict]) -> str:
                  f"{float(ours['resolved_wavelength_px']):.1f}" if ours["resolved_wavelength_px"] not in (None, "") else "-"]
         for a in ABLATIONS:
             other = by.get((kind, rung, a))
-            delta = "-" if other is None else f"{float(ours['held_out_psnr']) - float(other['held_out_psnr']):+.2f}"
+            delta = "-" if other is None else delta_cell(ours, other)
             cells.append(f"{delta} ({paper_delta(kind, a):+.2f})")
         out.append("| " + " | ".join(str(c) for c in cells) + " |")
-    return "\n".join(out) + "\n"
+    trend = trend_lines(rows)
+    if trend:
+        trend = ["", "The delta against log2(rung), fitted frame by frame (an extrapolation to the paper's size, "
+                     "not a measurement):", *trend]
+    return "\n".join([*out, "", holm_line(rows), *trend]) + "\n"
 
 
 def main(argv: list[str] | None = None) -> int:

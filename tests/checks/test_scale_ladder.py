@@ -47,8 +47,11 @@ def _stub(monkeypatch, calls: list, fail: str = ""):
         elif args[0] == "evaluate":
             run = Path(args[args.index("--run") + 1])
             rung = int(run.name.split("_")[1])
-            psnr = 25.0 + rung / 100 + (0.5 if run.name.endswith("_ours") else 0.0)
-            (run / "eval.json").write_text(json.dumps({"metrics": {"psnr": psnr},
+            ours = run.name.endswith("_ours")
+            psnr = 25.0 + rung / 100 + (0.5 if ours else 0.0)
+            spread = 0.1 if ours else 0.0  # 'ours' - ablation: +0.4 on frame 0, +0.6 on frame 8
+            per_image = [{"frame": 0, "psnr": psnr - spread}, {"frame": 8, "psnr": psnr + spread}]
+            (run / "eval.json").write_text(json.dumps({"metrics": {"psnr": psnr}, "per_image": per_image,
                                                        "fidelity": {"resolved_wavelength_px": 8.0}}))
     monkeypatch.setattr(ladder, "_egobench", egobench)
 
@@ -74,7 +77,10 @@ def test_a_call_starts_only_the_jobs_its_budget_fits_and_the_next_continues(monk
     row = ladder.read_rows(out / "ladder.csv")[-1]
     assert (row["train_s"], row["gaussians"], row["backend"], row["top"], row["frames"]) == ("10.0", "321", "cpu", "64", "16")
     md = (out / "ladder.md").read_text()
-    assert "| outdoor | 64 | 500 | 2000 | 26.14 | 8.0 | +0.50 (+1.09) | +0.50 (+" in md
+    # the frames' paired differences +0.4 and +0.6: mean +0.5, sem 0.1, t(0.975, 1) = 12.706
+    assert "| outdoor | 64 | 500 | 2000 | 26.14 | 8.0 | +0.50 [-0.77, +1.77] (+1.09) | +0.50 [-0.77, +1.77] (+" in md
+    # t = 0.5 / 0.1 = 5 on 1 degree of freedom: p 0.063 each, none below 0.05 before or after Holm over the 8
+    assert "Holm over the 8 deltas (one-sided paired t over the held-out frames, in the paper's direction): 0 below" in md
     with pytest.raises(SystemExit, match=r"not \(128, 16\)"):  # jobs on other recordings are not mixed in
         ladder.main(["--out", str(out), "--work", str(tmp_path / "w3"), "--top", "128", "--rungs", "64", "--frames", "16"])
 
@@ -89,10 +95,39 @@ def test_a_failed_job_is_left_out_and_the_others_run(monkeypatch, tmp_path):
 
 def test_the_table_is_written_when_no_job_runs(tmp_path):
     assert ladder.main(["--out", str(tmp_path), "--work", str(tmp_path / "w"), "--budget-s", "1"]) == 0
-    assert (tmp_path / "ladder.md").read_text().count("\n") == 4 and not (tmp_path / "ladder.csv").exists()
+    md = (tmp_path / "ladder.md").read_text()
+    assert md.count("\n") == 6 and "Holm over the 0 deltas" in md and not (tmp_path / "ladder.csv").exists()
 
 
 def test_records_of_another_layout_are_refused(tmp_path):
     (tmp_path / "ladder.csv").write_text("kind,rung\noutdoor,128\n")
     with pytest.raises(SystemExit, match="ladder.csv: columns"):
         ladder.read_rows(tmp_path / "ladder.csv")
+
+
+def test_a_delta_pairs_the_frames_and_refuses_runs_on_different_frames():
+    ours = {"kind": "indoor", "rung": "128", "method": "ours", "held_out_psnr": "26.0",
+            "held_out_psnr_by_frame": "0:25.0 8:27.0 16:26.0"}
+    other = dict(ours, method="no_viba", held_out_psnr="25.0", held_out_psnr_by_frame="16:25.0 0:24.5 8:25.5")
+    # differences +0.5, +1.5, +1.0 (frames 0, 8, 16): mean +1.0, sem 0.2887, t(0.975, 2) = 4.303
+    assert ladder.delta_cell(ours, other) == "+1.00 [-0.24, +2.24]"
+    # t = 1.0 / 0.2887 = 3.46 on 2 degrees of freedom: one-sided p 0.037, the only delta
+    assert ladder.holm_line([ours, other]).endswith("1 below 0.05.")
+    assert ladder.holm_line([ours, dict(other, held_out_psnr_by_frame="0:24.5 8:28.0 16:25.0")]).endswith("0 below 0.05.")
+    with pytest.raises(SystemExit, match="different held-out frames"):
+        ladder.delta_cell(ours, dict(other, held_out_psnr_by_frame="0:24.5 8:25.5"))
+
+
+def test_the_trend_fits_each_frames_delta_against_log2_rung_and_reads_it_at_the_papers_size():
+    def row(rung, method, frames):
+        return {"kind": "indoor", "rung": str(rung), "method": method,
+                "held_out_psnr_by_frame": " ".join(f"{f}:{v}" for f, v in frames.items())}
+
+    rows = [row(128, "ours", {0: 26.0, 8: 27.0}), row(128, "no_viba", {0: 25.5, 8: 25.5}),
+            row(256, "ours", {0: 27.0, 8: 28.0}), row(256, "no_viba", {0: 26.0, 8: 25.5})]
+    # deltas 128 px: +0.5, +1.5; 256 px: +1.0, +2.5 -> slopes per doubling +0.5, +1.0 (mean +0.75, sem 0.25,
+    # t(0.975, 1) = 12.706); at 2400 px, log2(2400 / 128) = 4.2288 doublings on: +2.614 and +5.729
+    (line,) = ladder.trend_lines(rows)
+    assert line.startswith("- indoor, ours - no_viba over 128, 256 px: per doubling +0.75 [-2.43, +3.93]; "
+                           "at 2400 px +4.17 [-15.61, +23.96] (paper +1.11)")
+    assert ladder.trend_lines(rows[:2]) == []  # one rung: no line
