@@ -439,7 +439,23 @@ def bench_cast(device: str = "cpu", repeats: int = 7, kind: str = "indoor", side
             "median_ms": timing["median_ms"], "min_ms": timing["min_ms"],
             "cpu_median_ms": timing["cpu_median_ms"], "repeats": repeats,
             "rays_per_s": round(n / (timing["median_ms"] * 1e-3)), "by_chunk": by_chunk,
-            "note": "wall time of one Scene.cast call, median of repeats after 1 warm-up; noisy on a shared machine"}
+            "intersect": _time_intersect(scene, origins, directions, device, repeats, timing["median_ms"]),
+            "note": "wall time of one Scene.cast call, median of repeats after 1 warm-up; noisy on a shared machine; "
+                    "intersect: the closest-hit tests alone on the same rays, by backend (Scene.cast takes "
+                    "'compiled' on the CPU, 'torch' elsewhere), and their share of the cast: what a faster ray "
+                    "caster could remove"}
+
+
+def _time_intersect(scene, origins, directions, device: str, repeats: int, cast_ms: float) -> dict:
+    """`Scene.intersect` alone over the cast's rays, per backend that applies here: median ms, rays/s and the share
+    of one `Scene.cast` call's ``cast_ms``."""
+    unit = torch.nn.functional.normalize(directions, dim=-1)
+    out = {}
+    for backend in (("compiled", "torch") if str(device) == "cpu" else ("torch",)):
+        t = time_fwd_bwd(lambda: scene.intersect(origins, unit, backend=backend), device, repeats, warmup=1)
+        out[backend] = {"median_ms": t["median_ms"], "rays_per_s": round(origins.shape[0] / (t["median_ms"] * 1e-3)),
+                        "share_of_cast": round(t["median_ms"] / cast_ms, 4)}
+    return out
 
 
 def _time_cast_chunked(scene, origins, directions, pixel_angle_rad: float, chunk: int, device: str,

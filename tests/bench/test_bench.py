@@ -214,6 +214,10 @@ def test_bench_cast_record(capsys):
     json.dumps(rec, allow_nan=False)
     assert rec["rays"] == 8 * 8 * 2 and rec["image"] == "8x8" and rec["scene"] == "indoor_0"
     assert rec["median_ms"] > 0 and rec["rays_per_s"] == round(128 / (rec["median_ms"] * 1e-3))
+    assert set(rec["intersect"]) == {"compiled", "torch"}  # both closest-hit backends apply to CPU rays
+    for t in rec["intersect"].values():
+        assert t["share_of_cast"] == round(t["median_ms"] / rec["median_ms"], 4)
+        assert t["rays_per_s"] == round(128 / (t["median_ms"] * 1e-3))
     assert main(["bench", "cast", "--repeats", "1"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["benchmark"] == "cast" and out["rays"] == 128 * 128 * 8
@@ -230,6 +234,23 @@ def test_bench_cast_times_each_chunk_size_and_restores_the_simulators():
         assert c["rays_per_s"] == round(128 / (c["median_ms"] * 1e-3))
     with pytest.raises(ValueError, match="--chunk: expected a positive integer"):
         bench.bench_cast("cpu", repeats=1, side=8, samples=2, chunks=(0,))
+
+
+def test_bench_cast_times_the_closest_hits_of_the_casts_rays_by_backend(monkeypatch):
+    """The intersect timing calls `Scene.intersect` with the cast's rays, unit directions, and each backend."""
+    from egobench.sim.world.scene import Scene
+
+    seen, real = [], Scene.intersect
+
+    def spy(self, origins, directions, t_max=None, backend="auto"):
+        seen.append((backend, origins.shape[0], float((directions.norm(dim=-1) - 1).abs().max())))
+        return real(self, origins, directions, t_max, backend)
+
+    monkeypatch.setattr(Scene, "intersect", spy)
+    bench.bench_cast("cpu", repeats=2, side=4, samples=2)
+    explicit = [(b, n) for b, n, _ in seen if b != "auto"]  # Scene.cast's own calls take "auto"
+    assert explicit == [("compiled", 32)] * 3 + [("torch", 32)] * 3  # one warm-up and two repeats each
+    assert max(err for *_, err in seen) < 1e-6
 
 
 def test_chunked_cast_does_not_depend_on_the_chunk_size():
