@@ -150,7 +150,10 @@ def frame_diffs(ours: dict, other: dict) -> list[float]:
 
 def delta_cell(ours: dict, other: dict) -> str:
     """'ours' minus the ablation, dB, with its 95 % t-interval over the held-out frames (paired by frame)."""
-    lo, hi = ci95(frame_diffs(ours, other))
+    diffs = frame_diffs(ours, other)
+    if not any(diffs):
+        return "identical"  # every held-out frame's PSNR equal: the ablation changed nothing (e.g. one pose sample)
+    lo, hi = ci95(diffs)
     spread = "" if lo is None else f" [{lo:+.2f}, {hi:+.2f}]"
     return f"{float(ours['held_out_psnr']) - float(other['held_out_psnr']):+.2f}{spread}"
 
@@ -194,16 +197,18 @@ def table(rows: list[dict]) -> str:
     """OUT/ladder.md: per kind and rung, 'ours', each ablation's delta and the resolved wavelength, beside the
     paper's mean delta."""
     by = {(r["kind"], int(r["rung"]), r["method"]): r for r in rows}
-    head = ["kind", "rung px", "iterations", "Gaussians", "'ours' PSNR", "resolved wavelength px",
+    head = ["kind", "rung px", "iterations", "'ours' Gaussians (cap)", "'ours' PSNR", "resolved wavelength px",
             *[f"ours - {a} (paper)" for a in ABLATIONS]]
     out = ["delta: 'ours' minus the ablation, held-out PSNR dB, one seed, with its 95 % t-interval over the held-out "
-           "frames (paired by frame: the views' spread, not the seeds'); in parentheses the paper's mean over its "
-           "Table 1 scenes of the kind.", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+           "frames (paired by frame: the views' spread, not the seeds'), 'identical' where every frame's PSNR is equal; "
+           "in parentheses the paper's mean over its Table 1 scenes of the kind. Gaussians: those 'ours' ended with, "
+           "and in parentheses the rung's cap.", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for kind, rung in sorted({(k, g) for k, g, _ in by}, key=lambda x: (KINDS.index(x[0]), x[1])):
         ours = by.get((kind, rung, "ours"))
         if ours is None:
             continue
-        cells = [kind, rung, ours["iterations"], ours["max_gaussians"], f"{float(ours['held_out_psnr']):.2f}",
+        cells = [kind, rung, ours["iterations"], f"{ours['gaussians']} ({ours['max_gaussians']})",
+                 f"{float(ours['held_out_psnr']):.2f}",
                  f"{float(ours['resolved_wavelength_px']):.1f}" if ours["resolved_wavelength_px"] not in (None, "") else "-"]
         for a in ABLATIONS:
             other = by.get((kind, rung, a))

@@ -13,15 +13,23 @@ from egobench.train.config import TrainConfig
 from egobench.train.data import TrainingData, image_to_float
 
 
-def _knn_rms_distance(points: Tensor, k: int = 3) -> Tensor:
-    """RMS distance of each point [N, 3] to its k nearest neighbours -> [N] (as gsplat's init)."""
+def _knn_rms_distance(points: Tensor, k: int = 3) -> np.ndarray:
+    """RMS distance of each point [N, 3] to its k nearest neighbours -> [N] float64 (as gsplat's init)."""
     pts = points.detach().cpu().numpy().astype(np.float64)
     if len(pts) <= k:
-        return torch.full((len(pts),), 0.01, dtype=torch.float32)
+        return np.full(len(pts), 0.01)
     dist, _ = cKDTree(pts).query(pts, k=k + 1)
     d = np.sqrt((dist[:, 1:] ** 2).mean(axis=1))
-    d = np.maximum(d, 1e-7)
-    return torch.from_numpy(d).float()
+    return np.maximum(d, 1e-7)
+
+
+def initial_log_scales(points: Tensor, init_scale: float) -> Tensor:
+    """[N, 3] float32: log(init_scale x the 3-NN RMS distance), the same on all three axes. The log is numpy's
+    in float64, rounded once to float32: torch's CPU log on a tensor that its thread pool splits returned a
+    first half up to 4e-5 off in a few processes in twenty on an Intel Xeon (results/ladder/README.md,
+    2026-12-07), which made one seed train two different runs."""
+    log_d = np.log(_knn_rms_distance(points) * float(init_scale)).astype(np.float32)
+    return torch.from_numpy(np.repeat(log_d[:, None], 3, axis=1))
 
 
 def scene_colour_from_image(pixel: Tensor, k: Tensor, vignette: Tensor, spec: MethodSpec) -> Tensor:
@@ -42,7 +50,7 @@ def init_params(data: TrainingData, config: TrainConfig, generator: torch.Genera
         keep = torch.randperm(len(pts), generator=generator)[: config.max_gaussians].sort().values
         pts = pts[keep]
     N = len(pts)
-    scales = torch.log(_knn_rms_distance(pts) * config.init_scale)[:, None].repeat(1, 3)
+    scales = initial_log_scales(pts, config.init_scale)
     quats = torch.rand((N, 4), generator=generator)
     opacities = torch.logit(torch.full((N,), float(config.init_opacity)))
     colors = _initial_colours(data, pts) if config.init_colour == "image" else torch.full((N, 3), 0.5)

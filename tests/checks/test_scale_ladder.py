@@ -78,7 +78,7 @@ def test_a_call_starts_only_the_jobs_its_budget_fits_and_the_next_continues(monk
     assert (row["train_s"], row["gaussians"], row["backend"], row["top"], row["frames"]) == ("10.0", "321", "cpu", "64", "16")
     md = (out / "ladder.md").read_text()
     # the frames' paired differences +0.4 and +0.6: mean +0.5, sem 0.1, t(0.975, 1) = 12.706
-    assert "| outdoor | 64 | 500 | 2000 | 26.14 | 8.0 | +0.50 [-0.77, +1.77] (+1.09) | +0.50 [-0.77, +1.77] (+" in md
+    assert "| outdoor | 64 | 500 | 321 (2000) | 26.14 | 8.0 | +0.50 [-0.77, +1.77] (+1.09) | +0.50 [-0.77, +1.77] (+" in md
     # t = 0.5 / 0.1 = 5 on 1 degree of freedom: p 0.063 each, none below 0.05 before or after Holm over the 8
     assert "Holm over the 8 deltas (one-sided paired t over the held-out frames, in the paper's direction): 0 below" in md
     with pytest.raises(SystemExit, match=r"not \(128, 16\)"):  # jobs on other recordings are not mixed in
@@ -114,6 +114,7 @@ def test_a_delta_pairs_the_frames_and_refuses_runs_on_different_frames():
     # t = 1.0 / 0.2887 = 3.46 on 2 degrees of freedom: one-sided p 0.037, the only delta
     assert ladder.holm_line([ours, other]).endswith("1 below 0.05.")
     assert ladder.holm_line([ours, dict(other, held_out_psnr_by_frame="0:24.5 8:28.0 16:25.0")]).endswith("0 below 0.05.")
+    assert ladder.delta_cell(ours, dict(ours, method="no_motion_sampling")) == "identical"
     with pytest.raises(SystemExit, match="different held-out frames"):
         ladder.delta_cell(ours, dict(other, held_out_psnr_by_frame="0:24.5 8:25.5"))
 
