@@ -3,11 +3,12 @@
     python scripts/scale_ladder.py --out OUT --work WORK [--top 512] [--rungs 128,256,512]
         [--frames 48] [--device cuda] [--budget-s 480] [--dry-run]
 
-One outdoor and one indoor recording are simulated at TOP px (seed 0, into WORK; once a machine), and 'ours', w/o motion
-sampling and w/o VIBA are trained on each at every rung (`--set max_side=RUNG`, seed 0) and evaluated on the
-held-out frames. The budget of a rung is fixed by this rule, written before any run: the cpu preset's schedule
-with `ITERATIONS_AT_128` x (rung / 128) iterations and `GAUSSIANS_AT_128` x (rung / 128)^2 Gaussians at most (a
-Gaussian's travel and the Gaussians per pixel as at 128 px). Jobs run rung by rung, smallest first.
+One outdoor and one indoor recording are simulated at TOP px (seed 0, Aria's 16.26 ms readout: `READOUT_S`; into
+WORK; once a machine), and 'ours', w/o motion sampling and w/o VIBA are trained on each at every rung
+(`--set max_side=RUNG`, seed 0) and evaluated on the held-out frames. The budget of a rung is fixed by this rule,
+written before any run: the cpu preset's schedule with `ITERATIONS_AT_128` x (rung / 128) iterations and
+`GAUSSIANS_AT_128` x (rung / 128)^2 Gaussians at most (a Gaussian's travel and the Gaussians per pixel as at 128
+px). Jobs run rung by rung, smallest first.
 
 OUT keeps only the small records: OUT/ladder.csv (one row per finished job: held-out PSNR, resolved wavelength,
 the budget, the recordings' size and frames, the training time and Gaussians as `egobench train` recorded them,
@@ -39,6 +40,11 @@ from egobench.report.gains import ci95, holm, p_in_direction, paper_deltas
 KINDS = ("outdoor", "indoor")
 METHODS = ("ours", "no_motion_sampling", "no_viba")
 ABLATIONS = METHODS[1:]
+#: the recordings' rolling-shutter readout, s: Aria's full sensor (egobench.sim.devices), kept at every size so that
+#: the smear during readout is the paper's in angle and grows in pixels with the rung (the simulator's default,
+#: one line time, shortens the readout with the rows: 3.47 ms at 512 px, where no frame asked for a second pose
+#: sample; results/ladder/README.md, 2026-12-07)
+READOUT_S = 16.26e-3
 ITERATIONS_AT_128 = 1000
 GAUSSIANS_AT_128 = 8000
 #: the paper's image size, px: where `trend_lines` reads each delta's line
@@ -97,7 +103,8 @@ def recording(work: Path, logs: Path, kind: str, top: int, frames: int) -> Path:
     rec = work / f"{kind}_{top}"
     if not (rec / "recording.json").is_file():
         _egobench("simulate", "--kind", kind, "--seed", "0", "--out", str(rec), "--frames", str(frames),
-                  "--set", f"rectified_size={top}", "--no-progress", log=logs / f"simulate_{kind}.log")
+                  "--set", f"rectified_size={top}", "--set", f"readout_s={READOUT_S}", "--no-progress",
+                  log=logs / f"simulate_{kind}.log")
     return rec
 
 

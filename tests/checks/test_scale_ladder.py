@@ -34,6 +34,7 @@ def _stub(monkeypatch, calls: list, fail: str = ""):
     def egobench(*args, log):
         calls.append(args[0])
         if args[0] == "simulate":
+            assert "readout_s=0.01626" in args  # Aria's readout at every size, not the simulator's row-scaled one
             out = Path(args[args.index("--out") + 1])
             out.mkdir(parents=True)
             (out / "recording.json").write_text("{}")
