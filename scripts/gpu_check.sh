@@ -87,12 +87,13 @@ step bench_train 150 bash -c "python3 -m egobench.cli bench train --device cuda 
 step sim_frames 150 python3 -m egobench.cli simulate --out /tmp/sim2400 --kind outdoor --seed 0 \
   --set n_frames=2 --set rectified_size=2400 --set compute_device=cuda
 # the scale ladder (scripts/scale_ladder.py, docs/gpu-and-cluster.md), only where STEPS names it: it continues from
-# the committed records (results/gpu/ladder/ladder.csv) and leaves them, with what ran, in OUT/ladder
+# the committed records (results/gpu/ladder/ladder.csv) and leaves them, with what ran, in OUT/ladder; by default
+# on 1024 px recordings at 512 px (the CPU ladder's top rung, results/ladder/, on the GPU's rasterizer) and 1024 px
 if [[ " ${STEPS:-} " == *" ladder "* ]]; then
   mkdir -p "$OUT/ladder"
   [[ -e "$OUT/ladder/ladder.csv" ]] || cp results/gpu/ladder/ladder.csv "$OUT/ladder/" 2>/dev/null
   step ladder "$(($(left) - 20))" python3 scripts/scale_ladder.py --out "$OUT/ladder" --work /tmp/ladder \
-    --top "${LADDER_TOP:-512}" --rungs "${LADDER_RUNGS:-128,256,512}" --device cuda --budget-s "$(($(left) > 60 ? $(left) - 40 : 20))"
+    --top "${LADDER_TOP:-1024}" --rungs "${LADDER_RUNGS:-512,1024}" --device cuda --budget-s "$(($(left) > 60 ? $(left) - 40 : 20))"
 fi
 SMOKE=$(($(left) - 30))
 # a smoke run killed by its time limit leaves a lock; the next call unlocks and resumes it (frames, checkpoints)
