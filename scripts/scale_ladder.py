@@ -98,12 +98,14 @@ def _egobench(*args: str, log: Path) -> None:
         subprocess.run([sys.executable, "-m", "egobench.cli", *args], stdout=fh, stderr=subprocess.STDOUT, check=True)
 
 
-def recording(work: Path, logs: Path, kind: str, top: int, frames: int) -> Path:
-    """The kind's recording at TOP px (simulated once into WORK; the simulator resumes an interrupted one)."""
+def recording(work: Path, logs: Path, kind: str, top: int, frames: int, device: str = "cpu") -> Path:
+    """The kind's recording at TOP px (simulated once into WORK, its rays cast on ``device`` where that is a GPU;
+    the simulator resumes an interrupted one)."""
     rec = work / f"{kind}_{top}"
     if not (rec / "recording.json").is_file():
+        cast_on = ["--set", f"compute_device={device}"] if device.startswith("cuda") else []
         _egobench("simulate", "--kind", kind, "--seed", "0", "--out", str(rec), "--frames", str(frames),
-                  "--set", f"rectified_size={top}", "--set", f"readout_s={READOUT_S}", "--no-progress",
+                  "--set", f"rectified_size={top}", "--set", f"readout_s={READOUT_S}", *cast_on, "--no-progress",
                   log=logs / f"simulate_{kind}.log")
     return rec
 
@@ -142,7 +144,10 @@ def estimate_s(rows: list[dict], rung: int) -> float:
 
 def by_frame(row: dict) -> dict[int, float]:
     """A row's held-out PSNR per frame index (its `held_out_psnr_by_frame`: "frame:psnr" pairs)."""
-    pairs = (item.split(":") for item in row["held_out_psnr_by_frame"].split())
+    pairs = [item.split(":") for item in row["held_out_psnr_by_frame"].split()]
+    if not pairs:
+        raise SystemExit(f"ladder.csv: {row['kind']} {row['rung']} px {row['method']}: no held-out frame's PSNR "
+                         "(held_out_psnr_by_frame is empty)")
     return {int(f): float(v) for f, v in pairs}
 
 
@@ -162,18 +167,19 @@ def delta_cell(ours: dict, other: dict) -> str:
         return "identical"  # every held-out frame's PSNR equal: the ablation changed nothing (e.g. one pose sample)
     lo, hi = ci95(diffs)
     spread = "" if lo is None else f" [{lo:+.2f}, {hi:+.2f}]"
-    return f"{float(ours['held_out_psnr']) - float(other['held_out_psnr']):+.2f}{spread}"
+    return f"{float(np.mean(diffs)):+.2f}{spread}"
 
 
 def holm_line(rows: list[dict]) -> str:
-    """How many deltas are in the paper's direction after Holm over all of them (one-sided paired t over the
-    held-out frames)."""
+    """How many deltas are in the paper's direction after Holm over those tested (one-sided paired t over the
+    held-out frames); an identical delta is not tested, as `report.gains` leaves identical rows out."""
     by = {(r["kind"], int(r["rung"]), r["method"]): r for r in rows}
-    p = [p_in_direction(frame_diffs(ours, by[(k, g, a)]), paper_delta(k, a))
-         for (k, g, m), ours in by.items() if m == "ours" for a in ABLATIONS if (k, g, a) in by]
+    diffs = [(frame_diffs(ours, by[(k, g, a)]), paper_delta(k, a))
+             for (k, g, m), ours in by.items() if m == "ours" for a in ABLATIONS if (k, g, a) in by]
+    p = [p_in_direction(d, paper) if any(d) else None for d, paper in diffs]
     adjusted = [q for q in holm(p) if q is not None]
-    return (f"Holm over the {len(adjusted)} deltas (one-sided paired t over the held-out frames, in the paper's "
-            f"direction): {sum(q < 0.05 for q in adjusted)} below 0.05.")
+    return (f"Holm over the {len(adjusted)} deltas tested ({len(p) - len(adjusted)} identical, not tested; one-sided "
+            f"paired t over the held-out frames, in the paper's direction): {sum(q < 0.05 for q in adjusted)} below 0.05.")
 
 
 def trend_lines(rows: list[dict]) -> list[str]:
@@ -188,7 +194,13 @@ def trend_lines(rows: list[dict]) -> list[str]:
             if len(rungs) < 2:
                 continue
             x = np.log2(np.asarray(rungs, dtype=float) / rungs[0])
+            frames = {tuple(sorted(by_frame(by[(kind, g, "ours")]))) for g in rungs}
+            if len(frames) > 1:
+                raise SystemExit(f"ladder.csv: {kind}: the rungs were evaluated on different held-out frames ({sorted(frames)})")
             d = np.array([frame_diffs(by[(kind, g, "ours")], by[(kind, g, a)]) for g in rungs])  # [rungs, frames]
+            if not d.any():
+                out.append(f"- {kind}, ours - {a} over {', '.join(map(str, rungs))} px: identical at every rung")
+                continue
             slope, intercept = np.polyfit(x, d, 1)  # one line per frame
             at_paper = intercept + slope * math.log2(PAPER_SIDE / rungs[0])
             cells = []
@@ -260,7 +272,7 @@ def main(argv: list[str] | None = None) -> int:
                   f"{estimate_s(rows, job[1]):.0f} s)", flush=True)
             break
         try:
-            rec = recording(args.work, logs, job[0], args.top, args.frames)
+            rec = recording(args.work, logs, job[0], args.top, args.frames, args.device)
             rows.append(run_job(args.work, logs, rec, job, args.top, args.frames, args.device))
         except subprocess.CalledProcessError as err:
             failed.append(job)

@@ -81,7 +81,8 @@ def test_a_call_starts_only_the_jobs_its_budget_fits_and_the_next_continues(monk
     # the frames' paired differences +0.4 and +0.6: mean +0.5, sem 0.1, t(0.975, 1) = 12.706
     assert "| outdoor | 64 | 500 | 321 (2000) | 26.14 | 8.0 | +0.50 [-0.77, +1.77] (+1.09) | +0.50 [-0.77, +1.77] (+" in md
     # t = 0.5 / 0.1 = 5 on 1 degree of freedom: p 0.063 each, none below 0.05 before or after Holm over the 8
-    assert "Holm over the 8 deltas (one-sided paired t over the held-out frames, in the paper's direction): 0 below" in md
+    assert "Holm over the 8 deltas tested (0 identical, not tested; one-sided paired t over the held-out frames, " \
+           "in the paper's direction): 0 below" in md
     with pytest.raises(SystemExit, match=r"not \(128, 16\)"):  # jobs on other recordings are not mixed in
         ladder.main(["--out", str(out), "--work", str(tmp_path / "w3"), "--top", "128", "--rungs", "64", "--frames", "16"])
 
@@ -97,7 +98,7 @@ def test_a_failed_job_is_left_out_and_the_others_run(monkeypatch, tmp_path):
 def test_the_table_is_written_when_no_job_runs(tmp_path):
     assert ladder.main(["--out", str(tmp_path), "--work", str(tmp_path / "w"), "--budget-s", "1"]) == 0
     md = (tmp_path / "ladder.md").read_text()
-    assert md.count("\n") == 6 and "Holm over the 0 deltas" in md and not (tmp_path / "ladder.csv").exists()
+    assert md.count("\n") == 6 and "Holm over the 0 deltas tested" in md and not (tmp_path / "ladder.csv").exists()
 
 
 def test_records_of_another_layout_are_refused(tmp_path):
@@ -125,11 +126,46 @@ def test_the_trend_fits_each_frames_delta_against_log2_rung_and_reads_it_at_the_
         return {"kind": "indoor", "rung": str(rung), "method": method,
                 "held_out_psnr_by_frame": " ".join(f"{f}:{v}" for f, v in frames.items())}
 
-    rows = [row(128, "ours", {0: 26.0, 8: 27.0}), row(128, "no_viba", {0: 25.5, 8: 25.5}),
-            row(256, "ours", {0: 27.0, 8: 28.0}), row(256, "no_viba", {0: 26.0, 8: 25.5})]
-    # deltas 128 px: +0.5, +1.5; 256 px: +1.0, +2.5 -> slopes per doubling +0.5, +1.0 (mean +0.75, sem 0.25,
-    # t(0.975, 1) = 12.706); at 2400 px, log2(2400 / 128) = 4.2288 doublings on: +2.614 and +5.729
+    rows = [row(256, "ours", {0: 26.0, 8: 27.0}), row(256, "no_viba", {0: 25.5, 8: 25.5}),
+            row(512, "ours", {0: 27.0, 8: 28.0}), row(512, "no_viba", {0: 26.0, 8: 25.5}),
+            row(1024, "ours", {0: 27.0, 8: 28.0}), row(1024, "no_viba", {0: 26.5, 8: 24.5})]
+    # deltas at 256, 512, 1024 px: frame 0 +0.5, +1.0, +0.5; frame 8 +1.5, +2.5, +3.5 (x = 0, 1, 2 doublings).
+    # Least squares: frame 0 slope 0, intercept 2/3; frame 8 slope +1.0, intercept +1.5 -> slopes mean +0.5, sem 0.5,
+    # t(0.975, 1) = 12.706. At 2400 px, log2(2400 / 256) = 3.2288 doublings on: +0.667 and +4.729
     (line,) = ladder.trend_lines(rows)
-    assert line.startswith("- indoor, ours - no_viba over 128, 256 px: per doubling +0.75 [-2.43, +3.93]; "
-                           "at 2400 px +4.17 [-15.61, +23.96] (paper +1.11)")
+    assert line.startswith("- indoor, ours - no_viba over 256, 512, 1024 px: per doubling +0.50 [-5.85, +6.85]; "
+                           "at 2400 px +2.70 [-23.11, +28.51] (paper +1.11)")
     assert ladder.trend_lines(rows[:2]) == []  # one rung: no line
+    same = [dict(r, method="no_viba") if r["method"] == "no_viba" else r for r in rows[::2]]
+    same += [dict(r, method="no_viba") for r in rows[::2]]
+    assert ladder.trend_lines(same) == ["- indoor, ours - no_viba over 256, 512, 1024 px: identical at every rung"]
+
+
+def test_holm_leaves_identical_deltas_out_and_tests_in_the_papers_direction():
+    def pair(kind, rung, a, diffs):
+        frames = " ".join(f"{8 * i}:30.0" for i in range(len(diffs)))
+        other = " ".join(f"{8 * i}:{30.0 - d}" for i, d in enumerate(diffs))
+        return [{"kind": kind, "rung": str(rung), "method": "ours", "held_out_psnr_by_frame": frames},
+                {"kind": kind, "rung": str(rung), "method": a, "held_out_psnr_by_frame": other}]
+
+    # +1.0 over 6 frames, sd 0.14: t = 17.3 on 5 df, one-sided p 5.9e-6; against the paper's direction p = 1
+    gain = [0.8, 1.2, 0.9, 1.1, 1.0, 1.0]
+    rows = pair("indoor", 128, "no_viba", gain) + pair("indoor", 128, "no_motion_sampling", [0.0] * 6)
+    assert ladder.holm_line(rows).startswith("Holm over the 1 deltas tested (1 identical, not tested;")
+    assert ladder.holm_line(rows).endswith("1 below 0.05.")
+    loss = pair("indoor", 128, "no_viba", [-d for d in gain])
+    assert ladder.holm_line(loss).endswith("0 below 0.05.")  # one-sided: a loss is not a finding in the paper's direction
+    # raw p 0.042 (t = 2.15 on 5 df) is below 0.05 alone, and above it times 4 after Holm
+    weak = [1.0, 0.0, 2.0, 1.0, -0.5, 2.5]
+    assert ladder.holm_line(pair("indoor", 128, "no_viba", weak)).endswith("1 below 0.05.")
+    four = pair("indoor", 128, "no_viba", weak) + pair("indoor", 256, "no_viba", weak) + \
+        pair("outdoor", 128, "no_viba", weak) + pair("outdoor", 256, "no_viba", weak)
+    assert ladder.holm_line(four).endswith("0 below 0.05.")
+
+
+def test_recordings_are_cast_on_the_gpu_the_ladder_trains_on(monkeypatch, tmp_path):
+    seen = []
+    monkeypatch.setattr(ladder, "_egobench", lambda *args, log: seen.append(args))
+    ladder.recording(tmp_path / "w", tmp_path / "logs", "indoor", 64, 8, "cuda")
+    ladder.recording(tmp_path / "w", tmp_path / "logs", "outdoor", 64, 8, "cpu")
+    assert "compute_device=cuda" in seen[0] and not any("compute_device" in a for a in seen[1])

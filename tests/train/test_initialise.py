@@ -24,10 +24,10 @@ def test_initial_log_scales_are_the_log_of_the_scaled_3nn_rms_distance_on_a_latt
 def test_initial_log_scales_are_rounded_once_from_float64():
     rng = np.random.default_rng(0)
     pts = torch.tensor(rng.normal(size=(3000, 3)), dtype=torch.float32)
-    out = initial_log_scales(pts, 1.0)[:, 0].numpy()
+    out = initial_log_scales(pts, 1.5)[:, 0].numpy()
     p = pts.numpy().astype(np.float64)
     dist, _ = cKDTree(p).query(p, k=4)
-    want = np.log(np.sqrt((dist[:, 1:] ** 2).mean(axis=1))).astype(np.float32)
+    want = np.log(1.5 * np.sqrt((dist[:, 1:] ** 2).mean(axis=1))).astype(np.float32)
     assert np.array_equal(out, want)  # numpy's float64 log rounded to float32: no torch kernel in between
 
 
