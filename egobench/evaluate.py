@@ -134,14 +134,9 @@ def _evaluate_frame(held: _Held, f: Frame, n: int, geo_rec: Recording | None, re
     return entry
 
 
-def _predict(held: _Held, f: Frame, n: int):
-    """The run's prediction of held-out frame ``f`` with ``n`` pose samples."""
-    return held.predict(f, n)
-
-
 def _render_pair(held: _Held, f: Frame, n: int):
     """(prediction, its 8-bit render [H, W, 3], the captured image at the run's size) of a held-out frame."""
-    p = _predict(held, f, n)
+    p = held.predict(f, n)
     return p, quantise8(p.image), resize_map(held.recording.load_image(f), held.run.camera)
 
 
@@ -165,7 +160,7 @@ def held_out_renders(recording_dir, run_dir, device: str | None = None):
             if path is None:
                 raise FileNotFoundError(f"{recording_dir}: ground_truth/radiance/{f.index:05d}.npy missing "
                                         "(the simulator's clean radiance of a held-out frame)")
-            p = _predict(held, f, n)
+            p = held.predict(f, n)
             rgb = p.rgb.float()
             linear = held.formation.response.decode(rgb) if spec.scene_gamma else rgb
             radiance = resize_map(torch.from_numpy(np.load(path).astype(np.float32)), held.run.camera)

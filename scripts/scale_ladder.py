@@ -142,6 +142,17 @@ def estimate_s(rows: list[dict], rung: int) -> float:
     return slowest * (rung / base) ** 3 + MIN_JOB_S
 
 
+def jobs(rows: list[dict]) -> dict[tuple[str, int, str], dict]:
+    """The rows by job: (kind, rung, method) -> row."""
+    return {(r["kind"], int(r["rung"]), r["method"]): r for r in rows}
+
+
+def with_interval(values) -> str:
+    """The values' mean, dB, and its 95 % t-interval where there are two or more (`report.gains.ci95`)."""
+    lo, hi = ci95(values)
+    return f"{float(np.mean(values)):+.2f}" + ("" if lo is None else f" [{lo:+.2f}, {hi:+.2f}]")
+
+
 def by_frame(row: dict) -> dict[int, float]:
     """A row's held-out PSNR per frame index (its `held_out_psnr_by_frame`: "frame:psnr" pairs)."""
     pairs = [item.split(":") for item in row["held_out_psnr_by_frame"].split()]
@@ -165,15 +176,13 @@ def delta_cell(ours: dict, other: dict) -> str:
     diffs = frame_diffs(ours, other)
     if not any(diffs):
         return "identical"  # every held-out frame's PSNR equal: the ablation changed nothing (e.g. one pose sample)
-    lo, hi = ci95(diffs)
-    spread = "" if lo is None else f" [{lo:+.2f}, {hi:+.2f}]"
-    return f"{float(np.mean(diffs)):+.2f}{spread}"
+    return with_interval(diffs)
 
 
 def holm_line(rows: list[dict]) -> str:
     """How many deltas are in the paper's direction after Holm over those tested (one-sided paired t over the
     held-out frames); an identical delta is not tested, as `report.gains` leaves identical rows out."""
-    by = {(r["kind"], int(r["rung"]), r["method"]): r for r in rows}
+    by = jobs(rows)
     diffs = [(frame_diffs(ours, by[(k, g, a)]), paper_delta(k, a))
              for (k, g, m), ours in by.items() if m == "ours" for a in ABLATIONS if (k, g, a) in by]
     p = [p_in_direction(d, paper) if any(d) else None for d, paper in diffs]
@@ -186,7 +195,7 @@ def trend_lines(rows: list[dict]) -> list[str]:
     """Per kind and ablation over two or more rungs: the delta's least-squares line against log2(rung), frame by
     frame; its slope per doubling and its value at `PAPER_SIDE`, each the mean over the frames with its 95 %
     t-interval (an extrapolation from this ladder's rungs, not a measurement)."""
-    by = {(r["kind"], int(r["rung"]), r["method"]): r for r in rows}
+    by = jobs(rows)
     out = []
     for kind in KINDS:
         for a in ABLATIONS:
@@ -203,10 +212,7 @@ def trend_lines(rows: list[dict]) -> list[str]:
                 continue
             slope, intercept = np.polyfit(x, d, 1)  # one line per frame
             at_paper = intercept + slope * math.log2(PAPER_SIDE / rungs[0])
-            cells = []
-            for name, v in (("per doubling", slope), (f"at {PAPER_SIDE} px", at_paper)):
-                lo, hi = ci95(v)
-                cells.append(f"{name} {np.mean(v):+.2f}" + ("" if lo is None else f" [{lo:+.2f}, {hi:+.2f}]"))
+            cells = [f"per doubling {with_interval(slope)}", f"at {PAPER_SIDE} px {with_interval(at_paper)}"]
             out.append(f"- {kind}, ours - {a} over {', '.join(map(str, rungs))} px: {'; '.join(cells)} "
                        f"(paper {paper_delta(kind, a):+.2f})")
     return out
@@ -215,7 +221,7 @@ def trend_lines(rows: list[dict]) -> list[str]:
 def table(rows: list[dict]) -> str:
     """OUT/ladder.md: per kind and rung, 'ours', each ablation's delta and the resolved wavelength, beside the
     paper's mean delta."""
-    by = {(r["kind"], int(r["rung"]), r["method"]): r for r in rows}
+    by = jobs(rows)
     head = ["kind", "rung px", "iterations", "'ours' Gaussians (cap)", "'ours' PSNR", "resolved wavelength px",
             *[f"ours - {a} (paper)" for a in ABLATIONS]]
     out = ["delta: 'ours' minus the ablation, held-out PSNR dB, one seed, with its 95 % t-interval over the held-out "
@@ -257,7 +263,7 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--rungs: expected sizes from 8 to --top ({args.top}) px, got {args.rungs!r}")
     args.out.mkdir(parents=True, exist_ok=True)
     rows = read_rows(args.out / "ladder.csv", args.top, args.frames)
-    done = {(r["kind"], int(r["rung"]), r["method"]) for r in rows}
+    done = set(jobs(rows))
     todo = [(k, g, m) for g in rungs for k in KINDS for m in METHODS if (k, g, m) not in done]
     if args.dry_run:
         for k, g, m in todo:
